@@ -1,0 +1,39 @@
+# diffaccel developer commands.  `make demo` and `make test` install on first use.
+PYTHON ?= python3
+VENV ?= .venv
+# CPU build of PyTorch by default; override e.g. `make install TORCH=torch` for CUDA.
+TORCH ?= torch==2.13.0
+BIN := $(VENV)/bin
+OUT ?= demo_output
+
+.PHONY: install demo test lint format bench clean
+
+$(BIN)/diffaccel:
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet "$(TORCH)"
+	$(BIN)/pip install --quiet -e ".[test]"
+
+install: $(BIN)/diffaccel
+
+demo: $(BIN)/diffaccel
+	$(BIN)/diffaccel demo --out $(OUT)
+
+test: $(BIN)/diffaccel
+	$(BIN)/ruff check src tests benchmarks
+	$(BIN)/python -m pytest -q --doctest-modules src/diffaccel tests
+
+lint: $(BIN)/diffaccel
+	$(BIN)/ruff check src tests benchmarks
+	$(BIN)/ruff format --check src tests benchmarks
+
+format: $(BIN)/diffaccel
+	$(BIN)/ruff format src tests benchmarks
+	$(BIN)/ruff check --fix src tests benchmarks
+
+bench: $(BIN)/diffaccel
+	$(BIN)/pip install --quiet -e ".[bench]"
+	for b in benchmarks/*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
+
+clean:
+	rm -rf $(VENV) $(OUT) .pytest_cache .ruff_cache

@@ -1,0 +1,21 @@
+"""The ``diffaccel`` command-line tool: one click group, commands in sibling modules."""
+
+from __future__ import annotations
+
+import logging
+
+import click
+
+from diffaccel import __version__
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="diffaccel")
+@click.option("-v", "--verbose", count=True, help="More log output (-v info, -vv debug).")
+def main(verbose: int) -> None:
+    """Differentiable modeling of particle accelerators."""
+    level = logging.WARNING - 10 * min(verbose, 2)
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+
+
+# Commands register themselves below (one module per command family).
