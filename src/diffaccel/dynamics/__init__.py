@@ -1,1 +1,66 @@
-"""diffaccel.dynamics."""
+"""diffaccel.dynamics: differentiable particle tracking, screen images and statistics.
+
+Coordinates are Bmad's ``(x, px, y, py, z, pz)`` about a reference momentum
+``p0c`` [eV], as tensors shaped ``(*K, N, 6)`` (see ``docs/coordinates.md``).
+"""
+
+from __future__ import annotations
+
+from diffaccel.dynamics.beamline import ELEMENT_TYPES, Beamline
+from diffaccel.dynamics.constants import (
+    ELECTRON_MASS_EV,
+    PROTON_MASS_EV,
+    SPEED_OF_LIGHT,
+)
+from diffaccel.dynamics.elements import (
+    Dipole,
+    Drift,
+    Element,
+    Quadrupole,
+    Screen,
+    TransverseDeflectingCavity,
+)
+from diffaccel.dynamics.images import cic_image, gaussian_blur, kde_image, pixel_centers
+from diffaccel.dynamics.species import ELECTRON, POSITRON, PROTON, Species
+from diffaccel.dynamics.statistics import (
+    Twiss,
+    centroid,
+    covariance,
+    emittance,
+    emittance_4d,
+    emittance_6d,
+    normalized_emittance,
+    rms_sizes,
+    twiss,
+)
+
+__all__ = [
+    "ELECTRON",
+    "ELECTRON_MASS_EV",
+    "ELEMENT_TYPES",
+    "POSITRON",
+    "PROTON",
+    "PROTON_MASS_EV",
+    "SPEED_OF_LIGHT",
+    "Beamline",
+    "Dipole",
+    "Drift",
+    "Element",
+    "Quadrupole",
+    "Screen",
+    "Species",
+    "TransverseDeflectingCavity",
+    "Twiss",
+    "centroid",
+    "cic_image",
+    "covariance",
+    "emittance",
+    "emittance_4d",
+    "emittance_6d",
+    "gaussian_blur",
+    "kde_image",
+    "normalized_emittance",
+    "pixel_centers",
+    "rms_sizes",
+    "twiss",
+]

@@ -1,0 +1,288 @@
+"""An ordered list of elements, built from the quad-scan dataset's JSON spec."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping, Sequence
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from diffaccel.dynamics._validate import as_p0c, check_particles
+from diffaccel.dynamics.elements.dipole import Dipole
+from diffaccel.dynamics.elements.drift import Drift
+from diffaccel.dynamics.elements.element import Element
+from diffaccel.dynamics.elements.quadrupole import Quadrupole
+from diffaccel.dynamics.elements.screen import Screen
+from diffaccel.dynamics.elements.transverse_deflecting_cavity import (
+    TransverseDeflectingCavity,
+)
+from diffaccel.dynamics.species import ELECTRON, Species
+
+__all__ = ["ELEMENT_TYPES", "Beamline"]
+
+#: Element classes by the ``"type"`` string used in specs.
+ELEMENT_TYPES: dict[str, type[Element]] = {
+    cls.__name__: cls
+    for cls in (Drift, Quadrupole, Dipole, TransverseDeflectingCavity, Screen)
+}
+_SCREEN_KEYS = ("shape", "pixel_size", "center")
+
+
+class Beamline(nn.Module):
+    """An ordered sequence of uniquely named elements.
+
+    Tracking never changes the beamline: scan settings are applied to copies of
+    the elements (see :meth:`track`).
+
+    Args:
+        elements: The elements in beam order; names must be unique.
+
+    Shapes:
+        ``track``: particles ``(N, 6)`` or ``(*K, N, 6)`` and settings ``(*K, P)``
+        -> ``(*K, N, 6)``.
+
+    Example:
+        >>> spec = [
+        ...     {"type": "Quadrupole", "name": "Q1", "length": 0.1, "k1": 0.0},
+        ...     {"type": "Drift", "name": "D1", "length": 1.0},
+        ...     {"type": "Screen", "name": "SCREEN"},
+        ... ]
+        >>> bl = Beamline.from_spec(spec)
+        >>> k1 = torch.linspace(-25.0, 15.0, 20).unsqueeze(-1)
+        >>> p = torch.zeros(100, 6)
+        >>> bl.track(p, p0c=43.36e6, settings=k1, names=["Q1.k1"]).shape
+        torch.Size([20, 100, 6])
+    """
+
+    def __init__(self, elements: Sequence[Element]) -> None:
+        super().__init__()
+        names = [e.name for e in elements]
+        for e in elements:
+            if not isinstance(e, Element):
+                raise TypeError(f"Beamline takes Elements; got {type(e).__name__}.")
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"Element names must be unique; repeated: {dup}.")
+        self.elements = nn.ModuleList(elements)
+
+    @classmethod
+    def from_spec(cls, spec: Sequence[Mapping[str, Any]]) -> Beamline:
+        """Build from a list of element dicts (the quad-scan ``beamline`` JSON).
+
+        Each dict has ``"type"`` (one of :data:`ELEMENT_TYPES`), ``"name"`` and
+        numeric parameters (e.g. ``"length"`` [m], ``"k1"`` [1/m^2]); a Screen
+        may carry ``"shape"``, ``"pixel_size"`` and ``"center"``.
+
+        Raises:
+            ValueError: for an unknown type or parameter (the known ones are
+                listed), a missing name or a bad value.
+        """
+        if isinstance(spec, str | bytes) or not isinstance(spec, Sequence):
+            raise ValueError(
+                "spec must be a list of element dicts (decode the JSON first)."
+            )
+        elements = []
+        for pos, entry in enumerate(spec):
+            if not isinstance(entry, Mapping):
+                raise ValueError(f"spec[{pos}] must be a dict; got {entry!r}.")
+            entry = dict(entry)
+            kind = entry.pop("type", None)
+            if kind not in ELEMENT_TYPES:
+                raise ValueError(
+                    f"spec[{pos}]: unknown element type {kind!r}; known types are "
+                    f"{sorted(ELEMENT_TYPES)}."
+                )
+            name = entry.pop("name", None)
+            if not isinstance(name, str) or not name:
+                raise ValueError(f"spec[{pos}] ({kind}) needs a non-empty 'name'.")
+            elem_cls = ELEMENT_TYPES[kind]
+            known = list(elem_cls.param_names)
+            if elem_cls is Screen:
+                known += list(_SCREEN_KEYS)
+            unknown = sorted(set(entry) - set(known))
+            if unknown:
+                raise ValueError(
+                    f"spec[{pos}] ({kind} {name!r}): unknown parameter(s) {unknown}; "
+                    f"known parameters are {known}."
+                )
+            if elem_cls is Screen:
+                elements.append(Screen(name, **entry))
+            else:
+                values = {
+                    k: torch.as_tensor(v, dtype=torch.float64) for k, v in entry.items()
+                }
+                elements.append(elem_cls(name, **values))
+        return cls(elements)
+
+    def to_spec(self) -> list[dict[str, Any]]:
+        """The JSON-serialisable element list (inverse of :meth:`from_spec`)."""
+        return [e.to_spec() for e in self.elements]
+
+    @property
+    def element_names(self) -> list[str]:
+        """Element names in beam order."""
+        return [e.name for e in self.elements]
+
+    def __getitem__(self, name: str) -> Element:
+        for e in self.elements:
+            if e.name == name:
+                return e
+        raise KeyError(f"No element named {name!r}; elements are {self.element_names}.")
+
+    def __iter__(self) -> Iterator[Element]:
+        return iter(self.elements)
+
+    def __len__(self) -> int:
+        return len(self.elements)
+
+    @property
+    def length(self) -> Tensor:
+        """Total length [m] (broadcast over batched lengths)."""
+        total = torch.zeros((), dtype=torch.float64)
+        for e in self.elements:
+            total = total + e.length.to(total.dtype)
+        return total
+
+    def with_screen(
+        self,
+        name: str,
+        shape: Sequence[int],
+        pixel_size: Sequence[float] | float,
+        center: Sequence[float] = (0.0, 0.0),
+    ) -> Beamline:
+        """A new beamline whose screen ``name`` has the given geometry."""
+        if not isinstance(self[name], Screen):
+            raise ValueError(f"Element {name!r} is a {type(self[name]).__name__}.")
+        return Beamline(
+            [
+                Screen(name, shape, pixel_size, center) if e.name == name else e
+                for e in self.elements
+            ]
+        )
+
+    def with_params(self, values: Mapping[str, Tensor | float]) -> Beamline:
+        """A new beamline with ``{"Q1.k1": value, ...}`` applied; ``self`` unchanged."""
+        per_element: dict[str, dict[str, Tensor | float]] = {}
+        for key, value in values.items():
+            elem, attr = self._split_name(key)
+            per_element.setdefault(elem, {})[attr] = value
+        return Beamline(
+            [
+                e.with_params(**per_element[e.name]) if e.name in per_element else e
+                for e in self.elements
+            ]
+        )
+
+    def _split_name(self, key: str) -> tuple[str, str]:
+        if not isinstance(key, str) or key.count(".") < 1:
+            raise ValueError(
+                f"Setting name {key!r} must look like 'ELEMENT.parameter', "
+                "e.g. 'Q1.k1'."
+            )
+        elem, attr = key.rsplit(".", 1)
+        if elem not in self.element_names:
+            raise ValueError(
+                f"Setting {key!r}: no element {elem!r}; elements are "
+                f"{self.element_names}."
+            )
+        known = self[elem].param_names
+        if attr not in known:
+            raise ValueError(
+                f"Setting {key!r}: {type(self[elem]).__name__} {elem!r} has no "
+                f"parameter {attr!r}; known parameters are {list(known)}."
+            )
+        return elem, attr
+
+    def _scanned(
+        self, settings: Tensor | None, names: Sequence[str] | None
+    ) -> Beamline:
+        if settings is None and names is None:
+            return self
+        if settings is None or names is None:
+            raise ValueError("Give both settings and names, or neither.")
+        settings = torch.as_tensor(settings)
+        if isinstance(names, str):
+            raise ValueError(
+                f"names must be a list of strings; got the string {names!r}."
+            )
+        if settings.dim() < 1 or settings.shape[-1] != len(names):
+            raise ValueError(
+                f"settings must be shaped (*K, P) with P = len(names) = {len(names)}; "
+                f"got {tuple(settings.shape)}."
+            )
+        if not bool(torch.isfinite(settings).all()):
+            raise ValueError("settings contain NaN or infinite values.")
+        if len(set(names)) != len(names):
+            raise ValueError(f"names must be unique; got {list(names)}.")
+        return self.with_params({n: settings[..., p] for p, n in enumerate(names)})
+
+    def track(
+        self,
+        particles: Tensor,
+        p0c: Tensor | float,
+        settings: Tensor | None = None,
+        names: Sequence[str] | None = None,
+        species: Species = ELECTRON,
+    ) -> Tensor:
+        """Track particles through the whole beamline.
+
+        Args:
+            particles: Bmad coordinates at the entrance, ``(N, 6)`` or ``(*K, N, 6)``.
+            p0c: Reference momentum times c [eV], scalar or ``(*K,)``.
+            settings: Optional scan values ``(*K, P)``; column ``p`` sets the
+                element parameter ``names[p]``.
+            names: ``P`` names like ``"Q1.k1"`` (element name, dot, parameter).
+            species: Tracked species (default electron).
+
+        Returns:
+            Coordinates at the end, ``(*K, N, 6)``.
+        """
+        return self._run(particles, p0c, settings, names, species)[0]
+
+    def track_screens(
+        self,
+        particles: Tensor,
+        p0c: Tensor | float,
+        settings: Tensor | None = None,
+        names: Sequence[str] | None = None,
+        species: Species = ELECTRON,
+    ) -> dict[str, Tensor]:
+        """Particles at every screen, ``{name: (*K, N, 6)}``.
+
+        Arguments as in :meth:`track`.
+        """
+        return self._run(particles, p0c, settings, names, species)[1]
+
+    def _run(
+        self,
+        particles: Tensor,
+        p0c: Tensor | float,
+        settings: Tensor | None,
+        names: Sequence[str] | None,
+        species: Species,
+    ) -> tuple[Tensor, dict[str, Tensor]]:
+        check_particles(particles)
+        p0c = as_p0c(p0c, particles)
+        line = self._scanned(settings, names)
+        screens: dict[str, Tensor] = {}
+        for e in line.elements:
+            particles = e.track(particles, p0c, species)
+            if isinstance(e, Screen):
+                screens[e.name] = particles
+        return particles, screens
+
+    def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
+        """Product of the elements' linear maps, shape ``(*K, 6, 6)``."""
+        r = None
+        for e in self.elements:
+            if isinstance(e, Screen):
+                continue
+            m = e.transfer_map(p0c, species)
+            r = m if r is None else m @ r
+        if r is None:
+            return torch.eye(6, dtype=torch.float64)
+        return r
+
+    def extra_repr(self) -> str:
+        return f"elements={self.element_names}"

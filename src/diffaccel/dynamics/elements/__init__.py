@@ -1,0 +1,21 @@
+"""Beamline elements, one per module."""
+
+from __future__ import annotations
+
+from diffaccel.dynamics.elements.dipole import Dipole
+from diffaccel.dynamics.elements.drift import Drift
+from diffaccel.dynamics.elements.element import Element
+from diffaccel.dynamics.elements.quadrupole import Quadrupole
+from diffaccel.dynamics.elements.screen import Screen
+from diffaccel.dynamics.elements.transverse_deflecting_cavity import (
+    TransverseDeflectingCavity,
+)
+
+__all__ = [
+    "Dipole",
+    "Drift",
+    "Element",
+    "Quadrupole",
+    "Screen",
+    "TransverseDeflectingCavity",
+]

@@ -1,0 +1,76 @@
+"""Field-free drift space."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from diffaccel.dynamics._validate import as_p0c, check_nonnegative, check_particles
+from diffaccel.dynamics.elements._kernels import exact_drift
+from diffaccel.dynamics.elements.element import Element, bcast
+from diffaccel.dynamics.species import ELECTRON, Species
+
+__all__ = ["Drift", "drift_matrix"]
+
+
+def drift_matrix(length: Tensor, p0c: Tensor, species: Species) -> Tensor:
+    """Linear drift map ``(*K, 6, 6)``; ``R12 = R34 = L``, ``R56 = L / gamma0^2``."""
+    length, p0c = torch.broadcast_tensors(length, p0c)
+    r = torch.eye(6, dtype=length.dtype, device=length.device).expand(
+        *length.shape, 6, 6
+    )
+    r = r.clone()
+    mu2 = (species.mass_ev / p0c).square()
+    r[..., 0, 1] = length
+    r[..., 2, 3] = length
+    r[..., 4, 5] = length * mu2 / (1.0 + mu2)
+    return r
+
+
+class Drift(Element):
+    """Field-free drift tracked with the exact (non-paraxial) map.
+
+    ``x += L px / ps`` with ``ps = sqrt((1 + pz)^2 - px^2 - py^2)``, and
+    ``z += L (beta / beta0 - (1 + pz) / ps)`` with the particle velocity ``beta``
+    from the species mass (Bmad ``z = -beta c (t - t0)``).
+
+    Args:
+        name: Element name.
+        length: Length [m], shape ``()`` or ``(*K,)``; must be >= 0.
+
+    Shapes:
+        ``track``: ``(*K, N, 6) -> (*K, N, 6)``; ``transfer_map``: ``(*K, 6, 6)``.
+
+    Raises:
+        ValueError: if any ``length`` is negative.
+
+    Example:
+        >>> d = Drift("D1", length=1.0)
+        >>> p = torch.tensor([[1e-3, 1e-3, 0.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+        >>> round(d.track(p, p0c=1e9)[0, 0].item(), 12)  # x + L * px / ps
+        0.0020000005
+    """
+
+    param_names = ("length",)
+
+    def __init__(self, name: str, length: Tensor | float = 0.0) -> None:
+        super().__init__(name)
+        self._set_param("length", length)
+        check_nonnegative("length [m]", self.length, f"Drift {name!r}")
+
+    def track(
+        self, particles: Tensor, p0c: Tensor | float, species: Species = ELECTRON
+    ) -> Tensor:
+        """Track particles through the drift (see class docstring)."""
+        check_particles(particles)
+        p0c = as_p0c(p0c, particles)
+        x, px, y, py, z, pz = particles.unbind(-1)
+        length = bcast(self.length, particles)
+        mu2 = bcast((species.mass_ev / p0c).square(), particles)
+        x, y, z = exact_drift(x, px, y, py, z, pz, length, mu2)
+        return torch.stack(torch.broadcast_tensors(x, px, y, py, z, pz), dim=-1)
+
+    def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
+        """Linear map about the reference orbit, shape ``(*K, 6, 6)``."""
+        length = self.length
+        return drift_matrix(length, as_p0c(p0c, length), species)

@@ -1,0 +1,138 @@
+"""The element interface: an ``nn.Module`` that maps particles to particles."""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import torch
+from torch import Tensor, nn
+
+from diffaccel.dynamics._validate import check_finite
+from diffaccel.dynamics.species import ELECTRON, Species
+
+__all__ = ["Element", "bcast"]
+
+
+def bcast(value: Tensor, like: Tensor) -> Tensor:
+    """An attribute shaped ``(*K,)`` cast to ``like`` and shaped ``(*K, 1)``.
+
+    The trailing singleton lines the attribute up with the particle axis ``N`` of
+    coordinates shaped ``(*K, N)``, so that ordinary broadcasting applies.
+    """
+    return value.to(dtype=like.dtype, device=like.device).unsqueeze(-1)
+
+
+class Element(nn.Module):
+    """A beamline element: tracks Bmad coordinates ``(x, px, y, py, z, pz)``.
+
+    Subclasses must implement :meth:`track`; :meth:`transfer_map` (the linear
+    6x6 map about the reference orbit) is optional. Numeric attributes listed in
+    ``param_names`` are tensors: buffers, or ``nn.Parameter`` if passed as one.
+
+    Broadcasting rule: an attribute of shape ``(*K,)`` acts on particles shaped
+    ``(*K, N, 6)``; particles shaped ``(N, 6)`` are broadcast to ``(*K, N, 6)``.
+    Scalars (shape ``()``) act on every batch. Elements are never changed in place
+    by tracking; :meth:`with_params` returns a new element.
+
+    Args:
+        name: Element name, unique inside a ``Beamline``.
+
+    Shapes:
+        ``track``: ``(*K, N, 6) -> (*K, N, 6)``; ``transfer_map``: ``(*K, 6, 6)``.
+    """
+
+    #: Names of the numeric attributes, in spec order.
+    param_names: ClassVar[tuple[str, ...]] = ()
+    #: Parameters left out of :meth:`to_spec` while they are a scalar zero.
+    optional_params: ClassVar[tuple[str, ...]] = ()
+
+    def __init__(self, name: str) -> None:
+        super().__init__()
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"Element name must be a non-empty string; got {name!r}.")
+        self.name = name
+
+    def _set_param(self, key: str, value: Tensor | float) -> None:
+        """Store ``value`` as parameter (if ``nn.Parameter``) or buffer ``key``."""
+        if isinstance(value, nn.Parameter):
+            self.register_parameter(key, value)
+        else:
+            # Python numbers are kept in float64 so that float64 tracking is exact;
+            # tracking casts attributes to the dtype of the particles.
+            t = (
+                value
+                if isinstance(value, Tensor) and value.is_floating_point()
+                else torch.as_tensor(value, dtype=torch.float64)
+            )
+            self.register_buffer(key, t)
+        check_finite(key, getattr(self, key), f"{type(self).__name__} {self.name!r}")
+
+    def params(self) -> dict[str, Tensor]:
+        """The numeric attributes by name (the tensors themselves, not copies)."""
+        return {k: getattr(self, k) for k in self.param_names}
+
+    def _config(self) -> dict[str, Any]:
+        """Non-numeric constructor arguments besides ``name`` (for copies)."""
+        return {}
+
+    def with_params(self, **values: Tensor | float) -> Element:
+        """A new element with some numeric attributes replaced; ``self`` unchanged.
+
+        Args:
+            **values: New values by attribute name, e.g. ``k1=torch.tensor(2.0)``.
+
+        Raises:
+            ValueError: if a name is not one of ``param_names``.
+        """
+        unknown = sorted(set(values) - set(self.param_names))
+        if unknown:
+            raise ValueError(
+                f"{type(self).__name__} has no parameter(s) {unknown}; "
+                f"known parameters are {list(self.param_names)}."
+            )
+        kwargs = {**self.params(), **values}
+        return type(self)(name=self.name, **kwargs, **self._config())
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        """Broadcast shape ``K`` of all numeric attributes."""
+        return torch.broadcast_shapes(*(p.shape for p in self.params().values()))
+
+    def track(
+        self, particles: Tensor, p0c: Tensor | float, species: Species = ELECTRON
+    ) -> Tensor:
+        """Track particles through the element.
+
+        Args:
+            particles: Bmad coordinates, shape ``(*K, N, 6)`` or ``(N, 6)``.
+            p0c: Reference momentum times c [eV], shape ``()`` or ``(*K,)``.
+            species: Tracked species (default electron).
+
+        Returns:
+            Coordinates at the exit, shape ``(*K, N, 6)``.
+        """
+        raise NotImplementedError(f"{type(self).__name__} does not implement track.")
+
+    def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
+        """Linear 6x6 map about the reference orbit, shape ``(*K, 6, 6)``."""
+        raise NotImplementedError(
+            f"{type(self).__name__} does not implement transfer_map."
+        )
+
+    def to_spec(self) -> dict[str, Any]:
+        """A JSON-serialisable dict ``{"type", "name", <params>}`` for this element."""
+        spec: dict[str, Any] = {"type": type(self).__name__, "name": self.name}
+        for k, v in self.params().items():
+            v = v.detach().cpu()
+            if k in self.optional_params and v.dim() == 0 and v.item() == 0.0:
+                continue
+            spec[k] = v.item() if v.dim() == 0 else v.tolist()
+        return spec
+
+    def extra_repr(self) -> str:
+        parts = [f"name={self.name!r}"]
+        for k, v in self.params().items():
+            parts.append(
+                f"{k}={v.item():g}" if v.dim() == 0 else f"{k}{tuple(v.shape)}"
+            )
+        return ", ".join(parts)
