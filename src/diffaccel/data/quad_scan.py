@@ -1,0 +1,714 @@
+"""Quad-scan datasets: screen images recorded while scanning beamline parameters.
+
+The on-disk layout ("quad-scan", format version 1) is documented in
+``docs/file_formats.md``. :class:`QuadScanDataset` is the in-memory container;
+:func:`read_quad_scan` and :func:`write_quad_scan` convert between the two and
+validate every field on the way in and out.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import os
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+import torch
+from torch import Tensor
+
+from diffaccel.data.errors import FormatError
+from diffaccel.dynamics import ELEMENT_TYPES, Beamline, Species
+
+__all__ = [
+    "BMAD_COORDINATES",
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "PARAMETER_UNITS",
+    "QuadScanDataset",
+    "read_quad_scan",
+    "write_quad_scan",
+]
+
+FORMAT_NAME = "quad-scan"
+FORMAT_VERSION = 1
+BMAD_COORDINATES = ("x", "px", "y", "py", "z", "pz")
+CHEETAH_COORDINATES = ("x", "px", "y", "py", "tau", "delta")
+BMAD_CONVENTION = (
+    "bmad (x, y, z [m]; px = Px/P0, py = Py/P0; z = -beta*c*(t - t0); pz = dP/P0)"
+)
+SPECIES = ("electron", "positron", "proton")
+
+#: Accepted unit strings of scanned element parameters (first = canonical).
+PARAMETER_UNITS: dict[str, tuple[str, ...]] = {
+    "k1": ("1/m^2", "m^-2", "1/m**2"),
+    "length": ("m",),
+    "tilt": ("rad",),
+    "angle": ("rad",),
+    "e1": ("rad",),
+    "e2": ("rad",),
+    "phase": ("rad",),
+    "voltage": ("V",),
+    "frequency": ("Hz",),
+}
+
+
+@dataclass(frozen=True, eq=False)
+class QuadScanDataset:
+    """Screen images of one beam recorded at K settings of scanned beamline parameters.
+
+    Constructing the dataclass validates every field (and casts ``images`` to
+    float32, ``settings`` to float64); all transformations return new datasets.
+
+    Args:
+        images: Screen intensities, ``images[k, s, i, j]`` at
+            y = center_y + (i - (H-1)/2) * pixel_size_y and
+            x = center_x + (j - (W-1)/2) * pixel_size_x [arbitrary units].
+        settings: Value of each scanned parameter at each setting [setting_units].
+        setting_names: ``"ELEMENT.parameter"`` per settings column, e.g. ``"Q1.k1"``.
+        setting_units: Unit string per settings column, e.g. ``"1/m^2"``.
+        p0c: Reference momentum times c [eV].
+        species: ``"electron"``, ``"positron"`` or ``"proton"``.
+        beamline_spec: Ordered element dicts (``type``, ``name``, parameters in SI),
+            as accepted by ``Beamline.from_spec``; exactly one ``Screen``.
+        pixel_size: Screen pixel size (x, y) [m], both > 0.
+        center: Screen position of the image centre (x, y) [m].
+        ground_truth: Known initial particles in Bmad coordinates
+            (x [m], px, y [m], py, z [m], pz), or ``None`` for measured data.
+        metadata: JSON-serialisable provenance; ``metadata["preprocessing"]`` is
+            the list of processing steps (dicts with ``"step"`` and parameters).
+
+    Shapes:
+        ``images`` (K, S, H, W), ``settings`` (K, P), ``ground_truth`` (N, 6).
+
+    Raises:
+        FormatError: naming the field when a value is missing, has the wrong
+            shape, contains NaN/inf, an all-zero image, a non-positive pixel size
+            or a setting name that is not a parameter of the beamline.
+
+    Example:
+        >>> import torch
+        >>> spec = [{"type": "Quadrupole", "name": "Q1", "length": 0.1, "k1": 0.0},
+        ...         {"type": "Drift", "name": "D1", "length": 1.0},
+        ...         {"type": "Screen", "name": "SCREEN"}]
+        >>> ds = QuadScanDataset(
+        ...     images=torch.rand(3, 2, 8, 8),
+        ...     settings=torch.tensor([[-1.0], [0.0], [1.0]]),
+        ...     setting_names=["Q1.k1"], setting_units=["1/m^2"], p0c=43e6,
+        ...     species="electron", beamline_spec=spec, pixel_size=(1e-3, 1e-3),
+        ...     center=(0.0, 0.0))
+        >>> ds.shape, ds.n_settings, ds.screen_shape
+        ((3, 2, 8, 8), 3, (8, 8))
+        >>> ds.subset([0, 2]).settings.squeeze(-1).tolist()
+        [-1.0, 1.0]
+    """
+
+    images: Tensor
+    settings: Tensor
+    setting_names: list[str]
+    setting_units: list[str]
+    p0c: float
+    species: str
+    beamline_spec: list[dict]
+    pixel_size: tuple[float, float]
+    center: tuple[float, float]
+    ground_truth: Tensor | None = None
+    metadata: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        _set = object.__setattr__
+        if not isinstance(self.images, Tensor):
+            _set(self, "images", torch.as_tensor(np.asarray(self.images)))
+        if not isinstance(self.settings, Tensor):
+            _set(self, "settings", torch.as_tensor(np.asarray(self.settings)))
+        if self.images.is_complex() or self.images.dtype == torch.bool:
+            raise FormatError(
+                f"images: expected real intensities; found dtype {self.images.dtype}"
+            )
+        _set(self, "images", self.images.detach().to(torch.float32))
+        _set(self, "settings", self.settings.detach().to(torch.float64))
+        if self.ground_truth is not None:
+            gt = self.ground_truth
+            if not isinstance(gt, Tensor):
+                gt = torch.as_tensor(np.asarray(gt))
+            _set(self, "ground_truth", gt.detach())
+        _set(self, "setting_names", [str(n) for n in self.setting_names])
+        _set(self, "setting_units", [str(u) for u in self.setting_units])
+        _set(self, "beamline_spec", copy.deepcopy(list(self.beamline_spec)))
+        _set(self, "metadata", copy.deepcopy(dict(self.metadata)))
+        _set(self, "pixel_size", _pair("pixel_size", self.pixel_size))
+        _set(self, "center", _pair("center", self.center))
+        _set(self, "p0c", _positive_float("p0c", self.p0c, unit="eV"))
+        _validate(self)
+
+    # ------------------------------------------------------------------ shapes
+    @property
+    def shape(self) -> tuple[int, int, int, int]:
+        """Image array shape (K, S, H, W)."""
+        return tuple(self.images.shape)  # type: ignore[return-value]
+
+    @property
+    def n_settings(self) -> int:
+        """Number of scan settings K."""
+        return int(self.images.shape[0])
+
+    @property
+    def n_shots(self) -> int:
+        """Number of shots per setting S."""
+        return int(self.images.shape[1])
+
+    @property
+    def screen_shape(self) -> tuple[int, int]:
+        """Image rows and columns (H, W)."""
+        return (int(self.images.shape[2]), int(self.images.shape[3]))
+
+    @property
+    def screen_name(self) -> str:
+        """Name of the ``Screen`` element of ``beamline_spec``."""
+        return next(e["name"] for e in self.beamline_spec if e["type"] == "Screen")
+
+    # ------------------------------------------------------------------ views
+    def mean_images(self) -> Tensor:
+        """Shot-averaged images, each normalised to unit sum.
+
+        Returns:
+            Tensor of shape (K, H, W), float32; ``out[k].sum() == 1``.
+        """
+        mean = self.images.mean(dim=1)
+        total = mean.sum(dim=(-2, -1), keepdim=True)
+        return mean / total.clamp_min(torch.finfo(mean.dtype).tiny)
+
+    def pixel_centers(self) -> tuple[Tensor, Tensor]:
+        """Screen coordinates of the pixel centres.
+
+        Returns:
+            ``(ys, xs)``: float64 tensors of shapes (H,) and (W,) [m], ascending
+            with the row and column index.
+        """
+        h, w = self.screen_shape
+        dev = self.images.device
+        ys = self.center[1] + (
+            torch.arange(h, dtype=torch.float64, device=dev) - (h - 1) / 2
+        ) * float(self.pixel_size[1])
+        xs = self.center[0] + (
+            torch.arange(w, dtype=torch.float64, device=dev) - (w - 1) / 2
+        ) * float(self.pixel_size[0])
+        return ys, xs
+
+    def beamline(self) -> Beamline:
+        """The beamline with the screen geometry of this dataset.
+
+        Returns:
+            ``Beamline.from_spec(beamline_spec)`` whose screen has ``shape``
+            (H, W), ``pixel_size`` and ``center`` of this dataset.
+        """
+        return Beamline.from_spec(self.beamline_spec).with_screen(
+            self.screen_name,
+            shape=self.screen_shape,
+            pixel_size=self.pixel_size,
+            center=self.center,
+        )
+
+    def subset(self, indices: Sequence[int] | Tensor | slice) -> QuadScanDataset:
+        """The dataset restricted to some scan settings.
+
+        Args:
+            indices: Setting indices (ints, a slice, or an int/bool tensor), e.g.
+                ``range(0, ds.n_settings, 2)`` for the customary training split.
+
+        Returns:
+            A new dataset with ``images[indices]``, ``settings[indices]``; the
+            step is appended to ``metadata["preprocessing"]``.
+
+        Raises:
+            IndexError: if an index is outside ``[-K, K)``.
+            ValueError: if no setting is selected.
+        """
+        k = self.n_settings
+        if isinstance(indices, slice):
+            idx = torch.arange(k)[indices]
+        else:
+            idx = torch.as_tensor(
+                indices if isinstance(indices, Tensor) else list(indices)
+            )
+            if idx.dtype == torch.bool:
+                if idx.shape != (k,):
+                    raise ValueError(
+                        f"subset: boolean mask must have shape ({k},); got "
+                        f"{tuple(idx.shape)}"
+                    )
+                idx = torch.nonzero(idx).flatten()
+            idx = idx.to(torch.long).flatten().cpu()
+        if idx.numel() == 0:
+            raise ValueError("subset: no setting selected; pass at least one index")
+        if bool(((idx < -k) | (idx >= k)).any()):
+            raise IndexError(
+                f"subset: indices {idx.tolist()} out of range for {k} settings"
+            )
+        idx = idx % k
+        return self.with_step(
+            {"step": "subset", "indices": idx.tolist()},
+            images=self.images[idx.to(self.images.device)],
+            settings=self.settings[idx.to(self.settings.device)],
+        )
+
+    def with_step(self, step: dict[str, Any], **changes: Any) -> QuadScanDataset:
+        """A new dataset with some fields changed and a processing step recorded.
+
+        Args:
+            step: JSON-serialisable description, ``{"step": name, **parameters}``.
+            **changes: Dataclass fields to replace (``images``, ``pixel_size``, ...).
+
+        Returns:
+            The new, validated dataset; ``self`` is unchanged.
+        """
+        metadata = copy.deepcopy(self.metadata)
+        metadata.setdefault("preprocessing", []).append(copy.deepcopy(step))
+        return replace(self, metadata=metadata, **changes)
+
+
+# ---------------------------------------------------------------------- validation
+def _pair(name: str, value: Any) -> tuple[float, float]:
+    try:
+        pair = tuple(float(v) for v in value)
+    except (TypeError, ValueError) as err:
+        raise FormatError(
+            f"{name}: expected two numbers (x, y) [m]; found {value!r}"
+        ) from err
+    if len(pair) != 2:
+        raise FormatError(f"{name}: expected two numbers (x, y) [m]; found {value!r}")
+    if not all(math.isfinite(v) for v in pair):
+        raise FormatError(f"{name}: expected finite values [m]; found {pair}")
+    return pair  # type: ignore[return-value]
+
+
+def _positive_float(name: str, value: Any, unit: str) -> float:
+    try:
+        out = float(value)
+    except (TypeError, ValueError) as err:
+        raise FormatError(
+            f"{name}: expected a number [{unit}]; found {value!r}"
+        ) from err
+    if not math.isfinite(out) or out <= 0:
+        raise FormatError(f"{name}: expected a finite value > 0 [{unit}]; found {out}")
+    return out
+
+
+def _validate_spec(spec: list[dict]) -> dict[str, dict]:
+    """Check the beamline element list; return elements by name."""
+    if not isinstance(spec, list) or not spec:
+        raise FormatError(
+            f"beamline: expected a non-empty list of element dicts; found {spec!r}"
+        )
+    by_name: dict[str, dict] = {}
+    for i, element in enumerate(spec):
+        if not isinstance(element, dict):
+            raise FormatError(f"beamline[{i}]: expected a dict; found {element!r}")
+        for key in ("type", "name"):
+            if not isinstance(element.get(key), str) or not element[key]:
+                raise FormatError(
+                    f"beamline[{i}]: expected a non-empty string field {key!r}; "
+                    f"found {element!r}"
+                )
+        if element["name"] in by_name:
+            raise FormatError(
+                f"beamline[{i}]: duplicate element name {element['name']!r}"
+            )
+        by_name[element["name"]] = element
+    try:
+        Beamline.from_spec(spec)
+    except (ValueError, TypeError) as err:
+        raise FormatError(f"beamline: {err}") from err
+    screens = [e["name"] for e in spec if e["type"] == "Screen"]
+    if len(screens) != 1:
+        raise FormatError(
+            f"beamline: expected exactly one element of type 'Screen'; found "
+            f"{len(screens)} ({screens})"
+        )
+    return by_name
+
+
+def _validate_settings_names(
+    names: list[str], units: list[str], elements: dict[str, dict], p: int
+) -> None:
+    if len(names) != p:
+        raise FormatError(
+            f"settings.names: expected {p} names (one per settings column); "
+            f"found {len(names)}: {names}"
+        )
+    if len(units) != p:
+        raise FormatError(
+            f"settings.units: expected {p} units (one per settings column); "
+            f"found {len(units)}: {units}"
+        )
+    if len(set(names)) != len(names):
+        raise FormatError(f"settings.names: duplicate names in {names}")
+    for name, unit in zip(names, units, strict=True):
+        element, _, parameter = name.partition(".")
+        if not element or not parameter or "." in parameter:
+            raise FormatError(
+                f"settings.names: expected 'ELEMENT.parameter' (e.g. 'Q1.k1'); "
+                f"found {name!r}"
+            )
+        if element not in elements:
+            raise FormatError(
+                f"settings.names: {name!r} names element {element!r}, which is not "
+                f"in the beamline (elements: {list(elements)})"
+            )
+        params = list(ELEMENT_TYPES[elements[element]["type"]].param_names)
+        if parameter not in params:
+            raise FormatError(
+                f"settings.names: {name!r} names parameter {parameter!r}, which "
+                f"element {element!r} of the beamline does not have (parameters: "
+                f"{params})"
+            )
+        allowed = PARAMETER_UNITS.get(parameter)
+        if allowed is not None and unit not in allowed:
+            raise FormatError(
+                f"settings.units: {name!r} must be in {allowed[0]!r}; found {unit!r}"
+            )
+
+
+def _validate(ds: QuadScanDataset) -> None:
+    images, settings = ds.images, ds.settings
+    if not images.is_floating_point():
+        raise FormatError(
+            f"images: expected a float tensor; found dtype {images.dtype}"
+        )
+    if images.ndim != 4:
+        raise FormatError(
+            f"images: expected 4 dimensions (K, S, H, W); found shape "
+            f"{tuple(images.shape)}"
+            + ("; add a shots axis with images[:, None]" if images.ndim == 3 else "")
+        )
+    if min(images.shape) < 1:
+        raise FormatError(
+            f"images: expected no empty axis; found {tuple(images.shape)}"
+        )
+    if settings.ndim != 2:
+        raise FormatError(
+            f"settings: expected 2 dimensions (K, P); found shape "
+            f"{tuple(settings.shape)}"
+        )
+    if settings.shape[0] != images.shape[0]:
+        raise FormatError(
+            f"settings: expected {images.shape[0]} rows (one per image setting K of "
+            f"images {tuple(images.shape)}); found shape {tuple(settings.shape)}"
+        )
+    if settings.shape[1] < 1:
+        raise FormatError("settings: expected at least one scanned parameter (P >= 1)")
+    bad = ~torch.isfinite(images)
+    if bool(bad.any()):
+        k, s = (int(v) for v in torch.nonzero(bad)[0][:2])
+        raise FormatError(
+            f"images: expected finite values; found {int(bad.sum())} NaN/inf "
+            f"values (first at setting {k}, shot {s})"
+        )
+    bad = ~torch.isfinite(settings)
+    if bool(bad.any()):
+        k = int(torch.nonzero(bad)[0][0])
+        raise FormatError(
+            f"settings: expected finite values; found NaN/inf at setting {k}"
+        )
+    empty = (images == 0).flatten(2).all(dim=-1)
+    if bool(empty.any()):
+        k, s = (int(v) for v in torch.nonzero(empty)[0])
+        raise FormatError(
+            f"images: image of setting {k} (shot {s}) is all zero; "
+            f"{int(empty.sum())} all-zero image(s) in total"
+        )
+    if ds.pixel_size[0] <= 0 or ds.pixel_size[1] <= 0:
+        raise FormatError(
+            f"screen.pixel_size: expected (x, y) > 0 [m]; found {ds.pixel_size}"
+        )
+    if ds.species not in SPECIES:
+        raise FormatError(f"species: expected one of {SPECIES}; found {ds.species!r}")
+    elements = _validate_spec(ds.beamline_spec)
+    _validate_settings_names(
+        ds.setting_names, ds.setting_units, elements, int(settings.shape[1])
+    )
+    gt = ds.ground_truth
+    if gt is not None:
+        if gt.ndim != 2 or gt.shape[-1] != 6 or gt.shape[0] < 1:
+            raise FormatError(
+                f"ground_truth: expected shape (N, 6) with N >= 1; found "
+                f"{tuple(gt.shape)}"
+            )
+        if not gt.is_floating_point():
+            raise FormatError(
+                f"ground_truth: expected a float tensor; found dtype {gt.dtype}"
+            )
+        if not bool(torch.isfinite(gt).all()):
+            raise FormatError(
+                "ground_truth: expected finite coordinates; found NaN/inf"
+            )
+    if not isinstance(ds.metadata, dict):
+        raise FormatError(f"metadata: expected a dict; found {type(ds.metadata)}")
+
+
+# ---------------------------------------------------------------------- reading
+def _as_str(value: Any) -> str:
+    if isinstance(value, bytes):
+        return value.decode()
+    if isinstance(value, np.ndarray) and value.shape == ():
+        return _as_str(value.item())
+    return str(value)
+
+
+def _attr(obj: h5py.HLObject, key: str, where: str) -> Any:
+    if key not in obj.attrs:
+        raise FormatError(
+            f"{where}: missing attribute {key!r} (found: {sorted(obj.attrs)})"
+        )
+    return obj.attrs[key]
+
+
+def _json_attr(obj: h5py.HLObject, key: str, where: str) -> Any:
+    raw = _as_str(_attr(obj, key, where))
+    try:
+        return json.loads(raw)
+    except json.JSONDecodeError as err:
+        raise FormatError(
+            f"{where} attribute {key!r}: invalid JSON ({err.msg} at char {err.pos}); "
+            f"found {raw[:80]!r}"
+        ) from err
+
+
+def _dataset(h5: h5py.File, key: str) -> h5py.Dataset:
+    if key not in h5 or not isinstance(h5[key], h5py.Dataset):
+        raise FormatError(f"/{key}: missing dataset (found: {sorted(h5)})")
+    return h5[key]
+
+
+def _float_attr(obj: h5py.HLObject, key: str, where: str) -> float:
+    value = _attr(obj, key, where)
+    try:
+        return float(np.asarray(value).item())
+    except (TypeError, ValueError) as err:
+        raise FormatError(f"{where}.{key}: expected a number; found {value!r}") from err
+
+
+def _read_ground_truth(group: h5py.Dataset, p0c: float, species: str) -> Tensor:
+    where = "/ground_truth/particles"
+    coords = _json_attr(group, "coordinates", where)
+    data = torch.from_numpy(np.asarray(group[()], dtype=np.float64))
+    if data.ndim != 2 or data.shape[-1] != 6:
+        raise FormatError(f"{where}: expected shape (N, 6); found {tuple(data.shape)}")
+    if tuple(coords) == BMAD_COORDINATES:
+        return data
+    if tuple(coords) == CHEETAH_COORDINATES:
+        return _cheetah_to_bmad(data, p0c=p0c, species=species)
+    raise FormatError(
+        f"{where}.coordinates: expected {list(BMAD_COORDINATES)} (Bmad) or "
+        f"{list(CHEETAH_COORDINATES)} (cheetah); found {coords}"
+    )
+
+
+def _cheetah_to_bmad(particles: Tensor, p0c: float, species: str) -> Tensor:
+    """Cheetah (tau = c dt, delta = dE / p0c) -> Bmad (z = -beta tau, pz = dP / P0)."""
+    mc2 = Species.from_name(species).mass_ev
+    e0 = math.sqrt(p0c**2 + mc2**2)
+    energy = e0 + particles[:, 5] * p0c
+    p = torch.sqrt(energy**2 - mc2**2)
+    out = particles.clone()
+    out[:, 4] = -(p / energy) * particles[:, 4]
+    out[:, 5] = (p - p0c) / p0c
+    return out
+
+
+def read_quad_scan(path: str | os.PathLike) -> QuadScanDataset:
+    """Read a quad-scan HDF5 file (format "quad-scan", version 1).
+
+    Args:
+        path: File to read.
+
+    Returns:
+        The validated dataset. A ground truth stored in cheetah coordinates
+        (x, px, y, py, tau, delta) is converted to Bmad coordinates. The root
+        attributes ``description`` and ``metadata`` (JSON) go to ``metadata``.
+
+    Raises:
+        FileNotFoundError: if ``path`` does not exist.
+        FormatError: naming the attribute or dataset that is missing or invalid.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"quad-scan file not found: {path}")
+    try:
+        h5 = h5py.File(path, "r")
+    except OSError as err:
+        raise FormatError(f"{path}: not a readable HDF5 file ({err})") from err
+    with h5:
+        fmt = _as_str(_attr(h5, "format", "/"))
+        if fmt != FORMAT_NAME:
+            raise FormatError(f"/.format: expected {FORMAT_NAME!r}; found {fmt!r}")
+        version = _attr(h5, "format_version", "/")
+        try:
+            version = int(np.asarray(version).item())
+        except (TypeError, ValueError) as err:
+            raise FormatError(
+                f"/.format_version: expected an integer; found {version!r}"
+            ) from err
+        if version != FORMAT_VERSION:
+            raise FormatError(
+                f"/.format_version: this reader reads version {FORMAT_VERSION}; "
+                f"found {version}"
+            )
+        p0c = _float_attr(h5, "p0c", "/")
+        species = _as_str(_attr(h5, "species", "/"))
+        spec = _json_attr(h5, "beamline", "/")
+        images_ds = _dataset(h5, "images")
+        settings_ds = _dataset(h5, "settings")
+        names = _json_attr(settings_ds, "names", "/settings")
+        units = _json_attr(settings_ds, "units", "/settings")
+        for key, value in (("names", names), ("units", units)):
+            if not isinstance(value, list) or not all(
+                isinstance(v, str) for v in value
+            ):
+                raise FormatError(
+                    f"/settings.{key}: expected a JSON list of strings; found {value!r}"
+                )
+        if "screen" not in h5:
+            raise FormatError(f"/screen: missing group (found: {sorted(h5)})")
+        screen = h5["screen"]
+        pixel_size = tuple(
+            _float_attr(screen, f"pixel_size_{a}", "/screen") for a in "xy"
+        )
+        center = tuple(_float_attr(screen, f"center_{a}", "/screen") for a in "xy")
+        if min(pixel_size) <= 0:
+            raise FormatError(
+                f"/screen.pixel_size_x/y: expected > 0 [m]; found {pixel_size}"
+            )
+        metadata: dict[str, Any] = {}
+        if "metadata" in h5.attrs:
+            metadata = _json_attr(h5, "metadata", "/")
+            if not isinstance(metadata, dict):
+                raise FormatError(
+                    "/.metadata: expected a JSON object; found "
+                    f"{type(metadata).__name__}"
+                )
+        if "description" in h5.attrs:
+            metadata["description"] = _as_str(h5.attrs["description"])
+        images = torch.from_numpy(np.asarray(images_ds[()], dtype=np.float32))
+        settings = torch.from_numpy(np.asarray(settings_ds[()], dtype=np.float64))
+        ground_truth = None
+        if "ground_truth" in h5:
+            if "particles" not in h5["ground_truth"]:
+                raise FormatError("/ground_truth: missing dataset 'particles'")
+            if species not in SPECIES:
+                raise FormatError(
+                    f"/.species: expected one of {SPECIES}; found {species!r}"
+                )
+            ground_truth = _read_ground_truth(
+                h5["ground_truth/particles"], p0c, species
+            )
+    try:
+        return QuadScanDataset(
+            images=images,
+            settings=settings,
+            setting_names=names,
+            setting_units=units,
+            p0c=p0c,
+            species=species,
+            beamline_spec=spec,
+            pixel_size=pixel_size,  # type: ignore[arg-type]
+            center=center,  # type: ignore[arg-type]
+            ground_truth=ground_truth,
+            metadata=metadata,
+        )
+    except FormatError as err:
+        raise FormatError(f"{path}: {err}") from err
+
+
+# ---------------------------------------------------------------------- writing
+def write_quad_scan(
+    dataset: QuadScanDataset, path: str | os.PathLike, overwrite: bool = False
+) -> Path:
+    """Write a dataset as a quad-scan HDF5 file (format version 1), atomically.
+
+    The file is written to a temporary file in the same directory and moved into
+    place with ``os.replace``, so readers never see a half-written file. The
+    ground truth is stored in Bmad coordinates; ``metadata`` (minus
+    ``description``, which becomes its own attribute) is stored as JSON.
+
+    Args:
+        dataset: The dataset; it is validated again before writing.
+        path: Destination file.
+        overwrite: Replace an existing file at ``path``.
+
+    Returns:
+        The path written.
+
+    Raises:
+        FileExistsError: if ``path`` exists and ``overwrite`` is false.
+        FormatError: if the dataset is invalid or its metadata/beamline are not
+            JSON-serialisable.
+    """
+    if not isinstance(dataset, QuadScanDataset):
+        raise TypeError(f"dataset: expected a QuadScanDataset; got {type(dataset)}")
+    _validate(dataset)
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(
+            f"{path} exists; pass overwrite=True (CLI: --force) to replace it"
+        )
+    metadata = dict(dataset.metadata)
+    description = metadata.pop("description", None)
+    try:
+        beamline_json = json.dumps(dataset.beamline_spec)
+    except (TypeError, ValueError) as err:
+        raise FormatError(f"beamline: not JSON-serialisable ({err})") from err
+    try:
+        metadata_json = json.dumps(metadata)
+    except (TypeError, ValueError) as err:
+        raise FormatError(f"metadata: not JSON-serialisable ({err})") from err
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(
+        dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"
+    )
+    os.close(fd)
+    try:
+        with h5py.File(tmp_name, "w") as h5:
+            h5.attrs["format"] = FORMAT_NAME
+            h5.attrs["format_version"] = np.int64(FORMAT_VERSION)
+            h5.attrs["p0c"] = np.float64(dataset.p0c)
+            h5.attrs["species"] = dataset.species
+            h5.attrs["beamline"] = beamline_json
+            h5.attrs["metadata"] = metadata_json
+            if description is not None:
+                h5.attrs["description"] = str(description)
+            h5.create_dataset(
+                "images",
+                data=dataset.images.detach().cpu().numpy().astype(np.float32),
+                compression="gzip",
+                compression_opts=4,
+                shuffle=True,
+            )
+            settings = h5.create_dataset(
+                "settings", data=dataset.settings.detach().cpu().numpy()
+            )
+            settings.attrs["names"] = json.dumps(dataset.setting_names)
+            settings.attrs["units"] = json.dumps(dataset.setting_units)
+            screen = h5.create_group("screen")
+            screen.attrs["pixel_size_x"] = np.float64(dataset.pixel_size[0])
+            screen.attrs["pixel_size_y"] = np.float64(dataset.pixel_size[1])
+            screen.attrs["center_x"] = np.float64(dataset.center[0])
+            screen.attrs["center_y"] = np.float64(dataset.center[1])
+            if dataset.ground_truth is not None:
+                gt = h5.create_group("ground_truth").create_dataset(
+                    "particles",
+                    data=dataset.ground_truth.detach().cpu().double().numpy(),
+                )
+                gt.attrs["coordinates"] = json.dumps(list(BMAD_COORDINATES))
+                gt.attrs["convention"] = BMAD_CONVENTION
+        os.replace(tmp_name, path)
+    except BaseException:
+        Path(tmp_name).unlink(missing_ok=True)
+        raise
+    return path
