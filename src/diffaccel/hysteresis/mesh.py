@@ -1,0 +1,213 @@
+"""Preisach plane: hysteron thresholds on the half square ``0 <= beta <= alpha <= 1``.
+
+Coordinates are *normalised* inputs: ``0`` is the lower end of the model's input
+range and ``1`` its upper end. ``alpha`` is the up-switching threshold of a
+hysteron (relay), ``beta`` its down-switching threshold.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+__all__ = ["PreisachMesh"]
+
+_TRIANGLE_AREA = 0.5
+
+
+class PreisachMesh:
+    """Hysteron positions and area weights on the normalised Preisach half square.
+
+    Each mesh point stands for the patch of the plane closest to it; ``area`` is
+    the area of that patch, so a density sampled at the points integrates as
+    ``sum(area * density)`` whatever the point spacing. A mesh is immutable;
+    ``to`` returns a new one.
+
+    Args:
+        alpha: Up-switching thresholds in normalised input units [1], shape ``(M,)``.
+        beta: Down-switching thresholds in normalised input units [1], shape
+            ``(M,)``, with ``beta <= alpha``.
+        area: Area of the Preisach-plane patch of each point [1], shape ``(M,)``,
+            positive. ``None`` gives every point the same share of the half
+            square (area ``0.5 / M``).
+
+    Shapes:
+        ``alpha``, ``beta``, ``area``: ``(M,)``.
+
+    Raises:
+        ValueError: on mismatched shapes, non-finite values, points outside
+            ``0 <= beta <= alpha <= 1`` or non-positive areas.
+
+    Example:
+        >>> mesh = PreisachMesh.triangular(n=10)
+        >>> len(mesh), float(mesh.area.sum())
+        (55, 0.5)
+    """
+
+    def __init__(self, alpha: Tensor, beta: Tensor, area: Tensor | None = None) -> None:
+        alpha = torch.as_tensor(alpha)
+        if not alpha.is_floating_point():
+            alpha = alpha.to(torch.get_default_dtype())
+        beta = torch.as_tensor(beta, dtype=alpha.dtype, device=alpha.device)
+        if alpha.ndim != 1 or beta.shape != alpha.shape:
+            raise ValueError(
+                "PreisachMesh needs alpha and beta of equal shape (M,); got "
+                f"{tuple(alpha.shape)} and {tuple(beta.shape)}."
+            )
+        if alpha.numel() < 1:
+            raise ValueError("PreisachMesh needs at least one point; got M = 0.")
+        if area is None:
+            area = torch.full_like(alpha, _TRIANGLE_AREA / alpha.numel())
+        area = torch.as_tensor(area, dtype=alpha.dtype, device=alpha.device)
+        if area.shape != alpha.shape:
+            raise ValueError(
+                f"PreisachMesh area must have shape {tuple(alpha.shape)}; "
+                f"got {tuple(area.shape)}."
+            )
+        for name, t in (("alpha", alpha), ("beta", beta), ("area", area)):
+            if not torch.isfinite(t).all():
+                raise ValueError(
+                    f"PreisachMesh {name} contains NaN or infinite values."
+                )
+        tol = 1e-12
+        if (beta > alpha + tol).any():
+            bad = int((beta > alpha + tol).sum())
+            raise ValueError(
+                f"PreisachMesh points need beta <= alpha; {bad} points have "
+                "beta > alpha."
+            )
+        if (beta < -tol).any() or (alpha > 1 + tol).any():
+            raise ValueError(
+                "PreisachMesh points must lie in the normalised range [0, 1]; got "
+                f"beta min {float(beta.min()):.4g}, alpha max {float(alpha.max()):.4g}."
+            )
+        if (area <= 0).any():
+            raise ValueError("PreisachMesh areas must be positive.")
+        self._alpha = alpha
+        self._beta = beta
+        self._area = area
+
+    @property
+    def alpha(self) -> Tensor:
+        """Up-switching thresholds [1], shape ``(M,)``."""
+        return self._alpha
+
+    @property
+    def beta(self) -> Tensor:
+        """Down-switching thresholds [1], shape ``(M,)``."""
+        return self._beta
+
+    @property
+    def area(self) -> Tensor:
+        """Patch areas [1], shape ``(M,)``; they sum to 0.5 for a full mesh."""
+        return self._area
+
+    def __len__(self) -> int:
+        return self._alpha.numel()
+
+    def __repr__(self) -> str:
+        return f"PreisachMesh(M={len(self)}, dtype={self._alpha.dtype})"
+
+    def to(
+        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
+    ) -> PreisachMesh:
+        """Return a copy on ``device`` with floating ``dtype``."""
+        return PreisachMesh(
+            self._alpha.to(device=device, dtype=dtype),
+            self._beta.to(device=device, dtype=dtype),
+            self._area.to(device=device, dtype=dtype),
+        )
+
+    @classmethod
+    def triangular(
+        cls,
+        n: int = 40,
+        refine: int = 0,
+        band: int = 1,
+        dtype: torch.dtype = torch.float64,
+        device: torch.device | str | None = None,
+    ) -> PreisachMesh:
+        """Regular mesh of ``n`` x ``n`` square cells clipped to ``beta <= alpha``.
+
+        Cells below the diagonal get one point at their centre (area ``h**2``,
+        ``h = 1 / n``); cells cut by the diagonal keep their lower-right
+        triangle, represented by its centroid (area ``h**2 / 2``). The areas sum
+        to exactly 0.5. With ``refine > 0`` every cell within ``band`` cells of
+        the diagonal is split recursively ``refine`` times into 2 x 2 sub-cells,
+        so that the narrow hysterons that shape the loop near turning points are
+        resolved more finely.
+
+        Args:
+            n: Cells per axis (>= 1); ``n * (n + 1) / 2`` points without
+                refinement (n = 44: 990, n = 100: 5050, n = 200: 20100).
+            refine: Levels of 2 x 2 splitting near the diagonal (>= 0).
+            band: Width of the refined band in coarse cells (>= 1).
+            dtype: Floating dtype of the coordinates.
+            device: Device of the coordinates.
+
+        Returns:
+            The mesh.
+
+        Raises:
+            ValueError: if ``n < 1``, ``refine < 0`` or ``band < 1``.
+        """
+        if n < 1:
+            raise ValueError(f"triangular mesh needs n >= 1 cells per axis; got {n}.")
+        if refine < 0 or band < 1:
+            raise ValueError(
+                "triangular mesh needs refine >= 0 and band >= 1; got "
+                f"{refine}, {band}."
+            )
+        h = 1.0 / n
+        i = torch.arange(n, dtype=torch.float64)
+        ia, ib = torch.meshgrid(i, i, indexing="ij")  # alpha row, beta column
+        lower = ib < ia
+        coarse = (ia - ib >= band) if refine > 0 else lower
+        alphas = [(ia[coarse] + 0.5) * h]
+        betas = [(ib[coarse] + 0.5) * h]
+        areas = [torch.full((int(coarse.sum()),), h * h, dtype=torch.float64)]
+        if refine == 0:
+            d = i
+            alphas.append((d + 2.0 / 3.0) * h)
+            betas.append((d + 1.0 / 3.0) * h)
+            areas.append(torch.full((n,), h * h / 2, dtype=torch.float64))
+        else:
+            # refined band: off-diagonal cells and diagonal cells, split 2**refine
+            k = 2**refine
+            hs = h / k
+            band_cells = lower & ~coarse
+            a0 = ia[band_cells] * h
+            b0 = ib[band_cells] * h
+            j = torch.arange(k, dtype=torch.float64)
+            ja, jb = torch.meshgrid(j, j, indexing="ij")
+            alphas.append((a0[:, None] + (ja.flatten() + 0.5) * hs).flatten())
+            betas.append((b0[:, None] + (jb.flatten() + 0.5) * hs).flatten())
+            areas.append(
+                torch.full((alphas[-1].numel(),), hs * hs, dtype=torch.float64)
+            )
+            sub = cls.triangular(k, dtype=torch.float64)
+            d0 = i * h
+            alphas.append((d0[:, None] + sub.alpha[None, :] * h).flatten())
+            betas.append((d0[:, None] + sub.beta[None, :] * h).flatten())
+            areas.append((sub.area[None, :] * h * h).expand(n, -1).flatten())
+        alpha = torch.cat(alphas)
+        beta = torch.cat(betas)
+        area = torch.cat(areas)
+        if not math.isclose(float(area.sum()), _TRIANGLE_AREA, rel_tol=1e-9):
+            raise RuntimeError(
+                "internal error: triangular mesh areas do not sum to 0.5"
+            )
+        return cls(
+            alpha.to(device=device, dtype=dtype),
+            beta.to(device=device, dtype=dtype),
+            area.to(device=device, dtype=dtype),
+        )
+
+    @classmethod
+    def from_points(
+        cls, alpha: Tensor, beta: Tensor, area: Tensor | None = None
+    ) -> PreisachMesh:
+        """Mesh from user points; same as the constructor (equal areas if ``None``)."""
+        return cls(alpha, beta, area)

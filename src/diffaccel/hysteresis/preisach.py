@@ -1,0 +1,356 @@
+"""Differentiable Preisach model: input history -> hysteretic output."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from diffaccel.hysteresis.mesh import PreisachMesh
+from diffaccel.hysteresis.states import (
+    RowLayout,
+    demagnetized_state,
+    exact_magnetization,
+    exact_states,
+    smooth_states,
+)
+
+__all__ = ["INITIAL_STATES", "PreisachModel"]
+
+INITIAL_STATES = ("negative", "positive", "demagnetized", "learned")
+# tolerance on normalised inputs outside [0, 1] (round-off of the affine map)
+_RANGE_TOL = 1e-9
+# start of the virtual history of each initial state (normalised input)
+_START = {"negative": 0.0, "positive": 1.0, "demagnetized": 0.5, "learned": 0.5}
+
+
+def _positive(raw: Tensor) -> Tensor:
+    """The one map from raw (unconstrained) to non-negative parameters."""
+    return F.softplus(raw)
+
+
+def _inverse_positive(value: Tensor) -> Tensor:
+    """Inverse of :func:`_positive` for ``value > 0``."""
+    return value + torch.log(-torch.expm1(-value))
+
+
+class PreisachModel(nn.Module):
+    """Preisach hysteresis model of a magnet: current history -> field.
+
+    The output is ``offset + slope * u_n + scale * m(u_n)`` in normalised output
+    units, mapped back to physical units by ``output_loc + output_scale * (.)``.
+    Here ``u_n = (u - lo) / (hi - lo)`` is the normalised input and
+    ``m = sum_i w_i s_i / sum_i w_i`` the normalised Preisach integral, with
+    hysteron weights ``w = area * density`` and states ``s`` in ``[-1, 1]``.
+    ``density`` is non-negative: ``softplus(raw_density)``. The normalisation
+    buffers ``output_loc`` and ``output_scale`` are set by
+    :func:`~diffaccel.hysteresis.fit_preisach` from the training data (default
+    ``0`` and ``1``).
+
+    Parameters and buffers are float64 unless ``dtype`` says otherwise; inputs
+    are cast to the model's dtype and device. ``model.to(torch.float32)`` works
+    as for any module.
+
+    Args:
+        mesh: Hysteron mesh on the normalised plane; default
+            ``PreisachMesh.triangular(n=30)`` (465 hysterons).
+        input_range: ``(lo, hi)`` input range [input units, e.g. A]; every
+            input must lie inside it.
+        initial_state: State before the first input: ``"negative"``
+            (saturated down, default: the magnet was last cycled down to the
+            bottom of the range), ``"positive"``, ``"demagnetized"`` or
+            ``"learned"`` (a trainable state per hysteron, ``tanh(raw)``).
+        smoothing: Width of the smooth relays [input units], used only by the
+            ``smooth=True`` calls; default 1 % of the input range.
+        dtype: Floating dtype of parameters and buffers.
+
+    Shapes:
+        Inputs ``u`` are ``(*B, T)`` (time last); ``states`` returns
+        ``(*B, T, M)``, ``magnetization`` and ``forward`` ``(*B, T)``,
+        ``final_state`` ``(*B, M)``.
+
+    Raises:
+        ValueError: for an empty or inverted input range, an unknown initial
+            state or a non-positive smoothing width.
+
+    Example:
+        >>> mesh = PreisachMesh.triangular(n=10)
+        >>> model = PreisachModel(mesh, input_range=(0.0, 10.0))
+        >>> u = torch.tensor([0.0, 10.0, 5.0, 0.0, 5.0])
+        >>> y = model(u)  # untrained: offset 0, slope 1, scale 1 in normalised units
+        >>> bool(y[2] > y[4])  # same input, higher output on the falling branch
+        True
+    """
+
+    def __init__(
+        self,
+        mesh: PreisachMesh | None = None,
+        input_range: Sequence[float] = (0.0, 1.0),
+        initial_state: str = "negative",
+        smoothing: float | None = None,
+        dtype: torch.dtype = torch.float64,
+    ) -> None:
+        super().__init__()
+        lo, hi = (float(v) for v in input_range)
+        if not (math.isfinite(lo) and math.isfinite(hi)) or hi <= lo:
+            raise ValueError(
+                f"input_range must be finite with lo < hi; got ({lo}, {hi})."
+            )
+        if initial_state not in INITIAL_STATES:
+            raise ValueError(
+                f"initial_state must be one of {INITIAL_STATES}; got {initial_state!r}."
+            )
+        if smoothing is None:
+            smoothing = 0.01 * (hi - lo)
+        if not (smoothing > 0 and math.isfinite(smoothing)):
+            raise ValueError(f"smoothing must be a positive width; got {smoothing}.")
+        mesh = mesh if mesh is not None else PreisachMesh.triangular(n=30, dtype=dtype)
+        mesh = mesh.to(dtype=dtype)
+        self.input_range = (lo, hi)
+        self.initial_state_kind = initial_state
+        self.smoothing = float(smoothing)
+        self.register_buffer("alpha", mesh.alpha.clone())
+        self.register_buffer("beta", mesh.beta.clone())
+        self.register_buffer("area", mesh.area.clone())
+        self._layout = RowLayout(self.alpha, self.beta)
+        m = len(mesh)
+        one = torch.ones((), dtype=dtype)
+        self.raw_density = nn.Parameter(_inverse_positive(one).expand(m).clone())
+        self.offset = nn.Parameter(torch.zeros((), dtype=dtype))
+        self.slope = nn.Parameter(torch.ones((), dtype=dtype))
+        self.scale = nn.Parameter(torch.ones((), dtype=dtype))
+        self.register_buffer("output_loc", torch.zeros((), dtype=dtype))
+        self.register_buffer("output_scale", torch.ones((), dtype=dtype))
+        if initial_state == "learned":
+            self.raw_initial_state = nn.Parameter(torch.zeros(m, dtype=dtype))
+        else:
+            self.raw_initial_state = None
+
+    # ------------------------------------------------------------------ helpers
+    def _apply(self, fn, recurse=True):  # keep the row layout with the buffers
+        out = super()._apply(fn, recurse)
+        self._layout.to(self.alpha.device, self.alpha.dtype)
+        return out
+
+    @property
+    def mesh(self) -> PreisachMesh:
+        """The hysteron mesh (a copy of the buffers)."""
+        return PreisachMesh(self.alpha, self.beta, self.area)
+
+    @property
+    def density(self) -> Tensor:
+        """Non-negative hysteron density [1], shape ``(M,)``."""
+        return _positive(self.raw_density)
+
+    @density.setter
+    def density(self, value: Tensor) -> None:
+        value = torch.as_tensor(value, dtype=self.alpha.dtype, device=self.alpha.device)
+        if value.shape != self.raw_density.shape or not (value > 0).all():
+            raise ValueError(
+                f"density must be positive with shape {tuple(self.raw_density.shape)}."
+            )
+        with torch.no_grad():
+            self.raw_density.copy_(_inverse_positive(value))
+
+    @property
+    def weights(self) -> Tensor:
+        """Hysteron weights ``area * density``, shape ``(M,)``."""
+        return self.area * self.density
+
+    def normalize_input(self, u: Tensor) -> Tensor:
+        """Map inputs [input units] to normalised inputs [1] and check them.
+
+        Raises:
+            ValueError: if ``u`` has no time axis, NaN/inf values or values
+                outside ``input_range``.
+        """
+        u = torch.as_tensor(u, dtype=self.alpha.dtype, device=self.alpha.device)
+        if u.ndim < 1 or u.shape[-1] < 1:
+            raise ValueError(
+                f"inputs need shape (*B, T) with T >= 1; got {tuple(u.shape)}."
+            )
+        if not torch.isfinite(u).all():
+            raise ValueError("inputs contain NaN or infinite values.")
+        lo, hi = self.input_range
+        un = (u - lo) / (hi - lo)
+        if (un < -_RANGE_TOL).any() or (un > 1 + _RANGE_TOL).any():
+            raise ValueError(
+                f"inputs must lie in the model's input_range [{lo}, {hi}]; got "
+                f"min {float(u.min()):.6g}, max {float(u.max()):.6g}. Build the "
+                "model with a wider input_range."
+            )
+        return un.clamp(0.0, 1.0)
+
+    def initial_states(self, initial_state: str | Tensor | None = None) -> Tensor:
+        """Hysteron states before the first input, shape ``(M,)`` or ``(*B, M)``.
+
+        Args:
+            initial_state: ``None`` (the model's own), one of
+                ``"negative" | "positive" | "demagnetized" | "learned"``, or a
+                tensor of states in ``[-1, 1]`` (e.g. from :meth:`final_state`).
+        """
+        kind = self.initial_state_kind if initial_state is None else initial_state
+        m = self.alpha.numel()
+        if isinstance(kind, Tensor):
+            s = kind.to(dtype=self.alpha.dtype, device=self.alpha.device)
+            if s.shape[-1:] != (m,):
+                raise ValueError(
+                    f"initial_state tensor must have shape (*B, {m}); got "
+                    f"{tuple(s.shape)}."
+                )
+            if not torch.isfinite(s).all() or (s.abs() > 1 + 1e-12).any():
+                raise ValueError("initial_state tensor must be finite and in [-1, 1].")
+            return s
+        if kind == "negative":
+            return -torch.ones_like(self.alpha)
+        if kind == "positive":
+            return torch.ones_like(self.alpha)
+        if kind == "demagnetized":
+            return demagnetized_state(self.alpha, self.beta)
+        if kind == "learned":
+            if self.raw_initial_state is None:
+                raise ValueError(
+                    "initial_state='learned' needs a model built with "
+                    "initial_state='learned'."
+                )
+            return torch.tanh(self.raw_initial_state)
+        raise ValueError(
+            f"initial_state must be one of {INITIAL_STATES} or a tensor; got {kind!r}."
+        )
+
+    def _start(self, initial_state: str | Tensor | None) -> float:
+        kind = self.initial_state_kind if initial_state is None else initial_state
+        return 0.5 if isinstance(kind, Tensor) else _START[kind]
+
+    # ------------------------------------------------------------------ physics
+    def states(
+        self,
+        u: Tensor,
+        initial_state: str | Tensor | None = None,
+        smooth: bool = False,
+    ) -> Tensor:
+        """Hysteron states along input sequences.
+
+        Args:
+            u: Inputs [input units], shape ``(*B, T)``.
+            initial_state: See :meth:`initial_states`.
+            smooth: Exact relays (``False``) or smooth, rate-independent relays
+                of width ``smoothing`` (``True``), differentiable in ``u``.
+
+        Returns:
+            States in ``[-1, 1]``, shape ``(*B, T, M)``.
+        """
+        un = self.normalize_input(u)
+        s0 = self.initial_states(initial_state)
+        if smooth:
+            width = self.smoothing / (self.input_range[1] - self.input_range[0])
+            return smooth_states(
+                un, self.alpha, self.beta, s0, width, self._start(initial_state)
+            )
+        return exact_states(un, self.alpha, self.beta, s0, self._layout)
+
+    def magnetization(
+        self,
+        u: Tensor,
+        initial_state: str | Tensor | None = None,
+        smooth: bool = False,
+    ) -> Tensor:
+        """Normalised Preisach integral ``sum(w * s) / sum(w)`` along sequences.
+
+        Exact mode never builds the ``(T, M)`` state table (see
+        :func:`~diffaccel.hysteresis.states.exact_magnetization`); gradients
+        flow to the density and a learned initial state.
+
+        Args:
+            u: Inputs [input units], shape ``(*B, T)``.
+            initial_state: See :meth:`initial_states`.
+            smooth: See :meth:`states`.
+
+        Returns:
+            Magnetisation in ``[-1, 1]``, shape ``(*B, T)``.
+        """
+        w = self.weights
+        if smooth:
+            s = self.states(u, initial_state, smooth=True)
+            return (s @ w) / w.sum()
+        un = self.normalize_input(u)
+        s0 = self.initial_states(initial_state)
+        return exact_magnetization(un, self._layout, w, s0) / w.sum()
+
+    def forward(
+        self,
+        u: Tensor,
+        initial_state: str | Tensor | None = None,
+        smooth: bool = False,
+    ) -> Tensor:
+        """Output along input sequences [output units].
+
+        Args:
+            u: Inputs [input units], shape ``(*B, T)``.
+            initial_state: See :meth:`initial_states`.
+            smooth: See :meth:`states`.
+
+        Returns:
+            Outputs [output units], shape ``(*B, T)``.
+        """
+        un = self.normalize_input(u)
+        m = self.magnetization(u, initial_state, smooth=smooth)
+        y = self.offset + self.slope * un + self.scale * m
+        return self.output_loc + self.output_scale * y
+
+    def final_state(
+        self, u: Tensor, initial_state: str | Tensor | None = None
+    ) -> Tensor:
+        """Exact hysteron states after the history ``u``.
+
+        Pass the result as ``initial_state`` to continue from it in exact mode:
+        ``model(v, initial_state=model.final_state(u))`` equals the tail of
+        ``model(cat(u, v))``.
+
+        Args:
+            u: History of inputs [input units], shape ``(*B, T)``.
+            initial_state: State before the history, see :meth:`initial_states`.
+
+        Returns:
+            States in ``[-1, 1]``, shape ``(*B, M)``.
+        """
+        un = self.normalize_input(u)
+        s0 = self.initial_states(initial_state)
+        return exact_states(un, self.alpha, self.beta, s0, self._layout, last=True)
+
+    def predict(
+        self,
+        u: Tensor,
+        history: Tensor | None = None,
+        initial_state: str | Tensor | None = None,
+        smooth: bool = False,
+    ) -> Tensor:
+        """Output for a future input sequence, continuing after ``history``.
+
+        Args:
+            u: Future inputs [input units], shape ``(*B, T)``.
+            history: Past inputs [input units], shape ``(*B, H)`` or ``(H,)``;
+                ``None`` starts from ``initial_state``.
+            initial_state: State before the history, see :meth:`initial_states`.
+            smooth: See :meth:`states`.
+
+        Returns:
+            Outputs [output units] for the future steps, shape ``(*B, T)``.
+        """
+        u = torch.as_tensor(u, dtype=self.alpha.dtype, device=self.alpha.device)
+        if history is None:
+            return self(u, initial_state, smooth=smooth)
+        h = torch.as_tensor(history, dtype=self.alpha.dtype, device=self.alpha.device)
+        if h.ndim < 1 or h.shape[-1] < 1 or u.ndim < 1:
+            raise ValueError(
+                f"history and u need shape (*B, T); got {tuple(h.shape)}, "
+                f"{tuple(u.shape)}."
+            )
+        batch = torch.broadcast_shapes(h.shape[:-1], u.shape[:-1])
+        h = h.expand(*batch, h.shape[-1])
+        u = u.expand(*batch, u.shape[-1])
+        full = torch.cat([h, u], dim=-1)
+        return self(full, initial_state, smooth=smooth)[..., h.shape[-1] :]
