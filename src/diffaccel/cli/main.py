@@ -19,3 +19,6 @@ def main(verbose: int) -> None:
 
 
 # Commands register themselves below (one module per command family).
+from diffaccel.cli.synthetic import synthetic  # noqa: E402
+
+main.add_command(synthetic)

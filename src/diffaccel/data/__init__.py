@@ -6,17 +6,48 @@ naming the offending field. Coordinates in memory are always Bmad
 """
 
 from diffaccel.data.errors import FormatError
+from diffaccel.data.particles_io import read_openpmd_particles, write_openpmd_particles
+from diffaccel.data.preprocessing import (
+    average_shots,
+    center_centroids,
+    crop_to_beam,
+    median_filter,
+    normalize,
+    pool,
+    subtract_background,
+    threshold,
+)
 from diffaccel.data.quad_scan import (
     FORMAT_VERSION,
     QuadScanDataset,
     read_quad_scan,
     write_quad_scan,
 )
+from diffaccel.data.synthetic import (
+    DEFAULT_BEAMLINE,
+    PRESETS,
+    make_synthetic_quad_scan,
+    sample_preset_beam,
+)
 
 __all__ = [
+    "DEFAULT_BEAMLINE",
     "FORMAT_VERSION",
+    "PRESETS",
     "FormatError",
     "QuadScanDataset",
+    "average_shots",
+    "center_centroids",
+    "crop_to_beam",
+    "make_synthetic_quad_scan",
+    "median_filter",
+    "normalize",
+    "pool",
+    "read_openpmd_particles",
     "read_quad_scan",
+    "sample_preset_beam",
+    "subtract_background",
+    "threshold",
+    "write_openpmd_particles",
     "write_quad_scan",
 ]

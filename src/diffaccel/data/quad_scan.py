@@ -49,6 +49,8 @@ SPECIES = ("electron", "positron", "proton")
 PARAMETER_UNITS: dict[str, tuple[str, ...]] = {
     "k1": ("1/m^2", "m^-2", "1/m**2"),
     "length": ("m",),
+    "dx": ("m",),
+    "dy": ("m",),
     "tilt": ("rad",),
     "angle": ("rad",),
     "e1": ("rad",),

@@ -1,0 +1,309 @@
+"""Particle beams in openPMD-beamphysics HDF5 files.
+
+Layout written (openPMD 2.0.0 with the ``BeamPhysics;SpeciesType`` extension, as
+written by the openPMD-beamphysics package)::
+
+    /                      attrs openPMD, openPMDextension, basePath="/data/%T/",
+                                 particlesPath="particles/", dataType="openPMD"
+    /data/0/particles/     attrs speciesType, numParticles, totalCharge, chargeLive,
+                                 chargeUnitSI, p0c [eV] (diffaccel extension)
+        position/{x,y,z}   [m]
+        momentum/{x,y,z}   [eV/c]  (unitSI = e/c kg m/s)
+        time               [s]
+        weight             [C]     (macro-particle charge, positive)
+        particleStatus     1 = alive
+
+Records carry ``unitSI``, ``unitDimension`` and ``unitSymbol``; the reader
+applies ``unitSI`` and accepts constant records (groups with ``value`` and
+``shape`` attributes). Coordinates in memory are Bmad's: a beam at one
+longitudinal position, with z = -beta c t and pz = |P| / P0 - 1.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import h5py
+import numpy as np
+import torch
+from torch import Tensor
+
+from diffaccel.data.errors import FormatError
+from diffaccel.dynamics import Species
+
+__all__ = ["read_openpmd_particles", "write_openpmd_particles"]
+
+_ELEMENTARY_CHARGE = 1.602176634e-19  # [C], exact (SI 2019)
+_SPEED_OF_LIGHT = 299_792_458.0  # [m/s], exact
+_EV_PER_C_SI = _ELEMENTARY_CHARGE / _SPEED_OF_LIGHT  # 1 eV/c in kg m/s
+
+# (unitSI, unitDimension (L, M, T, I, theta, N, J), unitSymbol) per record
+_UNITS = {
+    "position": (1.0, (1, 0, 0, 0, 0, 0, 0), "m"),
+    "momentum": (_EV_PER_C_SI, (1, 1, -1, 0, 0, 0, 0), "eV/c"),
+    "time": (1.0, (0, 0, 1, 0, 0, 0, 0), "s"),
+    "weight": (1.0, (0, 0, 1, 1, 0, 0, 0), "C"),
+    "particleStatus": (1.0, (0, 0, 0, 0, 0, 0, 0), "1"),
+}
+
+
+def _bmad_to_openpmd(
+    particles: Tensor, p0c: float, species: Species, weight: Tensor
+) -> dict[str, Tensor]:
+    """Bmad (N, 6) -> openPMD arrays at one longitudinal position (z = 0)."""
+    mc2 = species.mass_ev
+    p = (1.0 + particles[:, 5]) * p0c
+    px, py = particles[:, 1] * p0c, particles[:, 3] * p0c
+    pz = torch.sqrt(p**2 - px**2 - py**2)
+    beta = p / torch.sqrt(p**2 + mc2**2)
+    return {
+        "x": particles[:, 0],
+        "y": particles[:, 2],
+        "z": torch.zeros_like(p),
+        "px": px,
+        "py": py,
+        "pz": pz,
+        "t": -particles[:, 4] / (beta * _SPEED_OF_LIGHT),
+        "weight": weight,
+    }
+
+
+def _openpmd_to_bmad(data: dict[str, Tensor], p0c: float, species: Species) -> Tensor:
+    """openPMD arrays -> Bmad (N, 6) at the mean longitudinal position.
+
+    Particles at different ``z`` (e.g. a snapshot at one time) are drifted in
+    free space to the mean ``z`` first.
+    """
+    mc2 = species.mass_ev
+    p = torch.sqrt(data["px"] ** 2 + data["py"] ** 2 + data["pz"] ** 2)
+    energy = torch.sqrt(p**2 + mc2**2)
+    beta = p / energy
+    dz = data["z"].mean() - data["z"]
+    x = data["x"] + dz * data["px"] / data["pz"]
+    y = data["y"] + dz * data["py"] / data["pz"]
+    t = data["t"] + dz * energy / (data["pz"] * _SPEED_OF_LIGHT)
+    return torch.stack(
+        [
+            x,
+            data["px"] / p0c,
+            y,
+            data["py"] / p0c,
+            -beta * _SPEED_OF_LIGHT * t,
+            p / p0c - 1.0,
+        ],
+        dim=-1,
+    )
+
+
+def write_openpmd_particles(
+    path: str | os.PathLike,
+    particles_bmad: Tensor,
+    p0c: float,
+    species: str = "electron",
+    charge_C: float = 1e-12,
+    overwrite: bool = False,
+) -> Path:
+    """Write particles as an openPMD-beamphysics HDF5 file, atomically.
+
+    Args:
+        path: Destination file.
+        particles_bmad: Bmad coordinates (x [m], px, y [m], py, z [m], pz).
+        p0c: Reference momentum times c [eV]; stored as the ``p0c`` attribute.
+        species: ``"electron"``, ``"positron"`` or ``"proton"``.
+        charge_C: Total bunch charge [C] (> 0), shared equally by the particles.
+        overwrite: Replace an existing file.
+
+    Shapes:
+        ``particles_bmad`` (N, 6).
+
+    Returns:
+        The path written.
+
+    Raises:
+        FileExistsError: if ``path`` exists and ``overwrite`` is false.
+        ValueError: for a wrong shape, NaN/inf coordinates, ``p0c <= 0``,
+            ``charge_C <= 0`` or an unknown species.
+    """
+    particles = torch.as_tensor(particles_bmad).detach()
+    if particles.ndim != 2 or particles.shape[-1] != 6:
+        raise ValueError(
+            f"particles_bmad: expected shape (N, 6); got {tuple(particles.shape)}"
+        )
+    if not bool(torch.isfinite(particles).all()):
+        raise ValueError("particles_bmad: expected finite coordinates; found NaN/inf")
+    if not p0c > 0:
+        raise ValueError(f"p0c: expected > 0 [eV]; got {p0c}")
+    if not charge_C > 0:
+        raise ValueError(f"charge_C: expected > 0 [C]; got {charge_C}")
+    spec = Species.from_name(species)
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(
+            f"{path} exists; pass overwrite=True (CLI: --force) to replace it"
+        )
+    n = particles.shape[0]
+    weights = torch.full((n,), charge_C / n, dtype=torch.float64)
+    data = _bmad_to_openpmd(particles.double(), p0c=p0c, species=spec, weight=weights)
+    arrays = {k: np.asarray(v.detach().cpu().double().numpy()) for k, v in data.items()}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        with h5py.File(tmp, "w") as h5:
+            h5.attrs["openPMD"] = "2.0.0"
+            h5.attrs["openPMDextension"] = "BeamPhysics;SpeciesType"
+            h5.attrs["basePath"] = "/data/%T/"
+            h5.attrs["particlesPath"] = "particles/"
+            h5.attrs["dataType"] = "openPMD"
+            h5.attrs["iterationEncoding"] = "groupBased"
+            h5.attrs["iterationFormat"] = "/data/%T/"
+            g = h5.create_group("data/0/particles")
+            g.attrs["speciesType"] = spec.name
+            g.attrs["numParticles"] = np.int64(n)
+            g.attrs["totalCharge"] = float(charge_C)
+            g.attrs["chargeLive"] = float(charge_C)
+            g.attrs["chargeUnitSI"] = 1.0
+            g.attrs["p0c"] = float(p0c)
+            for comp in "xyz":
+                _write_record(g, f"position/{comp}", arrays[comp], "position")
+                _write_record(g, f"momentum/{comp}", arrays[f"p{comp}"], "momentum")
+            _write_record(g, "time", arrays["t"], "time")
+            _write_record(g, "weight", arrays["weight"], "weight")
+            _write_record(
+                g, "particleStatus", np.ones(n, dtype=np.int32), "particleStatus"
+            )
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _write_record(group: h5py.Group, name: str, values: np.ndarray, kind: str) -> None:
+    unit_si, dim, symbol = _UNITS[kind]
+    dset = group.create_dataset(name, data=values)
+    dset.attrs["unitSI"] = unit_si
+    dset.attrs["unitDimension"] = np.asarray(dim, dtype=np.float64)
+    dset.attrs["unitSymbol"] = symbol
+    record = dset.parent if "/" in name else dset
+    record.attrs["unitDimension"] = np.asarray(dim, dtype=np.float64)
+    record.attrs["timeOffset"] = 0.0
+
+
+def _as_str(value: object) -> str:
+    return value.decode() if isinstance(value, bytes) else str(value)
+
+
+def _particle_group(h5: h5py.File, where: Path) -> h5py.Group:
+    """The first particle group: basePath (%T -> first iteration) + particlesPath."""
+    if "basePath" not in h5.attrs:
+        raise FormatError(f"{where}: missing root attribute 'basePath' (not openPMD?)")
+    base = _as_str(h5.attrs["basePath"])
+    if "%T" in base:
+        head = base.split("%T")[0].rstrip("/") or "/"
+        if head not in h5 or not len(h5[head]):
+            raise FormatError(f"{where}: no iteration under {head!r}")
+        base = base.replace("%T", sorted(h5[head])[0])
+    particles_path = _as_str(h5.attrs.get("particlesPath", "./"))
+    full = (base.rstrip("/") + "/" + particles_path.strip("./").strip("/")).rstrip("/")
+    full = full or "/"
+    if full not in h5:
+        raise FormatError(f"{where}: missing particle group {full!r}")
+    group = h5[full]
+    if "position" in group:
+        return group
+    species = [
+        k for k in group if isinstance(group[k], h5py.Group) and "position" in group[k]
+    ]
+    if not species:
+        raise FormatError(
+            f"{where}: no particle species with 'position' under {full!r}"
+        )
+    return group[species[0]]
+
+
+def _read_record(group: h5py.Group, name: str, n: int | None, where: str) -> np.ndarray:
+    if name not in group:
+        raise FormatError(f"{where}: missing record {name!r}")
+    obj = group[name]
+    if isinstance(obj, h5py.Group):  # constant record component
+        if "value" not in obj.attrs:
+            raise FormatError(f"{where}/{name}: constant record without 'value'")
+        shape = tuple(obj.attrs.get("shape", (n,)))
+        values = np.full(shape, float(obj.attrs["value"]))
+    else:
+        values = np.asarray(obj[()], dtype=np.float64)
+    unit_si = float(obj.attrs.get("unitSI", 1.0))
+    return values * unit_si
+
+
+def read_openpmd_particles(path: str | os.PathLike) -> tuple[Tensor, float, str]:
+    """Read particles from an openPMD-beamphysics HDF5 file.
+
+    Particles with ``particleStatus != 1`` (lost) are dropped. The reference
+    momentum is the file's ``p0c`` attribute when present, else the mean total
+    momentum of the live particles.
+
+    Args:
+        path: File to read.
+
+    Returns:
+        ``(particles_bmad, p0c, species)``: (N, 6) float64 Bmad coordinates,
+        reference momentum times c [eV], species name.
+
+    Raises:
+        FileNotFoundError: if ``path`` does not exist.
+        FormatError: naming the missing or invalid attribute/record.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"particle file not found: {path}")
+    try:
+        h5 = h5py.File(path, "r")
+    except OSError as err:
+        raise FormatError(f"{path}: not a readable HDF5 file ({err})") from err
+    with h5:
+        g = _particle_group(h5, path)
+        where = f"{path}:{g.name}"
+        if "speciesType" not in g.attrs:
+            raise FormatError(f"{where}: missing attribute 'speciesType'")
+        species = _as_str(g.attrs["speciesType"])
+        try:
+            spec = Species.from_name(species)
+        except ValueError as err:
+            raise FormatError(f"{where}.speciesType: {err}") from err
+        x = _read_record(g, "position/x", None, where)
+        n = x.shape[0]
+        si = {
+            "x": x,
+            "y": _read_record(g, "position/y", n, where),
+            "z": _read_record(g, "position/z", n, where),
+            "px": _read_record(g, "momentum/x", n, where) / _EV_PER_C_SI,
+            "py": _read_record(g, "momentum/y", n, where) / _EV_PER_C_SI,
+            "pz": _read_record(g, "momentum/z", n, where) / _EV_PER_C_SI,
+            "t": _read_record(g, "time", n, where),
+            "weight": _read_record(g, "weight", n, where),
+        }
+        alive = np.ones(n, dtype=bool)
+        if "particleStatus" in g:
+            alive = _read_record(g, "particleStatus", n, where) == 1
+        p0c_attr = float(g.attrs["p0c"]) if "p0c" in g.attrs else None
+    for key, values in si.items():
+        if values.shape != (n,):
+            raise FormatError(
+                f"{where}: record {key!r} has shape {values.shape}; expected ({n},)"
+            )
+        if not np.isfinite(values).all():
+            raise FormatError(f"{where}: record {key!r} contains NaN/inf")
+    if not (si["pz"][alive] > 0).all():
+        raise FormatError(f"{where}: momentum/z must be > 0 (a forward-moving beam)")
+    if not alive.any():
+        raise FormatError(f"{where}: no live particles (particleStatus == 1)")
+    data = {k: torch.from_numpy(v[alive]) for k, v in si.items()}
+    if p0c_attr is None:
+        p = torch.sqrt(data["px"] ** 2 + data["py"] ** 2 + data["pz"] ** 2)
+        p0c_attr = float(p.mean())
+    particles = _openpmd_to_bmad(data, p0c=p0c_attr, species=spec)
+    return particles, p0c_attr, spec.name

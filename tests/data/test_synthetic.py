@@ -1,0 +1,181 @@
+"""Synthetic quad scans: beams, images and noise with the physics they promise."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from diffaccel.data import (
+    make_synthetic_quad_scan,
+    read_quad_scan,
+    write_openpmd_particles,
+    write_quad_scan,
+)
+from diffaccel.data.synthetic import PRESETS, sample_preset_beam
+
+SMALL = {"n_settings": 6, "screen_shape": (32, 32), "pixel_size": (2e-3, 2e-3)}
+
+
+def _image_moments(ds) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-setting rms (x, y) [m] of the shot-averaged images."""
+    img = ds.mean_images().double()
+    ys, xs = ds.pixel_centers()
+    px, py = img.sum(-2), img.sum(-1)
+    mx, my = (px * xs).sum(-1), (py * ys).sum(-1)
+    sx = ((px * (xs - mx[:, None]) ** 2).sum(-1)).sqrt()
+    sy = ((py * (ys - my[:, None]) ** 2).sum(-1)).sqrt()
+    return sx, sy
+
+
+@pytest.mark.parametrize("preset", PRESETS)
+def test_preset_beams_are_centred_6d_with_energy_spread(preset: str) -> None:
+    beam = sample_preset_beam(preset, 5000, torch.Generator().manual_seed(0))
+    assert beam.shape == (5000, 6) and beam.dtype == torch.float64
+    torch.testing.assert_close(beam.mean(0), torch.zeros(6, dtype=torch.float64))
+    std = beam.std(0)
+    # transverse rms of 0.3-3 mm / 0.1-2 mrad, 0.1-1 % energy spread
+    assert ((std[[0, 2]] > 3e-4) & (std[[0, 2]] < 3e-3)).all()
+    assert ((std[[1, 3]] > 1e-4) & (std[[1, 3]] < 2e-3)).all()
+    assert 1e-3 < std[5] < 1e-2
+
+
+def test_correlated_preset_has_its_correlations() -> None:
+    beam = sample_preset_beam("correlated", 10_000, torch.Generator().manual_seed(1))
+    corr = torch.corrcoef(beam.T)
+    # sample correlation error ~ (1 - r^2) / sqrt(N) <= 0.01; allow 4 of those
+    assert corr[0, 1].item() == pytest.approx(-0.6, abs=0.04)
+    assert corr[2, 3].item() == pytest.approx(0.5, abs=0.04)
+    assert corr[4, 5].item() == pytest.approx(-0.7, abs=0.04)
+
+
+def test_nonlinear_preset_is_not_gaussian() -> None:
+    beam = sample_preset_beam("nonlinear", 10_000, torch.Generator().manual_seed(2))
+    x, px = beam[:, 0], beam[:, 1]
+    # x-px curvature: px correlates with x^2 (a Gaussian beam gives ~0 +- 0.01)
+    r = torch.corrcoef(torch.stack([px, x**2]))[0, 1]
+    assert r.item() > 0.15
+    # separated modes: below y = 0 the x histogram has a dip between two peaks
+    # (a single Gaussian would peak in the middle)
+    hist = torch.histc(x[beam[:, 2] < 0], bins=24, min=-4e-3, max=4e-3)
+    left, right = int(hist[:12].argmax()), 12 + int(hist[12:].argmax())
+    dip = hist[left:right].min()
+    assert dip < 0.5 * torch.minimum(hist[left], hist[right])
+
+
+@pytest.mark.parametrize("preset", PRESETS)
+def test_default_geometry_keeps_beam_on_screen(preset: str) -> None:
+    ds = make_synthetic_quad_scan(preset, n_particles=2000)
+    assert ds.shape == (20, 1, 64, 64)
+    torch.testing.assert_close(
+        ds.settings[:, 0], torch.linspace(-25, 15, 20, dtype=torch.float64)
+    )
+    # the beam is "well inside": essentially all of it lands on the screen
+    assert min(ds.metadata["synthetic"]["fraction_on_screen"]) > 0.999
+    sx, sy = _image_moments(ds)
+    # "a few mm rms at 1 mm pixels" at the largest setting, never over 8 mm
+    assert 2e-3 < sx.max() < 8e-3 and 2e-3 < sy.max() < 8e-3
+
+
+def test_image_moments_follow_linear_optics() -> None:
+    """Image variance = (R Sigma R^T) + bandwidth^2 for a Gaussian beam."""
+    ds = make_synthetic_quad_scan(
+        "gaussian", n_particles=5000, n_settings=5, seed=3, dtype=torch.float64
+    )
+    beam = ds.ground_truth
+    sigma = torch.cov(beam.T)
+    line = ds.beamline().with_params({"Q1.k1": ds.settings[:, 0]})
+    r = line.transfer_map(ds.p0c)  # (K, 6, 6)
+    cov = r @ sigma @ r.transpose(-1, -2)
+    bw = 1e-3  # default KDE bandwidth: one pixel
+    expected_x = (cov[:, 0, 0] + bw**2).sqrt()
+    expected_y = (cov[:, 2, 2] + bw**2).sqrt()
+    sx, sy = _image_moments(ds)
+    # same particles on both sides, so no sampling error; what remains is the
+    # chromatic part of the exact quad map (kL * sigma_pz ~ 1 % -> < 0.1 % in rms)
+    # and sampling the KDE at pixel centres (rms >= 1.4 px -> < 0.5 %)
+    torch.testing.assert_close(sx, expected_x, rtol=0.01, atol=0)
+    torch.testing.assert_close(sy, expected_y, rtol=0.01, atol=0)
+
+
+def test_images_sum_normalised_and_ground_truth_kept() -> None:
+    beam = sample_preset_beam("gaussian", 1000, torch.Generator().manual_seed(4))
+    ds = make_synthetic_quad_scan(particles=beam, shots=2, noise=0.05, **SMALL)
+    assert ds.shape == (6, 2, 32, 32)
+    torch.testing.assert_close(
+        ds.images.sum((-2, -1)), torch.ones(6, 2), rtol=0, atol=1e-5
+    )
+    assert torch.equal(ds.ground_truth, beam)
+    assert ds.metadata["synthetic"]["source"] == {"kind": "tensor"}
+
+
+@pytest.mark.parametrize("model", ["poisson", "gaussian"])
+def test_noise_level(model: str) -> None:
+    ds = make_synthetic_quad_scan(
+        "gaussian", n_particles=2000, shots=60, noise=0.1, noise_model=model, **SMALL
+    )
+    clean = make_synthetic_quad_scan("gaussian", n_particles=2000, **SMALL)
+    peak = clean.images[:, 0].flatten(-2).argmax(-1)
+    k = torch.arange(6)
+    at_peak = ds.images.flatten(-2)[k, :, peak]  # (K, S)
+    rel = at_peak.std(dim=1) / clean.images.flatten(-2)[k, 0, peak]
+    # relative rms 0.1 at the peak pixel; the std of 60 shots is known to ~9 %,
+    # sum-normalisation adds < 2 %: allow 25 %
+    torch.testing.assert_close(rel.mean(), torch.tensor(0.1), rtol=0.25, atol=0)
+    # noise is zero-mean: the shot average approaches the clean image
+    mean = ds.images.mean(1)
+    err = (mean - clean.images[:, 0]).abs().sum((-2, -1)).mean()
+    noisy = (ds.images[:, 0] - clean.images[:, 0]).abs().sum((-2, -1)).mean()
+    assert err < 0.3 * noisy  # 1/sqrt(60) = 0.13 expected
+
+
+def test_seeded() -> None:
+    a = make_synthetic_quad_scan("nonlinear", n_particles=500, noise=0.1, **SMALL)
+    b = make_synthetic_quad_scan("nonlinear", n_particles=500, noise=0.1, **SMALL)
+    c = make_synthetic_quad_scan(
+        "nonlinear", n_particles=500, noise=0.1, seed=1, **SMALL
+    )
+    assert torch.equal(a.images, b.images)
+    assert torch.equal(a.ground_truth, b.ground_truth)
+    assert not torch.equal(a.ground_truth, c.ground_truth)
+
+
+def test_file_round_trip(tmp_path: Path) -> None:
+    ds = make_synthetic_quad_scan("correlated", n_particles=500, **SMALL)
+    back = read_quad_scan(write_quad_scan(ds, tmp_path / "syn.h5"))
+    assert torch.equal(back.images, ds.images)
+    assert torch.equal(back.ground_truth, ds.ground_truth)
+    assert back.metadata == ds.metadata
+
+
+def test_user_particle_file(tmp_path: Path) -> None:
+    beam = sample_preset_beam("correlated", 800, torch.Generator().manual_seed(5))
+    path = write_openpmd_particles(tmp_path / "beam.h5", beam, p0c=63e6)
+    ds = make_synthetic_quad_scan(particle_file=path, **SMALL)
+    assert ds.p0c == pytest.approx(63e6)
+    # float64 round trip through openPMD momenta/time: round-off only
+    torch.testing.assert_close(ds.ground_truth, beam, rtol=1e-9, atol=1e-15)
+    assert ds.metadata["synthetic"]["source"]["kind"] == "openpmd"
+
+
+BAD = [
+    (
+        "both_beams",
+        {"particles": torch.zeros(3, 6), "particle_file": "x.h5"},
+        "not both",
+    ),
+    ("noise", {"noise": -0.1}, "noise: expected"),
+    ("shots", {"shots": 0}, "shots: expected"),
+    ("shape", {"particles": torch.zeros(10, 4)}, r"particles: expected shape \(N, 6\)"),
+    ("preset", {"preset": "flat"}, "preset: expected one of"),
+    ("off_screen", {"center": (1.0, 0.0)}, "misses the screen at setting 0"),
+]
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"), [b[1:] for b in BAD], ids=[b[0] for b in BAD]
+)
+def test_bad_options(kwargs: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        make_synthetic_quad_scan(**{"n_particles": 100, **SMALL, **kwargs})
