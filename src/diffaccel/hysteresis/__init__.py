@@ -2,14 +2,28 @@
 
 from __future__ import annotations
 
+from diffaccel.hysteresis.bo import HysteresisBO
 from diffaccel.hysteresis.fit import FitResult, fit_preisach
+from diffaccel.hysteresis.hgp import HGPFitResult, HysteresisGP, fit_hysteresis_gp
+from diffaccel.hysteresis.magnet import (
+    HystereticMagnet,
+    hysteretic_settings,
+    magnetic_rigidity,
+)
 from diffaccel.hysteresis.mesh import PreisachMesh
 from diffaccel.hysteresis.preisach import INITIAL_STATES, PreisachModel
 
 __all__ = [
     "INITIAL_STATES",
     "FitResult",
+    "HGPFitResult",
+    "HysteresisBO",
+    "HysteresisGP",
+    "HystereticMagnet",
     "PreisachMesh",
     "PreisachModel",
+    "fit_hysteresis_gp",
     "fit_preisach",
+    "hysteretic_settings",
+    "magnetic_rigidity",
 ]

@@ -1,0 +1,237 @@
+"""Bayesian optimisation of a beam response over hysteretic magnet settings.
+
+:class:`HysteresisBO` is an ask/tell loop: ``tell`` records measurements (in the
+order the settings were applied) and refits a :class:`HysteresisGP`; ``ask``
+proposes the next setting(s) with a stock BoTorch acquisition function, judged
+from the magnetic state the applied history left behind.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+from collections.abc import Mapping
+from typing import Literal
+
+import torch
+from botorch.acquisition import (
+    LogExpectedImprovement,
+    UpperConfidenceBound,
+    qLogExpectedImprovement,
+    qUpperConfidenceBound,
+)
+from botorch.acquisition.acquisition import AcquisitionFunction
+from botorch.optim import optimize_acqf
+from torch import Tensor
+
+from diffaccel.hysteresis.hgp import HGPFitResult, HysteresisGP, fit_hysteresis_gp
+from diffaccel.hysteresis.preisach import PreisachModel
+
+__all__ = ["HysteresisBO"]
+
+logger = logging.getLogger(__name__)
+
+Acquisition = Literal["ucb", "logei"]
+
+
+class HysteresisBO:
+    """Ask/tell Bayesian optimiser of a beam response over magnet settings.
+
+    Hysteretic input columns (keys of ``hysteresis``) are magnet currents whose
+    effect goes through a Preisach model of the applied history; other columns
+    are plain inputs. After each ``tell`` the H-GP is rebuilt on the whole
+    history and refitted, warm-started from the previous fit. ``ask(q)`` returns
+    ``q`` settings to be applied *in that order*: the acquisition judges each
+    from the state left by the ones before it. With ``hysteresis={}`` the model
+    is exactly BoTorch's ``SingleTaskGP`` (plain-GP baseline).
+
+    Args:
+        bounds: Lower and upper bound of each input, shape ``(2, d)``, in the
+            units of the inputs (current [A] for hysteretic columns).
+        hysteresis: Map from input column to its Preisach model (prior guess;
+            its density is refitted with the GP).
+        acquisition: ``"ucb"`` (upper confidence bound) or ``"logei"`` (log
+            expected improvement); the ``q > 1`` versions are the Monte-Carlo
+            ``qUCB`` / ``qLogEI``.
+        beta: UCB exploration weight (``mean + sqrt(beta) * sigma``).
+        maximize: Maximise the response if True, minimise it otherwise.
+        fit_restarts: Restarts of each H-GP fit (see ``fit_hysteresis_gp``).
+        fit_max_iter: L-BFGS-B iterations per fit restart.
+        num_restarts: Starting points of the acquisition optimiser.
+        raw_samples: Random samples used to choose those starting points.
+        seed: Seed of the fit restarts and acquisition optimiser.
+
+    Shapes:
+        ``tell(X (n, d), Y (n, 1))``; ``ask(q) -> (q, d)``.
+
+    Raises:
+        ValueError: for malformed bounds, an unknown acquisition or bad data.
+
+    Example:
+        >>> import torch
+        >>> bo = HysteresisBO(torch.tensor([[0.0], [1.0]], dtype=torch.float64), {})
+        >>> X = torch.tensor([[0.1], [0.5], [0.9]], dtype=torch.float64)
+        >>> bo.tell(X, -((X - 0.4) ** 2))
+        >>> bo.ask().shape
+        torch.Size([1, 1])
+    """
+
+    def __init__(
+        self,
+        bounds: Tensor,
+        hysteresis: Mapping[int, PreisachModel],
+        acquisition: Acquisition = "ucb",
+        beta: float = 2.0,
+        maximize: bool = True,
+        fit_restarts: int = 1,
+        fit_max_iter: int = 100,
+        num_restarts: int = 4,
+        raw_samples: int = 128,
+        seed: int = 0,
+    ) -> None:
+        bounds = torch.as_tensor(bounds)
+        if bounds.dim() != 2 or bounds.shape[0] != 2 or not bounds.is_floating_point():
+            raise ValueError(
+                f"bounds must be a float tensor of shape (2, d); got "
+                f"{tuple(bounds.shape)} {bounds.dtype}."
+            )
+        if not (bounds[1] > bounds[0]).all():
+            raise ValueError(f"bounds need lower < upper; got {bounds.tolist()}.")
+        if acquisition not in ("ucb", "logei"):
+            raise ValueError(
+                f"acquisition must be 'ucb' or 'logei'; got {acquisition!r}."
+            )
+        if beta <= 0:
+            raise ValueError(f"beta must be > 0; got {beta}.")
+        self.bounds = bounds
+        self.hysteresis = dict(hysteresis)
+        self.acquisition = acquisition
+        self.beta = float(beta)
+        self.maximize = bool(maximize)
+        self.fit_restarts = int(fit_restarts)
+        self.fit_max_iter = int(fit_max_iter)
+        self.num_restarts = int(num_restarts)
+        self.raw_samples = int(raw_samples)
+        self.seed = int(seed)
+        self.X = bounds.new_zeros(0, bounds.shape[1])
+        self.Y = bounds.new_zeros(0, 1)
+        self.model: HysteresisGP | None = None
+        self.last_fit: HGPFitResult | None = None
+        self._n_fits = 0
+
+    # ------------------------------------------------------------------ data
+    def tell(self, X: Tensor, Y: Tensor) -> None:
+        """Record settings applied in order and the responses measured after each.
+
+        Args:
+            X: Settings, shape ``(n, d)`` (or ``(d,)`` for one).
+            Y: Responses, shape ``(n, 1)`` (or ``(n,)`` / scalar).
+
+        Raises:
+            ValueError: for shape mismatches or non-finite values.
+        """
+        X = torch.as_tensor(X, dtype=self.bounds.dtype, device=self.bounds.device)
+        Y = torch.as_tensor(Y, dtype=self.bounds.dtype, device=self.bounds.device)
+        X = X.reshape(-1, self.bounds.shape[1]) if X.dim() <= 1 else X
+        Y = Y.reshape(-1, 1)
+        if X.dim() != 2 or X.shape[-1] != self.bounds.shape[1]:
+            raise ValueError(
+                f"X must have shape (n, {self.bounds.shape[1]}); got {tuple(X.shape)}."
+            )
+        if Y.shape[0] != X.shape[0]:
+            raise ValueError(
+                f"X has {X.shape[0]} settings but Y has {Y.shape[0]} responses."
+            )
+        if not (torch.isfinite(X).all() and torch.isfinite(Y).all()):
+            raise ValueError("X and Y must be finite (no NaN or inf).")
+        self.X = torch.cat([self.X, X])
+        self.Y = torch.cat([self.Y, Y])
+        if self.X.shape[0] >= 3 and bool((self.Y != self.Y[0]).any()):
+            self._refit()
+        else:
+            self.model = None
+
+    def _refit(self) -> None:
+        sign = 1.0 if self.maximize else -1.0
+        prev = self.model
+        if prev is None:
+            hyst: Mapping[int, PreisachModel] = self.hysteresis
+            modules: dict[str, object] = {}
+        else:
+            hyst = dict(zip(prev.hysteretic_dims, prev.hysteresis_models, strict=True))
+            modules = {
+                "likelihood": copy.deepcopy(prev.gp.likelihood),
+                "covar_module": copy.deepcopy(prev.gp.covar_module),
+                "mean_module": copy.deepcopy(prev.gp.mean_module),
+            }
+        model = HysteresisGP(
+            self.X, sign * self.Y, hysteresis=hyst, bounds=self.bounds, **modules
+        )
+        self.last_fit = fit_hysteresis_gp(
+            model,
+            restarts=self.fit_restarts,
+            max_iter=self.fit_max_iter,
+            seed=self.seed + self._n_fits,
+        )
+        self._n_fits += 1
+        self.model = model
+
+    # -------------------------------------------------------------- proposals
+    def acquisition_function(self, q: int = 1) -> AcquisitionFunction:
+        """The acquisition function of the current model (responses maximised).
+
+        Args:
+            q: Number of settings proposed jointly (applied in order).
+
+        Returns:
+            A BoTorch acquisition function over ``batch x q x d`` inputs.
+
+        Raises:
+            RuntimeError: before a model could be fitted (fewer than 3 points or
+                constant responses).
+        """
+        if self.model is None:
+            raise RuntimeError(
+                "no model yet: tell at least 3 settings with non-constant responses "
+                "before asking."
+            )
+        best = (self.Y if self.maximize else -self.Y).max()
+        if q == 1:
+            if self.acquisition == "ucb":
+                return UpperConfidenceBound(self.model, beta=self.beta)
+            return LogExpectedImprovement(self.model, best_f=best)
+        if self.acquisition == "ucb":
+            return qUpperConfidenceBound(self.model, beta=self.beta)
+        return qLogExpectedImprovement(self.model, best_f=best)
+
+    def ask(self, q: int = 1) -> Tensor:
+        """Propose the next ``q`` settings, to be applied in this order.
+
+        Args:
+            q: Number of settings (``>= 1``).
+
+        Returns:
+            Settings, shape ``(q, d)``.
+        """
+        if q < 1:
+            raise ValueError(f"q must be >= 1; got {q}.")
+        acq = self.acquisition_function(q)
+        gen = torch.random.fork_rng()
+        with gen:
+            torch.manual_seed(self.seed + 7919 * self._n_fits)
+            cand, _ = optimize_acqf(
+                acq,
+                bounds=self.bounds,
+                q=q,
+                num_restarts=self.num_restarts,
+                raw_samples=self.raw_samples,
+            )
+        return cand.detach()
+
+    @property
+    def best(self) -> tuple[Tensor, Tensor]:
+        """Best measured setting ``(d,)`` and its response ``()`` so far."""
+        if self.Y.shape[0] == 0:
+            raise RuntimeError("no measurements yet.")
+        i = int(self.Y.argmax() if self.maximize else self.Y.argmin())
+        return self.X[i], self.Y[i, 0]
