@@ -157,6 +157,17 @@ def test_user_particle_file(tmp_path: Path) -> None:
     # float64 round trip through openPMD momenta/time: round-off only
     torch.testing.assert_close(ds.ground_truth, beam, rtol=1e-9, atol=1e-15)
     assert ds.metadata["synthetic"]["source"]["kind"] == "openpmd"
+    # another reference momentum: the same physical momenta, re-referenced
+    other = make_synthetic_quad_scan(particle_file=path, p0c=60e6, **SMALL)
+    torch.testing.assert_close(
+        (1 + other.ground_truth[:, 5]) * 60e6,
+        (1 + beam[:, 5]) * 63e6,
+        rtol=1e-12,
+        atol=0,
+    )
+    torch.testing.assert_close(
+        other.ground_truth[:, 1] * 60e6, beam[:, 1] * 63e6, rtol=1e-12, atol=1e-9
+    )
 
 
 BAD = [

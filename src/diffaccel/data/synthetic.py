@@ -178,7 +178,8 @@ def make_synthetic_quad_scan(
             ``particles`` nor ``particle_file`` is given.
         particles: Initial particles in Bmad coordinates, (N, 6).
         particle_file: openPMD-beamphysics HDF5 file with the initial beam; its
-            ``p0c`` and species are used unless given here.
+            ``p0c`` and species are used unless given here (a different ``p0c``
+            re-references the same physical momenta).
         n_particles: Number of preset particles N.
         beamline_spec: Element list; default :data:`DEFAULT_BEAMLINE`.
         p0c: Reference momentum times c [eV]; default 43.36e6.
@@ -230,6 +231,12 @@ def make_synthetic_quad_scan(
     source: dict = {"kind": "preset", "preset": preset}
     if particle_file is not None:
         beam, file_p0c, file_species = read_openpmd_particles(particle_file)
+        if p0c is not None and float(p0c) != file_p0c:
+            # same physical momenta, new reference: scale px, py and 1 + pz
+            ratio = file_p0c / float(p0c)
+            beam = beam.clone()
+            beam[:, [1, 3]] *= ratio
+            beam[:, 5] = (1.0 + beam[:, 5]) * ratio - 1.0
         p0c = file_p0c if p0c is None else p0c
         species = file_species if species is None else species
         source = {"kind": "openpmd", "file": os.fspath(particle_file)}
