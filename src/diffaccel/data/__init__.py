@@ -6,6 +6,13 @@ naming the offending field. Coordinates in memory are always Bmad
 """
 
 from diffaccel.data.errors import FormatError
+from diffaccel.data.magnet_csv import (
+    DEFAULT_INPUT_COLUMN,
+    DEFAULT_OUTPUT_COLUMN,
+    MagnetHistory,
+    read_magnet_csv,
+    write_csv_atomic,
+)
 from diffaccel.data.particles_io import read_openpmd_particles, write_openpmd_particles
 from diffaccel.data.preprocessing import (
     average_shots,
@@ -32,9 +39,12 @@ from diffaccel.data.synthetic import (
 
 __all__ = [
     "DEFAULT_BEAMLINE",
+    "DEFAULT_INPUT_COLUMN",
+    "DEFAULT_OUTPUT_COLUMN",
     "FORMAT_VERSION",
     "PRESETS",
     "FormatError",
+    "MagnetHistory",
     "QuadScanDataset",
     "average_shots",
     "center_centroids",
@@ -43,11 +53,13 @@ __all__ = [
     "median_filter",
     "normalize",
     "pool",
+    "read_magnet_csv",
     "read_openpmd_particles",
     "read_quad_scan",
     "sample_preset_beam",
     "subtract_background",
     "threshold",
+    "write_csv_atomic",
     "write_openpmd_particles",
     "write_quad_scan",
 ]

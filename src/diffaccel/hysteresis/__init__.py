@@ -5,6 +5,11 @@ from __future__ import annotations
 from diffaccel.hysteresis.bo import HysteresisBO
 from diffaccel.hysteresis.fit import FitResult, fit_preisach
 from diffaccel.hysteresis.hgp import HGPFitResult, HysteresisGP, fit_hysteresis_gp
+from diffaccel.hysteresis.inverse import (
+    InverseResult,
+    invert_preisach,
+    next_step_output,
+)
 from diffaccel.hysteresis.magnet import (
     HystereticMagnet,
     hysteretic_settings,
@@ -20,10 +25,13 @@ __all__ = [
     "HysteresisBO",
     "HysteresisGP",
     "HystereticMagnet",
+    "InverseResult",
     "PreisachMesh",
     "PreisachModel",
     "fit_hysteresis_gp",
     "fit_preisach",
     "hysteretic_settings",
+    "invert_preisach",
     "magnetic_rigidity",
+    "next_step_output",
 ]

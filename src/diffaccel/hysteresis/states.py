@@ -18,7 +18,7 @@ Both conditions depend on ``alpha`` only through ``L`` and on ``beta`` only
 through a comparison, so hysterons sharing an ``alpha`` (a mesh row) share
 ``L`` and the window minimum. :func:`exact_magnetization` uses this to reduce
 the Preisach integral to prefix sums of the weights along each row, found by
-``searchsorted``: cost ``O(T R log L)`` for ``R`` rows of ``L`` points instead of
+a beta-level table: cost ``O(T R)`` for ``R`` rows of ``L`` points instead of
 ``O(T M)``, and no ``(T, M)`` table. :func:`exact_states` builds the full table.
 
 Smooth relays. Within a monotone segment of the input the state of a
@@ -50,42 +50,53 @@ __all__ = [
 class RowLayout:
     """Hysterons grouped into rows of equal ``alpha``, sorted by ``beta``.
 
+    Thresholds are also ranked: ``beta_levels`` holds the sorted distinct betas
+    and ``beta_rank[i]`` the position of ``beta[i]`` among them, so that
+    ``beta[i] < x`` iff ``beta_rank[i] < searchsorted(beta_levels, x)``.
+    ``below[r, j]`` counts the betas of row ``r`` among the ``j`` lowest levels.
+
     Args:
         alpha: Up thresholds [1], shape ``(M,)``.
         beta: Down thresholds [1], shape ``(M,)``.
 
     Shapes:
-        ``row_alpha``: ``(R,)``; ``row_beta``: ``(R, L)`` padded with ``+inf``;
-        ``index``: ``(R, L)`` hysteron index, padded with ``M``; ``row``: ``(M,)``.
+        ``row_alpha``: ``(R,)``; ``index``: ``(R, L)`` hysteron index, padded
+        with ``M``; ``row``, ``beta_rank``: ``(M,)``; ``beta_levels``: ``(U,)``;
+        ``below``: ``(R, U + 1)``.
     """
 
     def __init__(self, alpha: Tensor, beta: Tensor) -> None:
         m = alpha.numel()
+        dev = alpha.device
         row_alpha, row = torch.unique(alpha, sorted=True, return_inverse=True)
+        beta_levels, beta_rank = torch.unique(beta, sorted=True, return_inverse=True)
         order_b = torch.argsort(beta, stable=True)
         order = order_b[torch.argsort(row[order_b], stable=True)]
         counts = torch.bincount(row, minlength=row_alpha.numel())
         starts = torch.cumsum(counts, 0) - counts
         col = torch.empty_like(row)
-        col[order] = torch.arange(m, device=alpha.device) - starts[row[order]]
+        col[order] = torch.arange(m, device=dev) - starts[row[order]]
         n_rows, width = row_alpha.numel(), int(counts.max())
-        index = torch.full((n_rows, width), m, dtype=torch.long, device=alpha.device)
-        index[row, col] = torch.arange(m, device=alpha.device)
-        row_beta = torch.full(
-            (n_rows, width), float("inf"), dtype=beta.dtype, device=beta.device
-        )
-        row_beta[row, col] = beta
+        index = torch.full((n_rows, width), m, dtype=torch.long, device=dev)
+        index[row, col] = torch.arange(m, device=dev)
+        n_levels = beta_levels.numel()
+        hist = torch.zeros(n_rows, n_levels, dtype=torch.long, device=dev)
+        hist.index_put_((row, beta_rank), torch.ones_like(row), accumulate=True)
+        below = F.pad(torch.cumsum(hist, dim=1), (1, 0))
+        # position of each (row, level) count inside the row's padded prefix sums
         self.row_alpha = row_alpha
-        self.row_beta = row_beta.contiguous()
+        self.beta_levels = beta_levels.contiguous()
+        self.beta_rank = beta_rank
         self.index = index
         self.row = row
+        self.below = below
 
     def to(self, device: torch.device | str | None, dtype: torch.dtype) -> RowLayout:
         """Move in place to ``device``; cast thresholds to ``dtype``; return self."""
         self.row_alpha = self.row_alpha.to(device=device, dtype=dtype)
-        self.row_beta = self.row_beta.to(device=device, dtype=dtype).contiguous()
-        self.index = self.index.to(device=device)
-        self.row = self.row.to(device=device)
+        self.beta_levels = self.beta_levels.to(device=device, dtype=dtype).contiguous()
+        for name in ("beta_rank", "index", "row", "below"):
+            setattr(self, name, getattr(self, name).to(device=device))
         return self
 
 
@@ -105,56 +116,62 @@ def demagnetized_state(alpha: Tensor, beta: Tensor) -> Tensor:
     return torch.sign(1.0 - alpha - beta)
 
 
-def _window_min(u: Tensor, lo: Tensor) -> Tensor:
-    """Minimum of ``u[b, lo..t]`` for every ``t``, ``+inf`` where ``lo > t``.
+def _window_min(v: Tensor, lo: Tensor, empty_value: int) -> Tensor:
+    """Minimum of ``v[b, lo..t]`` for every ``t``; ``empty_value`` where ``lo > t``.
 
-    Sparse-table range minimum: exact, ``O(T log T)`` to build.
+    Sparse-table range minimum on integers: exact, ``O(T log T)`` to build.
 
     Shapes:
-        ``u``: ``(B, T)``; ``lo``: ``(B, T, R)`` long; result ``(B, T, R)``.
+        ``v``: ``(B, T)`` long; ``lo``: ``(B, T, R)`` long; result ``(B, T, R)``.
     """
-    b, t = u.shape
-    levels = [u]
+    b, t = v.shape
+    levels = [v]
     span = 1
     while 2 * span <= t:
         prev = levels[-1]
         nxt = torch.minimum(prev[:, : t - span], prev[:, span:])
-        levels.append(F.pad(nxt, (0, span), value=float("inf")))
+        levels.append(F.pad(nxt, (0, span), value=empty_value))
         span *= 2
     table = torch.stack(levels, dim=1).reshape(b, -1)  # (B, J * T)
-    hi = torch.arange(t, device=u.device).view(1, t, 1)
-    length = hi - lo + 1
-    empty = length <= 0
-    length = length.clamp(min=1)
-    j = torch.floor(torch.log2(length.to(torch.float64))).to(torch.long)
-    j = torch.minimum(j, torch.as_tensor(len(levels) - 1, device=u.device))
-    lo_c = lo.clamp(min=0, max=t - 1)
-    second = (hi - (1 << j) + 1).clamp(min=0)
-    flat_shape = (b, -1)
-    a = torch.gather(table, 1, (j * t + lo_c).reshape(flat_shape))
-    c = torch.gather(table, 1, (j * t + second).reshape(flat_shape))
+    # floor(log2(n)) and 2**floor(log2(n)) for n = 0..T (n = 0 unused)
+    n = torch.arange(t + 1, device=v.device)
+    log2n = torch.zeros_like(n)
+    for j in range(1, len(levels)):
+        log2n += (n >= (1 << j)).to(n.dtype)
+    hi = torch.arange(t, device=v.device).view(1, t, 1)
+    length = (hi - lo + 1).clamp(min=0)
+    j = log2n[length]
+    first = j * t + lo.clamp(max=t - 1)
+    second = j * t + hi - (1 << j) + 1
+    a = torch.gather(table, 1, first.reshape(b, -1))
+    c = torch.gather(table, 1, second.reshape(b, -1))
     out = torch.minimum(a, c).view(lo.shape)
-    return out.masked_fill(empty, float("inf"))
+    return out.masked_fill(length == 0, empty_value)
 
 
-def _row_events(u: Tensor, row_alpha: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Per-row switching summary of exact relays.
+def _row_events(u: Tensor, layout: RowLayout) -> tuple[Tensor, Tensor, Tensor]:
+    """Per-row switching summary of exact relays, in beta-level ranks.
 
-    Returns ``reached`` (input has reached the row's alpha), ``window_min``
-    (minimum since the last time it did, ``+inf`` if none) and ``run_min``
-    (running minimum of the input).
+    Returns ``reached`` (input has reached the row's alpha), ``window_rank``
+    (number of beta levels below the minimum input since the last time it did;
+    all ``U`` levels if none) and ``run_rank`` (number of beta levels below the
+    running minimum of the input).
 
     Shapes:
         ``u``: ``(B, T)``; returns ``(B, T, R)``, ``(B, T, R)``, ``(B, T)``.
     """
     t = u.shape[-1]
+    n_levels = layout.beta_levels.numel()
+    # number of beta levels strictly below each input; monotone in u, so the
+    # minimum over a window commutes with it
+    rank = torch.searchsorted(layout.beta_levels, u.contiguous(), side="left")
     idx = torch.arange(t, device=u.device).view(1, t, 1)
-    up = u.unsqueeze(-1) >= row_alpha
+    up = u.unsqueeze(-1) >= layout.row_alpha
     last = torch.where(up, idx, -1).cummax(dim=1).values
     reached = last >= 0
-    wmin = _window_min(u, last + 1)
-    run_min = u.cummin(dim=1).values
-    return reached, wmin, run_min
+    window_rank = _window_min(rank, last + 1, n_levels)
+    run_rank = rank.cummin(dim=1).values
+    return reached, window_rank, run_rank
 
 
 def _flatten_batch(u: Tensor) -> tuple[Tensor, tuple[int, ...]]:
@@ -190,13 +207,14 @@ def exact_states(
     """
     layout = layout if layout is not None else RowLayout(alpha, beta)
     u2, batch = _flatten_batch(u)
-    reached, wmin, run_min = _row_events(u2, layout.row_alpha)
+    reached, window_rank, run_rank = _row_events(u2, layout)
     if last:
-        reached, wmin, run_min = reached[:, -1:], wmin[:, -1:], run_min[:, -1:]
-    r = layout.row
-    up_after = beta < wmin[..., r]  # (B, T, M)
+        reached, window_rank = reached[:, -1:], window_rank[:, -1:]
+        run_rank = run_rank[:, -1:]
+    r, q = layout.row, layout.beta_rank
+    up_after = q < window_rank[..., r]  # (B, T, M)
     init = initial.reshape(-1, 1, initial.shape[-1]) if initial.ndim > 1 else initial
-    keep = beta < run_min.unsqueeze(-1)
+    keep = q < run_rank.unsqueeze(-1)
     one = u2.new_ones(())
     never = torch.where(keep, init.to(u2.dtype), -one)
     s = torch.where(reached[..., r], torch.where(up_after, one, -one), never)
@@ -209,6 +227,9 @@ def exact_magnetization(
     u: Tensor, layout: RowLayout, weights: Tensor, initial: Tensor
 ) -> Tensor:
     """Weighted sum of exact relay states, without building the state table.
+
+    For each row the up hysterons are a prefix of its betas, so the row's sum is
+    read from prefix sums of the weights, tabulated per beta level.
 
     Args:
         u: Normalised inputs [1], shape ``(*B, T)``.
@@ -226,32 +247,34 @@ def exact_magnetization(
     """
     u2, batch = _flatten_batch(u)
     nb, t = u2.shape
-    reached, wmin, run_min = _row_events(u2, layout.row_alpha)
-    n_rows = layout.row_beta.shape[0]
+    reached, window_rank, run_rank = _row_events(u2, layout)
+    n_rows = layout.index.shape[0]
     zero = weights.new_zeros(1)
     w_pad = torch.cat([weights, zero])[layout.index]  # (R, L)
     w_cum = F.pad(torch.cumsum(w_pad, dim=-1), (1, 0))  # (R, L + 1)
-    w_row = w_cum[:, -1]
-    # number of betas below the window minimum, per row
-    q = wmin.permute(2, 0, 1).reshape(n_rows, -1).contiguous()
-    k_up = torch.searchsorted(layout.row_beta, q.to(layout.row_beta.dtype))
-    up_part = 2.0 * torch.gather(w_cum, 1, k_up) - w_row[:, None]  # (R, B*T)
-    # hysterons never switched up: initial state if beta < running min, else -1
-    q0 = run_min.reshape(1, -1).expand(n_rows, -1).contiguous()
-    k0 = torch.searchsorted(layout.row_beta, q0.to(layout.row_beta.dtype))
-    below = torch.gather(w_cum, 1, k0)
+    w_row = w_cum[:, -1:]
+    # row sums of weights below each beta level: (R, U + 1)
+    w_below = torch.gather(w_cum, 1, layout.below)
+    signed = 2.0 * w_below - w_row  # row magnetisation if levels < j are up
+    up_part = torch.gather(signed, 1, window_rank.permute(2, 0, 1).reshape(n_rows, -1))
+    # hysterons that never switched up: initial state below the running
+    # minimum, -1 above it
+    k0 = run_rank.reshape(1, -1).expand(n_rows, -1)
     if initial.ndim == 1:
         init_pad = torch.cat([initial.to(weights.dtype), zero])[layout.index]
         s_cum = F.pad(torch.cumsum(w_pad * init_pad, dim=-1), (1, 0))
-        kept = torch.gather(s_cum, 1, k0)
+        never_table = torch.gather(s_cum, 1, layout.below) + w_below - w_row
+        never_part = torch.gather(never_table, 1, k0)
     else:
         init2 = initial.reshape(-1, initial.shape[-1]).to(weights.dtype)
         init2 = init2.expand(nb, -1)
         init_pad = torch.cat([init2, init2.new_zeros(nb, 1)], dim=1)[:, layout.index]
         s_cum = F.pad(torch.cumsum(w_pad * init_pad, dim=-1), (1, 0))  # (B, R, L+1)
-        k0b = k0.view(n_rows, nb, t).permute(1, 0, 2)  # (B, R, T)
-        kept = torch.gather(s_cum, 2, k0b).permute(1, 0, 2).reshape(n_rows, -1)
-    never_part = kept - (w_row[:, None] - below)
+        s_below = torch.gather(s_cum, 2, layout.below.expand(nb, -1, -1))
+        never_table = s_below + w_below - w_row  # (B, R, U + 1)
+        k0b = run_rank.unsqueeze(1).expand(nb, n_rows, t)
+        never_part = torch.gather(never_table, 2, k0b).permute(1, 0, 2)
+        never_part = never_part.reshape(n_rows, -1)
     reached_f = reached.permute(2, 0, 1).reshape(n_rows, -1)
     m = torch.where(reached_f, up_part, never_part).sum(dim=0)
     return m.view(*batch, t)

@@ -1,0 +1,194 @@
+"""Magnet histories in CSV files: time-ordered input (current) and output (field).
+
+A magnet CSV has a header row and one row per measurement, in time order.
+Column names are free; the defaults follow the SLAC rotating-coil files:
+``current_A`` (input [A]) and ``field_Tm`` (integrated gradient [T m]). Other
+columns (run labels, times, uncertainties) are kept as text so that they can be
+written back unchanged.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from diffaccel.data.errors import FormatError
+
+__all__ = [
+    "DEFAULT_INPUT_COLUMN",
+    "DEFAULT_OUTPUT_COLUMN",
+    "MagnetHistory",
+    "read_magnet_csv",
+    "write_csv_atomic",
+]
+
+DEFAULT_INPUT_COLUMN = "current_A"
+DEFAULT_OUTPUT_COLUMN = "field_Tm"
+
+
+@dataclass
+class MagnetHistory:
+    """A measured magnet history read from CSV.
+
+    Attributes:
+        input: Input column in time order [its unit, e.g. A], shape ``(T,)``.
+        output: Output column [its unit, e.g. T m], shape ``(T,)``, or ``None``
+            when the file has no such column.
+        input_column: Name of the input column.
+        output_column: Name of the output column.
+        header: All column names, in file order.
+        rows: All cells as text, ``T`` rows in file order.
+    """
+
+    input: Tensor
+    output: Tensor | None
+    input_column: str
+    output_column: str
+    header: list[str] = field(default_factory=list)
+    rows: list[list[str]] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return self.input.numel()
+
+
+def _parse_column(rows: list[list[str]], col: int, name: str, path: str) -> Tensor:
+    values = []
+    for i, row in enumerate(rows):
+        try:
+            v = float(row[col])
+        except (ValueError, IndexError):
+            cell = row[col] if col < len(row) else "<missing>"
+            raise FormatError(
+                f"{path}: column {name!r}, data row {i + 1}: expected a number; "
+                f"found {cell!r}."
+            ) from None
+        if not math.isfinite(v):
+            raise FormatError(
+                f"{path}: column {name!r}, data row {i + 1}: expected a finite "
+                f"number; found {row[col]!r}."
+            )
+        values.append(v)
+    return torch.tensor(values, dtype=torch.float64)
+
+
+def read_magnet_csv(
+    path: str | os.PathLike,
+    input_column: str = DEFAULT_INPUT_COLUMN,
+    output_column: str = DEFAULT_OUTPUT_COLUMN,
+    require_output: bool = True,
+) -> MagnetHistory:
+    """Read a time-ordered magnet history from a CSV file.
+
+    Args:
+        path: CSV file with a header row.
+        input_column: Name of the input column (e.g. current [A]).
+        output_column: Name of the output column (e.g. field [T m]).
+        require_output: Raise if the output column is missing; otherwise
+            ``output`` is ``None`` (files to predict on).
+
+    Returns:
+        A :class:`MagnetHistory` with float64 tensors.
+
+    Raises:
+        FileNotFoundError: if ``path`` does not exist.
+        FormatError: (a ``ValueError``) for an empty file, a missing column,
+            ragged rows or cells that are not finite numbers.
+
+    Example:
+        >>> import tempfile, pathlib
+        >>> p = pathlib.Path(tempfile.mkdtemp()) / "m.csv"
+        >>> _ = p.write_text("current_A,field_Tm\\n0,0.03\\n10,0.35\\n")
+        >>> h = read_magnet_csv(p)
+        >>> h.input.tolist(), h.output.tolist()
+        ([0.0, 10.0], [0.03, 0.35])
+    """
+    path_s = str(path)
+    text = Path(path).read_text()
+    rows = [r for r in csv.reader(io.StringIO(text)) if any(c.strip() for c in r)]
+    if not rows:
+        raise FormatError(f"{path_s}: empty file; expected a header row and data.")
+    header = [c.strip() for c in rows[0]]
+    data = rows[1:]
+    if not data:
+        raise FormatError(f"{path_s}: header only; expected at least one data row.")
+    for i, row in enumerate(data):
+        if len(row) != len(header):
+            raise FormatError(
+                f"{path_s}: data row {i + 1} has {len(row)} cells; the header has "
+                f"{len(header)}."
+            )
+    if input_column not in header:
+        raise FormatError(
+            f"{path_s}: no input column {input_column!r}; columns are {header}."
+        )
+    u = _parse_column(data, header.index(input_column), input_column, path_s)
+    y = None
+    if output_column in header:
+        y = _parse_column(data, header.index(output_column), output_column, path_s)
+    elif require_output:
+        raise FormatError(
+            f"{path_s}: no output column {output_column!r}; columns are {header}."
+        )
+    return MagnetHistory(
+        input=u,
+        output=y,
+        input_column=input_column,
+        output_column=output_column,
+        header=header,
+        rows=[list(r) for r in data],
+    )
+
+
+def write_csv_atomic(
+    path: str | os.PathLike,
+    header: Sequence[str],
+    rows: Sequence[Sequence[object]],
+    overwrite: bool = False,
+) -> Path:
+    """Write a CSV file atomically (temporary file in the same folder, then rename).
+
+    Args:
+        path: Destination.
+        header: Column names.
+        rows: Rows of cells (converted with ``str``; floats with ``repr``).
+        overwrite: Replace an existing file.
+
+    Returns:
+        The destination path.
+
+    Raises:
+        FileExistsError: if ``path`` exists and ``overwrite`` is false.
+        ValueError: if a row's length differs from the header's.
+    """
+    dest = Path(path)
+    if dest.exists() and not overwrite:
+        raise FileExistsError(f"{dest} exists; pass overwrite=True to replace it.")
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(list(header))
+    for i, row in enumerate(rows):
+        if len(row) != len(header):
+            raise ValueError(
+                f"row {i} has {len(row)} cells; the header has {len(header)}."
+            )
+        writer.writerow([repr(c) if isinstance(c, float) else str(c) for c in row])
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=dest.parent, prefix=f".{dest.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", newline="") as f:
+            f.write(buf.getvalue())
+        os.replace(tmp, dest)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return dest

@@ -1,0 +1,165 @@
+"""Inverse of a Preisach model: the next input that reaches a target output."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from diffaccel.hysteresis.preisach import PreisachModel
+from diffaccel.hysteresis.states import smooth_states
+
+__all__ = ["InverseResult", "invert_preisach", "next_step_output"]
+
+
+@dataclass
+class InverseResult:
+    """Outcome of :func:`invert_preisach`.
+
+    Attributes:
+        input: Next input [input units], shape ``(K,)``.
+        output: Model output after that input (smooth one-step response)
+            [output units], shape ``(K,)``.
+        reached: Whether the target lies within the outputs reachable inside
+            the input limits, shape ``(K,)`` bool; if not, ``input`` is the
+            limit closest to it.
+        iterations: Newton/bisection iterations used.
+    """
+
+    input: Tensor
+    output: Tensor
+    reached: Tensor
+    iterations: int
+
+
+def next_step_output(
+    model: PreisachModel,
+    u_next: Tensor,
+    state: Tensor,
+    u_last: Tensor | float,
+    smooth: bool = True,
+) -> Tensor:
+    """Output after one more input step from a known hysteron state.
+
+    The step from ``u_last`` to ``u_next`` is one monotone segment, so in smooth
+    mode the states follow the smooth relay from the turning point
+    ``(u_last, state)`` (rate independent; exact as ``smoothing -> 0``).
+
+    Args:
+        model: The Preisach model.
+        u_next: Candidate next inputs [input units], shape ``(K,)``.
+        state: Hysteron states after the history, shape ``(M,)`` or ``(K, M)``.
+        u_last: Last input of the history [input units], scalar or ``(K,)``.
+        smooth: Smooth relays of width ``model.smoothing`` (differentiable in
+            ``u_next``) or exact relays.
+
+    Returns:
+        Outputs [output units], shape ``(K,)``.
+    """
+    un = model.normalize_input(u_next.reshape(-1, 1))  # (K, 1)
+    lo, hi = model.input_range
+    start = (torch.as_tensor(u_last, dtype=un.dtype, device=un.device) - lo) / (hi - lo)
+    w = model.weights
+    if smooth:
+        width = model.smoothing / (hi - lo)
+        s = smooth_states(un, model.alpha, model.beta, state, width, start)[:, 0]
+    else:
+        one = un.new_ones(())
+        s = torch.where(
+            un >= model.alpha, one, torch.where(un <= model.beta, -one, state)
+        )
+    m = (s @ w) / w.sum()
+    y = model.offset + model.slope * un[:, 0] + model.scale * m
+    return model.output_loc + model.output_scale * y
+
+
+def invert_preisach(
+    model: PreisachModel,
+    target: Tensor,
+    history: Tensor,
+    limits: Sequence[float] | None = None,
+    initial_state: str | Tensor | None = None,
+    max_iter: int = 60,
+    tol: float = 1e-10,
+) -> InverseResult:
+    """Find the next input that brings the output to ``target`` after ``history``.
+
+    Safeguarded Newton iteration on the smooth one-step response
+    (:func:`next_step_output`, gradient from autograd), kept inside a bisection
+    bracket within ``limits``. The response is monotone when slope and scale
+    are non-negative, so the bracket always contains the solution when the
+    target is reachable.
+
+    Args:
+        model: Fitted Preisach model.
+        target: Target outputs [output units], shape ``()`` or ``(K,)``.
+        history: Inputs applied so far [input units], shape ``(H,)``.
+        limits: ``(lo, hi)`` allowed inputs [input units]; default the model's
+            input range (narrower limits are clipped to it).
+        initial_state: State before the history, see
+            :meth:`PreisachModel.initial_states`.
+        max_iter: Maximum iterations.
+        tol: Stop when the output error is below ``tol`` times the output scale.
+
+    Returns:
+        An :class:`InverseResult`.
+
+    Raises:
+        ValueError: for NaN targets, an empty history or invalid limits.
+    """
+    dtype, device = model.alpha.dtype, model.alpha.device
+    y_t = torch.as_tensor(target, dtype=dtype, device=device).reshape(-1)
+    if not torch.isfinite(y_t).all():
+        raise ValueError("target contains NaN or infinite values.")
+    h = torch.as_tensor(history, dtype=dtype, device=device)
+    if h.ndim != 1 or h.numel() < 1:
+        raise ValueError(f"history must have shape (H,) with H >= 1; got {h.shape}.")
+    r_lo, r_hi = model.input_range
+    lo_lim, hi_lim = (r_lo, r_hi) if limits is None else (float(v) for v in limits)
+    lo_lim, hi_lim = max(lo_lim, r_lo), min(hi_lim, r_hi)
+    if not lo_lim < hi_lim:
+        raise ValueError(
+            f"limits must satisfy lo < hi inside the input range; got ({lo_lim}, "
+            f"{hi_lim})."
+        )
+    with torch.no_grad():
+        state = model.final_state(h, initial_state)
+    u_last = h[-1]
+    k = y_t.numel()
+    lo = torch.full((k,), lo_lim, dtype=dtype, device=device)
+    hi = torch.full((k,), hi_lim, dtype=dtype, device=device)
+
+    def response(x: Tensor) -> Tensor:
+        return next_step_output(model, x, state, u_last)
+
+    with torch.no_grad():
+        f_lo = response(lo) - y_t
+        f_hi = response(hi) - y_t
+    increasing = f_hi >= f_lo
+    reached = (f_lo * f_hi) <= 0
+    x = torch.where(
+        reached, (lo + hi) / 2, torch.where((f_lo.abs() < f_hi.abs()), lo, hi)
+    )
+    scale = float(model.output_scale.abs()) * tol
+    it = 0
+    for it in range(1, max_iter + 1):  # noqa: B007
+        xv = x.detach().requires_grad_(True)
+        f = response(xv) - y_t
+        (grad,) = torch.autograd.grad(f.sum(), xv)
+        f, grad = f.detach(), grad.detach()
+        done = (f.abs() <= scale) | ~reached
+        if bool(done.all()):
+            break
+        # shrink the bracket on the side the sign of f tells
+        above = (f > 0) == increasing  # solution lies below x
+        hi = torch.where(reached & above, x, hi)
+        lo = torch.where(reached & ~above, x, lo)
+        newton = x - f / torch.where(grad.abs() > 0, grad, torch.ones_like(grad))
+        ok = (grad.abs() > 0) & (newton > lo) & (newton < hi)
+        x_new = torch.where(ok, newton, (lo + hi) / 2)
+        x = torch.where(done, x, x_new)
+    with torch.no_grad():
+        out = response(x)
+    return InverseResult(input=x.detach(), output=out, reached=reached, iterations=it)
