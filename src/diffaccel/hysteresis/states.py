@@ -104,7 +104,7 @@ def demagnetized_state(alpha: Tensor, beta: Tensor) -> Tensor:
     """States after AC demagnetisation about the centre of the range.
 
     Hysterons below the anti-diagonal ``alpha + beta = 1`` are up, those above it
-    down (points on it get 0).
+    down (points on it, to round-off of 1e-9, get 0).
 
     Args:
         alpha: Up thresholds [1], shape ``(M,)``.
@@ -113,7 +113,8 @@ def demagnetized_state(alpha: Tensor, beta: Tensor) -> Tensor:
     Returns:
         States in ``{-1, 0, 1}``, shape ``(M,)``.
     """
-    return torch.sign(1.0 - alpha - beta)
+    d = 1.0 - alpha - beta
+    return torch.where(d.abs() <= 1e-9, torch.zeros_like(d), torch.sign(d))
 
 
 def _window_min(v: Tensor, lo: Tensor, empty_value: int) -> Tensor:

@@ -1,0 +1,146 @@
+"""fit_preisach on synthetic and measured magnet histories."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from diffaccel.data import read_magnet_csv
+from diffaccel.hysteresis import FitResult, PreisachMesh, PreisachModel, fit_preisach
+from diffaccel.hysteresis.fit import density_roughness
+from diffaccel.hysteresis.synthetic import synthetic_measurement
+
+F64 = torch.float64
+SLAC = (
+    Path(__file__).resolve().parents[2]
+    / ".."
+    / "shared"
+    / "data"
+    / "hysteresis"
+    / "slac_lcls2_quad_4194"
+    / "measurements.csv"
+)
+
+
+def _rms_percent(pred: torch.Tensor, y: torch.Tensor, span: float) -> float:
+    return 100.0 * float((pred - y).pow(2).mean().sqrt()) / span
+
+
+@pytest.mark.parametrize("optimizer", ["lbfgs", "adam"], ids=["lbfgs", "adam"])
+def test_fit_synthetic_generalises(optimizer: str) -> None:
+    current, field, _ = synthetic_measurement(noise=1e-4, seed=0)
+    span = float(field.max() - field.min())
+    model = PreisachModel(PreisachMesh.triangular(20), input_range=(0.0, 10.0))
+    steps = 50
+    lr = 0.05 if optimizer == "adam" else None
+    res = fit_preisach(
+        model, current[:21], field[:21], optimizer=optimizer, steps=steps, lr=lr
+    )
+    assert isinstance(res, FitResult) and res.steps >= 1
+    with torch.no_grad():
+        pred = model(current)
+    # a straight line misses the loop by 0.28 % of range on this magnet; the
+    # Preisach fit on the major loop alone must predict minor loops and the
+    # memory trial well below that (the spec's bar is 3 %). Adam converges
+    # more slowly in the 50 steps a test may take.
+    bar = 0.15 if optimizer == "lbfgs" else 0.2
+    assert _rms_percent(pred[21:], field[21:], span) < bar
+    assert res.rmse_percent < bar
+
+
+def test_fit_beats_straight_line_on_minor_loops() -> None:
+    current, field, _ = synthetic_measurement(noise=0.0)
+    span = float(field.max() - field.min())
+    basis = torch.stack([torch.ones_like(current), current], dim=1)
+    coef = torch.linalg.lstsq(basis[:21], field[:21, None]).solution
+    line = (basis @ coef).squeeze(1)
+    model = PreisachModel(PreisachMesh.triangular(20), input_range=(0.0, 10.0))
+    fit_preisach(model, current[:21], field[:21], steps=50)
+    with torch.no_grad():
+        pred = model(current)
+    # half the error of the line after 50 steps (0.14 vs 0.28 %)
+    assert _rms_percent(pred[21:], field[21:], span) < 0.5 * _rms_percent(
+        line[21:], field[21:], span
+    )
+
+
+def test_smoothness_penalty_lowers_roughness() -> None:
+    current, field, _ = synthetic_measurement(noise=1e-3)
+    rough = []
+    for weight in (0.0, 1.0):
+        model = PreisachModel(PreisachMesh.triangular(12), input_range=(0.0, 10.0))
+        fit_preisach(model, current, field, steps=40, smoothness=weight)
+        rough.append(float(density_roughness(model).detach()))
+    assert rough[1] < rough[0]
+
+
+def test_learned_initial_state_is_fitted() -> None:
+    current, field, _ = synthetic_measurement(noise=0.0)
+    model = PreisachModel(
+        PreisachMesh.triangular(10), input_range=(0.0, 10.0), initial_state="learned"
+    )
+    before = model.raw_initial_state.detach().clone()
+    # start at 1 A, not 0: at 0 A every hysteron is switched down at once and
+    # the initial state is invisible
+    fit_preisach(model, current[1:30], field[1:30], steps=20)
+    assert not torch.equal(before, model.raw_initial_state.detach())
+
+
+@pytest.mark.parametrize(
+    ("current", "field", "match"),
+    [
+        (torch.zeros(10), torch.zeros(9), "lengths differ"),
+        (torch.zeros(3), torch.arange(3.0), "at least"),
+        (torch.tensor([0.0, 1.0, float("nan"), 2.0, 3.0]), torch.arange(5.0), "NaN"),
+        (torch.arange(5.0), torch.tensor([0.0, 1.0, 2.0, float("inf"), 3.0]), "NaN"),
+        (torch.arange(5.0) * 10, torch.arange(5.0), "input_range"),
+        (torch.zeros(2, 5), torch.zeros(2, 5), "1-D"),
+        (torch.arange(5.0), torch.ones(5), "constant"),
+    ],
+    ids=["length", "too-few", "nan-current", "inf-field", "outside", "2d", "constant"],
+)
+def test_bad_data_raises(current, field, match) -> None:
+    model = PreisachModel(PreisachMesh.triangular(5), input_range=(0.0, 10.0))
+    with pytest.raises(ValueError, match=match):
+        fit_preisach(model, current, field, steps=2)
+
+
+def test_bad_options_raise() -> None:
+    model = PreisachModel(PreisachMesh.triangular(5), input_range=(0.0, 10.0))
+    u, y = torch.arange(6.0), torch.arange(6.0) ** 2
+    with pytest.raises(ValueError, match="optimizer"):
+        fit_preisach(model, u, y, optimizer="sgd")
+    with pytest.raises(ValueError, match="steps"):
+        fit_preisach(model, u, y, steps=0)
+
+
+def test_callback_sees_every_step() -> None:
+    current, field, _ = synthetic_measurement()
+    model = PreisachModel(PreisachMesh.triangular(8), input_range=(0.0, 10.0))
+    seen: list[int] = []
+    res = fit_preisach(
+        model,
+        current,
+        field,
+        optimizer="adam",
+        steps=7,
+        callback=lambda i, _: seen.append(i),
+    )
+    assert seen == list(range(7)) and res.steps == 7
+
+
+@pytest.mark.skipif(not SLAC.exists(), reason="needs /work/shared reference data")
+def test_slac_quadrupole_acceptance() -> None:
+    # spec: fit the first 62 points, predict the other 125 within 3 % of range
+    hist = read_magnet_csv(SLAC)
+    current, field = hist.input, hist.output
+    span = float(field[:62].max() - field[:62].min())
+    model = PreisachModel(
+        PreisachMesh.triangular(44), input_range=(-0.01, float(current.max()) + 0.01)
+    )
+    fit_preisach(model, current[:62], field[:62], steps=100, smoothness=0.0)
+    with torch.no_grad():
+        pred = model(current)
+    assert _rms_percent(pred[62:], field[62:], span) < 3.0

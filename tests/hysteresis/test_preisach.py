@@ -1,0 +1,145 @@
+"""PreisachModel: output model, shapes, dtypes, continuation and input checks."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from diffaccel.hysteresis import PreisachMesh, PreisachModel
+
+F64 = torch.float64
+
+
+def _model(**kw) -> PreisachModel:
+    gen = torch.Generator().manual_seed(0)
+    model = PreisachModel(PreisachMesh.triangular(10), input_range=(-5.0, 15.0), **kw)
+    model.density = 0.1 + torch.rand(len(model.alpha), generator=gen, dtype=F64)
+    with torch.no_grad():
+        model.offset.fill_(0.3)
+        model.slope.fill_(2.0)
+        model.scale.fill_(0.5)
+        model.output_loc.fill_(1.0)
+        model.output_scale.fill_(4.0)
+    return model
+
+
+def test_output_is_affine_in_magnetization() -> None:
+    model = _model()
+    u = torch.tensor([0.0, 10.0, 2.0, 15.0, -5.0], dtype=F64)
+    with torch.no_grad():
+        m = model.magnetization(u)
+        y = model(u)
+    un = (u + 5.0) / 20.0
+    torch.testing.assert_close(y, 1.0 + 4.0 * (0.3 + 2.0 * un + 0.5 * m))
+    assert m.abs().max() <= 1.0
+
+
+def test_density_setter_and_positivity() -> None:
+    model = _model()
+    with torch.no_grad():
+        model.raw_density.fill_(-50.0)
+    assert (model.density >= 0).all()
+    with pytest.raises(ValueError, match="positive"):
+        model.density = -torch.ones(len(model.alpha), dtype=F64)
+
+
+@pytest.mark.parametrize("batch", [(), (3,), (2, 4)], ids=["unbatched", "B3", "B2x4"])
+def test_batched_equals_loop(batch) -> None:
+    model = _model()
+    gen = torch.Generator().manual_seed(1)
+    u = -5.0 + 20.0 * torch.rand(*batch, 25, generator=gen, dtype=F64)
+    with torch.no_grad():
+        y = model(u)
+        s = model.states(u)
+        flat = u.reshape(-1, 25)
+        ref = torch.stack([model(row) for row in flat]).reshape(*batch, 25)
+    assert y.shape == (*batch, 25)
+    assert s.shape == (*batch, 25, len(model.alpha))
+    torch.testing.assert_close(y, ref, rtol=0, atol=1e-12)  # float64 round-off
+
+
+def test_float32_matches_float64() -> None:
+    model = _model()
+    m32 = _model().to(torch.float32)
+    # inputs away from the mesh thresholds (ties would flip with round-off)
+    u = torch.tensor([0.3, 10.1, 2.2, 12.3, 4.1], dtype=F64)
+    with torch.no_grad():
+        y64 = model(u)
+        y32 = m32(u.float())
+    assert y32.dtype == torch.float32
+    # float32 round-off on outputs of order 10
+    torch.testing.assert_close(y32.double(), y64, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("smooth", [False, True], ids=["exact", "smooth"])
+def test_predict_with_history_equals_full_sequence(smooth: bool) -> None:
+    model = _model()
+    hist = torch.tensor([0.0, 12.0, 3.0, 8.0], dtype=F64)
+    fut = torch.tensor([5.0, 14.0, -2.0], dtype=F64)
+    with torch.no_grad():
+        full = model(torch.cat([hist, fut]), smooth=smooth)[4:]
+        pred = model.predict(fut, history=hist, smooth=smooth)
+    torch.testing.assert_close(pred, full, rtol=0, atol=1e-13)
+
+
+def test_continue_from_final_state() -> None:
+    model = _model()
+    hist = torch.tensor([0.0, 12.0, 3.0, 8.0], dtype=F64)
+    fut = torch.tensor([5.0, 14.0, -2.0, 6.0], dtype=F64)
+    with torch.no_grad():
+        state = model.final_state(hist)
+        cont = model(fut, initial_state=state)
+        full = model(torch.cat([hist, fut]))[4:]
+    assert state.shape == (len(model.alpha),)
+    torch.testing.assert_close(cont, full, rtol=0, atol=1e-13)
+
+
+def test_history_changes_prediction() -> None:
+    model = _model()
+    fut = torch.tensor([5.0], dtype=F64)
+    with torch.no_grad():
+        from_top = model.predict(fut, history=torch.tensor([15.0], dtype=F64))
+        from_bottom = model.predict(fut, history=torch.tensor([-5.0], dtype=F64))
+    assert float(from_top - from_bottom) > 0.01  # descending branch lies higher
+
+
+@pytest.mark.parametrize(
+    ("u", "match"),
+    [
+        (torch.tensor([0.0, float("nan")]), "NaN"),
+        (torch.tensor([0.0, float("inf")]), "NaN or infinite"),
+        (torch.tensor([0.0, 16.0]), "input_range"),
+        (torch.tensor([-6.0]), "input_range"),
+        (torch.tensor(3.0), r"\(\*B, T\)"),
+    ],
+    ids=["nan", "inf", "above-range", "below-range", "scalar"],
+)
+def test_bad_inputs_raise(u, match) -> None:
+    model = _model()
+    with pytest.raises(ValueError, match=match):
+        model(u)
+
+
+def test_bad_constructor_arguments_raise() -> None:
+    with pytest.raises(ValueError, match="lo < hi"):
+        PreisachModel(input_range=(1.0, 1.0))
+    with pytest.raises(ValueError, match="initial_state must be one of"):
+        PreisachModel(initial_state="sideways")
+    with pytest.raises(ValueError, match="smoothing"):
+        PreisachModel(smoothing=-1.0)
+
+
+def test_bad_initial_state_tensor_raises() -> None:
+    model = _model()
+    with pytest.raises(ValueError, match="shape"):
+        model(torch.tensor([1.0]), initial_state=torch.zeros(3))
+    with pytest.raises(ValueError, match="learned"):
+        model(torch.tensor([1.0]), initial_state="learned")
+
+
+def test_mismatched_batch_of_history_raises() -> None:
+    model = _model()
+    with pytest.raises(RuntimeError):
+        model.predict(
+            torch.zeros(3, 4, dtype=F64), history=torch.zeros(2, 5, dtype=F64)
+        )
