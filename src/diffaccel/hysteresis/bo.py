@@ -57,6 +57,8 @@ class HysteresisBO:
         maximize: Maximise the response if True, minimise it otherwise.
         fit_restarts: Restarts of each H-GP fit (see ``fit_hysteresis_gp``).
         fit_max_iter: L-BFGS-B iterations per fit restart.
+        fit_density: Refit the Preisach densities with the GP (True) or keep
+            the given densities (e.g. measured on a test stand) fixed.
         num_restarts: Starting points of the acquisition optimiser.
         raw_samples: Random samples used to choose those starting points.
         seed: Seed of the fit restarts and acquisition optimiser.
@@ -85,6 +87,7 @@ class HysteresisBO:
         maximize: bool = True,
         fit_restarts: int = 1,
         fit_max_iter: int = 100,
+        fit_density: bool = True,
         num_restarts: int = 4,
         raw_samples: int = 128,
         seed: int = 0,
@@ -110,6 +113,7 @@ class HysteresisBO:
         self.maximize = bool(maximize)
         self.fit_restarts = int(fit_restarts)
         self.fit_max_iter = int(fit_max_iter)
+        self.fit_density = bool(fit_density)
         self.num_restarts = int(num_restarts)
         self.raw_samples = int(raw_samples)
         self.seed = int(seed)
@@ -171,6 +175,7 @@ class HysteresisBO:
             model,
             restarts=self.fit_restarts,
             max_iter=self.fit_max_iter,
+            fit_density=self.fit_density,
             seed=self.seed + self._n_fits,
         )
         self._n_fits += 1

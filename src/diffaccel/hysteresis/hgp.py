@@ -42,8 +42,14 @@ from gpytorch.models import ExactGP
 from torch import Tensor, nn
 
 from diffaccel.hysteresis.preisach import PreisachModel
+from diffaccel.hysteresis.states import exact_states, smooth_states
 
-__all__ = ["HGPFitResult", "HysteresisGP", "fit_hysteresis_gp"]
+__all__ = [
+    "HGPFitResult",
+    "HysteresisGP",
+    "fit_hysteresis_gp",
+    "magnetisation_feature",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -69,55 +75,20 @@ class _FeatureGP(ExactGP):
         return MultivariateNormal(self.mean_module(x), self.covar_module(x))
 
 
-def relay_sequence(
-    state: Tensor,
-    x: Tensor,
-    alpha: Tensor,
-    beta: Tensor,
-    temperature: float = 0.0,
-) -> Tensor:
-    """Hysteron states along a short input sequence started from a known state.
+def magnetisation_feature(states: Tensor, weights: Tensor) -> Tensor:
+    """GP input of a hysteretic magnet: its normalised magnetisation in ``[0, 1]``.
 
-    Each hysteron switches up to ``+1`` when the normalised input reaches its up
-    threshold ``alpha`` and down to ``-1`` when it falls to its down threshold
-    ``beta`` (``alpha >= beta``); otherwise it keeps its state. The returned values
-    are the exact states. When ``temperature > 0`` and ``x`` needs gradients, the
-    gradient is that of sigmoid-smoothed relays of width ``temperature``
-    (straight-through), so acquisition optimisers get a useful direction while
-    the values stay exact.
+    ``(m + 1) / 2`` with ``m = sum(w * s) / sum(w)``: only the shape of the
+    density matters (field scale and offset are not identifiable from beam data).
 
     Args:
-        state: Hysteron states before the first step, ``+1``/``-1``, shape ``(M,)``
-            or ``(*B, M)``.
-        x: Normalised inputs (``0`` and ``1`` are the ends of the Preisach input
-            range), shape ``(*B, q)``, applied in order along the last dimension.
-        alpha: Up-switching thresholds (normalised), shape ``(M,)``.
-        beta: Down-switching thresholds (normalised), shape ``(M,)``.
-        temperature: Width of the smoothed relay used for gradients only
-            (normalised input units); ``0`` gives the exact (zero almost
-            everywhere) gradient.
+        states: Hysteron states in ``[-1, 1]``, shape ``(*B, M)``.
+        weights: Hysteron weights ``area * density`` (non-negative), shape ``(M,)``.
 
     Returns:
-        States after each step, shape ``(*B, q, M)``.
-
-    Shapes:
-        ``x (*B, q)`` and ``state (M,)`` or ``(*B, M)`` give ``(*B, q, M)``.
+        Feature in ``[0, 1]``, shape ``(*B,)``.
     """
-    s = state.expand(*x.shape[:-1], state.shape[-1])
-    smooth = temperature > 0.0 and x.requires_grad
-    out = []
-    for j in range(x.shape[-1]):
-        xj = x[..., j, None]
-        exact = torch.where(xj >= alpha, 1.0, torch.where(xj <= beta, -1.0, s))
-        if smooth:
-            p_up = torch.sigmoid((xj - alpha) / temperature)
-            p_down = torch.sigmoid((beta - xj) / temperature)
-            soft = s + (1.0 - s) * p_up - (1.0 + s) * p_down
-            s = exact.detach() + soft - soft.detach()
-        else:
-            s = exact
-        out.append(s)
-    return torch.stack(out, dim=-2)
+    return 0.5 * (states @ weights / weights.sum() + 1.0)
 
 
 class HysteresisGP(Model):
@@ -157,8 +128,14 @@ class HysteresisGP(Model):
         mean_module: Replaces the default constant mean.
         outcome_transform: Transform of ``train_Y``; ``Standardize`` by default,
             ``None`` for none.
-        gradient_temperature: Width of the smoothed relay that gives candidate
-            inputs a gradient (normalised Preisach input units).
+        candidate_smoothing: Width of the smooth, rate-independent relays used
+            for the settings given to ``posterior`` (normalised Preisach input
+            units; see ``diffaccel.hysteresis.states.smooth_states``). They start
+            exactly at the state and input left by the history, tend to exact
+            relays as the width goes to 0, and make the posterior a smooth
+            function of the candidate currents, which gradient-based acquisition
+            optimisers need (exact relays are piecewise constant). ``None``: a quarter
+            of the mesh spacing, ``0.25 / sqrt(2 M)``; ``0``: exact relays.
 
     Shapes:
         ``posterior(X)`` maps ``(*b, q, d)`` to a posterior over ``(*b, q, 1)``.
@@ -189,7 +166,7 @@ class HysteresisGP(Model):
         covar_module: Kernel | None = None,
         mean_module: Mean | None = None,
         outcome_transform: OutcomeTransform | str | None = "default",
-        gradient_temperature: float = 0.01,
+        candidate_smoothing: float | None = None,
     ) -> None:
         super().__init__()
         # 1. validate
@@ -209,13 +186,13 @@ class HysteresisGP(Model):
             raise ValueError(
                 f"bounds must have shape (2, d) = (2, {d}); got {tuple(bounds.shape)}."
             )
-        if gradient_temperature < 0:
+        if candidate_smoothing is not None and not candidate_smoothing >= 0:
             raise ValueError(
-                f"gradient_temperature must be >= 0; got {gradient_temperature}."
+                f"candidate_smoothing must be >= 0 or None; got {candidate_smoothing}."
             )
         self.hysteretic_dims: tuple[int, ...] = tuple(dims)
         self.plain_dims: tuple[int, ...] = tuple(i for i in range(d) if i not in dims)
-        self.gradient_temperature = float(gradient_temperature)
+        self.candidate_smoothing = candidate_smoothing
         width = bounds[1] - bounds[0]
         self.register_buffer("bounds", bounds.clone())
         self.register_buffer("_plain_width", torch.where(width > 0, width, 1.0))
@@ -321,9 +298,7 @@ class HysteresisGP(Model):
         return [self.history_states(i)[-1] for i in range(len(self.hysteretic_dims))]
 
     def _magnetisation_feature(self, i: int, states: Tensor) -> Tensor:
-        w = self._weights(i)
-        m = states @ w / w.sum()
-        return 0.5 * (m + 1.0)
+        return magnetisation_feature(states, self._weights(i))
 
     def train_features(self) -> Tensor:
         """GP inputs along the training history (differentiable in the densities).
@@ -337,8 +312,18 @@ class HysteresisGP(Model):
         ]
         return self._assemble(self.train_X, hyst)
 
+    def smoothing_width(self, i: int) -> float:
+        """Candidate relay width of hysteretic input ``i`` (normalised units)."""
+        if self.candidate_smoothing is not None:
+            return float(self.candidate_smoothing)
+        return 0.25 / math.sqrt(2.0 * self.hysteresis_models[i].alpha.numel())
+
     def features(self, X: Tensor) -> Tensor:
         """GP inputs for settings applied in order after the training history.
+
+        Hysteretic columns start from the exact state and input at the end of
+        the history and follow smooth relays of width :meth:`smoothing_width`
+        (exact relays if it is 0).
 
         Args:
             X: Settings, shape ``(*b, q, d)``; along ``q`` they are applied in order
@@ -351,13 +336,14 @@ class HysteresisGP(Model):
         for i, c in enumerate(self.hysteretic_dims):
             pm = self.hysteresis_models[i]
             x = self._normalised(i, X[..., c])
-            states = relay_sequence(
-                self.history_states(i)[-1].to(X),
-                x,
-                pm.alpha.to(X),
-                pm.beta.to(X),
-                self.gradient_temperature,
-            )
+            s_end = self.history_states(i)[-1].to(X)
+            alpha, beta = pm.alpha.to(X), pm.beta.to(X)
+            width = self.smoothing_width(i)
+            if width > 0:
+                x_end = self._normalised(i, self.train_X[-1, c]).to(X)
+                states = smooth_states(x, alpha, beta, s_end, width, start=x_end)
+            else:
+                states = exact_states(x, alpha, beta, s_end)
             hyst.append(self._magnetisation_feature(i, states))
         return self._assemble(X, hyst)
 
@@ -499,7 +485,7 @@ class HysteresisGP(Model):
             covar_module=copy.deepcopy(self.gp.covar_module),
             mean_module=copy.deepcopy(self.gp.mean_module),
             outcome_transform=None if ot is None else Standardize(m=1),
-            gradient_temperature=self.gradient_temperature,
+            candidate_smoothing=self.candidate_smoothing,
         )
         return new
 

@@ -1,0 +1,381 @@
+"""Tests of the joint hysteresis GP (diffaccel.hysteresis.hgp)."""
+
+from __future__ import annotations
+
+import warnings
+
+import pytest
+import torch
+from botorch.acquisition import UpperConfidenceBound, qLogExpectedImprovement
+from botorch.fit import fit_gpytorch_mll
+from botorch.models import SingleTaskGP
+from botorch.models.transforms.input import Normalize
+from botorch.optim import optimize_acqf
+from gpytorch.mlls import ExactMarginalLogLikelihood
+
+from diffaccel.hysteresis import (
+    HysteresisGP,
+    PreisachMesh,
+    PreisachModel,
+    fit_hysteresis_gp,
+)
+from diffaccel.hysteresis.hgp import _joint_loss, magnetisation_feature
+
+DT = torch.float64
+I_MAX = 10.0
+
+
+@pytest.fixture(autouse=True)
+def _quiet_numerics_one_thread():
+    # ~50-point GPs are fastest single-threaded; with several threads the
+    # OpenMP workers spin against each other on a busy 2-core machine
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*not p.d.*")
+        warnings.filterwarnings("ignore", message=".*unit cube.*")
+        yield
+    torch.set_num_threads(threads)
+
+
+def _cycles(n_cycles: int, n_per_cycle: int) -> torch.Tensor:
+    half = n_per_cycle // 2
+    up = torch.linspace(0.0, I_MAX, half + 1, dtype=DT)[:-1]
+    down = torch.linspace(I_MAX, 0.0, half + 1, dtype=DT)[:-1]
+    return torch.cat([up, down] * n_cycles)
+
+
+def _preisach(n: int = 10, density: torch.Tensor | None = None) -> PreisachModel:
+    pm = PreisachModel(PreisachMesh.triangular(n=n), input_range=(0.0, I_MAX))
+    if density is not None:
+        pm.density = density
+    return pm
+
+
+def _truth(n: int = 20) -> PreisachModel:
+    pm = _preisach(n)
+    a, b = pm.alpha, pm.beta
+    pm.density = (
+        torch.exp(-((a + b - 1) ** 2) / 0.08 - (a - b - 0.35) ** 2 / 0.04) + 0.02
+    )
+    return pm
+
+
+def _data(seed: int, noise: float, n_cycles: int = 3, n_per_cycle: int = 20):
+    gen = torch.Generator().manual_seed(seed)
+    u = _cycles(n_cycles, n_per_cycle)
+    with torch.no_grad():
+        m = _truth().magnetization(u)
+    f = 0.15 + 0.8 * torch.exp(-((m - 0.25) ** 2) / (2 * 0.35**2))
+    y = f + noise * torch.randn(f.shape, generator=gen, dtype=DT)
+    return u.unsqueeze(-1), y.unsqueeze(-1), f
+
+
+def _small_model(
+    seed: int = 0, d_plain: int = 0, smoothing: float | None = None
+) -> HysteresisGP:
+    X, Y, _ = _data(seed, 0.02, n_cycles=2, n_per_cycle=16)
+    gen = torch.Generator().manual_seed(seed + 1)
+    if d_plain:
+        plain = torch.rand(X.shape[0], d_plain, generator=gen, dtype=DT)
+        X = torch.cat([X, plain], dim=-1)
+        Y = Y + 0.1 * plain.sum(-1, keepdim=True)
+    return HysteresisGP(
+        X, Y, hysteresis={0: _preisach(8)}, candidate_smoothing=smoothing
+    )
+
+
+# ----------------------------------------------------------------- identity
+
+
+def test_no_hysteresis_equals_single_task_gp_with_same_hyperparameters() -> None:
+    gen = torch.Generator().manual_seed(0)
+    X = torch.rand(25, 2, generator=gen, dtype=DT) * 4.0 - 1.0
+    Y = torch.sin(2 * X[:, :1]) + X[:, 1:] ** 2
+    bounds = torch.tensor([[-1.0, -1.0], [3.0, 3.0]], dtype=DT)
+    stgp = SingleTaskGP(X, Y, input_transform=Normalize(d=2, bounds=bounds))
+    hgp = HysteresisGP(X, Y, hysteresis={}, bounds=bounds)
+    with torch.no_grad():
+        for m in (stgp, hgp.gp):
+            m.covar_module.lengthscale = torch.tensor([[0.4, 0.9]], dtype=DT)
+            m.likelihood.noise = torch.tensor([3e-3], dtype=DT)
+            m.mean_module.constant.fill_(0.2)
+    Xt = torch.rand(7, 3, 2, generator=gen, dtype=DT) * 4.0 - 1.0
+    p1, p2 = stgp.posterior(Xt), hgp.posterior(Xt)
+    # same model, same float64 linear algebra: agreement to round-off
+    torch.testing.assert_close(p2.mean, p1.mean, rtol=1e-9, atol=1e-10)
+    torch.testing.assert_close(
+        p2.distribution.covariance_matrix,
+        p1.distribution.covariance_matrix,
+        rtol=1e-8,
+        atol=1e-10,
+    )
+
+
+def test_no_hysteresis_fit_reaches_single_task_gp_optimum() -> None:
+    gen = torch.Generator().manual_seed(1)
+    X = torch.rand(30, 1, generator=gen, dtype=DT)
+    Y = torch.sin(6 * X) + 0.05 * torch.randn(30, 1, generator=gen, dtype=DT)
+    bounds = torch.tensor([[0.0], [1.0]], dtype=DT)
+    stgp = SingleTaskGP(X, Y, input_transform=Normalize(d=1, bounds=bounds))
+    mll = ExactMarginalLogLikelihood(stgp.likelihood, stgp)
+    fit_gpytorch_mll(mll)
+    stgp.train()
+    ref = float(mll(stgp(*stgp.train_inputs), stgp.train_targets))
+    hgp = HysteresisGP(X, Y, hysteresis={}, bounds=bounds)
+    res = fit_hysteresis_gp(hgp, restarts=1)
+    # both run L-BFGS-B to convergence on the same objective: optimum agrees to
+    # the optimiser tolerance, far below the MLL differences between fits
+    assert res.mll == pytest.approx(ref, abs=1e-4)
+
+
+def test_joint_loss_equals_gpytorch_exact_mll() -> None:
+    model = _small_model()
+    model.train()
+    mll = ExactMarginalLogLikelihood(model.gp.likelihood, model.gp)
+    feats = model.train_features()
+    model.gp.set_train_data(feats, model._train_targets, strict=False)
+    ref = -mll(model.gp(feats), model._train_targets)
+    # same formula computed with one dense Cholesky: float64 round-off
+    torch.testing.assert_close(_joint_loss(model, mll), ref, rtol=1e-10, atol=1e-10)
+
+
+# ----------------------------------------------------------- state handling
+
+
+def test_history_features_are_normalised_magnetisation() -> None:
+    model = _small_model()
+    pm = model.hysteresis_models[0]
+    with torch.no_grad():
+        m = pm.magnetization(model.train_X[:, 0])
+        feats = model.train_features()
+    torch.testing.assert_close(feats[:, 0], 0.5 * (m + 1.0), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("q", [1, 3], ids=["q1", "q3"])
+def test_next_step_batch_continues_from_current_state(q: int) -> None:
+    model = _small_model(smoothing=0.0)
+    pm = model.hysteresis_models[0]
+    gen = torch.Generator().manual_seed(3)
+    X = torch.rand(5, q, 1, generator=gen, dtype=DT) * I_MAX
+    feats = model.features(X)
+    for b in range(5):
+        with torch.no_grad():
+            full = torch.cat([model.train_X[:, 0], X[b, :, 0]])
+            m = pm.magnetization(full)[-q:]
+        # exact relays both ways: identical up to float64 summation order
+        torch.testing.assert_close(feats[b, :, 0], 0.5 * (m + 1.0), rtol=0, atol=1e-12)
+
+
+def test_future_sequence_is_state_consistent() -> None:
+    model = _small_model(smoothing=0.0)
+    pm = model.hysteresis_models[0]
+    future = torch.tensor([2.0, 8.0, 4.0, 6.0, 5.0, 9.5, 0.5], dtype=DT)
+    feats = model.features(future.view(1, -1, 1))[0, :, 0]
+    with torch.no_grad():
+        m = pm.magnetization(torch.cat([model.train_X[:, 0], future]))[-7:]
+    torch.testing.assert_close(feats, 0.5 * (m + 1.0), rtol=0, atol=1e-12)
+
+
+def test_q_batch_fantasises_state_sequentially() -> None:
+    model = _small_model()
+    # same second setting, reached from above (after 10 A) or below (after 0 A):
+    # the hysteresis must show in candidate 2's feature and posterior mean
+    X = torch.tensor([[[10.0], [5.0]], [[0.0], [5.0]]], dtype=DT)
+    feats = model.features(X)
+    assert feats[0, 1, 0] - feats[1, 1, 0] > 0.05  # descending branch is higher
+    one_step = model.features(torch.tensor([[[5.0]]], dtype=DT))
+    assert not torch.allclose(one_step[0, 0], feats[0, 1]) or not torch.allclose(
+        one_step[0, 0], feats[1, 1]
+    )
+
+
+def test_posterior_shapes_and_history_posterior() -> None:
+    model = _small_model(d_plain=1)
+    fit_hysteresis_gp(model, restarts=1, max_iter=30)
+    X = torch.rand(4, 3, 2, dtype=DT) * torch.tensor([I_MAX, 1.0], dtype=DT)
+    post = model.posterior(X)
+    assert post.mean.shape == (4, 3, 1)
+    assert post.variance.shape == (4, 3, 1)
+    assert post.distribution.covariance_matrix.shape[-2:] == (3, 3)
+    hist = model.posterior_on_history(observation_noise=True)
+    assert hist.mean.shape == (model.train_X.shape[0], 1)
+    assert (hist.variance > model.noise_sigma.detach() ** 2 * 0.999).all()
+
+
+def test_feature_gradient_in_density_gradcheck() -> None:
+    model = _small_model()
+    pm = model.hysteresis_models[0]
+    states = model.history_states(0)
+    raw = (0.3 * torch.randn(pm.raw_density.shape, dtype=DT)).requires_grad_(True)
+
+    def feats(r: torch.Tensor) -> torch.Tensor:
+        return magnetisation_feature(states, pm.area * torch.nn.functional.softplus(r))
+
+    assert torch.autograd.gradcheck(feats, (raw,))
+
+
+def test_candidate_gradient_is_nonnegative_in_current() -> None:
+    # Preisach magnetisation never decreases when the current increases
+    model = _small_model()
+    X = (torch.rand(16, 1, 1, dtype=DT) * I_MAX).requires_grad_(True)
+    model.features(X)[..., 0].sum().backward()
+    assert (X.grad >= 0).all()
+    assert (X.grad > 0).any()
+
+
+def test_smooth_candidates_start_at_history_state_and_tend_to_exact() -> None:
+    exact = _small_model(smoothing=0.0)
+    smooth = _small_model()
+    last = exact.train_X[-1:].view(1, 1, 1)
+    # re-applying the last setting leaves the state unchanged, smooth or not
+    torch.testing.assert_close(
+        smooth.features(last)[0, 0, 0],
+        smooth.train_features()[-1, 0],
+        rtol=0,
+        atol=1e-12,
+    )
+    X = torch.linspace(0.0, I_MAX, 21, dtype=DT).view(-1, 1, 1)
+    fine = _small_model(smoothing=1e-4)
+    diff_fine = (fine.features(X) - exact.features(X)).abs().max()
+    diff_default = (smooth.features(X) - exact.features(X)).abs().max()
+    # width 1e-4 of the range: only hysterons within ~1e-3 of a grid input move
+    assert diff_fine < 1e-3
+    # default width, a quarter mesh spacing: within about one hysteron step
+    assert diff_default < 0.1
+
+
+# ------------------------------------------------------------- fitting
+
+
+def test_fit_recovers_noise_where_plain_gp_inflates_it() -> None:
+    noise = 0.02
+    X, Y, f = _data(seed=4, noise=noise, n_cycles=3, n_per_cycle=20)
+    bounds = torch.tensor([[0.0], [I_MAX]], dtype=DT)
+    stgp = SingleTaskGP(X, Y, input_transform=Normalize(d=1, bounds=bounds))
+    fit_gpytorch_mll(ExactMarginalLogLikelihood(stgp.likelihood, stgp))
+    gp_noise = float((stgp.likelihood.noise.sqrt() * stgp.outcome_transform.stdvs)[0])
+    model = HysteresisGP(X, Y, hysteresis={0: _preisach(12)}, bounds=bounds)
+    res = fit_hysteresis_gp(model, restarts=2, max_iter=150)
+    # the H-GP explains the branches with the state: noise within 2x of truth
+    # (60 residuals estimate sigma to ~10 %), the plain GP calls them noise
+    assert 0.5 * noise < res.noise_sigma < 2.0 * noise
+    assert gp_noise > 3.0 * noise
+    with torch.no_grad():
+        rmse = (model.posterior_on_history().mean.squeeze(-1) - f).pow(2).mean().sqrt()
+    assert rmse < noise
+
+
+def test_weak_response_does_not_collapse_into_noise() -> None:
+    # response amplitude only ~4x the noise: the reference joint GP tends to
+    # explain everything as noise here; priors + restarts must not
+    noise = 0.02
+    X, _, _ = _data(seed=5, noise=noise, n_cycles=3, n_per_cycle=20)
+    with torch.no_grad():
+        m = _truth().magnetization(X[:, 0])
+    gen = torch.Generator().manual_seed(6)
+    Y = (0.08 * m + noise * torch.randn(m.shape, generator=gen, dtype=DT)).unsqueeze(-1)
+    model = HysteresisGP(X, Y, hysteresis={0: _preisach(12)})
+    res = fit_hysteresis_gp(model, restarts=3, max_iter=150)
+    assert res.noise_sigma < 2.0 * noise
+    assert len(res.restart_mlls) == 3
+    assert res.mll == max(res.restart_mlls)
+
+
+def test_extended_keeps_parameters_and_continues_history() -> None:
+    model = _small_model(smoothing=0.0)
+    fit_hysteresis_gp(model, restarts=1, max_iter=30)
+    X2 = torch.tensor([[3.0], [7.0]], dtype=DT)
+    Y2 = torch.tensor([[0.5], [0.6]], dtype=DT)
+    new = model.condition_on_observations(X2, Y2)
+    assert new.train_X.shape[0] == model.train_X.shape[0] + 2
+    torch.testing.assert_close(
+        new.hysteresis_models[0].raw_density, model.hysteresis_models[0].raw_density
+    )
+    torch.testing.assert_close(
+        new.gp.covar_module.lengthscale, model.gp.covar_module.lengthscale
+    )
+    # the new history's last states are those of the continued sequence
+    expect = model.features(X2.unsqueeze(0))[0, -1, 0]
+    torch.testing.assert_close(new.train_features()[-1, 0], expect, rtol=0, atol=1e-12)
+
+
+# ---------------------------------------------------- BoTorch compatibility
+
+
+def test_ucb_acquisition_optimisation_end_to_end() -> None:
+    model = _small_model(d_plain=1)
+    fit_hysteresis_gp(model, restarts=1, max_iter=30)
+    bounds = torch.tensor([[0.0, 0.0], [I_MAX, 1.0]], dtype=DT)
+    torch.manual_seed(0)
+    cand, value = optimize_acqf(
+        UpperConfidenceBound(model, beta=2.0),
+        bounds=bounds,
+        q=1,
+        num_restarts=2,
+        raw_samples=32,
+    )
+    assert cand.shape == (1, 2)
+    assert ((cand >= bounds[0]) & (cand <= bounds[1])).all()
+    assert torch.isfinite(value).all()
+
+
+def test_qlogei_acquisition_optimisation_end_to_end() -> None:
+    model = _small_model()
+    fit_hysteresis_gp(model, restarts=1, max_iter=30)
+    bounds = torch.tensor([[0.0], [I_MAX]], dtype=DT)
+    torch.manual_seed(0)
+    acq = qLogExpectedImprovement(model, best_f=model.train_Y.max())
+    cand, value = optimize_acqf(acq, bounds=bounds, q=2, num_restarts=2, raw_samples=32)
+    assert cand.shape == (2, 1)
+    assert ((cand >= 0) & (cand <= I_MAX)).all()
+    assert torch.isfinite(value).all()
+
+
+# -------------------------------------------------------------- failures
+
+
+@pytest.mark.parametrize(
+    ("X", "Y", "match"),
+    [
+        (
+            torch.zeros(2, 1, dtype=DT),
+            torch.tensor([[0.0], [1.0]], dtype=DT),
+            "too few",
+        ),
+        (torch.rand(6, 1, dtype=DT), torch.full((6, 1), 0.3, dtype=DT), "constant"),
+        (
+            torch.rand(6, 1, dtype=DT),
+            torch.tensor([[0.0], [1.0], [float("nan")], [2.0], [1.0], [0.0]], dtype=DT),
+            "NaN",
+        ),
+        (
+            torch.tensor([[0.0], [1.0], [float("nan")], [2.0]], dtype=DT),
+            torch.rand(4, 1, dtype=DT),
+            "NaN",
+        ),
+        (torch.rand(6, 1, dtype=DT), torch.rand(6, dtype=DT), r"shape \(n, 1\)"),
+        (torch.rand(2, 6, 1, dtype=DT), torch.rand(2, 6, 1, dtype=DT), r"\(n, d\)"),
+    ],
+    ids=["too-few", "constant", "nan-y", "nan-x", "y-shape", "batched-x"],
+)
+def test_bad_training_data_raises(X: torch.Tensor, Y: torch.Tensor, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        HysteresisGP(X * I_MAX, Y, hysteresis={0: _preisach(5)})
+
+
+def test_bad_hysteretic_column_and_candidates_raise() -> None:
+    X, Y, _ = _data(0, 0.02, n_cycles=1, n_per_cycle=10)
+    with pytest.raises(ValueError, match="column 3 does not exist"):
+        HysteresisGP(X, Y, hysteresis={3: _preisach(5)})
+    model = HysteresisGP(X, Y, hysteresis={0: _preisach(5)})
+    with pytest.raises(ValueError, match="d=1"):
+        model.posterior(torch.rand(2, 1, 2, dtype=DT))
+    with pytest.raises(ValueError, match="NaN"):
+        model.posterior(torch.full((1, 1, 1), float("nan"), dtype=DT))
+
+
+def test_current_outside_preisach_range_raises() -> None:
+    X, Y, _ = _data(0, 0.02, n_cycles=1, n_per_cycle=10)
+    with pytest.raises(ValueError, match="input_range"):
+        HysteresisGP(X + 20.0, Y, hysteresis={0: _preisach(5)})
