@@ -22,3 +22,7 @@ def main(verbose: int) -> None:
 from diffaccel.cli.synthetic import synthetic  # noqa: E402
 
 main.add_command(synthetic)
+
+from diffaccel.cli.hysteresis import hysteresis  # noqa: E402
+
+main.add_command(hysteresis)

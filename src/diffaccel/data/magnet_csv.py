@@ -186,6 +186,9 @@ def write_csv_atomic(
     try:
         with os.fdopen(fd, "w", newline="") as f:
             f.write(buf.getvalue())
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(tmp, 0o666 & ~mask)  # mkstemp makes 0600 files
         os.replace(tmp, dest)
     except BaseException:
         if os.path.exists(tmp):

@@ -129,6 +129,50 @@ class PreisachModel(nn.Module):
         else:
             self.raw_initial_state = None
 
+    # ------------------------------------------------------------ serialising
+    def config(self) -> dict:
+        """JSON-serialisable settings; with ``state_dict()`` they rebuild the model."""
+        return {
+            "type": "PreisachModel",
+            "input_range": list(self.input_range),
+            "initial_state": self.initial_state_kind,
+            "smoothing": self.smoothing,
+            "dtype": str(self.alpha.dtype).removeprefix("torch."),
+            "n_hysterons": int(self.alpha.numel()),
+        }
+
+    @classmethod
+    def from_config(cls, config: dict, state_dict: dict[str, Tensor]) -> PreisachModel:
+        """Rebuild a model from :meth:`config` and ``state_dict()``.
+
+        Args:
+            config: Output of :meth:`config` (e.g. read back from JSON).
+            state_dict: Tensors of ``state_dict()`` (e.g. from
+                ``torch.load(..., weights_only=True)``); the mesh comes from its
+                ``alpha``, ``beta`` and ``area``.
+
+        Raises:
+            ValueError: if the config is not a Preisach model's or tensors miss.
+        """
+        if config.get("type") != "PreisachModel":
+            raise ValueError(
+                f"not a PreisachModel config: type {config.get('type')!r}."
+            )
+        missing = {"alpha", "beta", "area", "raw_density"} - set(state_dict)
+        if missing:
+            raise ValueError(f"state_dict misses {sorted(missing)}.")
+        dtype = getattr(torch, str(config.get("dtype", "float64")))
+        mesh = PreisachMesh(state_dict["alpha"], state_dict["beta"], state_dict["area"])
+        model = cls(
+            mesh,
+            input_range=config["input_range"],
+            initial_state=config["initial_state"],
+            smoothing=config["smoothing"],
+            dtype=dtype,
+        )
+        model.load_state_dict(state_dict)
+        return model
+
     # ------------------------------------------------------------------ helpers
     def _apply(self, fn, recurse=True):  # keep the row layout with the buffers
         out = super()._apply(fn, recurse)

@@ -86,7 +86,7 @@ def synthetic_measurement(
     seed: int = 0,
     dtype: torch.dtype = torch.float64,
 ) -> tuple[Tensor, Tensor, PreisachModel]:
-    """Currents and noisy fields of :func:`synthetic_protocol` on :func:`synthetic_magnet`.
+    """Noisy field measurements of the synthetic magnet along the synthetic protocol.
 
     Args:
         i_max: Maximum current [A].

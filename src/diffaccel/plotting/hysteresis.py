@@ -1,0 +1,133 @@
+"""Figures of Preisach hysteresis models: density plane, loops and residuals."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from matplotlib.figure import Figure
+from matplotlib.tri import Triangulation
+from torch import Tensor
+
+from diffaccel.hysteresis import PreisachModel
+
+__all__ = ["plot_preisach_density", "plot_preisach_fit"]
+
+
+def _np(x: Tensor) -> np.ndarray:
+    return x.detach().cpu().double().numpy()
+
+
+def plot_preisach_density(
+    model: PreisachModel, input_label: str = "current [A]"
+) -> Figure:
+    """Hysteron density on the Preisach plane, in physical input units.
+
+    Args:
+        model: A Preisach model.
+        input_label: Axis label of the input quantity, with its unit.
+
+    Returns:
+        A figure with one axes: ``beta`` (down threshold) horizontally,
+        ``alpha`` (up threshold) vertically, density colour-coded.
+    """
+    lo, hi = model.input_range
+    alpha = lo + (hi - lo) * _np(model.alpha)
+    beta = lo + (hi - lo) * _np(model.beta)
+    density = _np(model.density)
+    fig = Figure(figsize=(5.2, 4.4), layout="constrained")
+    ax = fig.add_subplot()
+    if alpha.size >= 3:
+        try:
+            tri = Triangulation(beta, alpha)
+            art = ax.tripcolor(tri, density, shading="gouraud", cmap="viridis")
+        except (ValueError, RuntimeError):  # collinear or too few points
+            art = ax.scatter(beta, alpha, c=density, s=12, cmap="viridis")
+    else:
+        art = ax.scatter(beta, alpha, c=density, s=30, cmap="viridis")
+    ax.plot([lo, hi], [lo, hi], color="k", lw=0.8)
+    ax.set_xlim(lo, hi)
+    ax.set_ylim(lo, hi)
+    ax.set_aspect("equal")
+    ax.set_xlabel(f"beta: down threshold, {input_label}")
+    ax.set_ylabel(f"alpha: up threshold, {input_label}")
+    ax.set_title(f"Preisach density ({alpha.size} hysterons)")
+    fig.colorbar(art, ax=ax, label="density [1]")
+    return fig
+
+
+def plot_preisach_fit(
+    model: PreisachModel,
+    current: Tensor,
+    field: Tensor,
+    n_train: int | None = None,
+    initial_state: str | Tensor | None = None,
+    input_label: str = "current [A]",
+    output_label: str = "field [T m]",
+) -> Figure:
+    """Measured and modelled loops with residuals, training and prediction rows.
+
+    Args:
+        model: A fitted Preisach model.
+        current: Inputs in time order [input units], shape ``(T,)``.
+        field: Measured outputs [output units], shape ``(T,)``.
+        n_train: Rows ``[:n_train]`` were fitted, the rest are predictions;
+            ``None`` means all were fitted.
+        initial_state: State before ``current[0]``; ``None`` is the model's own.
+        input_label: Input axis label with unit.
+        output_label: Output axis label with unit.
+
+    Returns:
+        A figure: loops (output minus its best straight line, vs input) on the
+        left, residuals against row index on the right, training rows in blue
+        and predicted rows in orange.
+
+    Raises:
+        ValueError: if ``current`` and ``field`` have different shapes.
+    """
+    if current.shape != field.shape or current.ndim != 1:
+        raise ValueError(
+            "current and field must both have shape (T,); got "
+            f"{tuple(current.shape)} and {tuple(field.shape)}."
+        )
+    with torch.no_grad():
+        pred = _np(model(current, initial_state))
+    u, y = _np(current), _np(field)
+    n = len(u) if n_train is None else int(n_train)
+    idx = np.arange(len(u))
+    resid = y - pred
+    span = float(np.ptp(y)) or 1.0
+    # subtract the best straight line so that the loops (often < 1 % of the
+    # output) are visible
+    coef = np.polyfit(u, y, 1)
+    line = np.polyval(coef, u)
+    yl, pl = y - line, pred - line
+    fig = Figure(figsize=(11, 4.2), layout="constrained")
+    ax_loop, ax_res = fig.subplots(1, 2)
+    ax_loop.plot(u[:n], yl[:n], "o", ms=3.5, color="C0", label="measured (fit)")
+    ax_loop.plot(u[:n], pl[:n], "-", lw=1, color="C0", alpha=0.7, label="model (fit)")
+    if n < len(u):
+        ax_loop.plot(u[n:], yl[n:], "s", ms=3.5, color="C1", label="measured (test)")
+        ax_loop.plot(
+            u[n - 1 :], pl[n - 1 :], "-", lw=1, color="C1", alpha=0.7,
+            label="model (prediction)",
+        )  # fmt: skip
+    ax_loop.set_xlabel(input_label)
+    ax_loop.set_ylabel(f"{output_label} - ({coef[0]:.4g} x + {coef[1]:.3g})")
+    ax_loop.legend(fontsize=8)
+    ax_loop.set_title("Hysteresis loops (best straight line subtracted)")
+    ax_res.axhline(0.0, color="k", lw=0.6)
+    ax_res.plot(idx[:n], 100 * resid[:n] / span, "o-", ms=3, lw=0.8, color="C0")
+    if n < len(u):
+        ax_res.plot(idx[n:], 100 * resid[n:] / span, "s-", ms=3, lw=0.8, color="C1")
+        ax_res.axvline(n - 0.5, color="grey", ls="--", lw=0.8)
+
+    def rms(r: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
+
+    ax_res.set_title(
+        f"residual rms: fit {100 * rms(resid[:n]) / span:.3f} %, "
+        f"prediction {100 * rms(resid[n:]) / span:.3f} % of range"
+    )
+    ax_res.set_xlabel("row (time order)")
+    ax_res.set_ylabel("measured - model [% of output range]")
+    return fig

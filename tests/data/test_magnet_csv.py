@@ -1,0 +1,89 @@
+"""Magnet-history CSV reader and atomic CSV writer."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from diffaccel.data import FormatError, read_magnet_csv, write_csv_atomic
+
+SLAC = (
+    Path(__file__).resolve().parents[2]
+    / ".."
+    / "shared"
+    / "data"
+    / "hysteresis"
+    / "slac_lcls2_quad_4194"
+    / "measurements.csv"
+)
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "m.csv"
+    p.write_text(text)
+    return p
+
+
+def test_reads_default_and_named_columns(tmp_path: Path) -> None:
+    p = _write(tmp_path, "run,current_A,field_Tm,amps\na,0,0.03,1\nb,10.5,0.35,2\n")
+    h = read_magnet_csv(p)
+    assert h.input.dtype == torch.float64
+    assert h.input.tolist() == [0.0, 10.5] and h.output.tolist() == [0.03, 0.35]
+    assert h.header == ["run", "current_A", "field_Tm", "amps"]
+    assert h.rows[1] == ["b", "10.5", "0.35", "2"]
+    h2 = read_magnet_csv(p, input_column="amps", require_output=False)
+    assert h2.input.tolist() == [1.0, 2.0]
+
+
+def test_missing_output_allowed_when_not_required(tmp_path: Path) -> None:
+    p = _write(tmp_path, "current_A\n1\n2\n")
+    assert read_magnet_csv(p, require_output=False).output is None
+    with pytest.raises(FormatError, match="no output column 'field_Tm'"):
+        read_magnet_csv(p)
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("", "empty file"),
+        ("current_A,field_Tm\n", "header only"),
+        ("current_A,field_Tm\n1,2\n3\n", "row 2 has 1 cells"),
+        ("I,field_Tm\n1,2\n", "no input column 'current_A'"),
+        ("current_A,field_Tm\n1,2\nx,3\n", "row 2: expected a number; found 'x'"),
+        ("current_A,field_Tm\n1,nan\n", "expected a finite number"),
+        ("current_A,field_Tm\n1,inf\n", "expected a finite number"),
+    ],
+    ids=["empty", "header-only", "ragged", "no-input", "text", "nan", "inf"],
+)
+def test_bad_files_raise(tmp_path: Path, text: str, match: str) -> None:
+    with pytest.raises(FormatError, match=match):
+        read_magnet_csv(_write(tmp_path, text))
+
+
+def test_write_is_atomic_and_refuses_overwrite(tmp_path: Path) -> None:
+    p = tmp_path / "out.csv"
+    write_csv_atomic(p, ["a", "b"], [[1.5, "x"], [0.1, "y"]])
+    assert p.read_text() == "a,b\n1.5,x\n0.1,y\n"
+    with pytest.raises(FileExistsError, match="overwrite"):
+        write_csv_atomic(p, ["a"], [[1]])
+    write_csv_atomic(p, ["a"], [[1]], overwrite=True)
+    assert p.read_text() == "a\n1\n"
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["out.csv"]
+    with pytest.raises(ValueError, match="row 0 has 2 cells"):
+        write_csv_atomic(tmp_path / "bad.csv", ["a"], [[1, 2]])
+
+
+def test_float_round_trip(tmp_path: Path) -> None:
+    x = [0.1 + 1e-17, 1 / 3, 165.0386175]
+    p = write_csv_atomic(tmp_path / "x.csv", ["current_A"], [[v] for v in x])
+    assert read_magnet_csv(p, require_output=False).input.tolist() == x
+
+
+@pytest.mark.skipif(not SLAC.exists(), reason="needs /work/shared reference data")
+def test_reads_slac_measurements() -> None:
+    h = read_magnet_csv(SLAC)
+    assert len(h) == 187
+    assert h.header[:3] == ["run", "time_s", "current_A"]
+    assert 164 < float(h.input.max()) < 166
