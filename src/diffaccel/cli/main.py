@@ -26,3 +26,7 @@ main.add_command(synthetic)
 from diffaccel.cli.hysteresis import hysteresis  # noqa: E402
 
 main.add_command(hysteresis)
+
+from diffaccel.cli.hysteresis_gp import gp_fit  # noqa: E402
+
+hysteresis.add_command(gp_fit)
