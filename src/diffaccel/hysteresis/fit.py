@@ -118,7 +118,7 @@ def fit_preisach(
     optimizer: str = "lbfgs",
     steps: int = 200,
     lr: float | None = None,
-    smoothness: float = 1e-4,
+    smoothness: float = 0.0,
     initial_state: str | Tensor | None = None,
     callback: Callable[[int, float], None] | None = None,
 ) -> FitResult:
@@ -138,7 +138,9 @@ def fit_preisach(
         steps: Optimiser steps (L-BFGS iterations, at most ``2 * steps``
             objective evaluations; or Adam steps).
         lr: Learning rate; default 1 for L-BFGS and 0.01 for Adam.
-        smoothness: Weight of the density roughness penalty [1].
+        smoothness: Weight of the density roughness penalty [1]; 0 (default)
+            leaves the density free (best on held-out training rows of the SLAC
+            quadrupole data; see ``benchmarks/preisach_slac.py``).
         initial_state: State before ``current[0]``; ``None`` is the model's own.
         callback: Called as ``callback(step, loss)`` after every step.
 
