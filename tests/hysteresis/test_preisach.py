@@ -143,3 +143,16 @@ def test_mismatched_batch_of_history_raises() -> None:
         model.predict(
             torch.zeros(3, 4, dtype=F64), history=torch.zeros(2, 5, dtype=F64)
         )
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_matches_cpu() -> None:
+    model = _model()
+    gpu = _model().to("cuda")
+    u = torch.tensor([0.3, 10.1, 2.2, 12.3, 4.1], dtype=F64)
+    with torch.no_grad():
+        cpu_y = model(u)
+        gpu_y = gpu(u.cuda())
+        gpu_s = gpu.magnetization(u.cuda(), smooth=True)
+    assert gpu_y.device.type == "cuda" and gpu_s.device.type == "cuda"
+    torch.testing.assert_close(gpu_y.cpu(), cpu_y, rtol=0, atol=1e-12)
