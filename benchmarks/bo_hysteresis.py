@@ -119,7 +119,9 @@ def run(
     machine = Machine(seed, args.particles, args.target)
     bounds = torch.tensor([[-I_MAX] * 3, [I_MAX] * 3], dtype=torch.float64)
     hyst = {}
-    if method == "hgp":
+    if method == "hgp" and args.oracle_density:
+        hyst = {j: truth_magnets(seed)[j].preisach for j in range(3)}
+    elif method == "hgp":
         hyst = {
             j: PreisachModel(
                 PreisachMesh.triangular(n=args.mesh_n), input_range=(-I_MAX, I_MAX)
@@ -134,7 +136,7 @@ def run(
         maximize=True,
         fit_restarts=1,
         fit_max_iter=args.fit_iter,
-        fit_density=not args.fixed_density,
+        fit_density=not (args.fixed_density or args.oracle_density),
         num_restarts=args.acq_restarts,
         raw_samples=args.raw_samples,
         seed=seed,
@@ -170,6 +172,11 @@ def main() -> None:
         "--fixed-density",
         action="store_true",
         help="keep the H-GP's prior (uniform) densities instead of refitting them",
+    )
+    parser.add_argument(
+        "--oracle-density",
+        action="store_true",
+        help="diagnostic: give the H-GP the true Preisach densities (kept fixed)",
     )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

@@ -177,6 +177,22 @@ def test_future_sequence_is_state_consistent() -> None:
     torch.testing.assert_close(feats, 0.5 * (m + 1.0), rtol=0, atol=1e-12)
 
 
+def test_posterior_sequence_uses_exact_states() -> None:
+    smooth = _small_model()
+    exact = _small_model(smoothing=0.0)
+    future = torch.tensor([[2.0], [8.0], [4.0], [6.0]], dtype=DT)
+    p_seq = smooth.posterior_sequence(future)
+    p_exact = exact.posterior(future.unsqueeze(0))
+    assert p_seq.mean.shape == (4, 1)
+    # same hyperparameters, same exact features: identical up to round-off
+    torch.testing.assert_close(
+        p_seq.mean, p_exact.mean.squeeze(0), rtol=1e-10, atol=1e-12
+    )
+    torch.testing.assert_close(
+        p_seq.variance, p_exact.variance.squeeze(0), rtol=1e-8, atol=1e-12
+    )
+
+
 def test_q_batch_fantasises_state_sequentially() -> None:
     model = _small_model()
     # same second setting, reached from above (after 10 A) or below (after 0 A):

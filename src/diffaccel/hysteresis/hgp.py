@@ -111,8 +111,10 @@ class HysteresisGP(Model):
     magnetic state at the end of the training history, apply the q settings of
     each batch in order*; candidate ``j`` sees the state left by candidates
     ``1..j-1``. A batch of one-step candidates is ``batch x 1 x d``; a future
-    sequence is ``1 x T x d``. ``posterior_on_history()`` gives the model at the
-    training points.
+    sequence is ``1 x T x d``. The candidates' hysterons follow smooth relays
+    (``candidate_smoothing``) so that acquisition optimisers get gradients;
+    ``posterior_sequence(X)`` predicts the same scenario with exact relays and
+    ``posterior_on_history()`` gives the model at the training points.
 
     Args:
         train_X: Settings in the order they were applied, shape ``(n, d)``;
@@ -318,16 +320,17 @@ class HysteresisGP(Model):
             return float(self.candidate_smoothing)
         return 0.25 / math.sqrt(2.0 * self.hysteresis_models[i].alpha.numel())
 
-    def features(self, X: Tensor) -> Tensor:
+    def features(self, X: Tensor, exact: bool = False) -> Tensor:
         """GP inputs for settings applied in order after the training history.
 
         Hysteretic columns start from the exact state and input at the end of
         the history and follow smooth relays of width :meth:`smoothing_width`
-        (exact relays if it is 0).
+        (exact relays if it is 0 or ``exact`` is True).
 
         Args:
             X: Settings, shape ``(*b, q, d)``; along ``q`` they are applied in order
                 starting from the state at the end of the training history.
+            exact: Use exact relays whatever the smoothing width.
 
         Returns:
             Features, shape ``(*b, q, d)``.
@@ -338,7 +341,7 @@ class HysteresisGP(Model):
             x = self._normalised(i, X[..., c])
             s_end = self.history_states(i)[-1].to(X)
             alpha, beta = pm.alpha.to(X), pm.beta.to(X)
-            width = self.smoothing_width(i)
+            width = 0.0 if exact else self.smoothing_width(i)
             if width > 0:
                 x_end = self._normalised(i, self.train_X[-1, c]).to(X)
                 states = smooth_states(x, alpha, beta, s_end, width, start=x_end)
@@ -432,6 +435,34 @@ class HysteresisGP(Model):
         feats = self.gp.train_inputs[0]
         mvn = self.gp(feats)
         return self._wrap(mvn, feats, self.train_X, observation_noise, None)
+
+    def posterior_sequence(
+        self, X: Tensor, observation_noise: bool = False
+    ) -> GPyTorchPosterior | TransformedPosterior:
+        """Joint posterior along a future sequence, with exact hysteron states.
+
+        Same meaning of ``X`` as :meth:`posterior` (settings applied in order
+        from the end of the history), but the states follow exact relays, so the
+        prediction is exactly consistent with the Preisach model (no smoothing).
+        Use it to predict; :meth:`posterior` (smooth in ``X``) is for
+        acquisition optimisation.
+
+        Args:
+            X: Future settings, shape ``(T, d)`` or ``(*b, T, d)``.
+            observation_noise: If True, add the fitted observation noise.
+
+        Returns:
+            Posterior over ``(T, 1)`` or ``(*b, T, 1)`` (units of ``train_Y``).
+
+        Raises:
+            ValueError: if ``X`` has the wrong last dimension or holds NaN.
+        """
+        self._check_X(X)
+        self.eval()
+        self._sync_train_data()
+        feats = self.features(X, exact=True)
+        mvn = self.gp(feats)
+        return self._wrap(mvn, feats, X, observation_noise, None)
 
     def condition_on_observations(
         self, X: Tensor, Y: Tensor, **kwargs: object
