@@ -137,6 +137,7 @@ def run(
         fit_restarts=1,
         fit_max_iter=args.fit_iter,
         fit_density=not (args.fixed_density or args.oracle_density),
+        density_prior_scale=args.density_prior if args.density_prior > 0 else None,
         num_restarts=args.acq_restarts,
         raw_samples=args.raw_samples,
         seed=seed,
@@ -172,6 +173,12 @@ def main() -> None:
         "--fixed-density",
         action="store_true",
         help="keep the H-GP's prior (uniform) densities instead of refitting them",
+    )
+    parser.add_argument(
+        "--density-prior",
+        type=float,
+        default=1.0,
+        help="prior width of the refitted raw densities (0: no prior)",
     )
     parser.add_argument(
         "--oracle-density",

@@ -43,7 +43,9 @@ class HysteresisBO:
     history and refitted, warm-started from the previous fit. ``ask(q)`` returns
     ``q`` settings to be applied *in that order*: the acquisition judges each
     from the state left by the ones before it. With ``hysteresis={}`` the model
-    is exactly BoTorch's ``SingleTaskGP`` (plain-GP baseline).
+    is exactly BoTorch's ``SingleTaskGP`` (plain-GP baseline). Each refit starts
+    the densities from the given Preisach models (the prior guess, e.g. uniform
+    or measured on a test stand) and warm-starts the GP hyperparameters.
 
     Args:
         bounds: Lower and upper bound of each input, shape ``(2, d)``, in the
@@ -59,6 +61,8 @@ class HysteresisBO:
         fit_max_iter: L-BFGS-B iterations per fit restart.
         fit_density: Refit the Preisach densities with the GP (True) or keep
             the given densities (e.g. measured on a test stand) fixed.
+        density_prior_scale: Prior width of the refitted raw densities about
+            the given ones (see ``fit_hysteresis_gp``); ``None`` for no prior.
         num_restarts: Starting points of the acquisition optimiser.
         raw_samples: Random samples used to choose those starting points.
         seed: Seed of the fit restarts and acquisition optimiser.
@@ -88,6 +92,7 @@ class HysteresisBO:
         fit_restarts: int = 1,
         fit_max_iter: int = 100,
         fit_density: bool = True,
+        density_prior_scale: float | None = 1.0,
         num_restarts: int = 4,
         raw_samples: int = 128,
         seed: int = 0,
@@ -114,6 +119,7 @@ class HysteresisBO:
         self.fit_restarts = int(fit_restarts)
         self.fit_max_iter = int(fit_max_iter)
         self.fit_density = bool(fit_density)
+        self.density_prior_scale = density_prior_scale
         self.num_restarts = int(num_restarts)
         self.raw_samples = int(raw_samples)
         self.seed = int(seed)
@@ -158,16 +164,14 @@ class HysteresisBO:
     def _refit(self) -> None:
         sign = 1.0 if self.maximize else -1.0
         prev = self.model
-        if prev is None:
-            hyst: Mapping[int, PreisachModel] = self.hysteresis
-            modules: dict[str, object] = {}
-        else:
-            hyst = dict(zip(prev.hysteretic_dims, prev.hysteresis_models, strict=True))
+        modules: dict[str, object] = {}
+        if prev is not None:  # warm-start the GP; densities restart from the prior
             modules = {
                 "likelihood": copy.deepcopy(prev.gp.likelihood),
                 "covar_module": copy.deepcopy(prev.gp.covar_module),
                 "mean_module": copy.deepcopy(prev.gp.mean_module),
             }
+        hyst: Mapping[int, PreisachModel] = self.hysteresis
         model = HysteresisGP(
             self.X, sign * self.Y, hysteresis=hyst, bounds=self.bounds, **modules
         )
@@ -176,6 +180,7 @@ class HysteresisBO:
             restarts=self.fit_restarts,
             max_iter=self.fit_max_iter,
             fit_density=self.fit_density,
+            density_prior_scale=self.density_prior_scale,
             seed=self.seed + self._n_fits,
         )
         self._n_fits += 1

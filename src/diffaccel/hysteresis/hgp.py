@@ -628,6 +628,7 @@ def fit_hysteresis_gp(
     restarts: int = 3,
     max_iter: int = 200,
     fit_density: bool = True,
+    density_prior_scale: float | None = None,
     seed: int = 0,
     callback: Callable[[int, float], None] | None = None,
 ) -> HGPFitResult:
@@ -645,6 +646,11 @@ def fit_hysteresis_gp(
         restarts: Number of optimisations (``>= 1``).
         max_iter: L-BFGS-B iterations per restart.
         fit_density: If False, keep the Preisach densities fixed (e.g. measured).
+        density_prior_scale: If set, a Gaussian prior of this standard deviation
+            on each raw (softplus-inverse) density about its value when the fit
+            starts, i.e. the given density is a prior guess. It matters when few
+            points must constrain many hysterons (e.g. early in optimisation)
+            and fades as data accumulate. ``None``: no density prior.
         seed: Seed of the random restarts.
         callback: Called after each restart with ``(restart, mll)``.
 
@@ -658,6 +664,10 @@ def fit_hysteresis_gp(
         raise ValueError(
             f"restarts and max_iter must be >= 1; got {restarts} and {max_iter}."
         )
+    if density_prior_scale is not None and not density_prior_scale > 0:
+        raise ValueError(
+            f"density_prior_scale must be > 0 or None; got {density_prior_scale}."
+        )
     t0 = time.perf_counter()
     generator = torch.Generator().manual_seed(seed)
     mll = ExactMarginalLogLikelihood(model.gp.likelihood, model.gp)
@@ -667,6 +677,17 @@ def fit_hysteresis_gp(
         for i, pm in enumerate(model.hysteresis_models):
             params[f"hysteresis_models.{i}.raw_density"] = pm.raw_density
     start = copy.deepcopy(model.state_dict())
+    raw0 = [pm.raw_density.detach().clone() for pm in model.hysteresis_models]
+
+    def loss() -> Tensor:
+        value = _joint_loss(model, mll)
+        if fit_density and density_prior_scale is not None:
+            n = model._train_targets.shape[-1]
+            for pm, r0 in zip(model.hysteresis_models, raw0, strict=True):
+                dev = (pm.raw_density - r0) / density_prior_scale
+                value = value + 0.5 * dev.pow(2).sum() / n
+        return value
+
     best_state, best_value, best_index = None, -math.inf, 0
     values: list[float] = []
     for r in range(restarts):
@@ -674,15 +695,13 @@ def fit_hysteresis_gp(
         if r > 0:
             _randomise(model, generator)
         model.train()
-        closure = ForwardBackwardClosure(
-            forward=lambda: _joint_loss(model, mll), parameters=params
-        )
+        closure = ForwardBackwardClosure(forward=loss, parameters=params)
         try:
             fit_gpytorch_mll_scipy(
                 mll, parameters=params, closure=closure, options={"maxiter": max_iter}
             )
             with torch.no_grad():
-                value = -float(_joint_loss(model, mll))
+                value = -float(loss())
         except (RuntimeError, ValueError) as err:  # numerical failure of one start
             logger.warning("H-GP restart %d failed: %s", r, err)
             value = -math.inf
