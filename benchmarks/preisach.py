@@ -19,14 +19,19 @@ see ``../shared/ANCHORS.md``): the paper authors' implementation takes 3.05 s
 (and up to 1.6 GB) for forward+backward at T = 1000, N = 20 000, and 0.042 s at
 T = 100, N = 1000, on a 2-core CPU like this one.
 
+Every case runs with 1 intra-op thread and with torch's default: on a loaded
+machine, multi-threaded kernels on these small tensors can be 10-50x slower
+(threads wait for descheduled peers), so both are recorded.
+
 Prints one JSON object on the last line; its ``records`` list holds one
-``{"T", "N", "dtype", "forward_s", "forward_backward_s", "peak_memory_mb", ...}``
-per case.
+``{"T", "N", "dtype", "threads", "forward_s", "forward_backward_s",
+"peak_memory_mb", ...}`` per case.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import platform
 import resource
@@ -115,7 +120,13 @@ def run_case(t: int, n: int, dtype: torch.dtype, repeats: int, seed: int) -> dic
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=20)
-    parser.add_argument("--threads", type=int, default=None, help="torch threads")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        nargs="+",
+        default=None,
+        help="torch intra-op thread counts to run (default: 1 and torch's default)",
+    )
     parser.add_argument(
         "--dtypes",
         nargs="+",
@@ -126,27 +137,29 @@ def main() -> None:
         "--case", nargs=3, metavar=("T", "CELLS", "DTYPE"), help=argparse.SUPPRESS
     )
     args = parser.parse_args()
-    if args.threads is not None:
-        torch.set_num_threads(args.threads)
     if args.case is not None:  # child process: one case, one JSON line
+        if args.threads is not None:
+            torch.set_num_threads(args.threads[0])
         t, n, dt = int(args.case[0]), int(args.case[1]), getattr(torch, args.case[2])
-        print(json.dumps(run_case(t, n, dt, args.repeats, seed=t + n)))
+        record = run_case(t, n, dt, args.repeats, seed=t + n)
+        record["threads"] = torch.get_num_threads()
+        print(json.dumps(record))
         return
+    threads = args.threads or sorted({1, torch.get_num_threads()})
     records = []
-    for dt in args.dtypes:
-        for t, n in CASES:
-            cmd = [sys.executable, __file__, "--case", str(t), str(n), dt]
-            cmd += ["--repeats", str(args.repeats)]
-            if args.threads is not None:
-                cmd += ["--threads", str(args.threads)]
-            out = subprocess.run(cmd, capture_output=True, text=True, check=True)
-            records.append(json.loads(out.stdout.strip().splitlines()[-1]))
-    by_key = {(r["T"], r["N"], r["dtype"]): r for r in records}
+    for nt in threads:
+        for dt in args.dtypes:
+            for t, n in CASES:
+                cmd = [sys.executable, __file__, "--case", str(t), str(n), dt]
+                cmd += ["--repeats", str(args.repeats), "--threads", str(nt)]
+                out = subprocess.run(cmd, capture_output=True, text=True, check=True)
+                records.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    by_key = {(r["T"], r["N"], r["dtype"], r["threads"]): r for r in records}
     checks = {}
-    for dt in args.dtypes:
-        big = by_key[(1000, 20100, dt)]["forward_backward_s"]
-        small = by_key[(100, 990, dt)]["forward_backward_s"]
-        checks[dt] = {
+    for nt, dt in itertools.product(threads, args.dtypes):
+        big = by_key[(1000, 20100, dt, nt)]["forward_backward_s"]
+        small = by_key[(100, 990, dt, nt)]["forward_backward_s"]
+        checks[f"{dt}_threads{nt}"] = {
             "T1000_N20100_forward_backward_s": big,
             "T1000_N20100_meets_0.1s": big <= TARGETS["T1000_N20000"],
             "T1000_N20100_speedup_vs_anchor": ANCHOR["T1000_N20000_forward_backward_s"]
@@ -159,7 +172,7 @@ def main() -> None:
     result = {
         "name": "preisach",
         "device": "cpu",
-        "threads": torch.get_num_threads() if args.threads is None else args.threads,
+        "threads": threads,
         "torch": torch.__version__,
         "python": platform.python_version(),
         "git_commit": _git_commit(),
