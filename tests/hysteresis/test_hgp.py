@@ -121,7 +121,8 @@ def test_no_hysteresis_fit_reaches_single_task_gp_optimum() -> None:
     mll = ExactMarginalLogLikelihood(stgp.likelihood, stgp)
     fit_gpytorch_mll(mll)
     stgp.train()
-    ref = float(mll(stgp(*stgp.train_inputs), stgp.train_targets))
+    with torch.no_grad():
+        ref = float(mll(stgp(*stgp.train_inputs), stgp.train_targets))
     hgp = HysteresisGP(X, Y, hysteresis={}, bounds=bounds)
     res = fit_hysteresis_gp(hgp, restarts=1)
     # both run L-BFGS-B to convergence on the same objective: optimum agrees to

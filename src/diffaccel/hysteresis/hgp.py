@@ -18,6 +18,7 @@ import copy
 import logging
 import math
 import time
+import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
@@ -39,6 +40,7 @@ from gpytorch.likelihoods import Likelihood
 from gpytorch.means import ConstantMean, Mean
 from gpytorch.mlls import ExactMarginalLogLikelihood
 from gpytorch.models import ExactGP
+from gpytorch.utils.warnings import GPInputWarning
 from torch import Tensor, nn
 
 from diffaccel.hysteresis.preisach import PreisachModel
@@ -433,7 +435,9 @@ class HysteresisGP(Model):
         self.eval()
         self._sync_train_data()
         feats = self.gp.train_inputs[0]
-        mvn = self.gp(feats)
+        with warnings.catch_warnings():  # predicting at the training inputs is meant
+            warnings.simplefilter("ignore", GPInputWarning)
+            mvn = self.gp(feats)
         return self._wrap(mvn, feats, self.train_X, observation_noise, None)
 
     def posterior_sequence(
