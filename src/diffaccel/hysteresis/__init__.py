@@ -17,6 +17,11 @@ from diffaccel.hysteresis.magnet import (
 )
 from diffaccel.hysteresis.mesh import PreisachMesh
 from diffaccel.hysteresis.preisach import INITIAL_STATES, PreisachModel
+from diffaccel.hysteresis.synthetic import (
+    synthetic_magnet,
+    synthetic_measurement,
+    synthetic_protocol,
+)
 
 __all__ = [
     "INITIAL_STATES",
@@ -34,4 +39,7 @@ __all__ = [
     "invert_preisach",
     "magnetic_rigidity",
     "next_step_output",
+    "synthetic_magnet",
+    "synthetic_measurement",
+    "synthetic_protocol",
 ]

@@ -282,7 +282,12 @@ class PreisachModel(nn.Module):
             u: Inputs [input units], shape ``(*B, T)``.
             initial_state: See :meth:`initial_states`.
             smooth: Exact relays (``False``) or smooth, rate-independent relays
-                of width ``smoothing`` (``True``), differentiable in ``u``.
+                of width ``smoothing`` (``True``), differentiable in ``u``. The
+                smooth sequence starts from a virtual turning point at the
+                bottom of the range (``"negative"``), the top (``"positive"``)
+                or the centre (``"demagnetized"``, ``"learned"`` and tensor
+                states); to continue smoothly after a history, use
+                :meth:`predict` with ``history`` rather than a tensor state.
 
         Returns:
             States in ``[-1, 1]``, shape ``(*B, T, M)``.
@@ -316,12 +321,19 @@ class PreisachModel(nn.Module):
         Returns:
             Magnetisation in ``[-1, 1]``, shape ``(*B, T)``.
         """
+        return self._magnetization(self.normalize_input(u), initial_state, smooth)
+
+    def _magnetization(
+        self, un: Tensor, initial_state: str | Tensor | None, smooth: bool
+    ) -> Tensor:
+        """:meth:`magnetization` of already checked, normalised inputs."""
         w = self.weights
-        if smooth:
-            s = self.states(u, initial_state, smooth=True)
-            return (s @ w) / w.sum()
-        un = self.normalize_input(u)
         s0 = self.initial_states(initial_state)
+        if smooth:
+            width = self.smoothing / (self.input_range[1] - self.input_range[0])
+            start = self._start(initial_state)
+            s = smooth_states(un, self.alpha, self.beta, s0, width, start)
+            return (s @ w) / w.sum()
         return exact_magnetization(un, self._layout, w, s0) / w.sum()
 
     def forward(
@@ -341,7 +353,7 @@ class PreisachModel(nn.Module):
             Outputs [output units], shape ``(*B, T)``.
         """
         un = self.normalize_input(u)
-        m = self.magnetization(u, initial_state, smooth=smooth)
+        m = self._magnetization(un, initial_state, smooth)
         y = self.offset + self.slope * un + self.scale * m
         return self.output_loc + self.output_scale * y
 
