@@ -190,3 +190,22 @@ BAD = [
 def test_bad_options(kwargs: dict, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         make_synthetic_quad_scan(**{"n_particles": 100, **SMALL, **kwargs})
+
+
+@pytest.mark.parametrize("method", ["kde", "cic"])
+def test_gpsr_size_screen(method: str) -> None:
+    """100 x 100 pixels of 1 mm, as in the GPSR benchmark, with either image model."""
+    ds = make_synthetic_quad_scan(
+        "correlated",
+        n_particles=1000,
+        n_settings=3,
+        screen_shape=(100, 100),
+        image_method=method,
+    )
+    assert ds.shape == (3, 1, 100, 100)
+    assert ds.metadata["synthetic"]["image_method"] == method
+    # centred beam: image centroid within a tenth of a pixel of the screen centre
+    img = ds.mean_images().double()
+    ys, xs = ds.pixel_centers()
+    assert (img.sum(-2) * xs).sum(-1).abs().max() < 1e-4
+    assert (img.sum(-1) * ys).sum(-1).abs().max() < 1e-4
