@@ -157,7 +157,7 @@ def run(
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--out", type=Path, default=Path("benchmark_output"))
+    parser.add_argument("--out", type=Path, default=Path("out") / "benchmarks")
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--steps", type=int, default=50)
     parser.add_argument("--n-init", type=int, default=5)
@@ -245,6 +245,13 @@ def main() -> None:
         "particles": args.particles,
         "hgp_hysterons_per_magnet": args.mesh_n * (args.mesh_n + 1) // 2,
         "acquisition": "UCB beta=2",
+        "hgp_density": (
+            "true (oracle, fixed)"
+            if args.oracle_density
+            else "uniform prior, fixed"
+            if args.fixed_density
+            else f"uniform prior, refitted each step (prior width {args.density_prior})"
+        ),
         "total_time_s": total,
         "threads": torch.get_num_threads(),
         "torch": torch.__version__,

@@ -111,7 +111,7 @@ def _heldout(
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--out", type=Path, default=Path("benchmark_output"))
+    parser.add_argument("--out", type=Path, default=Path("out") / "benchmarks")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--noise", type=float, default=0.02)
     parser.add_argument("--n-per-cycle", type=int, default=40)
