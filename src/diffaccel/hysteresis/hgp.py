@@ -124,7 +124,9 @@ class HysteresisGP(Model):
             ``input_range`` (e.g. current [A]).
         train_Y: Measured responses, shape ``(n, 1)``.
         hysteresis: Map from input column to its Preisach model (copied; the
-            copies live in ``hysteresis_models``). Empty for a plain GP.
+            copies live in ``hysteresis_models``). Empty for a plain GP. The
+            state before the first row is the model's initial state, held fixed
+            (a ``"learned"`` initial state is used as it is, not refitted).
         bounds: Lower and upper bounds of every input column, shape ``(2, d)``,
             used to scale plain columns to ``[0, 1]``; the data range if omitted.
         likelihood: Replaces the default Gaussian likelihood.
