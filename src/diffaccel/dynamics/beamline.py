@@ -9,9 +9,11 @@ import torch
 from torch import Tensor, nn
 
 from diffaccel.dynamics._validate import as_p0c, check_particles
+from diffaccel.dynamics.elements._kernels import stack_columns
 from diffaccel.dynamics.elements.dipole import Dipole
 from diffaccel.dynamics.elements.drift import Drift
 from diffaccel.dynamics.elements.element import Element
+from diffaccel.dynamics.elements.linear_map import LinearMap
 from diffaccel.dynamics.elements.quadrupole import Quadrupole
 from diffaccel.dynamics.elements.screen import Screen
 from diffaccel.dynamics.elements.transverse_deflecting_cavity import (
@@ -24,7 +26,14 @@ __all__ = ["ELEMENT_TYPES", "Beamline"]
 #: Element classes by the ``"type"`` string used in specs.
 ELEMENT_TYPES: dict[str, type[Element]] = {
     cls.__name__: cls
-    for cls in (Drift, Quadrupole, Dipole, TransverseDeflectingCavity, Screen)
+    for cls in (
+        Drift,
+        Quadrupole,
+        Dipole,
+        TransverseDeflectingCavity,
+        Screen,
+        LinearMap,
+    )
 }
 _SCREEN_KEYS = ("shape", "pixel_size", "center")
 
@@ -108,6 +117,15 @@ class Beamline(nn.Module):
                 )
             if elem_cls is Screen:
                 elements.append(Screen(name, **entry))
+            elif elem_cls is LinearMap:
+                values = {
+                    k: torch.as_tensor(v, dtype=torch.float64) for k, v in entry.items()
+                }
+                if "matrix" not in values:
+                    raise ValueError(
+                        f"spec[{pos}] (LinearMap {name!r}) needs 'matrix'."
+                    )
+                elements.append(LinearMap(name, **values))
             else:
                 values = {
                     k: torch.as_tensor(v, dtype=torch.float64) for k, v in entry.items()
@@ -266,11 +284,12 @@ class Beamline(nn.Module):
         p0c = as_p0c(p0c, particles)
         line = self._scanned(settings, names)
         screens: dict[str, Tensor] = {}
+        coords = tuple(particles.unbind(-1))
         for e in line.elements:
-            particles = e.track(particles, p0c, species)
+            coords = e.track_columns(coords, p0c, species)
             if isinstance(e, Screen):
-                screens[e.name] = particles
-        return particles, screens
+                screens[e.name] = stack_columns(coords)
+        return stack_columns(coords), screens
 
     def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
         """Product of the elements' linear maps, shape ``(*K, 6, 6)``."""
@@ -283,6 +302,40 @@ class Beamline(nn.Module):
         if r is None:
             return torch.eye(6, dtype=torch.float64)
         return r
+
+    def linearized(self, p0c: Tensor | float, species: Species = ELECTRON) -> Beamline:
+        """The linear fidelity of this beamline as a new ``Beamline``.
+
+        Each run of elements between screens becomes one :class:`LinearMap` (the
+        product of their ``transfer_map``); screens are kept, so
+        ``track_screens`` works unchanged. Apply scan settings first, e.g.
+        ``bl.with_params({"Q1.k1": k1}).linearized(p0c)``; the result's maps then
+        carry the batch shape ``(*K, 6, 6)``. A run of one element keeps its name;
+        a longer run is named ``"FIRST..LAST"``.
+        """
+        out: list[Element] = []
+        run: list[Element] = []
+
+        def flush() -> None:
+            if not run:
+                return
+            r = run[0].transfer_map(p0c, species)
+            length = run[0].length.to(r)
+            for e in run[1:]:
+                r = e.transfer_map(p0c, species).to(r) @ r
+                length = length + e.length.to(r)
+            name = run[0].name if len(run) == 1 else f"{run[0].name}..{run[-1].name}"
+            out.append(LinearMap(name, r, length))
+            run.clear()
+
+        for e in self.elements:
+            if isinstance(e, Screen):
+                flush()
+                out.append(e)
+            else:
+                run.append(e)
+        flush()
+        return Beamline(out)
 
     def extra_repr(self) -> str:
         return f"elements={self.element_names}"

@@ -5,6 +5,7 @@ from __future__ import annotations
 from diffaccel.dynamics.elements.dipole import Dipole
 from diffaccel.dynamics.elements.drift import Drift
 from diffaccel.dynamics.elements.element import Element
+from diffaccel.dynamics.elements.linear_map import LinearMap
 from diffaccel.dynamics.elements.quadrupole import Quadrupole
 from diffaccel.dynamics.elements.screen import Screen
 from diffaccel.dynamics.elements.transverse_deflecting_cavity import (
@@ -15,6 +16,7 @@ __all__ = [
     "Dipole",
     "Drift",
     "Element",
+    "LinearMap",
     "Quadrupole",
     "Screen",
     "TransverseDeflectingCavity",

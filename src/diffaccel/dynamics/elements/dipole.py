@@ -5,26 +5,22 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from diffaccel.dynamics._validate import as_p0c, check_nonnegative, check_particles
+from diffaccel.dynamics._validate import as_p0c, check_nonnegative
 from diffaccel.dynamics.elements._kernels import (
     exact_drift,
+    is_zero,
+    roll_matrix,
     to_element_frame,
     to_lab_frame,
     velocity_z_shift,
 )
-from diffaccel.dynamics.elements.element import Element, bcast
+from diffaccel.dynamics.elements.element import Coords, Element, bcast
 from diffaccel.dynamics.species import ELECTRON, Species
 
 __all__ = ["Dipole"]
 
 # Below this bending angle [rad] the body is tracked as a drift.
 _SMALL_ANGLE = 1e-9
-
-
-def _edge_kick(x: Tensor, px: Tensor, y: Tensor, py: Tensor, g: Tensor, e: Tensor):
-    """Hard-edge pole-face kick ``px += g tan(e) x``, ``py -= g tan(e) y``."""
-    h = g * e.tan()
-    return px + h * x, py - h * y
 
 
 class Dipole(Element):
@@ -92,23 +88,28 @@ class Dipole(Element):
     def track(
         self, particles: Tensor, p0c: Tensor | float, species: Species = ELECTRON
     ) -> Tensor:
-        """Track particles through the bend (see class docstring)."""
-        check_particles(particles)
-        p0c = as_p0c(p0c, particles)
-        x, px, y, py, z, pz = particles.unbind(-1)
-        g, length, angle = self._curvature(particles)
+        """Track particles ``(*K, N, 6)`` through the bend (see class docstring)."""
+        return self._track_via_columns(particles, p0c, species)
+
+    def track_columns(self, coords: Coords, p0c: Tensor, species: Species) -> Coords:
+        """Unchecked column tracking (see :meth:`Element.track_columns`)."""
+        x, px, y, py, z, pz = coords
+        g, length, angle = self._curvature(x)
         g, length, angle = g.unsqueeze(-1), length.unsqueeze(-1), angle.unsqueeze(-1)
-        e1 = bcast(self.e1, particles)
-        e2 = bcast(self.e2, particles)
-        tilt = bcast(self.tilt, particles)
-        zero = x.new_zeros(())
-        mu2 = bcast((species.mass_ev / p0c).square(), particles)
-        x, px, y, py = to_element_frame(x, px, y, py, zero, zero, tilt)
-        px, py = _edge_kick(x, px, y, py, g, e1)
+        h1 = g * bcast(self.e1, x).tan()
+        h2 = g * bcast(self.e2, x).tan()
+        mu2 = (species.mass_ev / p0c).square().unsqueeze(-1)
+        rolled = not is_zero(self.tilt)
+        if rolled:
+            zero = x.new_zeros(())
+            frame = (zero, zero, bcast(self.tilt, x))
+            x, px, y, py = to_element_frame(x, px, y, py, *frame)
+        px, py = px + h1 * x, py - h1 * y
 
         small = angle.abs() < _SMALL_ANGLE
-        th = angle.where(~small, torch.ones_like(angle))
-        gs = g.where(~small, th / length.where(length > 0, torch.ones_like(length)))
+        one = torch.ones_like(angle)
+        th = angle.where(~small, one)
+        gs = g.where(~small, th / length.where(length > 0, one))
         p = 1.0 + pz
         pperp2 = p.square() - py.square()
         ps = (pperp2 - px.square()).sqrt()
@@ -125,9 +126,10 @@ class Dipole(Element):
         z = zd.where(small, z1)
         px = px.where(small, px1)
 
-        px, py = _edge_kick(x, px, y, py, g, e2)
-        x, px, y, py = to_lab_frame(x, px, y, py, zero, zero, tilt)
-        return torch.stack(torch.broadcast_tensors(x, px, y, py, z, pz), dim=-1)
+        px, py = px + h2 * x, py - h2 * y
+        if rolled:
+            x, px, y, py = to_lab_frame(x, px, y, py, *frame)
+        return x, px, y, py, z, pz
 
     def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
         """Linear map at ``pz = 0`` including the edge kicks, shape ``(*K, 6, 6)``."""
@@ -166,11 +168,5 @@ class Dipole(Element):
         edge2 = eye.clone()
         edge2[..., 1, 0] = g * e2.tan()
         edge2[..., 3, 2] = -g * e2.tan()
-        rot = eye.clone()
-        cr, sr = tilt.cos(), tilt.sin()
-        for i in (0, 1):
-            rot[..., i, i] = cr
-            rot[..., i, i + 2] = sr
-            rot[..., i + 2, i] = -sr
-            rot[..., i + 2, i + 2] = cr
+        rot = roll_matrix(tilt)
         return rot.transpose(-1, -2) @ edge2 @ r @ edge1 @ rot

@@ -5,9 +5,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from diffaccel.dynamics._validate import as_p0c, check_nonnegative, check_particles
+from diffaccel.dynamics._validate import as_p0c, check_nonnegative
 from diffaccel.dynamics.elements._kernels import exact_drift
-from diffaccel.dynamics.elements.element import Element, bcast
+from diffaccel.dynamics.elements.element import Coords, Element, bcast
 from diffaccel.dynamics.species import ELECTRON, Species
 
 __all__ = ["Drift", "drift_matrix"]
@@ -15,7 +15,7 @@ __all__ = ["Drift", "drift_matrix"]
 
 def drift_matrix(length: Tensor, p0c: Tensor, species: Species) -> Tensor:
     """Linear drift map ``(*K, 6, 6)``; ``R12 = R34 = L``, ``R56 = L / gamma0^2``."""
-    length, p0c = torch.broadcast_tensors(length, p0c)
+    length, p0c = torch.broadcast_tensors(length, p0c.to(length))
     r = torch.eye(6, dtype=length.dtype, device=length.device).expand(
         *length.shape, 6, 6
     )
@@ -61,14 +61,16 @@ class Drift(Element):
     def track(
         self, particles: Tensor, p0c: Tensor | float, species: Species = ELECTRON
     ) -> Tensor:
-        """Track particles through the drift (see class docstring)."""
-        check_particles(particles)
-        p0c = as_p0c(p0c, particles)
-        x, px, y, py, z, pz = particles.unbind(-1)
-        length = bcast(self.length, particles)
-        mu2 = bcast((species.mass_ev / p0c).square(), particles)
+        """Track particles ``(*K, N, 6)`` through the drift (see class docstring)."""
+        return self._track_via_columns(particles, p0c, species)
+
+    def track_columns(self, coords: Coords, p0c: Tensor, species: Species) -> Coords:
+        """Unchecked column tracking (see :meth:`Element.track_columns`)."""
+        x, px, y, py, z, pz = coords
+        length = bcast(self.length, x)
+        mu2 = (species.mass_ev / p0c).square().unsqueeze(-1)
         x, y, z = exact_drift(x, px, y, py, z, pz, length, mu2)
-        return torch.stack(torch.broadcast_tensors(x, px, y, py, z, pz), dim=-1)
+        return x, px, y, py, z, pz
 
     def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
         """Linear map about the reference orbit, shape ``(*K, 6, 6)``."""

@@ -7,10 +7,15 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor, nn
 
-from diffaccel.dynamics._validate import check_finite
+from diffaccel.dynamics._validate import as_p0c, check_finite, check_particles
+from diffaccel.dynamics.elements._kernels import stack_columns
 from diffaccel.dynamics.species import ELECTRON, Species
 
-__all__ = ["Element", "bcast"]
+__all__ = ["Coords", "Element", "bcast"]
+
+#: The six coordinate columns ``(x, px, y, py, z, pz)``, each broadcastable to
+#: ``(*K, N)``.
+Coords = tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]
 
 
 def bcast(value: Tensor, like: Tensor) -> Tensor:
@@ -112,6 +117,28 @@ class Element(nn.Module):
             Coordinates at the exit, shape ``(*K, N, 6)``.
         """
         raise NotImplementedError(f"{type(self).__name__} does not implement track.")
+
+    def track_columns(self, coords: Coords, p0c: Tensor, species: Species) -> Coords:
+        """Unchecked tracking of coordinate columns (used by ``Beamline``).
+
+        The columns ``(x, px, y, py, z, pz)`` are each broadcastable to
+        ``(*K, N)`` and need not share a shape (a coordinate an element leaves
+        alone is not expanded). ``p0c`` must already be a tensor of the
+        particles' dtype. Inputs are not validated here. The default stacks the
+        columns and calls :meth:`track`; built-in elements override it.
+        """
+        particles = torch.stack(torch.broadcast_tensors(*coords), dim=-1)
+        out = self.track(particles, p0c, species)
+        return tuple(out.unbind(-1))  # type: ignore[return-value]
+
+    def _track_via_columns(
+        self, particles: Tensor, p0c: Tensor | float, species: Species
+    ) -> Tensor:
+        """Validate, then run :meth:`track_columns` and stack the result."""
+        check_particles(particles)
+        p0c = as_p0c(p0c, particles)
+        coords = self.track_columns(tuple(particles.unbind(-1)), p0c, species)
+        return stack_columns(coords)
 
     def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
         """Linear 6x6 map about the reference orbit, shape ``(*K, 6, 6)``."""

@@ -5,14 +5,16 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from diffaccel.dynamics._validate import as_p0c, check_nonnegative, check_particles
+from diffaccel.dynamics._validate import as_p0c, check_nonnegative
 from diffaccel.dynamics.elements._kernels import (
+    focusing_functions,
+    is_zero,
     quad_body,
-    quad_body_coefficients,
+    roll_matrix,
     to_element_frame,
     to_lab_frame,
 )
-from diffaccel.dynamics.elements.element import Element, bcast
+from diffaccel.dynamics.elements.element import Coords, Element, bcast
 from diffaccel.dynamics.species import ELECTRON, Species
 
 __all__ = ["Quadrupole"]
@@ -76,22 +78,23 @@ class Quadrupole(Element):
     def track(
         self, particles: Tensor, p0c: Tensor | float, species: Species = ELECTRON
     ) -> Tensor:
-        """Track particles through the quadrupole (see class docstring)."""
-        check_particles(particles)
-        p0c = as_p0c(p0c, particles)
-        x, px, y, py, z, pz = particles.unbind(-1)
-        length = bcast(self.length, particles)
-        # Field polarity relative to the design species: k1 is defined for the
-        # species being tracked, so no sign flip is applied here.
-        k1 = bcast(self.k1, particles)
-        tilt = bcast(self.tilt, particles)
-        dx = bcast(self.dx, particles)
-        dy = bcast(self.dy, particles)
-        mu2 = bcast((species.mass_ev / p0c).square(), particles)
-        x, px, y, py = to_element_frame(x, px, y, py, dx, dy, tilt)
-        x, px, y, py, z = quad_body(x, px, y, py, z, pz, k1, length, mu2)
-        x, px, y, py = to_lab_frame(x, px, y, py, dx, dy, tilt)
-        return torch.stack(torch.broadcast_tensors(x, px, y, py, z, pz), dim=-1)
+        """Track particles ``(*K, N, 6)`` through the quadrupole (see class docs)."""
+        return self._track_via_columns(particles, p0c, species)
+
+    def track_columns(self, coords: Coords, p0c: Tensor, species: Species) -> Coords:
+        """Unchecked column tracking (see :meth:`Element.track_columns`)."""
+        x, px, y, py, z, pz = coords
+        length = bcast(self.length, x)
+        k1 = bcast(self.k1, x)
+        mu2 = (species.mass_ev / p0c).square().unsqueeze(-1)
+        rolled = not (is_zero(self.tilt) and is_zero(self.dx) and is_zero(self.dy))
+        if rolled:
+            frame = (bcast(self.dx, x), bcast(self.dy, x), bcast(self.tilt, x))
+            x, px, y, py = to_element_frame(x, px, y, py, *frame)
+        x, px, y, py, z = quad_body((x, px, y, py, z, pz), k1, length, mu2)
+        if rolled:
+            x, px, y, py = to_lab_frame(x, px, y, py, *frame)
+        return x, px, y, py, z, pz
 
     def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
         """Linear map at ``pz = 0`` about the magnet axis, shape ``(*K, 6, 6)``.
@@ -99,23 +102,23 @@ class Quadrupole(Element):
         Offsets ``dx, dy`` shift the orbit (a zeroth-order term) and do not enter
         this matrix; ``tilt`` rotates it.
         """
-        length, k1, tilt = torch.broadcast_tensors(self.length, self.k1, self.tilt)
-        p0c = as_p0c(p0c, length)
-        length, k1, tilt, p0c = torch.broadcast_tensors(length, k1, tilt, p0c)
-        cx, sx, dcx = quad_body_coefficients(k1, length)
-        cy, sy, dcy = quad_body_coefficients(-k1, length)
+        p0c = as_p0c(p0c, self.length)
+        length, k1, tilt, p0c = torch.broadcast_tensors(
+            self.length, self.k1.to(p0c), self.tilt.to(p0c), p0c
+        )
+        c_x, s_x, c_y, s_y = focusing_functions(k1 * length.square())
+        s_x, s_y = s_x * length, s_y * length
         mu2 = (species.mass_ev / p0c).square()
         r = length.new_zeros(*length.shape, 6, 6)
-        r[..., 0, 0], r[..., 0, 1], r[..., 1, 0], r[..., 1, 1] = cx, sx, dcx, cx
-        r[..., 2, 2], r[..., 2, 3], r[..., 3, 2], r[..., 3, 3] = cy, sy, dcy, cy
+        r[..., 0, 0], r[..., 0, 1], r[..., 1, 0], r[..., 1, 1] = (
+            c_x,
+            s_x,
+            -k1 * s_x,
+            c_x,
+        )
+        r[..., 2, 2], r[..., 2, 3], r[..., 3, 2], r[..., 3, 3] = c_y, s_y, k1 * s_y, c_y
         r[..., 4, 4] = 1.0
         r[..., 4, 5] = length * mu2 / (1.0 + mu2)
         r[..., 5, 5] = 1.0
-        c, s = tilt.cos(), tilt.sin()
-        rot = torch.eye(6, dtype=r.dtype, device=r.device).expand_as(r).clone()
-        for i in (0, 1):
-            rot[..., i, i] = c
-            rot[..., i, i + 2] = s
-            rot[..., i + 2, i] = -s
-            rot[..., i + 2, i + 2] = c
+        rot = roll_matrix(tilt)
         return rot.transpose(-1, -2) @ r @ rot

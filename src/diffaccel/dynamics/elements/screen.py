@@ -8,7 +8,7 @@ from typing import Any
 from torch import Tensor
 
 from diffaccel.dynamics._validate import check_particles
-from diffaccel.dynamics.elements.element import Element
+from diffaccel.dynamics.elements.element import Coords, Element
 from diffaccel.dynamics.images import _geometry, cic_image, kde_image
 from diffaccel.dynamics.species import ELECTRON, Species
 
@@ -90,6 +90,10 @@ class Screen(Element):
         check_particles(particles, check_finite=False)
         return particles
 
+    def track_columns(self, coords: Coords, p0c: Tensor, species: Species) -> Coords:
+        """Return the columns unchanged."""
+        return coords
+
     def image(
         self,
         particles: Tensor,
@@ -121,8 +125,8 @@ class Screen(Element):
                 f"Screen {self.name!r} has no geometry; build it with shape and "
                 "pixel_size, or use Beamline.with_screen(...)."
             )
-        check_particles(particles)
-        x, y = particles[..., 0], particles[..., 2]
+        check_particles(particles, check_finite=False)  # x, y are checked below
+        x, y = particles[..., 0:3:2].unbind(-1)
         if method == "cic":
             if bandwidth is not None:
                 raise ValueError("bandwidth applies to method='kde' only.")

@@ -7,15 +7,17 @@ import math
 import torch
 from torch import Tensor
 
-from diffaccel.dynamics._validate import as_p0c, check_nonnegative, check_particles
+from diffaccel.dynamics._validate import as_p0c, check_nonnegative
 from diffaccel.dynamics.constants import SPEED_OF_LIGHT
 from diffaccel.dynamics.elements._kernels import (
     exact_drift,
+    is_zero,
+    roll_matrix,
     to_element_frame,
     to_lab_frame,
 )
 from diffaccel.dynamics.elements.drift import drift_matrix
-from diffaccel.dynamics.elements.element import Element, bcast
+from diffaccel.dynamics.elements.element import Coords, Element, bcast
 from diffaccel.dynamics.species import ELECTRON, Species
 
 __all__ = ["TransverseDeflectingCavity"]
@@ -87,25 +89,30 @@ class TransverseDeflectingCavity(Element):
     def track(
         self, particles: Tensor, p0c: Tensor | float, species: Species = ELECTRON
     ) -> Tensor:
-        """Track particles through the cavity (see class docstring)."""
-        check_particles(particles)
-        p0c = as_p0c(p0c, particles)
-        x, px, y, py, z, pz = particles.unbind(-1)
+        """Track particles ``(*K, N, 6)`` through the cavity (see class docstring)."""
+        return self._track_via_columns(particles, p0c, species)
+
+    def track_columns(self, coords: Coords, p0c: Tensor, species: Species) -> Coords:
+        """Unchecked column tracking (see :meth:`Element.track_columns`)."""
+        x, px, y, py, z, pz = coords
         a, k0 = self._strength(p0c, species)
         a, k0 = a.unsqueeze(-1), k0.unsqueeze(-1)
-        half = bcast(self.length, particles) / 2
-        phase = bcast(self.phase, particles)
-        tilt = bcast(self.tilt, particles)
-        mu2 = bcast((species.mass_ev / p0c).square(), particles)
-        zero = x.new_zeros(())
-        x, px, y, py = to_element_frame(x, px, y, py, zero, zero, tilt)
+        half = bcast(self.length, x) / 2
+        phase = bcast(self.phase, x)
+        mu2 = (species.mass_ev / p0c).square().unsqueeze(-1)
+        rolled = not is_zero(self.tilt)
+        if rolled:
+            zero = x.new_zeros(())
+            frame = (zero, zero, bcast(self.tilt, x))
+            x, px, y, py = to_element_frame(x, px, y, py, *frame)
         x, y, z = exact_drift(x, px, y, py, z, pz, half, mu2)
         rf = phase - k0 * z
         py = py + a * rf.sin()
         pz = pz - a * k0 * y * rf.cos()
         x, y, z = exact_drift(x, px, y, py, z, pz, half, mu2)
-        x, px, y, py = to_lab_frame(x, px, y, py, zero, zero, tilt)
-        return torch.stack(torch.broadcast_tensors(x, px, y, py, z, pz), dim=-1)
+        if rolled:
+            x, px, y, py = to_lab_frame(x, px, y, py, *frame)
+        return x, px, y, py, z, pz
 
     def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
         """Linear map about the reference orbit, shape ``(*K, 6, 6)``."""
@@ -118,11 +125,5 @@ class TransverseDeflectingCavity(Element):
         kick = torch.eye(6, dtype=d.dtype, device=d.device).expand_as(d).clone()
         kick[..., 3, 4] = -a * k0 * phase.cos()
         kick[..., 5, 2] = -a * k0 * phase.cos()
-        rot = torch.eye(6, dtype=d.dtype, device=d.device).expand_as(d).clone()
-        cr, sr = tilt.cos(), tilt.sin()
-        for i in (0, 1):
-            rot[..., i, i] = cr
-            rot[..., i, i + 2] = sr
-            rot[..., i + 2, i] = -sr
-            rot[..., i + 2, i + 2] = cr
+        rot = roll_matrix(tilt)
         return rot.transpose(-1, -2) @ d @ kick @ d @ rot

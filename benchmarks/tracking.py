@@ -1,0 +1,241 @@
+"""Benchmark: quad scan tracking + screen images, diffaccel vs cheetah.
+
+Workload: N particles (float32), K quadrupole settings, Quadrupole(0.1 m) +
+Drift(1 m) + 100 x 100 screen (1 mm pixels), images by cloud-in-cell and by
+Gaussian KDE (bandwidth one pixel). Forward = track + image; forward+backward adds
+``image.square().sum().backward()`` to the particles.
+
+Variants: ``ours_*`` exact chromatic ``Beamline.track_screens``; ``ours_linear_*``
+the same lattice through ``Beamline.linearized`` (one 6x6 map per setting);
+``cheetah_*`` cheetah 0.8.4 with its default linear quadrupole;
+``cheetah_dkd_*`` cheetah's exact chromatic ``drift_kick_drift`` quadrupole.
+``ratio_vs_cheetah_*`` compare like with like (linear vs linear);
+``ratio_vs_cheetah_cic_exact`` exact vs exact; ``ratio_exact_vs_cheetah_linear_*``
+our exact tracking against cheetah's linear one. Prints one JSON object on the
+last line.
+
+Usage: python benchmarks/tracking.py [--n 100000] [--k 20] [--repeats 5]
+       [--cheetah-kde-repeats 1] [--no-cheetah-kde] [--threads T]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import resource
+import statistics
+import subprocess
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+
+from diffaccel.dynamics import Beamline
+
+P0C = 43.36e6  # [eV]
+SHAPE = (100, 100)
+PIXEL = 1e-3  # [m]
+
+
+def _beam(n: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(0)
+    scale = torch.tensor([1e-3, 1e-4, 1e-3, 1e-4, 1e-3, 1e-3])
+    return torch.randn(n, 6, generator=g) * scale
+
+
+def _time_once(fn: Callable[[], object]) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
+def _summary(times: list[float]) -> dict[str, float | list[float]]:
+    return {
+        "median_s": statistics.median(times),
+        "min_s": min(times),
+        "max_s": max(times),
+        "all_s": times,
+    }
+
+
+def _ours(
+    beam: torch.Tensor, k1: torch.Tensor, method: str, backward: bool, linear: bool
+):
+    spec = [
+        {"type": "Quadrupole", "name": "Q1", "length": 0.1, "k1": 0.0},
+        {"type": "Drift", "name": "D1", "length": 1.0},
+        {"type": "Screen", "name": "SCREEN"},
+    ]
+    line = Beamline.from_spec(spec).with_screen("SCREEN", SHAPE, (PIXEL, PIXEL))
+    screen = line["SCREEN"]
+
+    def run() -> torch.Tensor:
+        p = beam.clone().requires_grad_(backward)
+        if linear:
+            lin = line.with_params({"Q1.k1": k1}).linearized(P0C)
+            at_screen = lin.track_screens(p, P0C)["SCREEN"]
+        else:
+            settings = k1.unsqueeze(-1)
+            at_screen = line.track_screens(p, P0C, settings, ["Q1.k1"])["SCREEN"]
+        image = screen.image(at_screen, method=method)
+        if backward:
+            image.square().sum().backward()
+        return image
+
+    return run
+
+
+def _cheetah(
+    beam: torch.Tensor, k1: torch.Tensor, method: str, backward: bool, tracking: str
+):
+    import cheetah
+
+    def run() -> torch.Tensor:
+        p = torch.ones(beam.shape[0], 7)
+        p[:, :6] = beam
+        p.requires_grad_(backward)
+        incoming = cheetah.ParticleBeam(p, energy=torch.tensor(P0C))
+        screen = cheetah.Screen(
+            resolution=(SHAPE[1], SHAPE[0]),
+            pixel_size=torch.tensor((PIXEL, PIXEL)),
+            method=method,
+            kde_bandwidth=torch.tensor(PIXEL),
+            is_active=True,
+            name="SCREEN",
+        )
+        segment = cheetah.Segment(
+            [
+                cheetah.Quadrupole(
+                    length=torch.tensor(0.1),
+                    k1=k1.clone(),
+                    tracking_method=tracking,
+                    name="Q1",
+                ),
+                cheetah.Drift(length=torch.tensor(1.0), name="D1"),
+                screen,
+            ]
+        )
+        segment.track(incoming)
+        image = screen.reading
+        if backward:
+            image.square().sum().backward()
+        return image
+
+    return run
+
+
+def _git_commit() -> str:
+    try:
+        return subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            check=True,
+            cwd=Path(__file__).resolve().parent,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n", type=int, default=100_000)
+    parser.add_argument("--k", type=int, default=20)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--cheetah-kde-repeats", type=int, default=1)
+    parser.add_argument("--cheetah-slow-repeats", type=int, default=3)
+    parser.add_argument("--no-cheetah-kde", action="store_true")
+    parser.add_argument("--no-cheetah", action="store_true")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch intra-op threads (default: torch's choice). On a machine shared "
+        "with other jobs, 1 avoids OpenMP oversubscription stalls.",
+    )
+    args = parser.parse_args()
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+
+    beam = _beam(args.n)
+    k1 = torch.linspace(-25.0, 15.0, args.k)
+    timings: dict[str, dict] = {}
+    # warm-up (first-call allocations)
+    for method in ("cic", "kde"):
+        _ours(beam, k1, method, True, False)()
+        _ours(beam, k1, method, True, True)()
+    # all variants of one measurement alternate within each repeat, so that they
+    # see the same machine load
+    for method, theirs in (("cic", "cloud-in-cell"), ("kde", "kde")):
+        for backward in (False, True):
+            tag = "forward_backward" if backward else "forward"
+            runs = {
+                f"ours_{method}_{tag}": (_ours(beam, k1, method, backward, False), 0),
+                f"ours_linear_{method}_{tag}": (
+                    _ours(beam, k1, method, backward, True),
+                    0,
+                ),
+            }
+            if not args.no_cheetah:
+                if method == "cic":
+                    runs[f"cheetah_{method}_{tag}"] = (
+                        _cheetah(beam, k1, theirs, backward, "linear"),
+                        args.repeats,
+                    )
+                    runs[f"cheetah_dkd_{method}_{tag}"] = (
+                        _cheetah(beam, k1, theirs, backward, "drift_kick_drift"),
+                        args.cheetah_slow_repeats,
+                    )
+                elif not args.no_cheetah_kde:
+                    runs[f"cheetah_{method}_{tag}"] = (
+                        _cheetah(beam, k1, theirs, backward, "linear"),
+                        args.cheetah_kde_repeats,
+                    )
+            samples: dict[str, list[float]] = {key: [] for key in runs}
+            for rep in range(args.repeats):
+                for key, (run, limit) in runs.items():
+                    if limit and rep >= limit:
+                        continue
+                    samples[key].append(_time_once(run))
+            for key, values in samples.items():
+                timings[key] = _summary(values)
+
+    def ratio(theirs: str, ours: str) -> float | None:
+        a = timings.get(f"{theirs}_forward_backward")
+        b = timings.get(f"{ours}_forward_backward")
+        if a is None or b is None:
+            return None
+        return a["median_s"] / b["median_s"]
+
+    result = {
+        "name": "tracking",
+        "workload": "Quadrupole(0.1 m) + Drift(1 m) + Screen(100 x 100, 1 mm)",
+        "n_particles": args.n,
+        "n_settings": args.k,
+        "image_shape": list(SHAPE),
+        "dtype": "float32",
+        "device": "cpu",
+        "threads": torch.get_num_threads(),
+        "repeats": args.repeats,
+        "cheetah_kde_repeats": args.cheetah_kde_repeats,
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+        "git_commit": _git_commit(),
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "timings": timings,
+        # like for like: linear tracking on both sides (cheetah's default)
+        "ratio_vs_cheetah_cic": ratio("cheetah_cic", "ours_linear_cic"),
+        "ratio_vs_cheetah_kde": ratio("cheetah_kde", "ours_linear_kde"),
+        # like for like: exact chromatic tracking on both sides
+        "ratio_vs_cheetah_cic_exact": ratio("cheetah_dkd_cic", "ours_cic"),
+        # conservative: our exact tracking against cheetah's linear tracking
+        "ratio_exact_vs_cheetah_linear_cic": ratio("cheetah_cic", "ours_cic"),
+        "ratio_exact_vs_cheetah_linear_kde": ratio("cheetah_kde", "ours_kde"),
+    }
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()
