@@ -6,7 +6,8 @@ written by the openPMD-beamphysics package)::
     /                      attrs openPMD, openPMDextension, basePath="/data/%T/",
                                  particlesPath="particles/", dataType="openPMD"
     /data/0/particles/     attrs speciesType, numParticles, totalCharge, chargeLive,
-                                 chargeUnitSI, p0c [eV] (diffaccel extension)
+                                 chargeUnitSI, p0c [eV] and tReference [s]
+                                 (diffaccel extensions)
         position/{x,y,z}   [m]
         momentum/{x,y,z}   [eV/c]  (unitSI = e/c kg m/s)
         time               [s]
@@ -15,8 +16,9 @@ written by the openPMD-beamphysics package)::
 
 Records carry ``unitSI``, ``unitDimension`` and ``unitSymbol``; the reader
 applies ``unitSI`` and accepts constant records (groups with ``value`` and
-``shape`` attributes). Coordinates in memory are Bmad's: a beam at one
-longitudinal position, with z = -beta c t and pz = |P| / P0 - 1.
+``shape`` attributes). Coordinates in memory are Bmad's, converted with
+:mod:`diffaccel.dynamics.coordinates` (z = -beta c (t - t_ref),
+pz = |P| / P0 - 1, particles at one longitudinal position).
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from torch import Tensor
 
 from diffaccel.data.errors import FormatError
 from diffaccel.dynamics import Species
+from diffaccel.dynamics.coordinates import bmad_to_openpmd, openpmd_to_bmad
 
 __all__ = ["read_openpmd_particles", "write_openpmd_particles"]
 
@@ -49,52 +52,22 @@ _UNITS = {
 }
 
 
-def _bmad_to_openpmd(
-    particles: Tensor, p0c: float, species: Species, weight: Tensor
-) -> dict[str, Tensor]:
-    """Bmad (N, 6) -> openPMD arrays at one longitudinal position (z = 0)."""
-    mc2 = species.mass_ev
-    p = (1.0 + particles[:, 5]) * p0c
-    px, py = particles[:, 1] * p0c, particles[:, 3] * p0c
-    pz = torch.sqrt(p**2 - px**2 - py**2)
-    beta = p / torch.sqrt(p**2 + mc2**2)
-    return {
-        "x": particles[:, 0],
-        "y": particles[:, 2],
-        "z": torch.zeros_like(p),
-        "px": px,
-        "py": py,
-        "pz": pz,
-        "t": -particles[:, 4] / (beta * _SPEED_OF_LIGHT),
-        "weight": weight,
-    }
+def _drift_to_common_z(columns: dict[str, Tensor]) -> dict[str, Tensor]:
+    """Drift particles in free space to their mean ``z`` (fixed-time snapshots).
 
-
-def _openpmd_to_bmad(data: dict[str, Tensor], p0c: float, species: Species) -> Tensor:
-    """openPMD arrays -> Bmad (N, 6) at the mean longitudinal position.
-
-    Particles at different ``z`` (e.g. a snapshot at one time) are drifted in
-    free space to the mean ``z`` first.
+    Straight lines: x += dz px/pz, y += dz py/pz, t += dz E / (pz c^2) with the
+    momenta in eV/c and energies in eV.
     """
-    mc2 = species.mass_ev
-    p = torch.sqrt(data["px"] ** 2 + data["py"] ** 2 + data["pz"] ** 2)
-    energy = torch.sqrt(p**2 + mc2**2)
-    beta = p / energy
-    dz = data["z"].mean() - data["z"]
-    x = data["x"] + dz * data["px"] / data["pz"]
-    y = data["y"] + dz * data["py"] / data["pz"]
-    t = data["t"] + dz * energy / (data["pz"] * _SPEED_OF_LIGHT)
-    return torch.stack(
-        [
-            x,
-            data["px"] / p0c,
-            y,
-            data["py"] / p0c,
-            -beta * _SPEED_OF_LIGHT * t,
-            p / p0c - 1.0,
-        ],
-        dim=-1,
-    )
+    z = columns["z"]
+    if bool((z == z[:1]).all()):
+        return columns
+    out = dict(columns)
+    dz = z.mean() - z
+    out["x"] = columns["x"] + dz * columns["px"] / columns["pz"]
+    out["y"] = columns["y"] + dz * columns["py"] / columns["pz"]
+    out["t"] = columns["t"] + dz * columns["energy"] / (columns["pz"] * _SPEED_OF_LIGHT)
+    out["z"] = torch.full_like(z, float(z.mean()))
+    return out
 
 
 def write_openpmd_particles(
@@ -144,8 +117,10 @@ def write_openpmd_particles(
             f"{path} exists; pass overwrite=True (CLI: --force) to replace it"
         )
     n = particles.shape[0]
-    weights = torch.full((n,), charge_C / n, dtype=torch.float64)
-    data = _bmad_to_openpmd(particles.double(), p0c=p0c, species=spec, weight=weights)
+    try:
+        data = bmad_to_openpmd(particles.double(), p0c, spec, total_charge=charge_C)
+    except ValueError as err:
+        raise ValueError(f"particles_bmad: {err}") from err
     arrays = {k: np.asarray(v.detach().cpu().double().numpy()) for k, v in data.items()}
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -166,6 +141,7 @@ def write_openpmd_particles(
             g.attrs["chargeLive"] = float(charge_C)
             g.attrs["chargeUnitSI"] = 1.0
             g.attrs["p0c"] = float(p0c)
+            g.attrs["tReference"] = 0.0
             for comp in "xyz":
                 _write_record(g, f"position/{comp}", arrays[comp], "position")
                 _write_record(g, f"momentum/{comp}", arrays[f"p{comp}"], "momentum")
@@ -290,6 +266,7 @@ def read_openpmd_particles(path: str | os.PathLike) -> tuple[Tensor, float, str]
         if "particleStatus" in g:
             alive = _read_record(g, "particleStatus", n, where) == 1
         p0c_attr = float(g.attrs["p0c"]) if "p0c" in g.attrs else None
+        t_ref = float(g.attrs["tReference"]) if "tReference" in g.attrs else None
     for key, values in si.items():
         if values.shape != (n,):
             raise FormatError(
@@ -302,8 +279,13 @@ def read_openpmd_particles(path: str | os.PathLike) -> tuple[Tensor, float, str]
     if not alive.any():
         raise FormatError(f"{where}: no live particles (particleStatus == 1)")
     data = {k: torch.from_numpy(v[alive]) for k, v in si.items()}
+    p = torch.sqrt(data["px"] ** 2 + data["py"] ** 2 + data["pz"] ** 2)
+    data["energy"] = torch.sqrt(p**2 + spec.mass_ev**2)
+    data = _drift_to_common_z(data)
     if p0c_attr is None:
-        p = torch.sqrt(data["px"] ** 2 + data["py"] ** 2 + data["pz"] ** 2)
         p0c_attr = float(p.mean())
-    particles = _openpmd_to_bmad(data, p0c=p0c_attr, species=spec)
+    try:
+        particles, _ = openpmd_to_bmad(data, p0c_attr, spec, t_ref=t_ref)
+    except ValueError as err:
+        raise FormatError(f"{where}: {err}") from err
     return particles, p0c_attr, spec.name

@@ -25,6 +25,7 @@ from torch import Tensor
 
 from diffaccel.data.errors import FormatError
 from diffaccel.dynamics import ELEMENT_TYPES, Beamline, Species
+from diffaccel.dynamics.coordinates import cheetah_to_bmad
 
 __all__ = [
     "BMAD_COORDINATES",
@@ -505,23 +506,11 @@ def _read_ground_truth(group: h5py.Dataset, p0c: float, species: str) -> Tensor:
     if tuple(coords) == BMAD_COORDINATES:
         return data
     if tuple(coords) == CHEETAH_COORDINATES:
-        return _cheetah_to_bmad(data, p0c=p0c, species=species)
+        return cheetah_to_bmad(data, p0c, Species.from_name(species))
     raise FormatError(
         f"{where}.coordinates: expected {list(BMAD_COORDINATES)} (Bmad) or "
         f"{list(CHEETAH_COORDINATES)} (cheetah); found {coords}"
     )
-
-
-def _cheetah_to_bmad(particles: Tensor, p0c: float, species: str) -> Tensor:
-    """Cheetah (tau = c dt, delta = dE / p0c) -> Bmad (z = -beta tau, pz = dP / P0)."""
-    mc2 = Species.from_name(species).mass_ev
-    e0 = math.sqrt(p0c**2 + mc2**2)
-    energy = e0 + particles[:, 5] * p0c
-    p = torch.sqrt(energy**2 - mc2**2)
-    out = particles.clone()
-    out[:, 4] = -(p / energy) * particles[:, 4]
-    out[:, 5] = (p - p0c) / p0c
-    return out
 
 
 def read_quad_scan(path: str | os.PathLike) -> QuadScanDataset:
