@@ -155,7 +155,7 @@ def main() -> None:
         p_tr = gp.posterior(X)
         p_he = gp.posterior(u_held.unsqueeze(-1), observation_noise=True)
     gp_noise = float(
-        (gp.likelihood.noise.sqrt() * gp.outcome_transform.stdvs).squeeze()
+        (gp.likelihood.noise.sqrt() * gp.outcome_transform.stdvs).squeeze().detach()
     )
     gp_res = {
         "noise_sigma": gp_noise,
