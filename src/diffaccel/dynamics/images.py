@@ -138,8 +138,10 @@ def cic_image(
     """Cloud-in-cell (bilinear) screen image of particle positions.
 
     Each particle spreads its weight over the four nearest pixel centres with
-    bilinear weights; parts falling outside the screen are dropped. A beam that
-    misses the screen entirely gives an all-zero image (never NaN).
+    bilinear weights; parts falling outside the screen are dropped (a particle
+    within one pixel outside the edge still gives the edge pixel its share, so the
+    image is continuous in the positions). A beam that misses the screen
+    entirely gives an all-zero image (never NaN).
 
     Args:
         x: Horizontal positions [m], shape ``(*K, N)``.
