@@ -229,3 +229,24 @@ def test_chain_records_every_step(raw) -> None:
         "pool",
         "normalize",
     ]
+
+
+def test_chain_on_measured_awa_images(shared_file) -> None:
+    from diffaccel.data import read_quad_scan
+
+    ds = read_quad_scan(shared_file("awa_quad_scan_train.h5"))
+    out = normalize(pool(center_centroids(ds), factor=2))
+    assert out.shape == (11, 3, 42, 42)
+    assert out.pixel_size == pytest.approx((2 * 124.86e-6, 2 * 124.86e-6))
+    torch.testing.assert_close(
+        out.images.sum((-2, -1)), torch.ones(11, 3), rtol=0, atol=1e-5
+    )
+    # every shot sits at the screen centre (0, 0): the iterated shift reaches
+    # 1e-4 px; float32 images and the block sums of pooling leave < 0.01 px
+    cent = _physical_centroid(out)
+    assert cent.abs().max().item() < 0.01 * out.pixel_size[0]
+    assert [s["step"] for s in out.metadata["preprocessing"]] == [
+        "center_centroids",
+        "pool",
+        "normalize",
+    ]

@@ -279,6 +279,10 @@ def _shift(images: Tensor, shifts: Tensor) -> Tensor:
     return out[:, 0]
 
 
+_CENTERING_ITERATIONS = 5
+_CENTERING_TOLERANCE_PX = 1e-4
+
+
 def center_centroids(
     ds: QuadScanDataset, mode: Literal["each", "common"] = "each"
 ) -> QuadScanDataset:
@@ -291,6 +295,9 @@ def center_centroids(
             does not have to explain); ``"common"`` applies one shift, the
             mean centroid of all images, so the motion is kept.
 
+    The shift is refined up to five times so that centroids land on the centre
+    even when part of an image is pushed off the border (that part is lost).
+
     Returns:
         New dataset; the step records the applied shifts [pixels].
     """
@@ -300,13 +307,21 @@ def center_centroids(
             f"center_centroids: mode must be 'each' or 'common'; got {mode!r}"
         )
     k, s, h, w = ds.shape
-    flat = ds.images.reshape(k * s, h, w)
-    cent = image_centroids(flat.double())
+    flat = ds.images.reshape(k * s, h, w).double()
     target = torch.tensor([(h - 1) / 2, (w - 1) / 2], dtype=torch.float64)
-    shifts = target - cent
-    if mode == "common":
-        shifts = shifts.mean(dim=0, keepdim=True).expand_as(shifts)
-    out = _shift(flat.double(), shifts).to(ds.images.dtype).reshape(k, s, h, w)
+    shifts = torch.zeros(k * s, 2, dtype=torch.float64)
+    shifted = flat
+    # intensity pushed off the border moves the centroid of what remains, so
+    # refine the shift of the original image a few times (Newton-like steps)
+    for _ in range(_CENTERING_ITERATIONS):
+        error = target - image_centroids(shifted)
+        if mode == "common":
+            error = error.mean(dim=0, keepdim=True).expand_as(error)
+        if float(error.abs().max()) < _CENTERING_TOLERANCE_PX:
+            break
+        shifts = shifts + error
+        shifted = _shift(flat, shifts)
+    out = shifted.to(ds.images.dtype).reshape(k, s, h, w)
     out = _positive_images(out, "center_centroids")
     step = {
         "step": "center_centroids",
