@@ -181,6 +181,7 @@ BAD = [
     ("shape", {"particles": torch.zeros(10, 4)}, r"particles: expected shape \(N, 6\)"),
     ("preset", {"preset": "flat"}, "preset: expected one of"),
     ("off_screen", {"center": (1.0, 0.0)}, "misses the screen at setting 0"),
+    ("noise_too_high", {"noise": 1e3}, "has no signal left; lower the noise"),
 ]
 
 

@@ -289,7 +289,14 @@ def make_synthetic_quad_scan(
     clean = clean / on_screen[:, None, None]
     shots_t = clean[:, None].expand(-1, int(shots), -1, -1)
     noisy = _add_noise(shots_t, float(noise), noise_model, generator)
-    noisy = noisy / noisy.sum(dim=(-2, -1), keepdim=True)
+    totals = noisy.sum(dim=(-2, -1), keepdim=True)
+    if bool((totals <= 0).any()):
+        k, s = (int(v) for v in torch.nonzero(totals[..., 0, 0] <= 0)[0])
+        raise ValueError(
+            f"noise: at noise={noise} the image of setting {k} (shot {s}) has no "
+            "signal left; lower the noise"
+        )
+    noisy = noisy / totals
     metadata = {
         "synthetic": {
             "source": source,
