@@ -182,3 +182,25 @@ def test_read_errors(tmp_path: Path, beam, action: str, message: str) -> None:
     _break(path, action)
     with pytest.raises(FormatError, match=message):
         read_openpmd_particles(path)
+
+
+def test_reads_particles_at_file_root(tmp_path: Path) -> None:
+    """openPMD-beamphysics' ParticleGroup.write puts the records at the root."""
+    path = tmp_path / "root.h5"
+    p0c = 20e6
+    with h5py.File(path, "w") as h5:
+        h5.attrs["basePath"] = "/"
+        h5.attrs["particlesPath"] = "."
+        h5.attrs["speciesType"] = "positron"
+        for comp in "xyz":
+            h5[f"position/{comp}"] = np.zeros(3)
+        h5["momentum/x"] = np.array([0.0, 2e-3, 0.0]) * p0c
+        h5["momentum/y"] = np.zeros(3)
+        h5["momentum/z"] = np.full(3, p0c)
+        h5["time"] = np.zeros(3)
+        h5["weight"] = np.full(3, 1e-15)
+    particles, _, species = read_openpmd_particles(path)
+    assert species == "positron"
+    # no p0c attribute: the reference is the mean total momentum
+    p_ref = np.mean([p0c, np.hypot(p0c, 2e-3 * p0c), p0c])
+    assert particles[1, 1].item() == pytest.approx(2e-3 * p0c / p_ref, rel=1e-12)
