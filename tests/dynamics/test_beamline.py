@@ -1,0 +1,153 @@
+"""Beamline: spec round trip, scans, screens, no hidden state, linearisation."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from diffaccel.dynamics import Beamline, LinearMap, Quadrupole, Screen
+
+P0C = 43.36e6  # [eV]
+SPEC = [
+    {"type": "Quadrupole", "name": "Q1", "length": 0.1, "k1": 0.0},
+    {"type": "Drift", "name": "D1", "length": 1.0},
+    {"type": "Screen", "name": "SCREEN"},
+]
+
+
+def test_spec_round_trip_is_json() -> None:
+    line = Beamline.from_spec(SPEC)
+    assert line.to_spec() == SPEC
+    assert json.loads(json.dumps(line.to_spec())) == SPEC
+    assert line.element_names == ["Q1", "D1", "SCREEN"]
+    assert isinstance(line["Q1"], Quadrupole)
+    assert isinstance(line["SCREEN"], Screen)
+
+
+def test_scan_matches_loop_and_does_not_mutate(make_beam) -> None:
+    line = Beamline.from_spec(SPEC)
+    beam = make_beam(100)
+    k1 = torch.linspace(-25.0, 15.0, 5, dtype=torch.float64)
+    out = line.track(beam, P0C, settings=k1.unsqueeze(-1), names=["Q1.k1"])
+    assert out.shape == (5, 100, 6)
+    for i, k in enumerate(k1):
+        spec = [dict(SPEC[0], k1=k.item()), *SPEC[1:]]
+        ref = Beamline.from_spec(spec).track(beam, P0C)
+        torch.testing.assert_close(out[i], ref, rtol=1e-13, atol=1e-16)
+    assert line["Q1"].k1.item() == 0.0  # the scan did not touch the beamline
+    # calling again with other settings gives other (not stale) results
+    again = line.track(beam, P0C, settings=-k1.unsqueeze(-1), names=["Q1.k1"])
+    assert not torch.allclose(again, out)
+
+
+def test_track_screens_records_particles_at_screens(make_beam) -> None:
+    spec = [
+        *SPEC[:2],
+        {"type": "Screen", "name": "S1"},
+        dict(SPEC[1], name="D2"),
+        SPEC[2],
+    ]
+    line = Beamline.from_spec(spec)
+    beam = make_beam(50)
+    k1 = torch.tensor([[3.0], [-3.0]], dtype=torch.float64)
+    screens = line.track_screens(beam, P0C, k1, ["Q1.k1"])
+    assert list(screens) == ["S1", "SCREEN"]
+    assert screens["SCREEN"].shape == (2, 50, 6)
+    torch.testing.assert_close(screens["SCREEN"], line.track(beam, P0C, k1, ["Q1.k1"]))
+    # S1 sits after 1.1 m, SCREEN after 2.1 m: different beams
+    assert not torch.allclose(screens["S1"], screens["SCREEN"])
+
+
+def test_gradient_flows_to_settings_and_particles(make_beam) -> None:
+    line = Beamline.from_spec(SPEC).with_screen("SCREEN", (16, 16), 1e-3)
+    beam = make_beam(200).requires_grad_(True)
+    k1 = torch.tensor([[5.0], [-5.0]], dtype=torch.float64, requires_grad=True)
+    at = line.track_screens(beam, P0C, k1, ["Q1.k1"])["SCREEN"]
+    line["SCREEN"].image(at, "cic").square().sum().backward()
+    assert beam.grad.abs().sum() > 0 and k1.grad.abs().sum() > 0
+
+
+def test_with_screen_returns_new_beamline() -> None:
+    line = Beamline.from_spec(SPEC)
+    new = line.with_screen("SCREEN", (10, 20), (1e-3, 2e-3), (0.0, 1e-3))
+    assert line["SCREEN"].shape is None
+    assert new["SCREEN"].shape == (10, 20)
+    assert new["SCREEN"].pixel_size == (1e-3, 2e-3)
+    assert Beamline.from_spec(new.to_spec())["SCREEN"].center == (0.0, 1e-3)
+
+
+def test_linearized_matches_transfer_map_and_exact_near_axis(make_beam) -> None:
+    line = Beamline.from_spec(SPEC)
+    k1 = torch.linspace(-20.0, 20.0, 4, dtype=torch.float64)
+    lin = line.with_params({"Q1.k1": k1}).linearized(P0C)
+    assert isinstance(lin["Q1..D1"], LinearMap)
+    assert lin["Q1..D1"].matrix.shape == (4, 6, 6)
+    beam = make_beam(30, sizes=(1e-7,) * 6)
+    exact = line.track(beam, P0C, k1.unsqueeze(-1), ["Q1.k1"])
+    linear = lin.track_screens(beam, P0C)["SCREEN"]
+    # near the axis the exact map equals its linearisation up to second-order
+    # terms: relative difference ~ amplitude (1e-7) x O(100) per unit amplitude
+    assert (exact - linear).abs().max().item() < 1e-4 * linear.abs().max().item()
+
+
+@pytest.mark.parametrize(
+    ("spec", "match"),
+    [
+        (
+            [{"type": "Sextupole", "name": "S"}],
+            "unknown element type 'Sextupole'.*Drift",
+        ),
+        (
+            [{"type": "Drift", "name": "D", "lenght": 1.0}],
+            r"unknown parameter.*\['length'\]",
+        ),
+        ([{"type": "Drift", "length": 1.0}], "needs a non-empty 'name'"),
+        ([{"type": "Drift", "name": "D", "length": -1.0}], "length .* must be >= 0"),
+        ([{"type": "Drift", "name": "D"}, {"type": "Drift", "name": "D"}], "unique"),
+        ('[{"type": "Drift"}]', "decode the JSON"),
+    ],
+    ids=["unknown-type", "unknown-param", "no-name", "negative-length", "dup", "json"],
+)
+def test_bad_spec_raises(spec, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        Beamline.from_spec(spec)
+
+
+@pytest.mark.parametrize(
+    ("settings", "names", "match"),
+    [
+        (torch.zeros(3, 1), ["Q9.k1"], "no element 'Q9'"),
+        (torch.zeros(3, 1), ["Q1.k2"], r"no parameter 'k2'.*'k1'"),
+        (torch.zeros(3, 1), ["Q1"], "ELEMENT.parameter"),
+        (torch.zeros(3, 2), ["Q1.k1"], r"\(\*K, P\)"),
+        (torch.full((3, 1), float("nan")), ["Q1.k1"], "NaN"),
+        (torch.zeros(3, 1), None, "both settings and names"),
+    ],
+    ids=["element", "param", "format", "shape", "nan", "missing-names"],
+)
+def test_bad_settings_raise(settings, names, match: str) -> None:
+    line = Beamline.from_spec(SPEC)
+    with pytest.raises(ValueError, match=match):
+        line.track(torch.zeros(4, 6), P0C, settings=settings, names=names)
+
+
+@pytest.mark.parametrize(
+    ("particles", "p0c", "match"),
+    [
+        (torch.zeros(4, 7), P0C, r"\(\.\.\., N, 6\)"),
+        (torch.zeros(6), P0C, r"\(\.\.\., N, 6\)"),
+        (torch.full((4, 6), float("nan")), P0C, "NaN or infinite"),
+        (torch.full((4, 6), float("inf")), P0C, "NaN or infinite"),
+        (torch.zeros(4, 6), -1.0, "p0c"),
+        (torch.zeros(4, 6), 0.0, "p0c"),
+    ],
+    ids=["last-dim", "1d", "nan", "inf", "negative-p0c", "zero-p0c"],
+)
+def test_bad_particles_raise(particles, p0c, match: str) -> None:
+    line = Beamline.from_spec(SPEC)
+    with pytest.raises(ValueError, match=match):
+        line.track(particles, p0c)
+    with pytest.raises(ValueError, match=match):
+        line["D1"].track(particles, p0c)

@@ -1,0 +1,170 @@
+"""Screen images: cloud-in-cell and Gaussian KDE."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from diffaccel.dynamics import Screen, cic_image, kde_image, pixel_centers
+
+F64 = torch.float64
+
+
+def test_pixel_convention_rows_are_y_ascending() -> None:
+    # one particle at the centre of pixel (i=3, j=1) of a 5 x 4 screen
+    shape, pixel, center = (5, 4), (1e-3, 2e-3), (0.5e-3, -1e-3)
+    xs, ys = pixel_centers(shape, pixel, center, dtype=F64)
+    x = xs[1].reshape(1)
+    y = ys[3].reshape(1)
+    for image in (
+        cic_image(x, y, shape, pixel, center),
+        kde_image(x, y, shape, pixel, center, bandwidth=1e-5),
+    ):
+        assert image.argmax().item() == 3 * 4 + 1
+    assert ys[3] > ys[2]  # row index grows with y
+    assert xs[1].item() == pytest.approx(center[0] + (1 - 1.5) * pixel[0])
+
+
+def test_cic_at_pixel_centres_equals_histogram() -> None:
+    g = torch.Generator().manual_seed(0)
+    shape, pixel = (8, 10), (1e-3, 1e-3)
+    xs, ys = pixel_centers(shape, pixel, dtype=F64)
+    i = torch.randint(0, 8, (500,), generator=g)
+    j = torch.randint(0, 10, (500,), generator=g)
+    image = cic_image(xs[j], ys[i], shape, pixel)
+    hist = torch.zeros(shape, dtype=F64)
+    hist.index_put_((i, j), torch.ones(500, dtype=F64), accumulate=True)
+    torch.testing.assert_close(image, hist / 500, rtol=0, atol=1e-15)
+
+
+def test_cic_sum_is_fraction_on_screen() -> None:
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(2000, generator=g, dtype=F64) * 5e-3
+    y = torch.randn(2000, generator=g, dtype=F64) * 5e-3
+    image = cic_image(x, y, (10, 10), 1e-3)
+    # particles within the outer pixel centres deposit all their weight; those
+    # beyond the outer centres +- one pixel deposit none
+    inner = ((x.abs() <= 4.5e-3) & (y.abs() <= 4.5e-3)).double().mean()
+    outer = ((x.abs() < 5.5e-3) & (y.abs() < 5.5e-3)).double().mean()
+    assert inner.item() <= image.sum().item() <= outer.item()
+    assert image.sum().item() < 0.6  # most of the beam misses: no renormalisation
+
+
+def test_beam_missing_screen_gives_zeros_not_nan() -> None:
+    x = torch.full((3, 100), 1.0, dtype=F64, requires_grad=True)  # 1 m off axis
+    y = torch.zeros(3, 100, dtype=F64)
+    image = cic_image(x, y, (16, 16), 1e-3)
+    assert torch.equal(image, torch.zeros(3, 16, 16, dtype=F64))
+    image.sum().backward()
+    assert torch.equal(x.grad, torch.zeros_like(x))
+    kde = kde_image(x.detach(), y, (16, 16), 1e-3)
+    assert torch.equal(kde, torch.zeros(3, 16, 16, dtype=F64))
+
+
+@pytest.mark.parametrize("batch", [(), (3,), (2, 2)], ids=["unbatched", "K3", "K2x2"])
+def test_image_shapes(batch: tuple[int, ...]) -> None:
+    x = torch.zeros(*batch, 50)
+    for image in (cic_image(x, x, (6, 7), 1e-3), kde_image(x, x, (6, 7), 1e-3)):
+        assert image.shape == (*batch, 6, 7)
+
+
+def test_kde_equals_direct_gaussian_sum() -> None:
+    g = torch.Generator().manual_seed(2)
+    x = torch.randn(30, generator=g, dtype=F64) * 2e-3
+    y = torch.randn(30, generator=g, dtype=F64) * 1e-3
+    shape, pixel, h = (12, 14), (0.7e-3, 0.5e-3), (0.8e-3, 0.6e-3)
+    xs, ys = pixel_centers(shape, pixel, dtype=F64)
+    gx = torch.exp(-0.5 * ((xs[None, :] - x[:, None]) / h[0]) ** 2) / (
+        math.sqrt(2 * math.pi) * h[0]
+    )
+    gy = torch.exp(-0.5 * ((ys[None, :] - y[:, None]) / h[1]) ** 2) / (
+        math.sqrt(2 * math.pi) * h[1]
+    )
+    direct = torch.einsum("ni,nj->ij", gy, gx) * pixel[0] * pixel[1] / 30
+    torch.testing.assert_close(
+        kde_image(x, y, shape, pixel, bandwidth=h), direct, rtol=1e-12, atol=1e-15
+    )
+
+
+def test_cic_and_kde_agree_within_discretisation() -> None:
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(10_000, generator=g, dtype=F64) * 6e-3
+    y = torch.randn(10_000, generator=g, dtype=F64) * 4e-3
+    shape, pixel = (64, 64), 0.5e-3
+    kde = kde_image(x, y, shape, pixel, bandwidth=0.5e-3)
+    # CIC blurred with the KDE kernel differs from the KDE only by the bilinear
+    # interpolation of each kernel between pixel centres: up to (1/8)(pixel/h)^2
+    # ~ 12 % of one kernel's peak, averaging down over the ~50 particles a kernel
+    # covers at the peak to a few % of the image peak (sampling noise is common)
+    blurred = cic_image(x, y, shape, pixel, blur_sigma=0.5e-3)
+    assert (blurred - kde).abs().max().item() < 0.05 * kde.max().item()
+    # second moments: the KDE adds exactly h^2 to the variance, CIC adds
+    # <t (1 - t)> pixel^2 = pixel^2 / 6 (bilinear spreading at uniform offsets t)
+    xn = torch.randn(10_000, generator=g, dtype=F64) * 2e-3  # well inside the screen
+    yn = torch.randn(10_000, generator=g, dtype=F64) * 1.5e-3
+    xs, _ = pixel_centers(shape, pixel, dtype=F64)
+
+    def var_x(image: torch.Tensor) -> torch.Tensor:
+        px = image.sum(0) / image.sum()
+        mean = (px * xs).sum()
+        return (px * (xs - mean) ** 2).sum()
+
+    sample = xn.var(unbiased=False)
+    var_cic = var_x(cic_image(xn, yn, shape, pixel)) - sample
+    var_kde = var_x(kde_image(xn, yn, shape, pixel, bandwidth=0.5e-3)) - sample
+    assert var_kde.item() == pytest.approx(0.5e-3**2, rel=1e-6)
+    # the average of t (1 - t) over 10k particles has ~0.3 % relative noise
+    assert var_cic.item() == pytest.approx(pixel**2 / 6, rel=0.02)
+
+
+def test_blur_preserves_interior_mass_and_widens() -> None:
+    x = torch.zeros(1, dtype=F64)
+    sharp = cic_image(x, x, (33, 33), 1e-3)
+    blurred = cic_image(x, x, (33, 33), 1e-3, blur_sigma=2e-3)
+    assert blurred.sum().item() == pytest.approx(1.0, rel=1e-9)
+    xs, _ = pixel_centers((33, 33), 1e-3, dtype=F64)
+    var = (blurred.sum(0) * xs**2).sum()
+    assert var.item() == pytest.approx(4e-6, rel=1e-6)
+    assert sharp.max() > blurred.max()
+
+
+@pytest.mark.parametrize("weighted", [False, True], ids=["unweighted", "weighted"])
+@pytest.mark.parametrize("method", ["cic", "kde"], ids=["cic", "kde"])
+def test_image_gradcheck(method: str, weighted: bool) -> None:
+    g = torch.Generator().manual_seed(5)
+    x = (torch.randn(2, 6, generator=g, dtype=F64) * 2e-3).requires_grad_(True)
+    y = (torch.randn(2, 6, generator=g, dtype=F64) * 2e-3).requires_grad_(True)
+    w = (torch.rand(2, 6, generator=g, dtype=F64) + 0.5).requires_grad_(weighted)
+    args = ((5, 6), (1e-3, 0.9e-3), (1e-4, -2e-4))
+    if method == "cic":
+
+        def f(x, y, w):
+            return cic_image(x, y, *args, weights=w, blur_sigma=1e-3)
+    else:
+
+        def f(x, y, w):
+            return kde_image(x, y, *args, bandwidth=(1.2e-3, 0.8e-3), weights=w)
+
+    assert torch.autograd.gradcheck(f, (x, y, w))
+
+
+def test_screen_image_uses_geometry() -> None:
+    scr = Screen("S", shape=(4, 5), pixel_size=(1e-3, 1e-3), center=(1e-3, 0.0))
+    particles = torch.zeros(2, 10, 6)
+    particles[..., 0] = 1e-3  # at the screen centre
+    image = scr.image(particles, "cic")
+    assert image.shape == (2, 4, 5)
+    assert image[0, :, 2].sum().item() == pytest.approx(1.0)
+
+
+def test_screen_without_geometry_raises() -> None:
+    with pytest.raises(ValueError, match="no geometry"):
+        Screen("S").image(torch.zeros(3, 6))
+
+
+def test_screen_unknown_method_raises() -> None:
+    scr = Screen("S", shape=(4, 4), pixel_size=1e-3)
+    with pytest.raises(ValueError, match="Unknown image method"):
+        scr.image(torch.zeros(3, 6), method="histogram")
