@@ -1,1 +1,61 @@
-"""diffaccel.reconstruction."""
+"""Phase-space reconstruction from screen images (beam generators, losses, ensembles).
+
+Example:
+    >>> from diffaccel.reconstruction import ReconstructionConfig
+    >>> ReconstructionConfig().dims
+    4
+"""
+
+from diffaccel.reconstruction.ensemble import Reconstruction, load
+from diffaccel.reconstruction.forward import ScreenForwardModel
+from diffaccel.reconstruction.generator import BeamGenerator
+from diffaccel.reconstruction.initial import GaussianGuess, fit_gaussian
+from diffaccel.reconstruction.losses import (
+    cyclic_cosine_lr,
+    gaussian_entropy,
+    gaussian_prior_term,
+    image_distance,
+    penalty_schedule,
+    robust_covariance,
+)
+from diffaccel.reconstruction.metrics import (
+    beam_moments,
+    image_errors,
+    moment_errors,
+    sliced_wasserstein,
+)
+from diffaccel.reconstruction.pipeline import reconstruct
+from diffaccel.reconstruction.training import (
+    ReconstructionConfig,
+    StepInfo,
+    TrainingState,
+    load_checkpoint,
+    save_checkpoint,
+    train_generator,
+)
+
+__all__ = [
+    "BeamGenerator",
+    "GaussianGuess",
+    "Reconstruction",
+    "ReconstructionConfig",
+    "ScreenForwardModel",
+    "StepInfo",
+    "TrainingState",
+    "beam_moments",
+    "cyclic_cosine_lr",
+    "fit_gaussian",
+    "gaussian_entropy",
+    "gaussian_prior_term",
+    "image_distance",
+    "image_errors",
+    "load",
+    "load_checkpoint",
+    "moment_errors",
+    "penalty_schedule",
+    "reconstruct",
+    "robust_covariance",
+    "save_checkpoint",
+    "sliced_wasserstein",
+    "train_generator",
+]

@@ -1,0 +1,295 @@
+"""Figures of phase-space reconstructions: corner plots, images, training curves."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from matplotlib.figure import Figure
+from torch import Tensor
+
+from diffaccel.reconstruction import Reconstruction
+
+__all__ = [
+    "plot_corner",
+    "plot_image_comparison",
+    "plot_rms_evolution",
+    "plot_training_curves",
+]
+
+_LABELS = ("x [mm]", "px [mrad]", "y [mm]", "py [mrad]", "z [mm]", "pz [1e-3]")
+_NAMES = ("x", "px", "y", "py", "z", "pz")
+
+
+def _coords_to_plot(dims: int, truth: Tensor | None) -> list[int]:
+    return list(range(dims))
+
+
+def plot_corner(
+    reconstruction: Reconstruction,
+    truth: Tensor | None = None,
+    *,
+    n: int = 50_000,
+    bins: int = 60,
+    seed: int = 0,
+) -> Figure:
+    """Corner plot of every 2D projection of the reconstructed phase space.
+
+    Lower triangle: density of the ensemble sample (colour) with contours of the
+    ground truth at 10, 50 and 90 % of its peak (white lines) when known;
+    diagonal: 1D projections (filled: reconstruction, black line: truth). A 6D
+    reconstruction shows all 15 projections, a 4D one the 6 transverse ones.
+
+    Args:
+        reconstruction: The ensemble to draw.
+        truth: Ground-truth particles ``(M, 6)`` in Bmad coordinates, or None.
+        n: Particles drawn from the ensemble.
+        bins: Histogram bins per axis.
+        seed: Sampling seed.
+
+    Returns:
+        The figure (Agg backend; save it with ``fig.savefig``).
+    """
+    coords = _coords_to_plot(reconstruction.config.dims, truth)
+    reco = reconstruction.sample(n, seed=seed).to(torch.float64).numpy() * 1e3
+    tru = (
+        truth.detach().to("cpu", torch.float64).numpy() * 1e3
+        if truth is not None
+        else None
+    )
+    d = len(coords)
+    fig = Figure(figsize=(2.1 * d + 0.6, 2.1 * d))
+    axes = fig.subplots(d, d, squeeze=False)
+    ranges = []
+    for c in coords:
+        ref = tru[:, c] if tru is not None and tru[:, c].std() > 0 else reco[:, c]
+        lo, hi = np.percentile(ref, [0.5, 99.5])
+        pad = 0.25 * (hi - lo) if hi > lo else 1e-3
+        ranges.append((lo - pad, hi + pad))
+    for i, ci in enumerate(coords):
+        for j, cj in enumerate(coords):
+            ax = axes[i, j]
+            if j > i:
+                ax.set_axis_off()
+                continue
+            if i == j:
+                edges = np.linspace(*ranges[i], bins + 1)
+                ax.hist(
+                    reco[:, ci],
+                    bins=edges,
+                    density=True,
+                    color="C0",
+                    alpha=0.6,
+                    label="reconstruction",
+                )
+                if tru is not None:
+                    ax.hist(
+                        tru[:, ci],
+                        bins=edges,
+                        density=True,
+                        histtype="step",
+                        color="k",
+                        lw=1.2,
+                        label="ground truth",
+                    )
+                ax.set_yticks([])
+            else:
+                ex = np.linspace(*ranges[j], bins + 1)
+                ey = np.linspace(*ranges[i], bins + 1)
+                h, _, _ = np.histogram2d(reco[:, cj], reco[:, ci], bins=(ex, ey))
+                ax.pcolormesh(
+                    ex, ey, h.T, cmap="viridis", shading="flat", rasterized=True
+                )
+                if tru is not None:
+                    ht, _, _ = np.histogram2d(tru[:, cj], tru[:, ci], bins=(ex, ey))
+                    if ht.max() > 0:
+                        xc = 0.5 * (ex[1:] + ex[:-1])
+                        yc = 0.5 * (ey[1:] + ey[:-1])
+                        ax.contour(
+                            xc,
+                            yc,
+                            ht.T / ht.max(),
+                            levels=[0.1, 0.5, 0.9],
+                            colors="w",
+                            linewidths=0.8,
+                        )
+                ax.set_ylim(ranges[i])
+            ax.set_xlim(ranges[j])
+            if i == d - 1:
+                ax.set_xlabel(_LABELS[cj])
+            else:
+                ax.set_xticklabels([])
+            if j == 0 and i > 0:
+                ax.set_ylabel(_LABELS[ci])
+            elif j > 0 or i == 0:
+                ax.set_yticklabels([]) if i != j else None
+    title = f"Reconstructed phase space ({reconstruction.n_snapshots}-member ensemble"
+    title += ", contours/lines: ground truth)" if tru is not None else ")"
+    fig.suptitle(title)
+    if tru is not None:
+        axes[0, 0].legend(loc="upper left", bbox_to_anchor=(1.05, 1.0), frameon=False)
+    fig.tight_layout()
+    return fig
+
+
+def plot_image_comparison(
+    measured: Tensor,
+    predicted: Tensor,
+    settings: Tensor,
+    *,
+    setting_name: str = "",
+    extent: Sequence[float] | None = None,
+    held_out: Sequence[bool] | None = None,
+    max_columns: int = 10,
+) -> Figure:
+    """Measured vs predicted screen images, one column per setting.
+
+    Each block of rows shows measured (top), predicted (middle) and
+    predicted - measured (bottom, red/blue, same scale for all settings) for up
+    to ``max_columns`` settings; held-out settings are titled in red.
+
+    Args:
+        measured: Sum-normalised measured images ``(K, H, W)``.
+        predicted: Sum-normalised predicted images ``(K, H, W)``.
+        settings: Settings ``(K, P)``; the first column labels each panel.
+        setting_name: Label of that column (e.g. ``"Q1.k1"``).
+        extent: ``(x_min, x_max, y_min, y_max)`` of the screen [mm].
+        held_out: Per setting, True if it was not used for training.
+        max_columns: Settings per block.
+
+    Returns:
+        The figure.
+    """
+    m = measured.detach().cpu().numpy()
+    p = predicted.detach().cpu().numpy()
+    if m.shape != p.shape:
+        raise ValueError(f"measured {m.shape} and predicted {p.shape} differ.")
+    k = m.shape[0]
+    s = torch.as_tensor(settings).reshape(k, -1)[:, 0].tolist()
+    cols = min(k, max_columns)
+    blocks = -(-k // cols)
+    fig = Figure(figsize=(1.45 * cols + 0.8, 4.4 * blocks))
+    axes = fig.subplots(3 * blocks, cols, squeeze=False)
+    dmax = float(np.abs(p - m).max()) or 1.0
+    for idx in range(blocks * cols):
+        b, c = divmod(idx, cols)
+        top, mid, bot = axes[3 * b, c], axes[3 * b + 1, c], axes[3 * b + 2, c]
+        for ax in (top, mid, bot):
+            ax.set_xticks([])
+            ax.set_yticks([])
+        if idx >= k:
+            for ax in (top, mid, bot):
+                ax.set_axis_off()
+            continue
+        vmax = max(float(m[idx].max()), float(p[idx].max()))
+        kw = {"origin": "lower", "extent": extent, "aspect": "auto"}
+        top.imshow(m[idx], cmap="viridis", vmin=0, vmax=vmax, **kw)
+        mid.imshow(p[idx], cmap="viridis", vmin=0, vmax=vmax, **kw)
+        bot.imshow(p[idx] - m[idx], cmap="RdBu_r", vmin=-dmax, vmax=dmax, **kw)
+        ho = held_out is not None and bool(held_out[idx])
+        top.set_title(
+            f"{s[idx]:.3g}" + (" (test)" if ho else ""),
+            fontsize=8,
+            color="C3" if ho else "k",
+        )
+        if c == 0:
+            top.set_ylabel("measured")
+            mid.set_ylabel("predicted")
+            bot.set_ylabel("pred - meas")
+    fig.suptitle(
+        f"Screen images per setting {setting_name} (colour scale per column; "
+        f"difference scale +-{dmax:.2g})"
+    )
+    fig.tight_layout()
+    return fig
+
+
+def plot_training_curves(reconstruction: Reconstruction) -> Figure:
+    """Loss, image mismatch, learning rate and penalty vs step, snapshots marked.
+
+    Args:
+        reconstruction: A trained ensemble (uses its ``history``).
+
+    Returns:
+        The figure (top: total loss and image mismatch; bottom: learning rate
+        and image-penalty weight; dashed verticals: snapshot steps).
+    """
+    h = reconstruction.history
+    steps = np.arange(1, len(h["loss"]) + 1)
+    fig = Figure(figsize=(8, 6))
+    (a1, a2) = fig.subplots(2, 1, sharex=True)
+    a1.plot(steps, h["image_loss"], color="C0", lw=0.8, label="image mismatch D")
+    a1.set_yscale("log")
+    a1.set_ylabel(f"image mismatch ({reconstruction.config.image_loss})")
+    a1b = a1.twinx()
+    a1b.plot(steps, h["loss"], color="C1", lw=0.8, label="total loss")
+    a1b.set_ylabel("total loss (-H + lambda D)")
+    a1b.set_yscale("symlog")
+    a2.plot(steps, h["lr"], color="C2", label="learning rate")
+    a2.set_yscale("log")
+    a2.set_ylabel("learning rate")
+    a2b = a2.twinx()
+    a2b.plot(steps, h["penalty"], color="C3", label="penalty lambda")
+    a2b.set_yscale("log")
+    a2b.set_ylabel("image penalty lambda")
+    for ax in (a1, a2):
+        for i, st in enumerate(h["snapshot_steps"]):
+            ax.axvline(
+                st,
+                color="k",
+                ls="--",
+                lw=0.8,
+                label="snapshot" if i == 0 and ax is a1 else None,
+            )
+    a2.set_xlabel("step")
+    lines = a1.get_legend_handles_labels()
+    lines_b = a1b.get_legend_handles_labels()
+    a1.legend(lines[0] + lines_b[0], lines[1] + lines_b[1], loc="upper right")
+    lines = a2.get_legend_handles_labels()
+    lines_b = a2b.get_legend_handles_labels()
+    a2.legend(lines[0] + lines_b[0], lines[1] + lines_b[1], loc="lower left")
+    fig.suptitle("Training curves")
+    fig.tight_layout()
+    return fig
+
+
+def plot_rms_evolution(
+    reconstruction: Reconstruction, truth: Tensor | None = None
+) -> Figure:
+    """RMS size of each generated coordinate during training.
+
+    Args:
+        reconstruction: A trained ensemble (uses ``history["rms"]``).
+        truth: Ground-truth particles ``(M, 6)``; their rms is drawn dotted.
+
+    Returns:
+        The figure, one panel per reconstructed coordinate (mm / mrad / 1e-3).
+    """
+    h = reconstruction.history
+    rms = np.asarray(h["rms"], dtype=float) * 1e3
+    dims = reconstruction.config.dims
+    steps = np.arange(1, rms.shape[0] + 1)
+    t = (
+        truth.detach().to(torch.float64).std(0).numpy() * 1e3
+        if truth is not None
+        else None
+    )
+    ncol = 2 if dims == 4 else 3
+    fig = Figure(figsize=(4 * ncol, 5.5))
+    axes = fig.subplots(2, ncol, sharex=True, squeeze=False)
+    for i in range(dims):
+        ax = axes.flat[i]
+        ax.plot(steps, rms[:, i], color="C0", lw=0.8, label="reconstruction")
+        if t is not None:
+            ax.axhline(t[i], color="k", ls=":", lw=1.5, label="ground truth")
+        for st in h["snapshot_steps"]:
+            ax.axvline(st, color="grey", ls="--", lw=0.6)
+        ax.set_ylabel(f"rms {_LABELS[i]}")
+        ax.set_xlabel("step")
+    axes.flat[0].legend(loc="best")
+    for j in range(dims, axes.size):
+        axes.flat[j].set_axis_off()
+    fig.suptitle("RMS sizes during training (dashed: snapshots)")
+    fig.tight_layout()
+    return fig

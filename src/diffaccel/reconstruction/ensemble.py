@@ -1,0 +1,306 @@
+"""Snapshot ensembles of beam generators: sampling, image prediction, moments, I/O."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from diffaccel.reconstruction.forward import ScreenForwardModel
+from diffaccel.reconstruction.generator import BeamGenerator
+from diffaccel.reconstruction.metrics import COORDINATES, beam_moments
+from diffaccel.reconstruction.training import ReconstructionConfig
+
+ENSEMBLE_FILE = "ensemble.pt"
+ENSEMBLE_VERSION = 1
+
+#: Scalar moments reported by :meth:`Reconstruction.moments`.
+SCALAR_MOMENTS = (
+    "emit_x",
+    "emit_y",
+    "emit_z",
+    "emit_4d",
+    "emit_6d",
+    "norm_emit_x",
+    "norm_emit_y",
+    "beta_x",
+    "beta_y",
+    "alpha_x",
+    "alpha_y",
+)
+
+
+class Reconstruction:
+    """A reconstructed beam: one generator per snapshot of the cyclic schedule.
+
+    The ensemble stands for the distribution over beams that fit the images;
+    its spread is the (under-covering, see ANCHORS.md) uncertainty.
+
+    Args:
+        config: Settings the ensemble was trained with.
+        snapshots: Generator state dicts, one per ensemble member ``E``.
+        forward: Forward model of the training scan (beamline, screen, names).
+        history: Training curves (``loss``, ``image_loss``, ``entropy``, ``lr``,
+            ``penalty``, ``rms`` per step; ``snapshot_steps``).
+        info: JSON-serialisable extras (train indices, timings, dataset path).
+
+    Shapes:
+        ``sample(n)`` -> ``(n, 6)``; ``sample(n, per_snapshot=True)`` ->
+        ``(E, n, 6)``; ``predict_images(settings (K, P))`` -> ``(K, H, W)``.
+    """
+
+    def __init__(
+        self,
+        config: ReconstructionConfig,
+        snapshots: list[dict],
+        forward: ScreenForwardModel,
+        history: dict,
+        info: dict | None = None,
+    ) -> None:
+        if not snapshots:
+            raise ValueError("a reconstruction needs at least one snapshot.")
+        self.config = config
+        self.snapshots = snapshots
+        self.forward = forward
+        self.history = history
+        self.info = dict(info or {})
+        self._generators = [self._build(s) for s in snapshots]
+
+    def _build(self, state: dict) -> BeamGenerator:
+        c = self.config
+        gen = BeamGenerator(
+            c.dims, width=c.width, depth=c.depth, scale=torch.ones(c.dims)
+        )
+        gen.load_state_dict(state)
+        gen.requires_grad_(False)
+        return gen
+
+    @property
+    def n_snapshots(self) -> int:
+        """Number of ensemble members ``E``."""
+        return len(self._generators)
+
+    @property
+    def generators(self) -> list[BeamGenerator]:
+        """The ensemble members (gradients disabled)."""
+        return list(self._generators)
+
+    def sample(
+        self,
+        n: int,
+        *,
+        per_snapshot: bool = False,
+        seed: int = 0,
+        device: str | torch.device | None = None,
+    ) -> Tensor:
+        """Draw particles from the ensemble in Bmad coordinates.
+
+        Args:
+            n: Particles (per member if ``per_snapshot``).
+            per_snapshot: Return each member's sample separately.
+            seed: Seed of the sampling generator (same seed, same particles).
+            device: Device of the result (default CPU).
+
+        Returns:
+            ``(n, 6)`` particles of the ensemble mixture (members contribute
+            equal shares), or ``(E, n, 6)``.
+        """
+        if n < 1:
+            raise ValueError(f"n must be >= 1; got {n}.")
+        device = torch.device(device or "cpu")
+        rng = torch.Generator(device=device).manual_seed(seed)
+        e = self.n_snapshots
+        with torch.no_grad():
+            if per_snapshot:
+                return torch.stack(
+                    [g.to(device)(n, generator=rng) for g in self._generators]
+                )
+            counts = [n // e + (1 if i < n % e else 0) for i in range(e)]
+            parts = [
+                g.to(device)(c, generator=rng)
+                for g, c in zip(self._generators, counts, strict=True)
+                if c > 0
+            ]
+            x = torch.cat(parts)
+            perm = torch.randperm(n, generator=rng, device=device)
+            return x[perm]
+
+    def predict_images(
+        self,
+        settings: Tensor,
+        *,
+        forward: ScreenForwardModel | None = None,
+        n_particles: int = 50_000,
+        per_snapshot: bool = False,
+        seed: int = 0,
+    ) -> Tensor:
+        """Ensemble-mean screen images for arbitrary settings.
+
+        The beamline is rebuilt from the settings passed on every call (no state
+        is kept between calls, so predictions never show earlier settings).
+
+        Args:
+            settings: Values of the scanned parameters, one row per setting.
+            forward: Another forward model (e.g. a different screen grid or
+                beamline); defaults to the training scan's.
+            n_particles: Particles per ensemble member.
+            per_snapshot: Return ``(E, K, H, W)`` instead of the mean.
+            seed: Sampling seed.
+
+        Shapes:
+            ``settings (K, P)`` -> ``(K, H, W)`` float32, each image summing to 1
+            (all-zero if no particle reaches the screen).
+
+        Raises:
+            ValueError: if ``settings`` has the wrong number of columns or NaNs.
+        """
+        fwd = forward if forward is not None else self.forward
+        settings = fwd.check_settings(settings)
+        beams = self.sample(n_particles, per_snapshot=True, seed=seed)
+        with torch.no_grad():
+            imgs = torch.stack([fwd.images(b, settings) for b in beams])
+            imgs = imgs / imgs.sum((-2, -1), keepdim=True).clamp_min(1e-30)
+        return imgs if per_snapshot else imgs.mean(0)
+
+    def moments(self, n: int = 100_000, seed: int = 0) -> dict[str, dict]:
+        """Mean and ensemble spread of the beam moments.
+
+        Args:
+            n: Particles per member used to compute the moments.
+            seed: Sampling seed.
+
+        Returns:
+            ``{name: {"mean": value, "std": value, "unit": str}}`` with values
+            floats or nested lists (``centroid``, ``rms`` per coordinate,
+            ``cov``, ``corr``); normalised emittances use ``p0c`` and the species
+            mass of the forward model.
+        """
+        beams = self.sample(n, per_snapshot=True, seed=seed)
+        per = [beam_moments(b) for b in beams]
+        bg = self.forward.beta_gamma()
+        for m in per:
+            m["norm_emit_x"] = m["emit_x"] * bg
+            m["norm_emit_y"] = m["emit_y"] * bg
+        units = {
+            "centroid": "m, 1, m, 1, m, 1",
+            "rms": "m, 1, m, 1, m, 1",
+            "cov": "Bmad units squared",
+            "corr": "1",
+            "emit_x": "m",
+            "emit_y": "m",
+            "emit_z": "m",
+            "emit_4d": "m^2",
+            "emit_6d": "m^3",
+            "norm_emit_x": "m",
+            "norm_emit_y": "m",
+            "beta_x": "m",
+            "beta_y": "m",
+            "alpha_x": "1",
+            "alpha_y": "1",
+        }
+        out: dict[str, dict] = {}
+        for key, unit in units.items():
+            stack = torch.stack([m[key] for m in per])
+            std = stack.std(0) if len(per) > 1 else torch.zeros_like(stack[0])
+            out[key] = {
+                "mean": stack.mean(0).tolist(),
+                "std": std.tolist(),
+                "unit": unit,
+            }
+        out["coordinates"] = {"mean": list(COORDINATES), "std": None, "unit": ""}
+        return out
+
+    def unconstrained_coordinates(self, tolerance: float = 1e-3) -> list[str]:
+        """Coordinates the scan does not see to first order.
+
+        A coordinate is flagged when its column of the linear transfer matrices
+        to the screen's x and y is below ``tolerance`` times the largest
+        column of the same unit group at every setting of the training scan (e.g.
+        ``z`` always; ``pz`` without dispersion), so images constrain it only
+        through weak chromatic or no effects at all: its reconstruction is set by
+        the prior and the ensemble spread understates its uncertainty.
+        """
+        settings = torch.as_tensor(self.info.get("train_settings", []))
+        if settings.numel() == 0:
+            return []
+        r = self.forward.transfer_matrices(settings.to(torch.float64))
+        rows = r[:, [0, 2], :].abs().amax(dim=(0, 1))  # (6,)
+        flags = []
+        pos_ref = float(rows[[0, 2]].max())
+        mom_ref = float(rows[[1, 3]].max())
+        ref = {0: pos_ref, 1: mom_ref, 2: pos_ref, 3: mom_ref, 4: pos_ref, 5: mom_ref}
+        for i, c in enumerate(COORDINATES):
+            if self.config.dims == 4 and i >= 4:
+                continue
+            if float(rows[i]) < tolerance * ref[i]:
+                flags.append(c)
+        return flags
+
+    def save(self, directory: str | os.PathLike, *, overwrite: bool = False) -> Path:
+        """Write the ensemble to ``directory/ensemble.pt`` atomically.
+
+        Raises:
+            FileExistsError: if the file exists and ``overwrite`` is False.
+        """
+        d = Path(directory)
+        d.mkdir(parents=True, exist_ok=True)
+        path = d / ENSEMBLE_FILE
+        if path.exists() and not overwrite:
+            raise FileExistsError(f"{path} exists; pass overwrite=True to replace it.")
+        payload = {
+            "ensemble_version": ENSEMBLE_VERSION,
+            "config": self.config.to_dict(),
+            "snapshots": self.snapshots,
+            "forward": json.dumps(self.forward.to_spec()),
+            "history": json.dumps(self.history),
+            "info": json.dumps(self.info),
+        }
+        fd, tmp = tempfile.mkstemp(dir=d, prefix=ENSEMBLE_FILE, suffix=".tmp")
+        os.close(fd)
+        try:
+            torch.save(payload, tmp)
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.remove(tmp)
+            raise
+        return path
+
+
+def load(directory: str | os.PathLike) -> Reconstruction:
+    """Load a reconstruction written by :meth:`Reconstruction.save`.
+
+    Args:
+        directory: Output directory of ``diffaccel reconstruct`` (or the
+            ``ensemble.pt`` file itself).
+
+    Raises:
+        FileNotFoundError: if there is no ensemble file.
+        ValueError: if the file is not a diffaccel ensemble.
+    """
+    p = Path(directory)
+    path = p if p.is_file() else p / ENSEMBLE_FILE
+    if not path.exists():
+        raise FileNotFoundError(f"no {ENSEMBLE_FILE} in {p}")
+    try:
+        d = torch.load(path, weights_only=True, map_location="cpu")
+    except Exception as exc:
+        raise ValueError(f"cannot read {path}: {exc}") from exc
+    if not isinstance(d, dict) or d.get("ensemble_version") != ENSEMBLE_VERSION:
+        raise ValueError(f"{path} is not a diffaccel ensemble (version 1).")
+    return Reconstruction(
+        config=ReconstructionConfig.from_dict(d["config"]),
+        snapshots=list(d["snapshots"]),
+        forward=ScreenForwardModel.from_spec(json.loads(d["forward"])),
+        history=json.loads(d["history"]),
+        info=json.loads(d["info"]),
+    )
+
+
+def _finite(x: float) -> float | None:
+    return x if math.isfinite(x) else None
