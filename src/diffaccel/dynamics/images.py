@@ -21,8 +21,9 @@ __all__ = ["cic_image", "gaussian_blur", "kde_image", "pixel_centers"]
 # exp(-80) = 1.8e-35 is still a normal float32: clamping the exponent there keeps
 # CPU float32 arithmetic out of (very slow) denormals at a negligible error.
 _MIN_EXPONENT = -80.0
-# Kernel truncation radius of the KDE, in bandwidths.
+# Kernel truncation radius of the KDE, in bandwidths (float64; float32).
 _KDE_CUT = 9.0
+_KDE_CUT_FLOAT32 = 6.0
 
 
 def _pair(value: Sequence[float] | float | Tensor, what: str) -> tuple[float, float]:
@@ -283,8 +284,10 @@ def kde_image(
     ``sum_n w_n N(x_j - x_n; h_x) N(y_i - y_n; h_y) dx dy / sum_n w_n``, evaluated
     as ``Ky^T @ (w * Kx)`` with kernel matrices ``Kx (N, W)``, ``Ky (N, H)``:
     no ``N x H x W`` tensor is formed. Per image, only the rows and columns within
-    9 bandwidths of some particle are computed (the rest is below 3e-18 of a
-    kernel's peak), which keeps compact beams on large screens cheap. For a beam
+    9 bandwidths (float32: 6) of some particle are computed (the rest is below
+    3e-18 (1.5e-8) of a kernel's peak), which keeps compact beams on large
+    screens cheap. The gradient is analytic (with respect to positions and
+    weights). For a beam
     much wider than the bandwidth and well inside the screen the image sum is
     close to 1.
 
@@ -320,43 +323,99 @@ def kde_image(
         total = weights.sum(-1)
     else:
         total = torch.full((b,), float(n), dtype=x.dtype, device=x.device)
-    # Pixels farther than _KDE_CUT bandwidths from every particle receive less than
-    # exp(-_KDE_CUT^2 / 2) ~ 3e-18 of a particle's peak: each image is computed
-    # only on the window of rows and columns its particles can reach.
-    lo_x, hi_x = _reach(x, xs, hx, psx, cx)
-    lo_y, hi_y = _reach(y, ys, hy, psy, cy)
+    # Pixels farther than the cut from every particle receive less than
+    # exp(-cut^2 / 2) of a particle's peak (float32: 6 -> 1.5e-8, below its
+    # round-off; float64: 9 -> 2.6e-18): each image is computed only on the window
+    # of rows and columns its particles can reach.
+    cut = _KDE_CUT if x.dtype == torch.float64 else _KDE_CUT_FLOAT32
+    lo_x, hi_x = _reach(x, hx * cut, psx, cx, w)
+    lo_y, hi_y = _reach(y, hy * cut, psy, cy, h)
+    norm = (psx / (math.sqrt(2 * math.pi) * hx)) * (psy / (math.sqrt(2 * math.pi) * hy))
     images = []
     for i in range(b):
-        image = x.new_zeros(h, w)
         if hi_x[i] > lo_x[i] and hi_y[i] > lo_y[i]:
-            kx = _kernel(x[i], xs[lo_x[i] : hi_x[i]], hx, psx)  # (N, w')
-            ky = _kernel(y[i], ys[lo_y[i] : hi_y[i]], hy, psy)  # (N, h')
-            if weights is not None:
-                kx = kx * weights[i].unsqueeze(-1)
-            window = ky.transpose(0, 1) @ kx
-            image = torch.nn.functional.pad(
-                window, (lo_x[i], w - hi_x[i], lo_y[i], h - hi_y[i])
+            window = _SeparableKDE.apply(
+                x[i],
+                y[i],
+                xs[lo_x[i] : hi_x[i]],
+                ys[lo_y[i] : hi_y[i]],
+                (hx, hy),
+                None if weights is None else weights[i],
             )
-        images.append(image)
-    image = torch.stack(images) / total.reshape(b, 1, 1)
+            images.append(
+                torch.nn.functional.pad(
+                    window, (lo_x[i], w - hi_x[i], lo_y[i], h - hi_y[i])
+                )
+            )
+        else:
+            images.append(x.new_zeros(h, w))
+    image = torch.stack(images) * (norm / total.reshape(b, 1, 1))
     return image.reshape(*batch, h, w)
 
 
+class _SeparableKDE(torch.autograd.Function):
+    """``sum_n w_n gy(y_i - y_n) gx(x_j - x_n)`` with unnormalised Gaussians ``g``.
+
+    Forward: two kernel matrices and one matrix product. Backward (analytic):
+    with ``A = Ky G`` and ``B = (w Kx) G^T``,
+    ``dL/dx_n = sum_j A_nj Kx_nj (x_j - x_n) / hx^2`` (likewise for y), evaluated as
+    matrix-vector products, so no extra ``(N, W)`` temporaries are kept.
+    """
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx,
+        x: Tensor,
+        y: Tensor,
+        xs: Tensor,
+        ys: Tensor,
+        bandwidth: tuple[float, float],
+        weights: Tensor | None,
+    ) -> Tensor:
+        hx, hy = bandwidth
+        kx = _unit_kernel(x, xs, hx)  # (N, w')
+        ky = _unit_kernel(y, ys, hy)  # (N, h')
+        kxw = kx if weights is None else kx * weights.unsqueeze(-1)
+        ctx.bandwidth = bandwidth
+        ctx.save_for_backward(x, y, xs, ys, kx, ky, weights)
+        return ky.transpose(0, 1) @ kxw
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
+        x, y, xs, ys, kx, ky, weights = ctx.saved_tensors
+        hx, hy = ctx.bandwidth
+        gx = gy = gw = None
+        a = ky @ grad  # (N, w'): dL/d(w Kx)
+        if ctx.needs_input_grad[0] or ctx.needs_input_grad[5]:
+            akx = a.mul_(kx)
+            if weights is not None and ctx.needs_input_grad[5]:
+                gw = akx.sum(-1)
+            if ctx.needs_input_grad[0]:
+                gx = (akx @ xs - x * akx.sum(-1)) * (1.0 / hx**2)
+                if weights is not None:
+                    gx = gx * weights
+        if ctx.needs_input_grad[1]:
+            kxw = kx if weights is None else kx * weights.unsqueeze(-1)
+            bky = (kxw @ grad.transpose(0, 1)).mul_(ky)  # (N, h')
+            gy = (bky @ ys - y * bky.sum(-1)) * (1.0 / hy**2)
+        return gx, gy, None, None, None, gw
+
+
+def _unit_kernel(u: Tensor, centers: Tensor, bw: float) -> Tensor:
+    """``exp(-(c - u)^2 / (2 bw^2))`` for positions ``(N,)`` and centres ``(P,)``."""
+    k = u.unsqueeze(-1) - centers
+    k = k.square_().mul_(-0.5 / bw**2).clamp_(min=_MIN_EXPONENT)
+    return k.exp_()
+
+
 def _reach(
-    u: Tensor, centers: Tensor, bw: float, pixel: float, center: float
+    u: Tensor, radius: float, pixel: float, center: float, n_pix: int
 ) -> tuple[list[int], list[int]]:
-    """Per batch, the pixel range ``[lo, hi)`` within ``_KDE_CUT`` bandwidths."""
-    n_pix = centers.shape[0]
+    """Per batch row, the pixel range ``[lo, hi)`` within ``radius`` [m] of ``u``."""
     offset = (n_pix - 1) / 2 - center / pixel
-    lo = ((u.detach().amin(-1) - _KDE_CUT * bw) / pixel + offset).ceil()
-    hi = ((u.detach().amax(-1) + _KDE_CUT * bw) / pixel + offset).floor() + 1
+    u_min, u_max = torch.aminmax(u.detach(), dim=-1)
+    lo = ((u_min - radius) / pixel + offset).ceil()
+    hi = ((u_max + radius) / pixel + offset).floor() + 1
     lo = lo.clamp(0, n_pix).long().tolist()
     hi = hi.clamp(0, n_pix).long().tolist()
     return lo, hi
-
-
-def _kernel(u: Tensor, centers: Tensor, bw: float, pixel: float) -> Tensor:
-    """``pixel * N(c - u; bw)`` for positions ``(B, N)`` and centres ``(P,)``."""
-    arg = (u.unsqueeze(-1) - centers) * (1.0 / bw)
-    arg = (-0.5 * arg.square()).clamp(min=_MIN_EXPONENT)
-    return arg.exp() * (pixel / (math.sqrt(2 * math.pi) * bw))
