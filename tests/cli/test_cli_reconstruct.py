@@ -1,0 +1,175 @@
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from diffaccel.cli import main
+from diffaccel.data import make_synthetic_quad_scan, write_quad_scan
+
+FAST = ["--particles", "512", "--epochs", "6", "--snapshots", "2"]
+
+
+@pytest.fixture(scope="module")
+def scan_file(tmp_path_factory) -> Path:
+    ds = make_synthetic_quad_scan(
+        "gaussian",
+        n_particles=2000,
+        n_settings=6,
+        k1_range=(-8.0, 8.0),
+        screen_shape=(24, 24),
+        pixel_size=(1e-3, 1e-3),
+        seed=2,
+    )
+    path = tmp_path_factory.mktemp("scan") / "scan.h5"
+    write_quad_scan(ds, path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def result_dir(scan_file: Path, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("res") / "out"
+    r = CliRunner().invoke(
+        main, ["reconstruct", str(scan_file), "--out", str(out), *FAST]
+    )
+    assert r.exit_code == 0, r.output
+    return out
+
+
+def test_reconstruct_writes_summary_ensemble_figures(result_dir: Path) -> None:
+    s = json.loads((result_dir / "summary.json").read_text())
+    assert s["train_indices"] == [0, 2, 4] and s["held_out_indices"] == [1, 3, 5]
+    assert len(s["moments"]["rms"]["mean"]) == 6
+    assert "relative_l1" in s["metrics"]["images_held_out"]
+    assert "rms_x" in s["metrics"]["ground_truth"]
+    for name in (
+        "ensemble.pt",
+        "particles.h5",
+        "phase_space.png",
+        "images.png",
+        "training.png",
+        "rms_evolution.png",
+    ):
+        assert (result_dir / name).exists(), name
+
+
+def test_refuses_non_empty_out(scan_file: Path, result_dir: Path) -> None:
+    r = CliRunner().invoke(
+        main, ["reconstruct", str(scan_file), "--out", str(result_dir)]
+    )
+    assert r.exit_code != 0 and "not empty" in r.output
+
+
+def test_predict_on_another_dataset_and_settings(
+    result_dir: Path, tmp_path: Path
+) -> None:
+    other = make_synthetic_quad_scan(
+        "gaussian",
+        n_particles=500,
+        n_settings=3,
+        k1_range=(-3.0, 3.0),
+        screen_shape=(16, 20),
+        pixel_size=(1.5e-3, 1.5e-3),
+        seed=5,
+    )
+    write_quad_scan(other, tmp_path / "other.h5")
+    out = tmp_path / "pred.npy"
+    args = [
+        "predict",
+        str(result_dir),
+        "--dataset",
+        str(tmp_path / "other.h5"),
+        "--out",
+        str(out),
+        "--particles",
+        "1000",
+    ]
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output
+    img = np.load(out)
+    assert img.shape == (3, 16, 20)
+    assert np.allclose(img.sum((-2, -1)), 1.0, atol=1e-5)
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code != 0 and "exists" in r.output
+    out2 = tmp_path / "p2.npy"
+    r = CliRunner().invoke(
+        main,
+        [
+            "predict",
+            str(result_dir),
+            "--settings",
+            "-1.5,2.5",
+            "--out",
+            str(out2),
+            "--particles",
+            "1000",
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    assert np.load(out2).shape == (2, 24, 24)
+
+
+def test_resume_completes_an_interrupted_run(scan_file: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    r = CliRunner().invoke(
+        main, ["reconstruct", str(scan_file), "--out", str(out), *FAST, "--no-figures"]
+    )
+    assert r.exit_code == 0
+    r = CliRunner().invoke(
+        main,
+        [
+            "reconstruct",
+            str(scan_file),
+            "--out",
+            str(out),
+            *FAST,
+            "--no-figures",
+            "--resume",
+        ],
+    )
+    assert r.exit_code == 0, r.output
+
+
+def _corrupt(path: Path, tmp: Path, how: str) -> Path:
+    bad = tmp / f"{how}.h5"
+    bad.write_bytes(path.read_bytes())
+    with h5py.File(bad, "r+") as f:
+        if how == "nan":
+            img = f["images"][...]
+            img[0, 0, 3, 3] = np.nan
+            f["images"][...] = img
+        elif how == "zero":
+            img = f["images"][...]
+            img[1] = 0.0
+            f["images"][...] = img
+        elif how == "unknown-element":
+            f["settings"].attrs["names"] = json.dumps(["QX.k1"])
+        elif how == "mismatch":
+            del f["settings"]
+            f["settings"] = np.zeros((2, 1))
+            f["settings"].attrs["names"] = json.dumps(["Q1.k1"])
+            f["settings"].attrs["units"] = json.dumps(["1/m^2"])
+    return bad
+
+
+@pytest.mark.parametrize(
+    "how", ["nan", "zero", "unknown-element", "mismatch", "garbage"]
+)
+def test_bad_input_gives_a_clear_error(
+    scan_file: Path, tmp_path: Path, how: str
+) -> None:
+    if how == "garbage":
+        bad = tmp_path / "garbage.h5"
+        bad.write_bytes(b"this is not hdf5")
+    else:
+        bad = _corrupt(scan_file, tmp_path, how)
+    r = CliRunner().invoke(
+        main, ["reconstruct", str(bad), "--out", str(tmp_path / "o"), *FAST]
+    )
+    assert r.exit_code != 0
+    assert "Error" in r.output and "Traceback" not in r.output
+    assert not isinstance(r.exception, (IndexError, KeyError, TypeError))

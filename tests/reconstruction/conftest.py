@@ -1,0 +1,30 @@
+"""Small synthetic quad scans shared by the reconstruction tests."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from diffaccel.data import QuadScanDataset, make_synthetic_quad_scan
+
+
+@pytest.fixture(scope="session")
+def small_scan() -> QuadScanDataset:
+    """6 settings of a correlated 6D beam on a 32 x 32 screen (1 mm pixels)."""
+    return make_synthetic_quad_scan(
+        "correlated",
+        n_particles=4000,
+        n_settings=6,
+        k1_range=(-10.0, 10.0),
+        screen_shape=(32, 32),
+        pixel_size=(1e-3, 1e-3),
+        seed=1,
+    )
+
+
+@pytest.fixture()
+def gaussian_beam() -> torch.Tensor:
+    """4000 particles of an uncorrelated 4D Gaussian beam (z = pz = 0) [Bmad]."""
+    g = torch.Generator().manual_seed(3)
+    sig = torch.tensor([1.5e-3, 0.6e-3, 1.2e-3, 0.5e-3, 0.0, 0.0], dtype=torch.float64)
+    return torch.randn(4000, 6, generator=g, dtype=torch.float64) * sig

@@ -1,0 +1,66 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from diffaccel.reconstruction import ReconstructionConfig, load, reconstruct
+
+FAST = {"n_particles": 1024, "epochs": 12, "snapshots": 3}
+
+
+@pytest.fixture(scope="module")
+def result(small_scan):
+    return reconstruct(
+        small_scan, ReconstructionConfig(**FAST), train_indices=[0, 2, 4]
+    )
+
+
+def test_sample_shapes(result) -> None:
+    assert result.sample(100).shape == (100, 6)
+    assert result.sample(10, per_snapshot=True).shape == (3, 10, 6)
+    assert torch.equal(result.sample(50, seed=3), result.sample(50, seed=3))
+
+
+def test_predict_images_uses_the_settings_passed(result, small_scan) -> None:
+    s = small_scan.settings
+    a = result.predict_images(s[:1], n_particles=2000)
+    b = result.predict_images(s[-1:], n_particles=2000)
+    a2 = result.predict_images(s[:1], n_particles=2000)
+    assert torch.equal(a, a2)
+    assert (a - b).abs().sum() > 0.2
+    assert a.shape == (1, 32, 32)
+    assert a.sum().item() == pytest.approx(1.0, abs=1e-5)
+
+
+def test_predict_rejects_bad_settings(result) -> None:
+    with pytest.raises(ValueError, match="shape"):
+        result.predict_images(torch.zeros(2, 3))
+    with pytest.raises(ValueError, match="NaN"):
+        result.predict_images(torch.tensor([[float("nan")]]))
+
+
+def test_moments_report_mean_and_spread(result) -> None:
+    m = result.moments(n=2000)
+    assert len(m["rms"]["mean"]) == 6
+    assert all(s >= 0 for s in m["rms"]["std"])
+    assert m["emit_x"]["mean"] > 0
+    assert result.unconstrained_coordinates() == []  # 4D: x, px, y, py all seen
+
+
+def test_save_load_round_trip(result, tmp_path: Path) -> None:
+    result.save(tmp_path)
+    back = load(tmp_path)
+    assert torch.equal(back.sample(100, seed=1), result.sample(100, seed=1))
+    assert back.config == result.config
+    with pytest.raises(FileExistsError):
+        result.save(tmp_path)
+
+
+def test_load_errors(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError):
+        load(tmp_path)
+    (tmp_path / "ensemble.pt").write_bytes(b"junk")
+    with pytest.raises(ValueError, match="cannot read"):
+        load(tmp_path)

@@ -1,0 +1,94 @@
+from __future__ import annotations
+
+import pytest
+import torch
+
+from diffaccel.reconstruction import BeamGenerator
+from diffaccel.reconstruction.generator import standard_normal_samples
+
+SCALE4 = torch.tensor([1e-3, 2e-4, 2e-3, 3e-4])
+
+
+@pytest.mark.parametrize("dims", [4, 6], ids=["4d", "6d"])
+def test_shape_and_4d_zero_longitudinal(dims: int) -> None:
+    scale = torch.cat([SCALE4, torch.tensor([1e-3, 1e-3])])[:dims]
+    g = torch.Generator().manual_seed(0)
+    gen = BeamGenerator(dims, scale=scale, generator=g)
+    x = gen(500, generator=g)
+    assert x.shape == (500, 6)
+    if dims == 4:
+        assert torch.equal(x[:, 4:], torch.zeros(500, 2))
+    else:
+        assert (x[:, 4:].std(0) > 0).all()
+
+
+def test_initial_beam_is_the_requested_gaussian() -> None:
+    corr = torch.eye(4)
+    corr[0, 1] = corr[1, 0] = -0.8
+    offset = torch.tensor([1e-4, 0.0, -2e-4, 1e-5])
+    g = torch.Generator().manual_seed(1)
+    gen = BeamGenerator(4, scale=SCALE4, offset=offset, correlation=corr, generator=g)
+    x = gen(10_000, generator=g).double()[:, :4]
+    # sampling error of an rms: sqrt(1/(2N)) = 0.7 % at N = 10k; allow 5 of those
+    assert torch.allclose(x.std(0), SCALE4.double(), rtol=0.035)
+    # centroid error: sigma / sqrt(N) = 1 % of sigma; allow 5 sigma
+    assert ((x.mean(0) - offset.double()).abs() < 0.05 * SCALE4.double()).all()
+    r = torch.corrcoef(x.detach().T)[0, 1]
+    assert abs(float(r) + 0.8) < 0.02  # sampling error of r ~ (1 - r^2)/sqrt(N)
+
+
+def test_deterministic_for_a_seed() -> None:
+    def run() -> torch.Tensor:
+        g = torch.Generator().manual_seed(7)
+        gen = BeamGenerator(4, scale=SCALE4, generator=g)
+        with torch.no_grad():
+            gen.mlp[-1].weight.fill_(0.1)  # make the MLP matter
+        return gen(100, generator=g)
+
+    assert torch.equal(run(), run())
+
+
+def test_fresh_samples_every_call() -> None:
+    g = torch.Generator().manual_seed(0)
+    gen = BeamGenerator(4, scale=SCALE4, generator=g)
+    assert not torch.equal(gen(100, generator=g), gen(100, generator=g))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"dims": 5, "scale": torch.ones(5)}, "dims must be 4 or 6"),
+        ({"dims": 4, "scale": torch.ones(3)}, "scale must have shape"),
+        ({"dims": 4, "scale": -torch.ones(4)}, "finite and > 0"),
+        ({"dims": 4, "scale": torch.ones(4), "width": 0}, "width and depth"),
+    ],
+    ids=["dims", "scale-shape", "scale-negative", "width"],
+)
+def test_bad_arguments(kwargs: dict, match: str) -> None:
+    dims = kwargs.pop("dims")
+    with pytest.raises(ValueError, match=match):
+        BeamGenerator(dims, **kwargs)
+
+
+def test_quasi_random_base_samples_have_less_moment_noise() -> None:
+    g = torch.Generator().manual_seed(0)
+    errs = {}
+    for quasi in (False, True):
+        e = [
+            standard_normal_samples(1024, 4, g, quasi).std(0).sub(1).abs().max()
+            for _ in range(10)
+        ]
+        errs[quasi] = float(torch.stack(e).mean())
+    # iid: ~sqrt(1/2048) = 2 %; scrambled Sobol is far better
+    assert errs[True] < 0.3 * errs[False]
+
+
+def test_gradients_reach_every_parameter() -> None:
+    g = torch.Generator().manual_seed(0)
+    gen = BeamGenerator(6, scale=torch.ones(6), generator=g).double()
+    with torch.no_grad():  # the last layer starts at 0, which blocks earlier layers
+        gen.mlp[-1].weight.fill_(0.1)
+    x = gen(64, generator=torch.Generator().manual_seed(1))
+    (x**3).sum().backward()
+    for name, p in gen.named_parameters():
+        assert p.grad is not None and p.grad.abs().sum() > 0, name

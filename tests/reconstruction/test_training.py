@@ -1,0 +1,119 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from diffaccel.reconstruction import (
+    ReconstructionConfig,
+    load_checkpoint,
+    reconstruct,
+)
+
+FAST = {"n_particles": 1024, "epochs": 24, "snapshots": 3, "checkpoint_every": 5}
+
+
+class _Stop(Exception):
+    pass
+
+
+def test_training_lowers_the_image_mismatch(small_scan) -> None:
+    cfg = ReconstructionConfig(**{**FAST, "epochs": 30, "snapshots": 1})
+    r = reconstruct(small_scan, cfg, train_indices=[0, 2, 4])
+    h = r.history["image_loss"]
+    assert sum(h[-5:]) / 5 < 0.7 * sum(h[:5]) / 5
+    assert r.n_snapshots == 1
+    assert len(h) == 30 and r.history["snapshot_steps"] == [30]
+
+
+def test_snapshot_per_cycle_and_schedule(small_scan) -> None:
+    r = reconstruct(small_scan, ReconstructionConfig(**FAST))
+    assert r.history["snapshot_steps"] == [8, 16, 24]
+    lr = r.history["lr"]
+    assert lr[0] == pytest.approx(1e-2) and lr[8] == pytest.approx(1e-2)
+    assert lr[7] < 1e-3  # end of a cycle
+    assert not torch.equal(r.snapshots[0]["log_scale"], r.snapshots[-1]["log_scale"])
+
+
+def test_same_seed_same_result(small_scan) -> None:
+    a = reconstruct(small_scan, ReconstructionConfig(**{**FAST, "epochs": 6}))
+    b = reconstruct(small_scan, ReconstructionConfig(**{**FAST, "epochs": 6}))
+    for sa, sb in zip(a.snapshots, b.snapshots, strict=True):
+        for k in sa:
+            assert torch.equal(sa[k], sb[k]), k
+
+
+@pytest.mark.parametrize("stop_at", [7, 10], ids=["mid-cycle", "after-snapshot"])
+def test_resume_equals_uninterrupted_run(
+    small_scan, tmp_path: Path, stop_at: int
+) -> None:
+    cfg = ReconstructionConfig(**FAST)
+    ref = reconstruct(small_scan, cfg)
+    ck = tmp_path / "ck.pt"
+
+    def stop(info) -> None:
+        if info.step == stop_at:
+            raise _Stop
+
+    with pytest.raises(_Stop):
+        reconstruct(small_scan, cfg, checkpoint=ck, callback=stop)
+    saved = load_checkpoint(ck)
+    assert saved.step == 5 if stop_at == 7 else saved.step == 10
+    res = reconstruct(small_scan, cfg, checkpoint=ck, resume=True)
+    assert len(res.snapshots) == len(ref.snapshots)
+    for sa, sb in zip(res.snapshots, ref.snapshots, strict=True):
+        for k in sa:
+            assert torch.equal(sa[k], sb[k]), k
+    # the parameters are bitwise equal; logged float64 losses may differ in the
+    # last bit between calls (threaded reductions), hence 1e-12
+    assert res.history["loss"] == pytest.approx(ref.history["loss"], rel=1e-12)
+
+
+def test_resume_with_other_config_is_refused(small_scan, tmp_path: Path) -> None:
+    ck = tmp_path / "ck.pt"
+    reconstruct(
+        small_scan, ReconstructionConfig(**{**FAST, "epochs": 6}), checkpoint=ck
+    )
+    with pytest.raises(ValueError, match="different config"):
+        reconstruct(
+            small_scan,
+            ReconstructionConfig(**{**FAST, "epochs": 6, "seed": 1}),
+            checkpoint=ck,
+            resume=True,
+        )
+
+
+def test_corrupt_checkpoint(tmp_path: Path) -> None:
+    bad = tmp_path / "ck.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="cannot read checkpoint"):
+        load_checkpoint(bad)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"epochs": 10, "snapshots": 3}, "multiple of snapshots"),
+        ({"dims": 5}, "dims must be 4 or 6"),
+        ({"image_loss": "l3"}, "image_loss"),
+        ({"n_particles": 3}, "n_particles"),
+    ],
+    ids=["cycles", "dims", "loss", "particles"],
+)
+def test_bad_config(kwargs: dict, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        ReconstructionConfig(**kwargs)
+
+
+def test_bad_train_indices(small_scan) -> None:
+    with pytest.raises(ValueError, match="train_indices"):
+        reconstruct(small_scan, ReconstructionConfig(**FAST), train_indices=[0, 99])
+
+
+def test_six_dimensional_training_runs(small_scan) -> None:
+    cfg = ReconstructionConfig(**{**FAST, "dims": 6, "epochs": 6})
+    r = reconstruct(small_scan, cfg)
+    x = r.sample(500)
+    assert (x[:, 4:].std(0) > 0).all()
+    assert "z" in r.unconstrained_coordinates()
