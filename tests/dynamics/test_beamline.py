@@ -7,7 +7,7 @@ import json
 import pytest
 import torch
 
-from diffaccel.dynamics import Beamline, LinearMap, Quadrupole, Screen
+from diffaccel.dynamics import Beamline, Element, LinearMap, Quadrupole, Screen
 
 P0C = 43.36e6  # [eV]
 SPEC = [
@@ -151,3 +151,31 @@ def test_bad_particles_raise(particles, p0c, match: str) -> None:
         line.track(particles, p0c)
     with pytest.raises(ValueError, match=match):
         line["D1"].track(particles, p0c)
+
+
+class _Kick(Element):
+    """A user element that implements only ``track`` (the required method)."""
+
+    param_names = ("strength",)
+
+    def __init__(self, name: str, strength: float | torch.Tensor = 0.0) -> None:
+        super().__init__(name)
+        self._set_param("strength", strength)
+
+    def track(self, particles, p0c, species=None):
+        unit = particles.new_tensor([0.0, 1.0, 0.0, 0.0, 0.0, 0.0])
+        return particles + self.strength.to(particles)[..., None, None] * unit
+
+
+def test_user_element_with_only_track_works_in_beamline(make_beam) -> None:
+    line = Beamline([_Kick("K", 1e-3), Beamline.from_spec(SPEC)["D1"]])
+    beam = make_beam(20)
+    out = line.track(
+        beam,
+        P0C,
+        settings=torch.tensor([[1e-3], [2e-3]], dtype=torch.float64),
+        names=["K.strength"],
+    )
+    assert out.shape == (2, 20, 6)
+    ref = line["D1"].track(_Kick("K", 2e-3).track(beam, P0C), P0C)
+    torch.testing.assert_close(out[1], ref, rtol=1e-13, atol=1e-16)
