@@ -5,8 +5,9 @@ Drift(1 m) + 100 x 100 screen (1 mm pixels), images by cloud-in-cell and by
 Gaussian KDE (bandwidth one pixel). Forward = track + image; forward+backward adds
 ``image.square().sum().backward()`` to the particles.
 
-Variants: ``ours_*`` exact chromatic ``Beamline.track_screens``; ``ours_linear_*``
-the same lattice through ``Beamline.linearized`` (one 6x6 map per setting);
+Variants: ``ours_*`` exact chromatic tracking, ``Beamline.screen_images`` (the
+images straight from the tracked columns); ``ours_linear_*`` the same lattice
+through ``Beamline.linearized`` (one 6x6 map per setting);
 ``cheetah_*`` cheetah 0.8.4 with its default linear quadrupole;
 ``cheetah_dkd_*`` cheetah's exact chromatic ``drift_kick_drift`` quadrupole.
 ``ratio_vs_cheetah_*`` compare like with like (linear vs linear);
@@ -69,17 +70,17 @@ def _ours(
         {"type": "Screen", "name": "SCREEN"},
     ]
     line = Beamline.from_spec(spec).with_screen("SCREEN", SHAPE, (PIXEL, PIXEL))
-    screen = line["SCREEN"]
 
     def run() -> torch.Tensor:
         p = beam.clone().requires_grad_(backward)
         if linear:
             lin = line.with_params({"Q1.k1": k1}).linearized(P0C)
-            at_screen = lin.track_screens(p, P0C)["SCREEN"]
+            image = lin.screen_images(p, P0C, method=method)["SCREEN"]
         else:
             settings = k1.unsqueeze(-1)
-            at_screen = line.track_screens(p, P0C, settings, ["Q1.k1"])["SCREEN"]
-        image = screen.image(at_screen, method=method)
+            image = line.screen_images(p, P0C, settings, ["Q1.k1"], method=method)[
+                "SCREEN"
+            ]
         if backward:
             image.square().sum().backward()
         return image

@@ -179,3 +179,25 @@ def test_user_element_with_only_track_works_in_beamline(make_beam) -> None:
     assert out.shape == (2, 20, 6)
     ref = line["D1"].track(_Kick("K", 2e-3).track(beam, P0C), P0C)
     torch.testing.assert_close(out[1], ref, rtol=1e-13, atol=1e-16)
+
+
+@pytest.mark.parametrize("linear", [False, True], ids=["exact", "linearized"])
+@pytest.mark.parametrize("method", ["cic", "kde"], ids=["cic", "kde"])
+def test_screen_images_equal_track_screens_then_image(
+    method: str, linear: bool, make_beam
+) -> None:
+    line = Beamline.from_spec(SPEC).with_screen("SCREEN", (24, 20), 1e-3)
+    beam = make_beam(300).requires_grad_(True)
+    k1 = torch.tensor([[10.0], [-10.0], [0.0]], dtype=torch.float64)
+    if linear:
+        line = line.with_params({"Q1.k1": k1[:, 0]}).linearized(P0C)
+        kw = {}
+    else:
+        kw = {"settings": k1, "names": ["Q1.k1"]}
+    images = line.screen_images(beam, P0C, method=method, **kw)["SCREEN"]
+    at = line.track_screens(beam, P0C, **kw)["SCREEN"]
+    ref = line["SCREEN"].image(at, method=method)
+    torch.testing.assert_close(images, ref, rtol=1e-12, atol=1e-15)
+    (g1,) = torch.autograd.grad(images.square().sum(), beam)
+    (g2,) = torch.autograd.grad(ref.square().sum(), beam)
+    torch.testing.assert_close(g1, g2, rtol=1e-10, atol=1e-12)

@@ -272,6 +272,40 @@ class Beamline(nn.Module):
         """
         return self._run(particles, p0c, settings, names, species)[1]
 
+    def screen_images(
+        self,
+        particles: Tensor,
+        p0c: Tensor | float,
+        settings: Tensor | None = None,
+        names: Sequence[str] | None = None,
+        species: Species = ELECTRON,
+        method: str = "cic",
+        bandwidth: Sequence[float] | float | None = None,
+        blur_sigma: Sequence[float] | float | None = None,
+        weights: Tensor | None = None,
+    ) -> dict[str, Tensor]:
+        """Images at every screen, ``{name: (*K, H, W)}``, in one pass.
+
+        Equal to ``screen.image(track_screens(...)[name], ...)`` for each screen,
+        but renders straight from the tracked ``x, y`` columns: the ``(*K, N, 6)``
+        particles at the screens are never assembled, which saves memory traffic
+        in scans (and, in the backward pass, the gradients of unused coordinates).
+        Tracking arguments as in :meth:`track`; image arguments as in
+        :meth:`Screen.image`. Every screen needs a geometry.
+        """
+        check_particles(particles)
+        p0c = as_p0c(p0c, particles)
+        line = self._scanned(settings, names)
+        images: dict[str, Tensor] = {}
+        coords = tuple(particles.unbind(-1))
+        for e in line.elements:
+            coords = e.track_columns(coords, p0c, species)
+            if isinstance(e, Screen):
+                images[e.name] = e.image_xy(
+                    coords[0], coords[2], method, bandwidth, blur_sigma, weights
+                )
+        return images
+
     def _run(
         self,
         particles: Tensor,

@@ -6,7 +6,6 @@ import torch
 from torch import Tensor
 
 from diffaccel.dynamics._validate import check_nonnegative
-from diffaccel.dynamics.elements._kernels import stack_columns
 from diffaccel.dynamics.elements.element import Coords, Element
 from diffaccel.dynamics.species import ELECTRON, Species
 
@@ -65,9 +64,9 @@ class LinearMap(Element):
 
     def track_columns(self, coords: Coords, p0c: Tensor, species: Species) -> Coords:
         """Unchecked column tracking (see :meth:`Element.track_columns`)."""
-        particles = stack_columns(coords)
-        r = self.matrix.to(particles)
-        return tuple((particles @ r.transpose(-1, -2)).unbind(-1))  # type: ignore[return-value]
+        # coordinates as rows (..., 6, N): the product gives contiguous columns
+        rows = torch.stack(torch.broadcast_tensors(*coords), dim=-2)
+        return tuple((self.matrix.to(rows) @ rows).unbind(-2))  # type: ignore[return-value]
 
     def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
         """The matrix itself, shape ``(*K, 6, 6)``."""

@@ -120,13 +120,25 @@ class Screen(Element):
             ValueError: if the screen has no geometry, ``method`` is unknown or
                 an option does not belong to the method.
         """
+        check_particles(particles, check_finite=False)  # x, y are checked below
+        x, y = particles[..., 0:3:2].unbind(-1)
+        return self.image_xy(x, y, method, bandwidth, blur_sigma, weights)
+
+    def image_xy(
+        self,
+        x: Tensor,
+        y: Tensor,
+        method: str = "cic",
+        bandwidth: Sequence[float] | float | None = None,
+        blur_sigma: Sequence[float] | float | None = None,
+        weights: Tensor | None = None,
+    ) -> Tensor:
+        """Image from positions ``x, y`` [m] shaped ``(*K, N)``; see :meth:`image`."""
         if self.shape is None or self.pixel_size is None:
             raise ValueError(
                 f"Screen {self.name!r} has no geometry; build it with shape and "
                 "pixel_size, or use Beamline.with_screen(...)."
             )
-        check_particles(particles, check_finite=False)  # x, y are checked below
-        x, y = particles[..., 0:3:2].unbind(-1)
         if method == "cic":
             if bandwidth is not None:
                 raise ValueError("bandwidth applies to method='kde' only.")
