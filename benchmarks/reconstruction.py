@@ -1,0 +1,188 @@
+"""Phase-space reconstruction on the GPSR 4D benchmark: diffaccel vs gpsr 0.2.0.
+
+Both are trained on the even settings of ``../shared/data/phase_space/
+gpsr_4d_synthetic.h5`` and tested on the odd ones, in the same process, on the
+same threads. diffaccel runs with its default options (as ``diffaccel
+reconstruct`` would); gpsr runs its documented 4D recipe: ``NNParticleBeam
+Generator`` (10 000 particles), ``GPSRQuadScanLattice`` with a cheetah
+cloud-in-cell ``Screen``, ``train_gpsr`` (Adam 1e-3, MAE on sum-normalised
+images, one batch of all training images) for 2000 epochs.
+
+Held-out images are predicted by each package's own model (gpsr: its lattice
+and screen with the odd settings) and compared with the measured,
+sum-normalised images; both packages' particles are also scored by the same
+diffaccel screen model. Prints one JSON object on the last line.
+
+Usage: ``python benchmarks/reconstruction.py [--skip-gpsr] [--gpsr-epochs N]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from diffaccel.data import read_quad_scan
+from diffaccel.dynamics.coordinates import cheetah_to_bmad
+from diffaccel.reconstruction import (
+    ReconstructionConfig,
+    ScreenForwardModel,
+    image_errors,
+    moment_errors,
+    reconstruct,
+)
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "phase_space"
+DATASET = DATA / "gpsr_4d_synthetic.h5"
+KEYS = ("rms_x", "rms_px", "rms_y", "rms_py", "emit_x", "emit_y", "emit_4d")
+
+
+def _errors(particles: torch.Tensor, truth: torch.Tensor) -> dict[str, float]:
+    e = moment_errors(particles, truth)
+    return {k: e[k] for k in KEYS} | {"corr_max_abs": e["corr_max_abs"]}
+
+
+def run_diffaccel(ds, train, test) -> dict:
+    cfg = ReconstructionConfig()
+    t0 = time.perf_counter()
+    result = reconstruct(ds, cfg, train_indices=train)
+    wall = time.perf_counter() - t0
+    pred = result.predict_images(ds.settings)
+    meas = ds.mean_images()
+    x = result.sample(100_000)
+    return {
+        "wall_s": wall,
+        "config": cfg.to_dict(),
+        "errors": _errors(x, ds.ground_truth),
+        "held_out_images": image_errors(pred[test], meas[test]),
+        "train_images": image_errors(pred[train], meas[train]),
+    }
+
+
+def run_gpsr(ds, train, test, epochs: int) -> dict:
+    import lightning as L  # noqa: F401  (gpsr's trainer)
+    from cheetah.accelerator import Screen
+    from gpsr.beams import NNParticleBeamGenerator
+    from gpsr.datasets import QuadScanDataset as GQuadScanDataset
+    from gpsr.modeling import GPSR, GPSRQuadScanLattice
+    from gpsr.train import train_gpsr
+    from torch.utils.data import DataLoader
+
+    h, w = ds.screen_shape
+    mass = 0.51099895e6
+    energy = (ds.p0c**2 + mass**2) ** 0.5
+    spec = {e["name"]: e for e in ds.beamline_spec}
+    screen = Screen(
+        resolution=(w, h),
+        pixel_size=torch.tensor(ds.pixel_size, dtype=torch.float32),
+        method="cloud-in-cell",
+        is_active=True,
+    )
+    lattice = GPSRQuadScanLattice(spec["Q1"]["length"], spec["D1"]["length"], screen)
+    # cheetah's screen reading has the same orientation as our files (checked:
+    # truth particles through this lattice match the stored images unflipped)
+    images = ds.mean_images()
+    train_set = GQuadScanDataset(ds.settings[train].float(), (images[train],), screen)
+    loader = DataLoader(train_set, batch_size=len(train))
+    torch.manual_seed(0)
+    model = GPSR(NNParticleBeamGenerator(10_000, energy), lattice)
+    with tempfile.TemporaryDirectory() as tmp:
+        from lightning.pytorch.loggers import CSVLogger
+
+        t0 = time.perf_counter()
+        lit = train_gpsr(
+            model,
+            loader,
+            n_epochs=epochs,
+            logger=CSVLogger(tmp),
+            checkpoint_period_epochs=epochs,
+            enable_progress_bar=False,
+            enable_model_summary=False,
+        )
+        wall = time.perf_counter() - t0
+    gm = lit.gpsr_model
+    with torch.no_grad():
+        beam = gm.beam_generator()
+        # A fresh lattice and screen: calling the trained model with new settings
+        # can return the cached images of the training settings (ANCHORS.md).
+        fresh = Screen(
+            resolution=(w, h),
+            pixel_size=torch.tensor(ds.pixel_size, dtype=torch.float32),
+            method="cloud-in-cell",
+            is_active=True,
+        )
+        lat = GPSRQuadScanLattice(spec["Q1"]["length"], spec["D1"]["length"], fresh)
+        lat.set_lattice_parameters(ds.settings.float())
+        pred = lat.track_and_observe(beam)[0]
+        pred = pred / pred.sum((-2, -1), keepdim=True)
+        cheetah = beam.particles[:, :6].double()
+        x = cheetah_to_bmad(cheetah, ds.p0c)
+    x[:, 4:] = 0.0  # a 4D reconstruction: no longitudinal information
+    meas = ds.mean_images()
+    fwd = ScreenForwardModel.from_dataset(ds)
+    ours = fwd.images_linear(x.float(), fwd.transfer_matrices(ds.settings))
+    ours = ours / ours.sum((-2, -1), keepdim=True)
+    return {
+        "wall_s": wall,
+        "epochs": epochs,
+        "errors": _errors(x, ds.ground_truth),
+        "held_out_images": image_errors(pred[test], meas[test]),
+        "train_images": image_errors(pred[train], meas[train]),
+        "held_out_images_diffaccel_screen": image_errors(ours[test], meas[test]),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--skip-gpsr", action="store_true")
+    ap.add_argument("--gpsr-epochs", type=int, default=2000)
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    ds = read_quad_scan(DATASET)
+    k = ds.n_settings
+    train, test = list(range(0, k, 2)), list(range(1, k, 2))
+    out: dict = {
+        "name": "reconstruction_gpsr_4d",
+        "dataset": str(DATASET.resolve()),
+        "train_indices": train,
+        "test_indices": test,
+        "threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+        "device": "cpu",
+        "load_avg_1min_at_start": os.getloadavg()[0],
+    }
+    try:
+        out["git_commit"] = subprocess.run(
+            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        out["git_commit"] = None
+    out["diffaccel"] = run_diffaccel(ds, train, test)
+    if not args.skip_gpsr:
+        out["gpsr"] = run_gpsr(ds, train, test, args.gpsr_epochs)
+        d, g = out["diffaccel"], out["gpsr"]
+        out["ratios"] = {
+            "wall_gpsr_over_diffaccel": g["wall_s"] / d["wall_s"],
+            "held_out_rel_l1_diffaccel_over_gpsr": d["held_out_images"]["relative_l1"]
+            / g["held_out_images"]["relative_l1"],
+        }
+    out["load_avg_1min_at_end"] = os.getloadavg()[0]
+    for part in ("diffaccel", "gpsr"):
+        if part in out:
+            for key in ("held_out_images", "train_images"):
+                out[part][key].pop("relative_l1_per_setting", None)
+    print(json.dumps(out), file=sys.stdout)
+
+
+if __name__ == "__main__":
+    main()
