@@ -127,9 +127,10 @@ def plot_corner(
     title = f"Reconstructed phase space ({reconstruction.n_snapshots}-member ensemble"
     title += ", contours/lines: ground truth)" if tru is not None else ")"
     fig.suptitle(title)
+    fig.tight_layout(rect=(0, 0, 1, 0.96))
     if tru is not None:
-        axes[0, 0].legend(loc="upper left", bbox_to_anchor=(1.05, 1.0), frameon=False)
-    fig.tight_layout()
+        handles, labels = axes[0, 0].get_legend_handles_labels()
+        fig.legend(handles, labels, loc="upper right", frameon=False)
     return fig
 
 
