@@ -36,17 +36,9 @@ def test_gpsr_4d_rms_sizes_within_3_percent(gpsr_errors, key: str) -> None:
     assert abs(gpsr_errors[key]) < 0.03, gpsr_errors[key]
 
 
-def test_gpsr_4d_emit_y_within_5_percent(gpsr_errors) -> None:
-    assert abs(gpsr_errors["emit_y"]) < 0.05, gpsr_errors["emit_y"]
-
-
-@pytest.mark.xfail(
-    reason="known: emit_x comes out +7 to +12 % (x-px correlation -0.98, waist of "
-    "0.6 pixel rms: the x emittance hinges on a sub-pixel image width)",
-    strict=False,
-)
-def test_gpsr_4d_emit_x_within_5_percent(gpsr_errors) -> None:
-    assert abs(gpsr_errors["emit_x"]) < 0.05, gpsr_errors["emit_x"]
+@pytest.mark.parametrize("key", ["emit_x", "emit_y"])
+def test_gpsr_4d_emittances_within_5_percent(gpsr_errors, key: str) -> None:
+    assert abs(gpsr_errors[key]) < 0.05, gpsr_errors[key]
 
 
 @pytest.mark.skipif(not AWA.exists(), reason="shared reference data not present")
