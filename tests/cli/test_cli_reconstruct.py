@@ -34,7 +34,15 @@ def scan_file(tmp_path_factory) -> Path:
 def result_dir(scan_file: Path, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("res") / "out"
     r = CliRunner().invoke(
-        main, ["reconstruct", str(scan_file), "--out", str(out), *FAST]
+        main,
+        [
+            "reconstruct",
+            str(scan_file),
+            "--out",
+            str(out),
+            "--train-indices=even",
+            *FAST,
+        ],
     )
     assert r.exit_code == 0, r.output
     return out

@@ -287,9 +287,10 @@ def run_reconstruction(
 @click.option("--device", default="cpu", show_default=True, help="cpu, cuda, cuda:1...")
 @click.option(
     "--train-indices",
-    default="even",
+    default="all",
     show_default=True,
-    help="Settings to train on: even, odd, all, or a list like 0,2,4.",
+    help="Settings to train on: all, even, odd, or a list like 0,2,4; the others "
+    "are held out and scored (use 'even' to validate on the odd settings).",
 )
 @click.option(
     "--dims",
