@@ -133,12 +133,14 @@ def summarize(
             "unconstrained_note": (
                 "coordinates the scan does not see to first order (their column of "
                 "the transfer matrices to screen x/y is ~0); their values follow the "
-                "prior (ReconstructionConfig.longitudinal_scale) and the ensemble "
-                "spread understates their uncertainty"
+                "prior (ReconstructionConfig.longitudinal_scale), so their moments "
+                "are unknown: the small ensemble spread of these coordinates is NOT "
+                "an uncertainty estimate"
             ),
             "uncertainty_note": (
-                "std = spread over snapshot-ensemble members; it under-covers the "
-                "actual error (see ANCHORS.md)"
+                "std = spread over snapshot-ensemble members; it describes "
+                "optimisation scatter and under-covers the actual error (on "
+                "benchmarks with known truth the error was several std)"
             ),
             "metrics": metrics,
             "timings_s": result.info.get("timings_s", {}),

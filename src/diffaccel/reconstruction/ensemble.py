@@ -39,7 +39,7 @@ class Reconstruction:
     """A reconstructed beam: one generator per snapshot of the cyclic schedule.
 
     The ensemble stands for the distribution over beams that fit the images;
-    its spread is the (under-covering, see ANCHORS.md) uncertainty.
+    its spread is the (under-covering) uncertainty.
 
     Args:
         config: Settings the ensemble was trained with.

@@ -205,7 +205,7 @@ def image_penalty(
     shape with the sum-normalised measurement, and mass off the screen beyond
     the allowance ``a`` (see :func:`off_screen_allowance`) is penalised in the
     same units (fraction of the beam). Sum-normalisation alone hides a halo
-    pushed off the screen (ANCHORS.md); comparing unnormalised images instead
+    pushed off the screen; comparing unnormalised images instead
     would bias beams whose real tails are clipped by the screen.
 
     Args:
