@@ -80,9 +80,7 @@ def test_no_type_checking_or_function_level_diffaccel_imports(path: Path) -> Non
 
 def test_top_level_package_holds_version_only() -> None:
     tree = ast.parse((SRC / "__init__.py").read_text())
-    names = [
-        t.id for n in tree.body if isinstance(n, ast.Assign) for t in n.targets
-    ]
+    names = [t.id for n in tree.body if isinstance(n, ast.Assign) for t in n.targets]
     assert names == ["__version__"]
     assert not any(isinstance(n, ast.Import | ast.ImportFrom) for n in tree.body)
 

@@ -8,8 +8,12 @@ from pathlib import Path
 
 import click
 
-from diffaccel.cli.reconstruct import _atomic_text, prepare_out_dir, run_reconstruction
-from diffaccel.data import make_synthetic_quad_scan, write_quad_scan
+from diffaccel.cli.reconstruct import prepare_out_dir, run_reconstruction
+from diffaccel.data import (
+    atomic_write_text,
+    make_synthetic_quad_scan,
+    write_quad_scan,
+)
 from diffaccel.reconstruction import ReconstructionConfig
 
 __all__ = ["demo"]
@@ -96,6 +100,6 @@ def demo(out: Path, force: bool, seed: int) -> None:
     )
     seconds = time.perf_counter() - t0
     report = out / "report.md"
-    _atomic_text(report, _report(summary, path, seconds))
+    atomic_write_text(report, _report(summary, path, seconds))
     click.echo(json.dumps({"report": str(report), "seconds": round(seconds, 1)}))
     click.echo(f"report: {report}")

@@ -4,9 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
-from collections.abc import Callable
 from pathlib import Path
 
 import click
@@ -16,6 +13,8 @@ from tqdm import tqdm
 from diffaccel.data import (
     DEFAULT_INPUT_COLUMN,
     DEFAULT_OUTPUT_COLUMN,
+    atomic_write,
+    atomic_write_text,
     read_magnet_csv,
     write_csv_atomic,
 )
@@ -32,28 +31,8 @@ FIGURES = ("fit.png", "density.png")
 RANGE_MARGIN = 0.01
 
 
-def _atomic(dest: Path, write: Callable[[Path], None]) -> None:
-    """Write via ``write(tmp)`` to a temporary file beside ``dest``, then rename."""
-    fd, tmp = tempfile.mkstemp(dir=dest.parent, prefix=f".{dest.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600 files
-        os.replace(tmp, dest)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
 def _write_json(dest: Path, obj: dict) -> None:
-    _atomic(dest, lambda p: p.write_text(json.dumps(obj, indent=2) + "\n"))
+    atomic_write_text(dest, json.dumps(obj, indent=2) + "\n")
 
 
 def _rms(x: torch.Tensor) -> float | None:
@@ -221,7 +200,7 @@ def fit_command(
     }
     out_dir.mkdir(parents=True, exist_ok=True)
     tensors = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
-    _atomic(out_dir / MODEL_FILE, lambda p: torch.save(tensors, p))
+    atomic_write(out_dir / MODEL_FILE, lambda p: torch.save(tensors, p))
     config = {**model.config(), "input_column": input_col, "output_column": output_col}
     _write_json(out_dir / CONFIG_FILE, config)
     fig = plot_preisach_fit(
@@ -232,9 +211,11 @@ def fit_command(
         input_label=input_col,
         output_label=output_col,
     )
-    _atomic(out_dir / "fit.png", lambda p: fig.savefig(p, format="png", dpi=120))
+    atomic_write(out_dir / "fit.png", lambda p: fig.savefig(p, format="png", dpi=120))
     fig = plot_preisach_density(model, input_label=input_col)
-    _atomic(out_dir / "density.png", lambda p: fig.savefig(p, format="png", dpi=120))
+    atomic_write(
+        out_dir / "density.png", lambda p: fig.savefig(p, format="png", dpi=120)
+    )
     _write_json(out_dir / SUMMARY_FILE, summary)
     test_txt = (
         "n/a" if test_rmse is None else f"{test_rmse:.4g} ({pct(test_rmse):.3f} %)"

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import tempfile
 import warnings
 from pathlib import Path
 
@@ -13,7 +11,7 @@ import click
 import torch
 from tqdm import tqdm
 
-from diffaccel.data import read_magnet_csv
+from diffaccel.data import atomic_write, atomic_write_text, read_magnet_csv
 from diffaccel.hysteresis import (
     HysteresisGP,
     PreisachMesh,
@@ -30,18 +28,6 @@ SUMMARY_FILE = "gp_summary.json"
 FIGURE_FILE = "gp_fit.png"
 # margin added to the data range of the hysteretic input (fraction of the range)
 RANGE_MARGIN = 0.01
-
-
-def _atomic_write(dest: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(dir=dest.parent, prefix=f".{dest.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, dest)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 @click.command("gp-fit")
@@ -182,18 +168,8 @@ def gp_fit(
     }
     out_dir.mkdir(parents=True, exist_ok=True)
     fig = plot_hgp_history(model, column=0, xlabel=x_col, ylabel=y_col)
-    fd, tmp = tempfile.mkstemp(dir=out_dir, prefix=f".{FIGURE_FILE}.", suffix=".png")
-    os.close(fd)
-    try:
-        fig.savefig(tmp, dpi=120)
-        os.replace(tmp, out_dir / FIGURE_FILE)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    _atomic_write(
-        out_dir / SUMMARY_FILE, (json.dumps(summary, indent=2) + "\n").encode()
-    )
+    atomic_write(out_dir / FIGURE_FILE, lambda p: fig.savefig(p, format="png", dpi=120))
+    atomic_write_text(out_dir / SUMMARY_FILE, json.dumps(summary, indent=2) + "\n")
     click.echo(
         f"H-GP noise sigma {res.noise_sigma:.4g} "
         f"(plain GP {plain_fit.noise_sigma:.4g}), "

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -18,6 +16,8 @@ from tqdm import tqdm
 from diffaccel.data import (
     FormatError,
     QuadScanDataset,
+    atomic_write,
+    atomic_write_text,
     read_quad_scan,
     write_openpmd_particles,
 )
@@ -67,18 +67,6 @@ def parse_train_indices(text: str, k: int) -> list[int]:
             f"indices must be distinct and in [0, {k}); got {text!r}"
         )
     return idx
-
-
-def _atomic_text(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
 
 
 def _clean(obj: Any) -> Any:
@@ -171,10 +159,7 @@ def write_figures(
     paths = []
     for name, fig in figs.items():
         path = out / name
-        fd, tmp = tempfile.mkstemp(dir=out, prefix=name, suffix=".tmp.png")
-        os.close(fd)
-        fig.savefig(tmp, dpi=110)
-        os.replace(tmp, path)
+        atomic_write(path, lambda p, fig=fig: fig.savefig(p, format="png", dpi=110))
         paths.append(path)
     return paths
 
@@ -252,7 +237,7 @@ def run_reconstruction(
         summary["figures"] = [p.name for p in write_figures(result, ds, idx, out)]
     summary["timings_s"]["total_wall"] = time.perf_counter() - t0
     summary["timings_s"]["reconstruct_wall"] = t_train
-    _atomic_text(out / "summary.json", json.dumps(_clean(summary), indent=2))
+    atomic_write_text(out / "summary.json", json.dumps(_clean(summary), indent=2))
     return summary
 
 
@@ -434,14 +419,12 @@ def predict(
     except (FormatError, ValueError, FileNotFoundError, OSError) as err:
         raise click.ClickException(str(err)) from err
     out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=out.name, suffix=".tmp.npy")
-    os.close(fd)
-    try:
-        np.save(tmp, images.numpy().astype(np.float32))
-        os.replace(tmp, out)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
+    array = images.numpy().astype(np.float32)
+
+    def _save(p: Path) -> None:
+        with p.open("wb") as f:
+            np.save(f, array)
+
+    atomic_write(out, _save)
     k, h, w = images.shape
     click.echo(f"wrote {out}: {k} images of {h} x {w} pixels")

@@ -5,6 +5,7 @@ naming the offending field. Coordinates in memory are always Bmad
 (x, px, y, py, z, pz); foreign conventions are converted at the file boundary.
 """
 
+from diffaccel.data.atomic import atomic_write, atomic_write_bytes, atomic_write_text
 from diffaccel.data.errors import FormatError
 from diffaccel.data.magnet_csv import (
     DEFAULT_INPUT_COLUMN,
@@ -46,6 +47,9 @@ __all__ = [
     "FormatError",
     "MagnetHistory",
     "QuadScanDataset",
+    "atomic_write",
+    "atomic_write_bytes",
+    "atomic_write_text",
     "average_shots",
     "center_centroids",
     "crop_to_beam",

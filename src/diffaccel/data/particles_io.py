@@ -24,7 +24,6 @@ pz = |P| / P0 - 1, particles at one longitudinal position).
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import h5py
@@ -32,6 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from diffaccel.data.atomic import atomic_write
 from diffaccel.data.errors import FormatError
 from diffaccel.dynamics import Species
 from diffaccel.dynamics.coordinates import bmad_to_openpmd, openpmd_to_bmad
@@ -123,9 +123,8 @@ def write_openpmd_particles(
         raise ValueError(f"particles_bmad: {err}") from err
     arrays = {k: np.asarray(v.detach().cpu().double().numpy()) for k, v in data.items()}
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
+
+    def _write(tmp: Path) -> None:
         with h5py.File(tmp, "w") as h5:
             h5.attrs["openPMD"] = "2.0.0"
             h5.attrs["openPMDextension"] = "BeamPhysics;SpeciesType"
@@ -150,11 +149,8 @@ def write_openpmd_particles(
             _write_record(
                 g, "particleStatus", np.ones(n, dtype=np.int32), "particleStatus"
             )
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+
+    return atomic_write(path, _write)
 
 
 def _write_record(group: h5py.Group, name: str, values: np.ndarray, kind: str) -> None:

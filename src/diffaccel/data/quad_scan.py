@@ -12,7 +12,6 @@ import copy
 import json
 import math
 import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -23,6 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from diffaccel.data.atomic import atomic_write
 from diffaccel.data.errors import FormatError
 from diffaccel.dynamics import ELEMENT_TYPES, Beamline, Species
 from diffaccel.dynamics.coordinates import cheetah_to_bmad
@@ -660,12 +660,9 @@ def write_quad_scan(
     except (TypeError, ValueError) as err:
         raise FormatError(f"metadata: not JSON-serialisable ({err})") from err
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(
-        dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"
-    )
-    os.close(fd)
-    try:
-        with h5py.File(tmp_name, "w") as h5:
+
+    def _write(tmp: Path) -> None:
+        with h5py.File(tmp, "w") as h5:
             h5.attrs["format"] = FORMAT_NAME
             h5.attrs["format_version"] = np.int64(FORMAT_VERSION)
             h5.attrs["p0c"] = np.float64(dataset.p0c)
@@ -698,8 +695,5 @@ def write_quad_scan(
                 )
                 gt.attrs["coordinates"] = json.dumps(list(BMAD_COORDINATES))
                 gt.attrs["convention"] = BMAD_CONVENTION
-        os.replace(tmp_name, path)
-    except BaseException:
-        Path(tmp_name).unlink(missing_ok=True)
-        raise
-    return path
+
+    return atomic_write(path, _write)

@@ -1,0 +1,78 @@
+"""Atomic file writes: readers never see a half-written file.
+
+Every file diffaccel writes goes through :func:`atomic_write`: the content is
+written to a temporary file in the destination's directory, which then replaces
+the destination with ``os.replace`` (atomic on POSIX and Windows). On any error
+the temporary file is removed and the destination is left as it was.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+__all__ = ["atomic_write", "atomic_write_bytes", "atomic_write_text"]
+
+
+def _default_mode() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+def atomic_write(
+    path: str | os.PathLike, write: Callable[[Path], object], *, overwrite: bool = True
+) -> Path:
+    """Write ``path`` atomically through ``write(tmp_path)``.
+
+    Args:
+        path: Destination file.
+        write: Called once with the temporary file's path; writes the content
+            there (e.g. ``lambda p: torch.save(obj, p)``). The temporary name
+            ends in ``.tmp``, so pass an explicit format where a writer guesses
+            it from the suffix (``fig.savefig(p, format="png")``).
+        overwrite: If False and ``path`` exists, raise ``FileExistsError``.
+
+    Returns:
+        The destination path.
+
+    Raises:
+        FileExistsError: if ``path`` exists and ``overwrite`` is False.
+
+    Example:
+        >>> import tempfile
+        >>> d = Path(tempfile.mkdtemp())
+        >>> atomic_write(d / "a.txt", lambda p: p.write_text("hi")).read_text()
+        'hi'
+    """
+    dest = Path(path)
+    if not overwrite and dest.exists():
+        raise FileExistsError(f"{dest} exists; pass overwrite=True (CLI: --force).")
+    fd, tmp = tempfile.mkstemp(dir=dest.parent, prefix=f".{dest.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        write(Path(tmp))
+        os.chmod(tmp, _default_mode())  # mkstemp creates 0600 files
+        os.replace(tmp, dest)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return dest
+
+
+def atomic_write_bytes(
+    path: str | os.PathLike, data: bytes, *, overwrite: bool = True
+) -> Path:
+    """Write ``data`` to ``path`` atomically (see :func:`atomic_write`)."""
+    return atomic_write(path, lambda p: p.write_bytes(data), overwrite=overwrite)
+
+
+def atomic_write_text(
+    path: str | os.PathLike, text: str, *, overwrite: bool = True
+) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` atomically (see :func:`atomic_write`)."""
+    return atomic_write(
+        path, lambda p: p.write_text(text, encoding="utf-8"), overwrite=overwrite
+    )

@@ -1,0 +1,39 @@
+"""Atomic writes leave either the old file or the complete new one."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from diffaccel.data.atomic import atomic_write, atomic_write_bytes, atomic_write_text
+
+
+def test_failed_write_keeps_old_content_and_leaves_no_temp_file(tmp_path: Path) -> None:
+    dest = atomic_write_text(tmp_path / "a.json", "old")
+
+    def broken(p: Path) -> None:
+        p.write_text("half")
+        raise RuntimeError("disk full")
+
+    with pytest.raises(RuntimeError, match="disk full"):
+        atomic_write(dest, broken)
+    assert dest.read_text() == "old"
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["a.json"]
+
+
+def test_refuses_to_overwrite_when_asked(tmp_path: Path) -> None:
+    dest = atomic_write_bytes(tmp_path / "b.bin", b"1")
+    with pytest.raises(FileExistsError, match=r"b\.bin exists"):
+        atomic_write_bytes(dest, b"2", overwrite=False)
+    assert dest.read_bytes() == b"1"
+
+
+def test_file_mode_follows_umask_not_mkstemp(tmp_path: Path) -> None:
+    old = os.umask(0o022)
+    try:
+        dest = atomic_write_text(tmp_path / "c.txt", "x")
+    finally:
+        os.umask(old)
+    assert dest.stat().st_mode & 0o777 == 0o644
