@@ -201,3 +201,44 @@ def test_screen_images_equal_track_screens_then_image(
     (g1,) = torch.autograd.grad(images.square().sum(), beam)
     (g2,) = torch.autograd.grad(ref.square().sum(), beam)
     torch.testing.assert_close(g1, g2, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "batched", [False, True], ids=["beam (N, 6)", "beam (K, N, 6)"]
+)
+def test_linear_map_track_xy_equals_track_columns(batched: bool, make_beam) -> None:
+    g = torch.Generator().manual_seed(5)
+    matrix = torch.randn(4, 6, 6, generator=g, dtype=torch.float64)
+    m = LinearMap("M", matrix)
+    beam = make_beam(50)
+    if batched:
+        beam = beam.expand(4, 50, 6) * torch.linspace(0.5, 2.0, 4).reshape(4, 1, 1)
+    coords = tuple(beam.unbind(-1))
+    x, y = m.track_xy(coords)
+    full = m.track_columns(coords, torch.tensor(P0C), None)
+    assert x.shape == y.shape == (4, 50)
+    torch.testing.assert_close(x, full[0], rtol=1e-14, atol=1e-17)
+    torch.testing.assert_close(y, full[2], rtol=1e-14, atol=1e-17)
+
+
+def test_screen_images_with_screens_between_linear_maps(make_beam) -> None:
+    spec = [*SPEC, {"type": "Drift", "name": "D2", "length": 0.5}]
+    spec += [{"type": "Screen", "name": "S2"}]
+    line = (
+        Beamline.from_spec(spec)
+        .with_screen("SCREEN", (24, 20), 1e-3)
+        .with_screen("S2", (24, 20), 1e-3)
+    )
+    k1 = torch.tensor([10.0, -10.0], dtype=torch.float64)
+    lin = line.with_params({"Q1.k1": k1}).linearized(P0C)
+    assert [type(e).__name__ for e in lin] == ["LinearMap", "Screen"] * 2
+    beam = make_beam(200).requires_grad_(True)
+    images = lin.screen_images(beam, P0C)
+    at = lin.track_screens(beam, P0C)
+    for name in ("SCREEN", "S2"):
+        ref = lin[name].image(at[name])
+        torch.testing.assert_close(images[name], ref, rtol=1e-12, atol=1e-15)
+    (g1,) = torch.autograd.grad(sum(i.square().sum() for i in images.values()), beam)
+    ref = sum(lin[n].image(at[n]).square().sum() for n in ("SCREEN", "S2"))
+    (g2,) = torch.autograd.grad(ref, beam)
+    torch.testing.assert_close(g1, g2, rtol=1e-10, atol=1e-12)

@@ -168,3 +168,47 @@ def test_screen_unknown_method_raises() -> None:
     scr = Screen("S", shape=(4, 4), pixel_size=1e-3)
     with pytest.raises(ValueError, match="Unknown image method"):
         scr.image(torch.zeros(3, 6), method="histogram")
+
+
+def _tent_image(x, y, shape, pixel):
+    """Dense bilinear (tent-kernel) reference of ``cic_image``, differentiable."""
+    xs, ys = pixel_centers(shape, pixel, dtype=x.dtype)
+    wx = (1.0 - ((x.unsqueeze(-1) - xs) / pixel[0]).abs()).clamp(min=0.0)
+    wy = (1.0 - ((y.unsqueeze(-1) - ys) / pixel[1]).abs()).clamp(min=0.0)
+    return torch.einsum("...ni,...nj->...ij", wy, wx) / x.shape[-1]
+
+
+@pytest.mark.parametrize("batch", [(), (3,)], ids=["unbatched", "K3"])
+def test_cic_equals_dense_tent_reference_on_and_off_screen(batch) -> None:
+    # positions up to 3 pixels beyond each edge: the padding ring (particles
+    # within one pixel outside feed the edge; farther ones deposit nothing and
+    # get zero gradient) must match the tent kernel, values and gradients
+    g = torch.Generator().manual_seed(3)
+    shape, pixel = (7, 9), (1e-3, 2e-3)
+    x = (torch.rand(*batch, 400, generator=g, dtype=F64) - 0.5) * 15e-3
+    y = (torch.rand(*batch, 400, generator=g, dtype=F64) - 0.5) * 22e-3
+    x.requires_grad_(True)
+    y.requires_grad_(True)
+    image = cic_image(x, y, shape, pixel)
+    ref = _tent_image(x, y, shape, pixel)
+    torch.testing.assert_close(image, ref, rtol=1e-12, atol=1e-15)
+    weight = torch.rand(shape, generator=g, dtype=F64)
+    grads = torch.autograd.grad((image * weight).sum(), (x, y))
+    refs = torch.autograd.grad((ref * weight).sum(), (x, y))
+    for got, want in zip(grads, refs, strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
+    far = (x.detach().abs() > 6e-3) | (y.detach().abs() > 9e-3)
+    assert far.any()
+    assert torch.equal(grads[0][far], torch.zeros_like(grads[0][far]))
+
+
+def test_cic_huge_finite_positions_are_not_rejected() -> None:
+    # the fast finiteness check (a sum) overflows here; the exact check must
+    # then accept the finite positions
+    x = torch.tensor([3e38, 3e38, 0.0])
+    image = cic_image(x, torch.zeros(3), (5, 5), 1e-3)
+    assert image.sum().item() == pytest.approx(1 / 3)
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        cic_image(torch.tensor([0.0, float("inf")]), torch.zeros(2), (5, 5), 1e-3)
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        kde_image(torch.zeros(2), torch.tensor([float("nan"), 0.0]), (5, 5), 1e-3)

@@ -297,13 +297,25 @@ class Beamline(nn.Module):
         p0c = as_p0c(p0c, particles)
         line = self._scanned(settings, names)
         images: dict[str, Tensor] = {}
+        elements = list(line.elements)
+        # nothing after the last screen is needed; an element followed only by
+        # screens needs to produce x and y only (a LinearMap then skips 4 rows)
+        last = max(
+            (i for i, e in enumerate(elements) if isinstance(e, Screen)), default=-1
+        )
         coords = tuple(particles.unbind(-1))
-        for e in line.elements:
-            coords = e.track_columns(coords, p0c, species)
+        for i, e in enumerate(elements[: last + 1]):
             if isinstance(e, Screen):
                 images[e.name] = e.image_xy(
                     coords[0], coords[2], method, bandwidth, blur_sigma, weights
                 )
+            elif isinstance(e, LinearMap) and all(
+                isinstance(f, Screen) for f in elements[i + 1 : last + 1]
+            ):
+                x, y = e.track_xy(coords)
+                coords = (x, None, y, None, None, None)  # type: ignore[assignment]
+            else:
+                coords = e.track_columns(coords, p0c, species)
         return images
 
     def _run(

@@ -64,8 +64,7 @@ def _prepare(
         x, y, weights = torch.broadcast_tensors(x, y, weights.to(x))
     else:
         x, y = torch.broadcast_tensors(x, y)
-    if not bool(torch.isfinite(x).all() & torch.isfinite(y).all()):
-        raise ValueError("x and y contain NaN or infinite positions.")
+    _check_finite(x, y)
     batch = x.shape[:-1]
     n = x.shape[-1]
     x = x.reshape(-1, n)
@@ -73,6 +72,20 @@ def _prepare(
     if weights is not None:
         weights = weights.reshape(-1, n)
     return x, y, weights, batch
+
+
+def _check_finite(x: Tensor, y: Tensor) -> None:
+    """Raise if ``x`` or ``y`` holds a NaN or an infinity (one host sync).
+
+    A sum is one cheap reduction and is non-finite whenever an entry is; only
+    then (or if huge finite positions overflow it) is each entry checked.
+    """
+    with torch.no_grad():
+        if bool(torch.isfinite(x.sum() + y.sum())):
+            return
+        if bool(torch.isfinite(x).all() & torch.isfinite(y).all()):
+            return
+    raise ValueError("x and y contain NaN or infinite positions.")
 
 
 def pixel_centers(
@@ -193,10 +206,13 @@ def cic_image(
 class _CloudInCell(torch.autograd.Function):
     """Bilinear deposition of ``(B, N)`` positions on ``(B, H, W)`` pixel centres.
 
-    Deposits on a grid padded by one pixel on each side, then crops: every
-    corner index is valid, and positions are clamped into the padding ring, so a
-    particle far off the screen puts its weight in the padding (and gets zero
-    gradient). The backward pass gathers the four corner gradients per particle.
+    Deposits on a grid padded by two pixels on each side, then crops. Positions
+    are clamped into the padding ring (``[-2, W + 1]`` in pixel units): a
+    particle more than one pixel off the screen then has all four corners in the
+    padding, so it deposits nothing on the screen and gets zero gradient (no
+    masks), and every corner index is valid. The backward pass gathers, per
+    particle, two values of each of the grid differences ``dG/dx`` and ``dG/dy``
+    (formed once on the small grid) and interpolates them.
     """
 
     @staticmethod
@@ -209,60 +225,79 @@ class _CloudInCell(torch.autograd.Function):
     ) -> Tensor:
         h, w, ax, bx, ay, by = geometry
         b, n = x.shape
-        wp, hp = w + 2, h + 2
-        fx = x * ax + bx
-        fy = y * ay + by
-        in_x = (fx >= -1.0) & (fx <= float(w))
-        in_y = (fy >= -1.0) & (fy <= float(h))
-        fx = fx.clamp_(-1.0, float(w))
-        fy = fy.clamp_(-1.0, float(h))
-        j0 = fx.floor()
-        i0 = fy.floor()
-        tx = fx.sub_(j0)
-        ty = fy.sub_(i0)
+        wp, hp = w + 4, h + 4
+        # padded pixel coordinates (>= 0, so truncation is floor)
+        fx = torch.add(x.new_tensor(bx + 2.0), x, alpha=ax).clamp_(0.0, w + 3.0)
+        fy = torch.add(y.new_tensor(by + 2.0), y, alpha=ay).clamp_(0.0, h + 3.0)
         size = b * hp * wp
-        itype = torch.int32 if size + wp + 2 < 2**31 else torch.int64
-        base = torch.arange(b, device=x.device, dtype=itype).unsqueeze(-1)
-        idx = torch.addcmul(j0, i0, j0.new_tensor(float(wp))).to(itype)
-        idx += base * (hp * wp) + (wp + 1)
+        itype = torch.int32 if size + 2 * wp + 2 < 2**31 else torch.int64
+        jx = fx.to(itype)
+        jy = fy.to(itype)
+        tx = torch.frac(fx)
+        ty = torch.frac(fy)
+        idx = torch.add(jx, jy, alpha=wp)
+        if b > 1:
+            idx += torch.arange(0, size, hp * wp, device=x.device, dtype=itype)[:, None]
         idx = idx.reshape(-1)
         ux, uy = 1.0 - tx, 1.0 - ty
         if weights is not None:
             uy_w, ty_w = uy * weights, ty * weights
         else:
             uy_w, ty_w = uy, ty
-        flat = x.new_zeros(size + wp + 2)
-        for offset, value in (
-            (0, uy_w * ux),
-            (1, uy_w * tx),
-            (wp, ty_w * ux),
-            (wp + 1, ty_w * tx),
+        # one weighted histogram per corner (bincount is faster than index_add_),
+        # shifted onto the grid by the corner's offset
+        length = size + wp + 2
+        flat = None
+        value = torch.mul(uy_w, ux)
+        for offset, a, c in (
+            (0, uy_w, ux),
+            (1, uy_w, tx),
+            (wp, ty_w, ux),
+            (wp + 1, ty_w, tx),
         ):
-            flat[offset:].index_add_(0, idx, value.reshape(-1))
+            torch.mul(a, c, out=value)
+            counts = torch.bincount(idx, value.reshape(-1), minlength=length)
+            if flat is None:
+                flat = counts
+            else:
+                flat[offset:] += counts[: length - offset]
         ctx.geometry = geometry
         ctx.shape = (b, n)
-        ctx.save_for_backward(idx, tx, ty, in_x, in_y, weights)
-        return flat[:size].reshape(b, hp, wp)[:, 1:-1, 1:-1].clone()
+        ctx.save_for_backward(idx, tx, ty, weights)
+        return flat[:size].reshape(b, hp, wp)[:, 2:-2, 2:-2].clone()
 
     @staticmethod
     def backward(ctx, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
-        idx, tx, ty, in_x, in_y, weights = ctx.saved_tensors
-        _, w, ax, _, ay, _ = ctx.geometry
+        idx, tx, ty, weights = ctx.saved_tensors
+        h, w, ax, _, ay, _ = ctx.geometry
         b, n = ctx.shape
-        wp = w + 2
-        padded = torch.nn.functional.pad(grad, (1, 1, 1, 1)).reshape(-1)
-        padded = torch.cat((padded, padded.new_zeros(wp + 2)))
-        g00 = padded.index_select(0, idx).reshape(b, n)
-        g01 = padded[1:].index_select(0, idx).reshape(b, n)
-        g10 = padded[wp:].index_select(0, idx).reshape(b, n)
-        g11 = padded[wp + 1 :].index_select(0, idx).reshape(b, n)
-        scale = 1.0 if weights is None else weights
+        wp, hp = w + 4, h + 4
+        size = b * hp * wp
+        padded = grad.new_zeros(size + 2 * wp + 2)
+        padded[:size].view(b, hp, wp)[:, 2:-2, 2:-2] = grad
         gx = gy = gw = None
-        if ctx.needs_input_grad[0]:
-            gx = torch.lerp(g01 - g00, g11 - g10, ty) * (in_x * (ax * scale))
-        if ctx.needs_input_grad[1]:
-            gy = torch.lerp(g10 - g00, g11 - g01, tx) * (in_y * (ay * scale))
+        if ctx.needs_input_grad[0] or ctx.needs_input_grad[1]:
+            # per grid point p: dx(p), dx(p + wp), dy(p), dy(p + 1) with
+            # dx(p) = (G(p + 1) - G(p)) ax and dy(p) = (G(p + wp) - G(p)) ay;
+            # one gather of these 4-vectors serves both gradients
+            m = size + wp + 1
+            dx = (padded[1 : m + wp + 1] - padded[: m + wp]).mul_(ax)
+            dy = (padded[wp : m + wp + 1] - padded[: m + 1]).mul_(ay)
+            table = torch.stack((dx[:m], dx[wp : m + wp], dy[:m], dy[1 : m + 1]), -1)
+            d = table.index_select(0, idx).reshape(b, n, 4)
+            if ctx.needs_input_grad[0]:
+                gx = torch.lerp(d[..., 0], d[..., 1], ty)
+                if weights is not None:
+                    gx = gx * weights
+            if ctx.needs_input_grad[1]:
+                gy = torch.lerp(d[..., 2], d[..., 3], tx)
+                if weights is not None:
+                    gy = gy * weights
         if weights is not None and ctx.needs_input_grad[3]:
+            g00 = padded.index_select(0, idx).reshape(b, n)
+            g01 = padded[1:].index_select(0, idx).reshape(b, n)
+            g10 = padded[wp:].index_select(0, idx).reshape(b, n)
+            g11 = padded[wp + 1 :].index_select(0, idx).reshape(b, n)
             top = torch.lerp(g00, g01, tx)
             bottom = torch.lerp(g10, g11, tx)
             gw = torch.lerp(top, bottom, ty)
@@ -331,25 +366,22 @@ def kde_image(
     lo_x, hi_x = _reach(x, hx * cut, psx, cx, w)
     lo_y, hi_y = _reach(y, hy * cut, psy, cy, h)
     norm = (psx / (math.sqrt(2 * math.pi) * hx)) * (psy / (math.sqrt(2 * math.pi) * hy))
-    images = []
+    image = x.new_zeros(b, h, w)
+    # unbind once: indexing x[i] in the loop would give each image a backward
+    # that zero-fills a full (B, N) gradient
+    x_rows, y_rows = x.unbind(0), y.unbind(0)
+    w_rows = (None,) * b if weights is None else weights.unbind(0)
     for i in range(b):
         if hi_x[i] > lo_x[i] and hi_y[i] > lo_y[i]:
-            window = _SeparableKDE.apply(
-                x[i],
-                y[i],
+            image[i, lo_y[i] : hi_y[i], lo_x[i] : hi_x[i]] = _SeparableKDE.apply(
+                x_rows[i],
+                y_rows[i],
                 xs[lo_x[i] : hi_x[i]],
                 ys[lo_y[i] : hi_y[i]],
                 (hx, hy),
-                None if weights is None else weights[i],
+                w_rows[i],
             )
-            images.append(
-                torch.nn.functional.pad(
-                    window, (lo_x[i], w - hi_x[i], lo_y[i], h - hi_y[i])
-                )
-            )
-        else:
-            images.append(x.new_zeros(h, w))
-    image = torch.stack(images) * (norm / total.reshape(b, 1, 1))
+    image = image * (norm / total.reshape(b, 1, 1))
     return image.reshape(*batch, h, w)
 
 
@@ -385,27 +417,28 @@ class _SeparableKDE(torch.autograd.Function):
         x, y, xs, ys, kx, ky, weights = ctx.saved_tensors
         hx, hy = ctx.bandwidth
         gx = gy = gw = None
-        a = ky @ grad  # (N, w'): dL/d(w Kx)
         if ctx.needs_input_grad[0] or ctx.needs_input_grad[5]:
-            akx = a.mul_(kx)
+            akx = (ky @ grad).mul_(kx)  # (N, w'): dL/d(w Kx) * Kx
+            # row sums weighted by (xs, 1) in one pass: (N, 2)
+            row_sum = akx.sum(-1)
             if weights is not None and ctx.needs_input_grad[5]:
-                gw = akx.sum(-1)
+                gw = row_sum
             if ctx.needs_input_grad[0]:
-                gx = (akx @ xs - x * akx.sum(-1)) * (1.0 / hx**2)
-                if weights is not None:
-                    gx = gx * weights
+                gx = torch.addcmul(akx @ xs, x, row_sum, value=-1.0)
+                gx = gx * (1.0 / hx**2) if weights is None else gx * (weights / hx**2)
         if ctx.needs_input_grad[1]:
             kxw = kx if weights is None else kx * weights.unsqueeze(-1)
             bky = (kxw @ grad.transpose(0, 1)).mul_(ky)  # (N, h')
-            gy = (bky @ ys - y * bky.sum(-1)) * (1.0 / hy**2)
+            gy = torch.addcmul(bky @ ys, y, bky.sum(-1), value=-1.0)
+            gy = gy * (1.0 / hy**2)
         return gx, gy, None, None, None, gw
 
 
 def _unit_kernel(u: Tensor, centers: Tensor, bw: float) -> Tensor:
     """``exp(-(c - u)^2 / (2 bw^2))`` for positions ``(N,)`` and centres ``(P,)``."""
     k = u.unsqueeze(-1) - centers
-    k = k.square_().mul_(-0.5 / bw**2).clamp_(min=_MIN_EXPONENT)
-    return k.exp_()
+    k = torch.addcmul(k.new_zeros(()), k, k, value=-0.5 / bw**2, out=k)
+    return k.clamp_(min=_MIN_EXPONENT).exp_()
 
 
 def _reach(

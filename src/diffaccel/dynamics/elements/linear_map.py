@@ -68,6 +68,24 @@ class LinearMap(Element):
         rows = torch.stack(torch.broadcast_tensors(*coords), dim=-2)
         return tuple((self.matrix.to(rows) @ rows).unbind(-2))  # type: ignore[return-value]
 
+    def track_xy(self, coords: Coords) -> tuple[Tensor, Tensor]:
+        """Only the output ``x, y`` of :meth:`track_columns` (rows 0 and 2 of R).
+
+        For unbatched columns ``(N,)`` each of ``x, y`` is one matrix product
+        ``(K, 6) @ (6, N)`` over all settings: no ``(*K, 6, N)`` intermediate,
+        and the backward is two ``(6, K) @ (K, N)`` products. ``x`` and ``y``
+        come out contiguous, shaped ``(*K, N)``.
+        """
+        rows = torch.stack(torch.broadcast_tensors(*coords), dim=-2)
+        sel = self.matrix.to(rows)[..., 0:3:2, :]  # (*K, 2, 6)
+        if rows.dim() == 2:
+            n = rows.shape[-1]
+            batch = sel.shape[:-2]
+            mx, my = sel.reshape(-1, 2, 6).unbind(-2)  # (K, 6) each
+            return (mx @ rows).reshape(*batch, n), (my @ rows).reshape(*batch, n)
+        out = sel @ rows  # (*K, 2, N)
+        return out[..., 0, :], out[..., 1, :]
+
     def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
         """The matrix itself, shape ``(*K, 6, 6)``."""
         return self.matrix
