@@ -110,8 +110,12 @@ class BeamGenerator(nn.Module):
 
     def transform(self, base: Tensor) -> Tensor:
         """Map base samples ``(n, dims)`` to particles ``(n, 6)`` [Bmad units]."""
-        u = base @ self.mix.T + self.mlp(base)
-        x = self.ref_scale * (self.offset + self.log_scale.exp() * u)
+        u = torch.addmm(self.mlp(base), base, self.mix.T)
+        # s0 * (b + exp(a) * u) with the (dims,) factors formed first: one
+        # fused multiply-add over the particles
+        x = torch.addcmul(
+            self.ref_scale * self.offset, u, self.ref_scale * self.log_scale.exp()
+        )
         if self.dims == 4:
             x = torch.cat([x, x.new_zeros(x.shape[0], 2)], dim=1)
         return x

@@ -57,20 +57,27 @@ def robust_covariance(particles: Tensor, radius: float | None = 4.0) -> Tensor:
     with torch.no_grad():
         # A far halo inflates the plain covariance, which hides the halo from its
         # own Mahalanobis test; re-weighting a few times converges to the core.
+        # Small (D, D) algebra only: the Mahalanobis distances come from one
+        # (N, D) @ (D, D) product with the inverse Cholesky factor, and the
+        # weighted sums are matrix-vector products.
+        xd = x.detach()
         eye = torch.eye(cov.shape[0], dtype=cov.dtype, device=cov.device)
-        ref_mu, ref_cov = mu, cov
+        ref_mu, ref_cov = mu.detach(), cov.detach()
         for _ in range(_REWEIGHT_ITERATIONS):
             jitter = 1e-12 * ref_cov.diagonal().mean().clamp_min(1e-300) * eye
             chol = torch.linalg.cholesky(ref_cov + jitter)
-            z = torch.linalg.solve_triangular(chol, (x - ref_mu).T, upper=False)
-            w = torch.exp(-0.5 * z.square().sum(0) / radius**2)
-            ref_mu = (w[:, None] * x).sum(0) / w.sum()
-            xr = x - ref_mu
+            inv = torch.linalg.solve_triangular(chol, eye, upper=False)
+            z = (xd - ref_mu) @ inv.T
+            w = torch.exp(z.square().sum(1) * (-0.5 / radius**2))
+            w_sum = w.sum()
+            ref_mu = (w @ xd) / w_sum
+            xr = xd - ref_mu
             # undo the shrinkage of Gaussian weights for a Gaussian core
-            ref_cov = (w[:, None] * xr).T @ xr / w.sum() * (1 + radius**-2)
-    mu_w = (w[:, None] * x).sum(0) / w.sum()
+            ref_cov = (xr.T * w) @ xr * ((1 + radius**-2) / w_sum)
+        w = w / w_sum
+    mu_w = w @ x
     xw = x - mu_w
-    return (w[:, None] * xw).T @ xw / w.sum()
+    return (xw.T * w) @ xw
 
 
 def gaussian_entropy(

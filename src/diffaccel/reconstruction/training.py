@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import os
 import tempfile
 import time
@@ -296,25 +297,32 @@ def train_generator(
         else:
             sim = forward.images(particles, settings)
         dist = image_penalty(sim, measured, config.image_loss, allowance).mean()
-        xs = particles[:, :dims]
+        xs = particles[:, :dims].to(torch.float64)  # one conversion for both terms
         entropy = gaussian_entropy(xs, radius=config.entropy_radius, scale=norm)
-        cross = gaussian_prior_term(xs.to(torch.float64) - prior_mean, prior_std)
+        cross = gaussian_prior_term(xs - prior_mean, prior_std)
         loss = -(entropy - cross) + lam * dist.to(torch.float64)
-        if not torch.isfinite(loss):
+        # one host transfer per step for the loss, its parts and the rms sizes
+        with torch.no_grad():
+            rms = xs.detach().std(0)
+            if dims < 6:  # the other coordinates are exactly zero
+                rms = torch.cat([rms, rms.new_zeros(6 - dims)])
+            scalars = torch.cat([torch.stack([loss, dist.double(), entropy]), rms])
+        loss_v, dist_v, entropy_v, *rms_v = scalars.to("cpu").tolist()
+        if not math.isfinite(loss_v):
             raise FloatingPointError(
-                f"loss became {loss.item()} at step {step}; the beam may have left "
+                f"loss became {loss_v} at step {step}; the beam may have left "
                 "the screen entirely. Check the screen calibration and settings."
             )
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
         state.step = step + 1
-        hist["loss"].append(loss.item())
-        hist["image_loss"].append(dist.item())
-        hist["entropy"].append(entropy.item())
+        hist["loss"].append(loss_v)
+        hist["image_loss"].append(dist_v)
+        hist["entropy"].append(entropy_v)
         hist["lr"].append(lr)
         hist["penalty"].append(lam)
-        hist["rms"].append(particles.detach().std(0).to("cpu", torch.float64).tolist())
+        hist["rms"].append(rms_v)
         snap = state.step % cyc == 0
         if snap:
             state.snapshots.append(_cpu_state(model.state_dict()))
