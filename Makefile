@@ -16,8 +16,9 @@ $(BIN)/diffaccel:
 
 install: $(BIN)/diffaccel
 
+# the demo owns $(OUT) (default demo_output/) and replaces it on each run
 demo: $(BIN)/diffaccel
-	$(BIN)/diffaccel demo --out $(OUT)
+	$(BIN)/diffaccel demo --out $(OUT) --force
 
 test: $(BIN)/diffaccel
 	$(BIN)/ruff check src tests benchmarks
