@@ -5,12 +5,12 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
+from diffaccel.data import atomic_write
 from diffaccel.reconstruction.forward import ScreenForwardModel
 from diffaccel.reconstruction.generator import BeamGenerator
 from diffaccel.reconstruction.metrics import COORDINATES, beam_moments
@@ -260,16 +260,7 @@ class Reconstruction:
             "history": json.dumps(self.history),
             "info": json.dumps(self.info),
         }
-        fd, tmp = tempfile.mkstemp(dir=d, prefix=ENSEMBLE_FILE, suffix=".tmp")
-        os.close(fd)
-        try:
-            torch.save(payload, tmp)
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.remove(tmp)
-            raise
-        return path
+        return atomic_write(path, lambda p: torch.save(payload, p))
 
 
 def load(directory: str | os.PathLike) -> Reconstruction:

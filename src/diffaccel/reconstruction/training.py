@@ -5,7 +5,6 @@ from __future__ import annotations
 import logging
 import math
 import os
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -14,6 +13,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from diffaccel.data import atomic_write
 from diffaccel.reconstruction.forward import ScreenForwardModel
 from diffaccel.reconstruction.generator import BeamGenerator
 from diffaccel.reconstruction.initial import GaussianGuess
@@ -172,19 +172,6 @@ class TrainingState:
     snapshots: list[dict] = field(default_factory=list)
     history: dict[str, list] = field(default_factory=dict)
     elapsed_s: float = 0.0
-
-
-def _atomic_save(obj: object, path: Path) -> None:
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    os.close(fd)
-    try:
-        torch.save(obj, tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
 
 
 def _cpu_state(state: dict) -> dict:
@@ -367,20 +354,18 @@ def save_checkpoint(
         },
         "param_groups": opt.get("param_groups", []),
     }
-    _atomic_save(
-        {
-            "checkpoint_version": CHECKPOINT_VERSION,
-            "config": config.to_dict(),
-            "step": state.step,
-            "model": state.model,
-            "optimizer": opt_cpu,
-            "rng": state.rng.to("cpu") if state.rng is not None else None,
-            "snapshots": state.snapshots,
-            "history": state.history,
-            "elapsed_s": state.elapsed_s,
-        },
-        Path(path),
-    )
+    payload = {
+        "checkpoint_version": CHECKPOINT_VERSION,
+        "config": config.to_dict(),
+        "step": state.step,
+        "model": state.model,
+        "optimizer": opt_cpu,
+        "rng": state.rng.to("cpu") if state.rng is not None else None,
+        "snapshots": state.snapshots,
+        "history": state.history,
+        "elapsed_s": state.elapsed_s,
+    }
+    atomic_write(path, lambda p: torch.save(payload, p))
 
 
 def load_checkpoint(path: str | os.PathLike) -> TrainingState:
