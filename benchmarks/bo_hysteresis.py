@@ -24,15 +24,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
-import tempfile
 import time
 import warnings
 from pathlib import Path
 
 import torch
+from _meta import git_commit
 
+from diffaccel.data import atomic_write, atomic_write_text
 from diffaccel.dynamics import Beamline, Drift, Quadrupole, rms_sizes
 from diffaccel.hysteresis import (
     HysteresisBO,
@@ -46,16 +45,6 @@ I_MAX = 10.0  # [A], currents in [-I_MAX, I_MAX]
 P0C = 50e6  # [eV]
 LENGTH = 0.1  # [m]
 G_MAX = 0.15  # [T], integrated gradient at saturation: |k1| <= 9 1/m^2
-
-
-def _git_commit() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True
-        )
-        return out.stdout.strip() or "unknown"
-    except OSError:
-        return "unknown"
 
 
 def truth_magnets(seed: int) -> list[HystereticMagnet]:
@@ -226,10 +215,7 @@ def main() -> None:
         log_y=True,
     )
     png = args.out / "bo_hysteresis.png"
-    fd, tmp = tempfile.mkstemp(dir=args.out, suffix=".png")
-    os.close(fd)
-    fig.savefig(tmp, dpi=120)
-    os.replace(tmp, png)
+    atomic_write(png, lambda p: fig.savefig(p, format="png", dpi=120))
     result = {
         "name": "bo_hysteresis",
         "higher_is_better": False,
@@ -259,14 +245,11 @@ def main() -> None:
         "total_time_s": total,
         "threads": torch.get_num_threads(),
         "torch": torch.__version__,
-        "git_commit": _git_commit(),
+        "git_commit": git_commit(),
         "figure": str(png),
     }
     text = json.dumps(result)
-    fd, tmp = tempfile.mkstemp(dir=args.out, suffix=".json")
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text + "\n")
-    os.replace(tmp, args.out / "bo_hysteresis.json")
+    atomic_write_text(args.out / "bo_hysteresis.json", text + "\n")
     print(text)
 
 

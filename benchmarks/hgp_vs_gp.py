@@ -19,20 +19,19 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import platform
-import subprocess
-import tempfile
 import time
 import warnings
 from pathlib import Path
 
 import torch
+from _meta import git_commit
 from botorch.fit import fit_gpytorch_mll
 from botorch.models import SingleTaskGP
 from botorch.models.transforms.input import Normalize
 from gpytorch.mlls import ExactMarginalLogLikelihood
 
+from diffaccel.data import atomic_write, atomic_write_text
 from diffaccel.hysteresis import (
     HysteresisGP,
     PreisachMesh,
@@ -42,16 +41,6 @@ from diffaccel.hysteresis import (
 from diffaccel.plotting.hgp import plot_gp_vs_hgp
 
 I_MAX = 10.0  # [A]
-
-
-def _git_commit() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True
-        )
-        return out.stdout.strip() or "unknown"
-    except OSError:
-        return "unknown"
 
 
 def truth_magnet() -> PreisachModel:
@@ -205,10 +194,7 @@ def main() -> None:
         ylabel="transmission",
     )
     png = args.out / "hgp_vs_gp.png"
-    fd, tmp = tempfile.mkstemp(dir=args.out, suffix=".png")
-    os.close(fd)
-    fig.savefig(tmp, dpi=120)
-    os.replace(tmp, png)
+    atomic_write(png, lambda p: fig.savefig(p, format="png", dpi=120))
 
     result = {
         "name": "hgp_vs_gp",
@@ -230,14 +216,11 @@ def main() -> None:
         "threads": torch.get_num_threads(),
         "cpu": platform.processor() or platform.machine(),
         "torch": torch.__version__,
-        "git_commit": _git_commit(),
+        "git_commit": git_commit(),
         "figure": str(png),
     }
     text = json.dumps(result)
-    fd, tmp = tempfile.mkstemp(dir=args.out, suffix=".json")
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text + "\n")
-    os.replace(tmp, args.out / "hgp_vs_gp.json")
+    atomic_write_text(args.out / "hgp_vs_gp.json", text + "\n")
     print(text)
 
 

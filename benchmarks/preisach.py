@@ -39,9 +39,9 @@ import statistics
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import torch
+from _meta import git_commit
 
 from diffaccel.hysteresis import PreisachMesh, PreisachModel
 
@@ -53,20 +53,6 @@ ANCHOR = {
     "T100_N1000_forward_backward_s": 0.042,
 }
 TARGETS = {"T1000_N20000": 0.1, "T100_N1000": 0.01}
-
-
-def _git_commit() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            capture_output=True,
-            text=True,
-            check=True,
-            cwd=Path(__file__).resolve().parent,
-        )
-        return out.stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def _maxrss_mb() -> float:
@@ -175,7 +161,7 @@ def main() -> None:
         "threads": threads,
         "torch": torch.__version__,
         "python": platform.python_version(),
-        "git_commit": _git_commit(),
+        "git_commit": git_commit(),
         "anchor": ANCHOR,
         "targets_s": TARGETS,
         "checks": checks,

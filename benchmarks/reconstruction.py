@@ -28,13 +28,13 @@ import argparse
 import json
 import os
 import platform
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import torch
+from _meta import git_commit
 
 from diffaccel.data import read_quad_scan
 from diffaccel.dynamics.coordinates import cheetah_to_bmad
@@ -173,12 +173,7 @@ def main() -> None:
         "load_avg_1min_at_start": os.getloadavg()[0],
         "process_warmup_s": warmup,
     }
-    try:
-        out["git_commit"] = subprocess.run(
-            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        out["git_commit"] = None
+    out["git_commit"] = git_commit()
     out["diffaccel"] = run_diffaccel(ds, train, test)
     if not args.skip_gpsr:
         out["gpsr"] = run_gpsr(ds, train, test, args.gpsr_epochs)

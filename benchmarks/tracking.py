@@ -26,12 +26,11 @@ import json
 import platform
 import resource
 import statistics
-import subprocess
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import torch
+from _meta import git_commit
 
 from diffaccel.dynamics import Beamline
 
@@ -127,19 +126,6 @@ def _cheetah(
     return run
 
 
-def _git_commit() -> str:
-    try:
-        return subprocess.run(
-            ["git", "rev-parse", "HEAD"],
-            capture_output=True,
-            text=True,
-            check=True,
-            cwd=Path(__file__).resolve().parent,
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=100_000)
@@ -223,7 +209,7 @@ def main() -> None:
         "cheetah_kde_repeats": args.cheetah_kde_repeats,
         "torch": torch.__version__,
         "python": platform.python_version(),
-        "git_commit": _git_commit(),
+        "git_commit": git_commit(),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "timings": timings,
         # like for like: linear tracking on both sides (cheetah's default)
