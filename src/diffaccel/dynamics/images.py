@@ -21,6 +21,9 @@ __all__ = ["cic_image", "gaussian_blur", "kde_image", "pixel_centers"]
 # exp(-80) = 1.8e-35 is still a normal float32: clamping the exponent there keeps
 # CPU float32 arithmetic out of (very slow) denormals at a negligible error.
 _MIN_EXPONENT = -80.0
+# Kernels are evaluated as exp2(e * log2(e)): torch's vectorised exp2 is about
+# four times faster than exp on AVX-512 CPUs and as accurate (1 ulp).
+_LOG2_E = 1.0 / math.log(2.0)
 # Kernel truncation radius of the KDE, in bandwidths (float64; float32).
 _KDE_CUT = 9.0
 _KDE_CUT_FLOAT32 = 6.0
@@ -203,16 +206,25 @@ def cic_image(
     return image.reshape(*batch, h, w)
 
 
+# ATen's bilinear grid-sampler backward: its input gradient is exactly a
+# cloud-in-cell deposit (the adjoint of bilinear interpolation) and its grid
+# gradient is our position gradient. Vectorised, parallel over images, and
+# available on every device.
+_grid_sampler_backward = torch.ops.aten.grid_sampler_2d_backward
+_BILINEAR, _ZEROS_PADDING, _ALIGN_CORNERS = 0, 0, False
+
+
 class _CloudInCell(torch.autograd.Function):
     """Bilinear deposition of ``(B, N)`` positions on ``(B, H, W)`` pixel centres.
 
-    Deposits on a grid padded by two pixels on each side, then crops. Positions
-    are clamped into the padding ring (``[-2, W + 1]`` in pixel units): a
-    particle more than one pixel off the screen then has all four corners in the
-    padding, so it deposits nothing on the screen and gets zero gradient (no
-    masks), and every corner index is valid. The backward pass gathers, per
-    particle, two values of each of the grid differences ``dG/dx`` and ``dG/dy``
-    (formed once on the small grid) and interpolates them.
+    Cloud-in-cell deposition is the adjoint of bilinear interpolation, so both
+    passes are ATen's grid-sampler kernels with zero padding: the forward is the
+    input gradient of ``grid_sample`` (each particle's weight scattered to its
+    four nearest pixel centres, corners off the screen dropped), the backward is
+    its grid gradient (the image gradient interpolated, differentiated along x and
+    y). Positions are clamped two pixels beyond the edges: such a particle has all
+    four corners off the screen, deposits nothing and gets zero gradient, and the
+    sampler never sees huge coordinates.
     """
 
     @staticmethod
@@ -225,82 +237,71 @@ class _CloudInCell(torch.autograd.Function):
     ) -> Tensor:
         h, w, ax, bx, ay, by = geometry
         b, n = x.shape
-        wp, hp = w + 4, h + 4
-        # padded pixel coordinates (>= 0, so truncation is floor)
-        fx = torch.add(x.new_tensor(bx + 2.0), x, alpha=ax).clamp_(0.0, w + 3.0)
-        fy = torch.add(y.new_tensor(by + 2.0), y, alpha=ay).clamp_(0.0, h + 3.0)
-        size = b * hp * wp
-        itype = torch.int32 if size + 2 * wp + 2 < 2**31 else torch.int64
-        jx = fx.to(itype)
-        jy = fy.to(itype)
-        tx = torch.frac(fx)
-        ty = torch.frac(fy)
-        idx = torch.add(jx, jy, alpha=wp)
-        if b > 1:
-            idx += torch.arange(0, size, hp * wp, device=x.device, dtype=itype)[:, None]
-        idx = idx.reshape(-1)
-        ux, uy = 1.0 - tx, 1.0 - ty
-        if weights is not None:
-            uy_w, ty_w = uy * weights, ty * weights
+        # normalised sampler coordinates (align_corners=False): pixel index f
+        # maps to (2 f + 1) / W - 1
+        scale = (2.0 * ax / w, 2.0 * ay / h)
+        grid = x.new_empty(b, 1, n, 2)
+        torch.add(
+            x.new_tensor((2.0 * bx + 1.0) / w - 1.0),
+            x,
+            alpha=scale[0],
+            out=grid[:, 0, :, 0],
+        )
+        torch.add(
+            y.new_tensor((2.0 * by + 1.0) / h - 1.0),
+            y,
+            alpha=scale[1],
+            out=grid[:, 0, :, 1],
+        )
+        torch.clamp_(grid[..., 0], -1.0 - 3.0 / w, 1.0 + 3.0 / w)
+        torch.clamp_(grid[..., 1], -1.0 - 3.0 / h, 1.0 + 3.0 / h)
+        if weights is None:
+            per_particle = x.new_ones(()).expand(b, 1, 1, n)
         else:
-            uy_w, ty_w = uy, ty
-        # one weighted histogram per corner (bincount is faster than index_add_),
-        # shifted onto the grid by the corner's offset
-        length = size + wp + 2
-        flat = None
-        value = torch.mul(uy_w, ux)
-        for offset, a, c in (
-            (0, uy_w, ux),
-            (1, uy_w, tx),
-            (wp, ty_w, ux),
-            (wp + 1, ty_w, tx),
-        ):
-            torch.mul(a, c, out=value)
-            counts = torch.bincount(idx, value.reshape(-1), minlength=length)
-            if flat is None:
-                flat = counts
-            else:
-                flat[offset:] += counts[: length - offset]
-        ctx.geometry = geometry
-        ctx.shape = (b, n)
-        ctx.save_for_backward(idx, tx, ty, weights)
-        return flat[:size].reshape(b, hp, wp)[:, 2:-2, 2:-2].clone()
+            per_particle = weights.reshape(b, 1, 1, n)
+        template = x.new_empty(()).expand(b, 1, h, w)
+        image = _grid_sampler_backward(
+            per_particle,
+            template,
+            grid,
+            _BILINEAR,
+            _ZEROS_PADDING,
+            _ALIGN_CORNERS,
+            [True, False],
+        )[0]
+        ctx.scale = scale
+        ctx.save_for_backward(grid, weights)
+        return image.reshape(b, h, w)
 
     @staticmethod
     def backward(ctx, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
-        idx, tx, ty, weights = ctx.saved_tensors
-        h, w, ax, _, ay, _ = ctx.geometry
-        b, n = ctx.shape
-        wp, hp = w + 4, h + 4
-        size = b * hp * wp
-        padded = grad.new_zeros(size + 2 * wp + 2)
-        padded[:size].view(b, hp, wp)[:, 2:-2, 2:-2] = grad
+        grid, weights = ctx.saved_tensors
+        b, _, n, _ = grid.shape
+        h, w = grad.shape[-2:]
+        grad = grad.reshape(b, 1, h, w).contiguous()
         gx = gy = gw = None
         if ctx.needs_input_grad[0] or ctx.needs_input_grad[1]:
-            # per grid point p: dx(p), dx(p + wp), dy(p), dy(p + 1) with
-            # dx(p) = (G(p + 1) - G(p)) ax and dy(p) = (G(p + wp) - G(p)) ay;
-            # one gather of these 4-vectors serves both gradients
-            m = size + wp + 1
-            dx = (padded[1 : m + wp + 1] - padded[: m + wp]).mul_(ax)
-            dy = (padded[wp : m + wp + 1] - padded[: m + 1]).mul_(ay)
-            table = torch.stack((dx[:m], dx[wp : m + wp], dy[:m], dy[1 : m + 1]), -1)
-            d = table.index_select(0, idx).reshape(b, n, 4)
+            if weights is None:
+                per_particle = grid.new_ones(()).expand(b, 1, 1, n)
+            else:
+                per_particle = weights.reshape(b, 1, 1, n)
+            g = _grid_sampler_backward(
+                per_particle,
+                grad,
+                grid,
+                _BILINEAR,
+                _ZEROS_PADDING,
+                _ALIGN_CORNERS,
+                [False, True],
+            )[1]
             if ctx.needs_input_grad[0]:
-                gx = torch.lerp(d[..., 0], d[..., 1], ty)
-                if weights is not None:
-                    gx = gx * weights
+                gx = g[:, 0, :, 0] * ctx.scale[0]
             if ctx.needs_input_grad[1]:
-                gy = torch.lerp(d[..., 2], d[..., 3], tx)
-                if weights is not None:
-                    gy = gy * weights
+                gy = g[:, 0, :, 1] * ctx.scale[1]
         if weights is not None and ctx.needs_input_grad[3]:
-            g00 = padded.index_select(0, idx).reshape(b, n)
-            g01 = padded[1:].index_select(0, idx).reshape(b, n)
-            g10 = padded[wp:].index_select(0, idx).reshape(b, n)
-            g11 = padded[wp + 1 :].index_select(0, idx).reshape(b, n)
-            top = torch.lerp(g00, g01, tx)
-            bottom = torch.lerp(g10, g11, tx)
-            gw = torch.lerp(top, bottom, ty)
+            gw = torch.grid_sampler_2d(
+                grad, grid, _BILINEAR, _ZEROS_PADDING, _ALIGN_CORNERS
+            ).reshape(b, n)
         return gx, gy, None, gw
 
 
@@ -419,7 +420,6 @@ class _SeparableKDE(torch.autograd.Function):
         gx = gy = gw = None
         if ctx.needs_input_grad[0] or ctx.needs_input_grad[5]:
             akx = (ky @ grad).mul_(kx)  # (N, w'): dL/d(w Kx) * Kx
-            # row sums weighted by (xs, 1) in one pass: (N, 2)
             row_sum = akx.sum(-1)
             if weights is not None and ctx.needs_input_grad[5]:
                 gw = row_sum
@@ -437,8 +437,8 @@ class _SeparableKDE(torch.autograd.Function):
 def _unit_kernel(u: Tensor, centers: Tensor, bw: float) -> Tensor:
     """``exp(-(c - u)^2 / (2 bw^2))`` for positions ``(N,)`` and centres ``(P,)``."""
     k = u.unsqueeze(-1) - centers
-    k = torch.addcmul(k.new_zeros(()), k, k, value=-0.5 / bw**2, out=k)
-    return k.clamp_(min=_MIN_EXPONENT).exp_()
+    k = torch.addcmul(k.new_zeros(()), k, k, value=-0.5 * _LOG2_E / bw**2, out=k)
+    return k.clamp_(min=_MIN_EXPONENT * _LOG2_E).exp2_()
 
 
 def _reach(
