@@ -372,27 +372,73 @@ def kde_image(
     # that zero-fills a full (B, N) gradient
     x_rows, y_rows = x.unbind(0), y.unbind(0)
     w_rows = (None,) * b if weights is None else weights.unbind(0)
+    # a window much taller than a kernel is rendered in bands of rows (particles
+    # grouped by row): split the longer side of each window
+    reach_x, reach_y = math.ceil(cut * hx / psx), math.ceil(cut * hy / psy)
     for i in range(b):
-        if hi_x[i] > lo_x[i] and hi_y[i] > lo_y[i]:
+        rows, cols = hi_y[i] - lo_y[i], hi_x[i] - lo_x[i]
+        if rows <= 0 or cols <= 0:
+            continue
+        win_x, win_y = xs[lo_x[i] : hi_x[i]], ys[lo_y[i] : hi_y[i]]
+        band_y, band_x = _band_rows(rows, reach_y, n), _band_rows(cols, reach_x, n)
+        if band_x is not None and (band_y is None or cols > rows):
+            # split the columns: render the transposed window
+            image[i, lo_y[i] : hi_y[i], lo_x[i] : hi_x[i]] = _SeparableKDE.apply(
+                y_rows[i],
+                x_rows[i],
+                win_y,
+                win_x,
+                (hy, hx),
+                w_rows[i],
+                (psx, reach_x, band_x),
+            ).transpose(0, 1)
+        else:
             image[i, lo_y[i] : hi_y[i], lo_x[i] : hi_x[i]] = _SeparableKDE.apply(
                 x_rows[i],
                 y_rows[i],
-                xs[lo_x[i] : hi_x[i]],
-                ys[lo_y[i] : hi_y[i]],
+                win_x,
+                win_y,
                 (hx, hy),
                 w_rows[i],
+                (psy, reach_y, band_y),
             )
     image = image * (norm / total.reshape(b, 1, 1))
     return image.reshape(*batch, h, w)
 
 
+# Band rendering pays off from this many particles per image (below, the
+# sorting and per-band products cost more than the rows they save).
+_BAND_MIN_PARTICLES = 4096
+
+
+def _band_rows(rows: int, reach: int, n: int) -> int | None:
+    """Particle rows per band for a window of ``rows``, or None to render it whole.
+
+    A band of ``c`` particle rows needs ``c + 2 reach`` image rows; ``c`` is
+    about half the kernel reach, and banding is used only when that is at most
+    three quarters of the window.
+    """
+    c = reach // 2 + 1
+    if n < _BAND_MIN_PARTICLES or 4 * (c + 2 * reach) > 3 * rows:
+        return None
+    return c
+
+
 class _SeparableKDE(torch.autograd.Function):
     """``sum_n w_n gy(y_i - y_n) gx(x_j - x_n)`` with unnormalised Gaussians ``g``.
 
-    Forward: two kernel matrices and one matrix product. Backward (analytic):
-    with ``A = Ky G`` and ``B = (w Kx) G^T``,
-    ``dL/dx_n = sum_j A_nj Kx_nj (x_j - x_n) / hx^2`` (likewise for y), evaluated as
-    matrix-vector products, so no extra ``(N, W)`` temporaries are kept.
+    Columns: one kernel matrix ``Kx (N, w')`` over the window. Rows: either one
+    kernel matrix ``Ky (N, h')`` and one product ``Ky^T (w Kx)``, or, when
+    ``band`` gives a number of rows ``c``, particles are grouped (sorted) by the
+    band of ``c`` rows they sit in and each group gets a kernel over only its
+    ``c + 2 reach`` rows (every row a particle reaches within the cut): one
+    ``(N, c + 2 reach)`` matrix and one product per band, added into the window.
+    Either way every kept kernel value is exact.
+
+    Backward (analytic): with ``A = Ky G`` and ``B = (w Kx) G^T`` (per band),
+    ``dL/dx_n = sum_j A_nj w_n Kx_nj (x_j - x_n) / hx^2``, and
+    ``dL/dy_n = sum_i B_ni Ky_ni (y_i - y_n) / hy^2``, evaluated with matrix-vector
+    products over all particles at once.
     """
 
     @staticmethod
@@ -404,34 +450,96 @@ class _SeparableKDE(torch.autograd.Function):
         ys: Tensor,
         bandwidth: tuple[float, float],
         weights: Tensor | None,
+        banding: tuple[float, int, int | None],
     ) -> Tensor:
         hx, hy = bandwidth
+        pixel_y, reach, c = banding
+        h = ys.shape[0]
+        order = None
+        if c is None:
+            # one band: the whole window, rows relative to its first row
+            c, reach, n_bands, counts = h, 0, 1, [x.shape[0]]
+        else:
+            n_bands = h // c + 1
+            f = (y.detach() - ys[0]) / pixel_y  # row coordinate in the window
+            key = (f / c).floor_().clamp_(0, n_bands - 1).to(torch.int32)
+            order = torch.argsort(key)
+            counts = torch.bincount(key, minlength=n_bands).tolist()
+            x, y = x[order], y[order]
+            weights = None if weights is None else weights[order]
+        starts = [0]
+        for k in counts:
+            starts.append(starts[-1] + k)
+        width = c + 2 * reach
+        # first image row of each particle's band (window rows; may be < 0)
+        if n_bands == 1:
+            first = ys[:1]
+        else:
+            band_of = torch.repeat_interleave(
+                torch.arange(n_bands, device=x.device),
+                torch.tensor(counts).to(x.device),
+            )
+            first = ys[0] + (band_of * c - reach).to(ys.dtype) * pixel_y
+        rel = torch.arange(width, dtype=ys.dtype, device=ys.device) * pixel_y
         kx = _unit_kernel(x, xs, hx)  # (N, w')
-        ky = _unit_kernel(y, ys, hy)  # (N, h')
+        ky = _unit_kernel(y - first, rel, hy)  # (N, width): exact rows of the band
         kxw = kx if weights is None else kx * weights.unsqueeze(-1)
+        out = kx.new_zeros(n_bands * c + 2 * reach, xs.shape[0])
+        for k in range(n_bands):
+            s, e = starts[k], starts[k + 1]
+            if e > s:
+                band = out[k * c : k * c + width]
+                band.addmm_(ky[s:e].transpose(0, 1), kxw[s:e])
         ctx.bandwidth = bandwidth
-        ctx.save_for_backward(x, y, xs, ys, kx, ky, weights)
-        return ky.transpose(0, 1) @ kxw
+        ctx.bands = (c, reach, n_bands, starts)
+        ctx.save_for_backward(x, y, xs, rel, first, kx, ky, weights, order)
+        return out[reach : reach + h]
 
     @staticmethod
     def backward(ctx, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
-        x, y, xs, ys, kx, ky, weights = ctx.saved_tensors
+        x, y, xs, rel, first, kx, ky, weights, order = ctx.saved_tensors
         hx, hy = ctx.bandwidth
+        c, reach, n_bands, starts = ctx.bands
+        width = rel.shape[0]
+        padded = grad.new_zeros(n_bands * c + 2 * reach, grad.shape[1])
+        padded[reach : reach + grad.shape[0]] = grad
+        need_x = ctx.needs_input_grad[0]
+        need_w = weights is not None and ctx.needs_input_grad[5]
         gx = gy = gw = None
-        if ctx.needs_input_grad[0] or ctx.needs_input_grad[5]:
-            akx = (ky @ grad).mul_(kx)  # (N, w'): dL/d(w Kx) * Kx
+        if need_x or need_w:
+            a = kx.new_empty(kx.shape)  # (N, w'): sum_i Ky_ni G_ij, per band
+            for k in range(n_bands):
+                s, e = starts[k], starts[k + 1]
+                if e > s:
+                    torch.mm(ky[s:e], padded[k * c : k * c + width], out=a[s:e])
+            akx = a.mul_(kx)
             row_sum = akx.sum(-1)
-            if weights is not None and ctx.needs_input_grad[5]:
+            if need_w:
                 gw = row_sum
-            if ctx.needs_input_grad[0]:
+            if need_x:
                 gx = torch.addcmul(akx @ xs, x, row_sum, value=-1.0)
                 gx = gx * (1.0 / hx**2) if weights is None else gx * (weights / hx**2)
         if ctx.needs_input_grad[1]:
             kxw = kx if weights is None else kx * weights.unsqueeze(-1)
-            bky = (kxw @ grad.transpose(0, 1)).mul_(ky)  # (N, h')
-            gy = torch.addcmul(bky @ ys, y, bky.sum(-1), value=-1.0)
+            bm = ky.new_empty(ky.shape)  # (N, width): sum_j w Kx_nj G_ij, per band
+            for k in range(n_bands):
+                s, e = starts[k], starts[k + 1]
+                if e > s:
+                    band = padded[k * c : k * c + width]
+                    torch.mm(kxw[s:e], band.transpose(0, 1), out=bm[s:e])
+            bky = bm.mul_(ky)
+            gy = torch.addcmul(bky @ rel, y - first, bky.sum(-1), value=-1.0)
             gy = gy * (1.0 / hy**2)
-        return gx, gy, None, None, None, gw
+        if order is not None:
+            gx, gy, gw = (
+                None if g is None else _unsort(g, order) for g in (gx, gy, gw)
+            )
+        return gx, gy, None, None, None, gw, None
+
+
+def _unsort(values: Tensor, order: Tensor) -> Tensor:
+    """Inverse of ``values = original[order]``."""
+    return values.new_empty(values.shape).index_put_((order,), values)
 
 
 def _unit_kernel(u: Tensor, centers: Tensor, bw: float) -> Tensor:
