@@ -462,7 +462,9 @@ class _SeparableKDE(torch.autograd.Function):
         else:
             n_bands = h // c + 1
             f = (y.detach() - ys[0]) / pixel_y  # row coordinate in the window
-            key = (f / c).floor_().clamp_(0, n_bands - 1).to(torch.int32)
+            # small integer keys: radix sort (int16 is 5x faster than int32)
+            itype = torch.int16 if n_bands < 2**15 else torch.int32
+            key = (f / c).floor_().clamp_(0, n_bands - 1).to(itype)
             order = torch.argsort(key)
             counts = torch.bincount(key, minlength=n_bands).tolist()
             x, y = x[order], y[order]
@@ -554,7 +556,8 @@ def _reach(
 ) -> tuple[list[int], list[int]]:
     """Per batch row, the pixel range ``[lo, hi)`` within ``radius`` [m] of ``u``."""
     offset = (n_pix - 1) / 2 - center / pixel
-    u_min, u_max = torch.aminmax(u.detach(), dim=-1)
+    u = u.detach()
+    u_min, u_max = u.amin(-1), u.amax(-1)  # (faster than aminmax on CPU)
     lo = ((u_min - radius) / pixel + offset).ceil()
     hi = ((u_max + radius) / pixel + offset).floor() + 1
     lo = lo.clamp(0, n_pix).long().tolist()
