@@ -11,7 +11,7 @@ fraction of the beam that lands on the screen; images are never renormalised.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import torch
 from torch import Tensor
@@ -490,11 +490,8 @@ class _SeparableKDE(torch.autograd.Function):
         ky = _unit_kernel(y - first, rel, hy)  # (N, width): exact rows of the band
         kxw = kx if weights is None else kx * weights.unsqueeze(-1)
         out = kx.new_zeros(n_bands * c + 2 * reach, xs.shape[0])
-        for k in range(n_bands):
-            s, e = starts[k], starts[k + 1]
-            if e > s:
-                band = out[k * c : k * c + width]
-                band.addmm_(ky[s:e].transpose(0, 1), kxw[s:e])
+        for s, e, r in _nonempty_bands(starts, c):
+            out[r : r + width].addmm_(ky[s:e].transpose(0, 1), kxw[s:e])
         ctx.bandwidth = bandwidth
         ctx.bands = (c, reach, n_bands, starts)
         ctx.save_for_backward(x, y, xs, rel, first, kx, ky, weights, order)
@@ -515,11 +512,9 @@ class _SeparableKDE(torch.autograd.Function):
         if ctx.needs_input_grad[1]:
             kxw = kx if weights is None else kx * weights.unsqueeze(-1)
             bm = ky.new_empty(ky.shape)  # (N, width): sum_j w Kx_nj G_ij, per band
-            for k in range(n_bands):
-                s, e = starts[k], starts[k + 1]
-                if e > s:
-                    band = padded[k * c : k * c + width]
-                    torch.mm(kxw[s:e], band.transpose(0, 1), out=bm[s:e])
+            for s, e, r in _nonempty_bands(starts, c):
+                band = padded[r : r + width]
+                torch.mm(kxw[s:e], band.transpose(0, 1), out=bm[s:e])
             bky = bm.mul_(ky)
             b_sum = bky.sum(-1)
             gy = torch.addcmul(bky @ rel, y - first, b_sum, value=-1.0)
@@ -528,10 +523,8 @@ class _SeparableKDE(torch.autograd.Function):
                 row_sum = b_sum  # saves a pass over the (N, w') product below
         if need_x or need_w:
             a = kx.new_empty(kx.shape)  # (N, w'): sum_i Ky_ni G_ij, per band
-            for k in range(n_bands):
-                s, e = starts[k], starts[k + 1]
-                if e > s:
-                    torch.mm(ky[s:e], padded[k * c : k * c + width], out=a[s:e])
+            for s, e, r in _nonempty_bands(starts, c):
+                torch.mm(ky[s:e], padded[r : r + width], out=a[s:e])
             akx = a.mul_(kx)
             if row_sum is None:
                 row_sum = akx.sum(-1)
@@ -545,6 +538,13 @@ class _SeparableKDE(torch.autograd.Function):
                 None if g is None else _unsort(g, order) for g in (gx, gy, gw)
             )
         return gx, gy, None, None, None, gw, None
+
+
+def _nonempty_bands(starts: list[int], c: int) -> Iterator[tuple[int, int, int]]:
+    """``(first particle, end particle, first padded row)`` of each non-empty band."""
+    for k in range(len(starts) - 1):
+        if starts[k + 1] > starts[k]:
+            yield starts[k], starts[k + 1], k * c
 
 
 def _unsort(values: Tensor, order: Tensor) -> Tensor:
