@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 from pathlib import Path
+
+from diffaccel.data import atomic_write_text
 
 
 def git_commit() -> str:
@@ -18,3 +21,11 @@ def git_commit() -> str:
         ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
+
+
+def emit(result: dict, path: Path | None = None) -> None:
+    """Print ``result`` as one JSON line; also write it atomically to ``path``."""
+    text = json.dumps(result)
+    if path is not None:
+        atomic_write_text(path, text + "\n")
+    print(text)

@@ -23,15 +23,14 @@ target [mm] of the best setting tried, lower is better); writes
 from __future__ import annotations
 
 import argparse
-import json
 import time
 import warnings
 from pathlib import Path
 
 import torch
-from _meta import git_commit
+from _meta import emit, git_commit
 
-from diffaccel.data import atomic_write, atomic_write_text
+from diffaccel.data import atomic_write
 from diffaccel.dynamics import Beamline, Drift, Quadrupole, rms_sizes
 from diffaccel.hysteresis import (
     HysteresisBO,
@@ -248,9 +247,7 @@ def main() -> None:
         "git_commit": git_commit(),
         "figure": str(png),
     }
-    text = json.dumps(result)
-    atomic_write_text(args.out / "bo_hysteresis.json", text + "\n")
-    print(text)
+    emit(result, args.out / "bo_hysteresis.json")
 
 
 if __name__ == "__main__":

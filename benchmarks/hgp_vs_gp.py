@@ -17,7 +17,6 @@ Prints one JSON object on the last line; writes ``hgp_vs_gp.png`` and
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import platform
 import time
@@ -25,13 +24,13 @@ import warnings
 from pathlib import Path
 
 import torch
-from _meta import git_commit
+from _meta import emit, git_commit
 from botorch.fit import fit_gpytorch_mll
 from botorch.models import SingleTaskGP
 from botorch.models.transforms.input import Normalize
 from gpytorch.mlls import ExactMarginalLogLikelihood
 
-from diffaccel.data import atomic_write, atomic_write_text
+from diffaccel.data import atomic_write
 from diffaccel.hysteresis import (
     HysteresisGP,
     PreisachMesh,
@@ -219,9 +218,7 @@ def main() -> None:
         "git_commit": git_commit(),
         "figure": str(png),
     }
-    text = json.dumps(result)
-    atomic_write_text(args.out / "hgp_vs_gp.json", text + "\n")
-    print(text)
+    emit(result, args.out / "hgp_vs_gp.json")
 
 
 if __name__ == "__main__":
