@@ -16,7 +16,11 @@ from diffaccel.hysteresis.magnet import (
     magnetic_rigidity,
 )
 from diffaccel.hysteresis.mesh import PreisachMesh
-from diffaccel.hysteresis.preisach import INITIAL_STATES, PreisachModel
+from diffaccel.hysteresis.preisach import (
+    INITIAL_STATES,
+    InputRangeWarning,
+    PreisachModel,
+)
 from diffaccel.hysteresis.synthetic import (
     synthetic_magnet,
     synthetic_measurement,
@@ -30,6 +34,7 @@ __all__ = [
     "HysteresisBO",
     "HysteresisGP",
     "HystereticMagnet",
+    "InputRangeWarning",
     "InverseResult",
     "PreisachMesh",
     "PreisachModel",

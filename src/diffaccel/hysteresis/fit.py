@@ -159,7 +159,7 @@ def fit_preisach(
     if smoothness < 0:
         raise ValueError(f"smoothness must be >= 0; got {smoothness}.")
     u, y = _check_series(current, field, model.alpha.dtype, model.alpha.device)
-    model.normalize_input(u)  # range check before touching the model
+    model.check_input_range(u, "training inputs")  # before touching the model
     t0 = time.perf_counter()
     with torch.no_grad():
         loc, span = y.min(), y.max() - y.min()

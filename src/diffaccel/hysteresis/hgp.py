@@ -210,6 +210,7 @@ class HysteresisGP(Model):
         self.hysteresis_models = nn.ModuleList(models)
         # exact hysteron states along the history do not depend on the density
         for i, (c, pm) in enumerate(zip(dims, models, strict=True)):
+            pm.check_input_range(train_X[:, c], f"training inputs of column {c}")
             with torch.no_grad():
                 states = pm.states(train_X[:, c])
             self.register_buffer(f"_history_states_{i}", states.to(train_X))

@@ -120,6 +120,46 @@ class PreisachMesh:
             self._area.to(device=device, dtype=dtype),
         )
 
+    def mirror_index(self, tol: float = 1e-9) -> Tensor:
+        """Index of each point's mirror image about the anti-diagonal.
+
+        The mirror of ``(alpha, beta)`` is ``(1 - beta, 1 - alpha)``: the point
+        that a density symmetric about the centre of the input range,
+        ``mu(alpha, beta) = mu(1 - beta, 1 - alpha)``, ties to it. Triangular
+        meshes (refined or not) are mirror symmetric.
+
+        Args:
+            tol: Largest distance [1] between a mirrored point and the mesh
+                point taken as its image.
+
+        Returns:
+            Long indices, shape ``(M,)``; ``mirror[mirror]`` is ``arange(M)``.
+
+        Raises:
+            ValueError: if some mirrored point has no mesh point within ``tol``
+                or mirrored points share an image with unequal areas.
+        """
+        a, b = self._alpha.double(), self._beta.double()
+        pts = torch.stack([a, b], dim=1)
+        images = torch.stack([1.0 - b, 1.0 - a], dim=1)
+        dist = torch.cdist(images, pts, compute_mode="donot_use_mm_for_euclid_dist")
+        best, index = dist.min(dim=1)
+        if (best > tol).any() or not torch.equal(
+            index[index], torch.arange(len(self), device=index.device)
+        ):
+            bad = int((best > tol).sum())
+            raise ValueError(
+                f"mesh is not symmetric about the anti-diagonal alpha + beta = 1: "
+                f"{bad} of {len(self)} points have no mirror image; use "
+                "PreisachMesh.triangular for a symmetric density."
+            )
+        if not torch.allclose(self._area[index], self._area, rtol=1e-9, atol=0.0):
+            raise ValueError(
+                "mesh points and their mirror images have different areas; "
+                "a symmetric density needs a mirror-symmetric mesh."
+            )
+        return index
+
     @classmethod
     def triangular(
         cls,

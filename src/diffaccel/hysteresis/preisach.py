@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 
 import torch
@@ -18,13 +19,17 @@ from diffaccel.hysteresis.states import (
     smooth_states,
 )
 
-__all__ = ["INITIAL_STATES", "PreisachModel"]
+__all__ = ["INITIAL_STATES", "InputRangeWarning", "PreisachModel"]
 
 INITIAL_STATES = ("negative", "positive", "demagnetized", "learned")
 # tolerance on normalised inputs outside [0, 1] (round-off of the affine map)
 _RANGE_TOL = 1e-9
 # start of the virtual history of each initial state (normalised input)
 _START = {"negative": 0.0, "positive": 1.0, "demagnetized": 0.5, "learned": 0.5}
+
+
+class InputRangeWarning(UserWarning):
+    """Inputs beyond a model's input range, predicted as saturated."""
 
 
 def _positive(raw: Tensor) -> Tensor:
@@ -45,7 +50,13 @@ class PreisachModel(nn.Module):
     Here ``u_n = (u - lo) / (hi - lo)`` is the normalised input and
     ``m = sum_i w_i s_i / sum_i w_i`` the normalised Preisach integral, with
     hysteron weights ``w = area * density`` and states ``s`` in ``[-1, 1]``.
-    ``density`` is non-negative: ``softplus(raw_density)``. The normalisation
+    ``density`` is non-negative: ``softplus(raw_density)``; a ``symmetric``
+    model averages it with its mirror image, ``mu(alpha, beta) =
+    mu(1 - beta, 1 - alpha)`` (symmetric about the centre of the input range, as
+    for magnets and soft magnetic materials: the ascending major branch then
+    determines the descending one). Inputs beyond the input range leave every
+    hysteron switched (saturation) while the linear term ``slope * u_n``
+    continues; they raise an :class:`InputRangeWarning`. The normalisation
     buffers ``output_loc`` and ``output_scale`` are set by
     :func:`~diffaccel.hysteresis.fit_preisach` from the training data (default
     ``0`` and ``1``).
@@ -57,14 +68,16 @@ class PreisachModel(nn.Module):
     Args:
         mesh: Hysteron mesh on the normalised plane; default
             ``PreisachMesh.triangular(n=30)`` (465 hysterons).
-        input_range: ``(lo, hi)`` input range [input units, e.g. A]; every
-            input must lie inside it.
+        input_range: ``(lo, hi)`` input range [input units, e.g. A] of the
+            hysterons; inputs beyond it saturate (with a warning).
         initial_state: State before the first input: ``"negative"``
             (saturated down, default: the magnet was last cycled down to the
             bottom of the range), ``"positive"``, ``"demagnetized"`` or
             ``"learned"`` (a trainable state per hysteron, ``tanh(raw)``).
         smoothing: Width of the smooth relays [input units], used only by the
             ``smooth=True`` calls; default 1 % of the input range.
+        symmetric: Tie the density to its mirror image about the centre of
+            the input range; needs a mirror-symmetric mesh (triangular ones are).
         dtype: Floating dtype of parameters and buffers.
 
     Shapes:
@@ -74,7 +87,8 @@ class PreisachModel(nn.Module):
 
     Raises:
         ValueError: for an empty or inverted input range, an unknown initial
-            state or a non-positive smoothing width.
+            state, a non-positive smoothing width or ``symmetric`` with a mesh
+            that is not mirror symmetric.
 
     Example:
         >>> mesh = PreisachMesh.triangular(n=10)
@@ -91,6 +105,7 @@ class PreisachModel(nn.Module):
         input_range: Sequence[float] = (0.0, 1.0),
         initial_state: str = "negative",
         smoothing: float | None = None,
+        symmetric: bool = False,
         dtype: torch.dtype = torch.float64,
     ) -> None:
         super().__init__()
@@ -115,6 +130,9 @@ class PreisachModel(nn.Module):
         self.register_buffer("alpha", mesh.alpha.clone())
         self.register_buffer("beta", mesh.beta.clone())
         self.register_buffer("area", mesh.area.clone())
+        self.symmetric = bool(symmetric)
+        mirror = mesh.mirror_index() if self.symmetric else torch.arange(len(mesh))
+        self.register_buffer("mirror", mirror.to(mesh.alpha.device), persistent=False)
         self._layout = RowLayout(self.alpha, self.beta)
         m = len(mesh)
         one = torch.ones((), dtype=dtype)
@@ -137,6 +155,7 @@ class PreisachModel(nn.Module):
             "input_range": list(self.input_range),
             "initial_state": self.initial_state_kind,
             "smoothing": self.smoothing,
+            "symmetric": self.symmetric,
             "dtype": str(self.alpha.dtype).removeprefix("torch."),
             "n_hysterons": int(self.alpha.numel()),
         }
@@ -168,6 +187,7 @@ class PreisachModel(nn.Module):
             input_range=config["input_range"],
             initial_state=config["initial_state"],
             smoothing=config["smoothing"],
+            symmetric=bool(config.get("symmetric", False)),
             dtype=dtype,
         )
         model.load_state_dict(state_dict)
@@ -186,8 +206,10 @@ class PreisachModel(nn.Module):
 
     @property
     def density(self) -> Tensor:
-        """Non-negative hysteron density [1], shape ``(M,)``."""
-        return _positive(self.raw_density)
+        """Non-negative hysteron density [1], shape ``(M,)`` (mirror symmetric
+        when ``symmetric``)."""
+        d = _positive(self.raw_density)
+        return 0.5 * (d + d[self.mirror]) if self.symmetric else d
 
     @density.setter
     def density(self, value: Tensor) -> None:
@@ -207,9 +229,12 @@ class PreisachModel(nn.Module):
     def normalize_input(self, u: Tensor) -> Tensor:
         """Map inputs [input units] to normalised inputs [1] and check them.
 
+        Inputs beyond ``input_range`` are kept (they map below 0 or above 1) and
+        raise an :class:`InputRangeWarning` naming how far outside they lie;
+        the hysterons see them clipped to the range (saturation).
+
         Raises:
-            ValueError: if ``u`` has no time axis, NaN/inf values or values
-                outside ``input_range``.
+            ValueError: if ``u`` has no time axis or NaN/inf values.
         """
         u = torch.as_tensor(u, dtype=self.alpha.dtype, device=self.alpha.device)
         if u.ndim < 1 or u.shape[-1] < 1:
@@ -220,13 +245,38 @@ class PreisachModel(nn.Module):
             raise ValueError("inputs contain NaN or infinite values.")
         lo, hi = self.input_range
         un = (u - lo) / (hi - lo)
-        if (un < -_RANGE_TOL).any() or (un > 1 + _RANGE_TOL).any():
-            raise ValueError(
-                f"inputs must lie in the model's input_range [{lo}, {hi}]; got "
-                f"min {float(u.min()):.6g}, max {float(u.max()):.6g}. Build the "
-                "model with a wider input_range."
+        below, above = float(-un.min()), float(un.max() - 1.0)
+        if below > _RANGE_TOL or above > _RANGE_TOL:
+            far = max(below, above)
+            warnings.warn(
+                f"inputs reach {float(u.min()):.6g} .. {float(u.max()):.6g}, up to "
+                f"{far * (hi - lo):.4g} ({100 * far:.3g} % of the range) outside the "
+                f"model's input range [{lo:.6g}, {hi:.6g}]; predicted as saturated "
+                "(every hysteron switched) plus the linear term.",
+                InputRangeWarning,
+                stacklevel=2,
             )
-        return un.clamp(0.0, 1.0)
+        return un
+
+    def check_input_range(self, u: Tensor, what: str = "inputs") -> None:
+        """Raise if finite inputs lie outside ``input_range`` (for training data).
+
+        Args:
+            u: Inputs [input units], any shape.
+            what: Name of the inputs in the message.
+
+        Raises:
+            ValueError: naming the span of ``u`` and the ``input_range``.
+        """
+        u = torch.as_tensor(u, dtype=self.alpha.dtype, device=self.alpha.device)
+        lo, hi = self.input_range
+        tol = _RANGE_TOL * (hi - lo)
+        if u.numel() and (float(u.min()) < lo - tol or float(u.max()) > hi + tol):
+            raise ValueError(
+                f"{what} span {float(u.min()):.6g} .. {float(u.max()):.6g}, outside "
+                f"the model's input_range [{lo:.6g}, {hi:.6g}]; build the model "
+                "with an input_range that holds them."
+            )
 
     def initial_states(self, initial_state: str | Tensor | None = None) -> Tensor:
         """Hysteron states before the first input, shape ``(M,)`` or ``(*B, M)``.
@@ -292,7 +342,7 @@ class PreisachModel(nn.Module):
         Returns:
             States in ``[-1, 1]``, shape ``(*B, T, M)``.
         """
-        un = self.normalize_input(u)
+        un = self.normalize_input(u).clamp(0.0, 1.0)  # saturation beyond the range
         s0 = self.initial_states(initial_state)
         if smooth:
             width = self.smoothing / (self.input_range[1] - self.input_range[0])
@@ -327,6 +377,7 @@ class PreisachModel(nn.Module):
         self, un: Tensor, initial_state: str | Tensor | None, smooth: bool
     ) -> Tensor:
         """:meth:`magnetization` of already checked, normalised inputs."""
+        un = un.clamp(0.0, 1.0)  # saturation beyond the range
         w = self.weights
         s0 = self.initial_states(initial_state)
         if smooth:
@@ -373,7 +424,7 @@ class PreisachModel(nn.Module):
         Returns:
             States in ``[-1, 1]``, shape ``(*B, M)``.
         """
-        un = self.normalize_input(u)
+        un = self.normalize_input(u).clamp(0.0, 1.0)
         s0 = self.initial_states(initial_state)
         return exact_states(un, self.alpha, self.beta, s0, self._layout, last=True)
 

@@ -117,60 +117,35 @@ def demagnetized_state(alpha: Tensor, beta: Tensor) -> Tensor:
     return torch.where(d.abs() <= 1e-9, torch.zeros_like(d), torch.sign(d))
 
 
-def _window_min(v: Tensor, lo: Tensor, empty_value: int) -> Tensor:
-    """Minimum of ``v[b, lo..t]`` for every ``t``; ``empty_value`` where ``lo > t``.
-
-    Sparse-table range minimum on integers: exact, ``O(T log T)`` to build.
-
-    Shapes:
-        ``v``: ``(B, T)`` long; ``lo``: ``(B, T, R)`` long; result ``(B, T, R)``.
-    """
-    b, t = v.shape
-    levels = [v]
-    span = 1
-    while 2 * span <= t:
-        prev = levels[-1]
-        nxt = torch.minimum(prev[:, : t - span], prev[:, span:])
-        levels.append(F.pad(nxt, (0, span), value=empty_value))
-        span *= 2
-    table = torch.stack(levels, dim=1).reshape(b, -1)  # (B, J * T)
-    # floor(log2(n)) and 2**floor(log2(n)) for n = 0..T (n = 0 unused)
-    n = torch.arange(t + 1, device=v.device)
-    log2n = torch.zeros_like(n)
-    for j in range(1, len(levels)):
-        log2n += (n >= (1 << j)).to(n.dtype)
-    hi = torch.arange(t, device=v.device).view(1, t, 1)
-    length = (hi - lo + 1).clamp(min=0)
-    j = log2n[length]
-    first = j * t + lo.clamp(max=t - 1)
-    second = j * t + hi - (1 << j) + 1
-    a = torch.gather(table, 1, first.reshape(b, -1))
-    c = torch.gather(table, 1, second.reshape(b, -1))
-    out = torch.minimum(a, c).view(lo.shape)
-    return out.masked_fill(length == 0, empty_value)
-
-
 def _row_events(u: Tensor, layout: RowLayout) -> tuple[Tensor, Tensor, Tensor]:
     """Per-row switching summary of exact relays, in beta-level ranks.
 
     Returns ``reached`` (input has reached the row's alpha), ``window_rank``
     (number of beta levels below the minimum input since the last time it did;
-    all ``U`` levels if none) and ``run_rank`` (number of beta levels below the
-    running minimum of the input).
+    all ``U`` levels at that step) and ``run_rank`` (number of beta levels below
+    the running minimum of the input).
+
+    The window minimum is a segmented running minimum: every step that reaches
+    a row's alpha opens a new segment, so ``segment * (U + 2) + (U + 1 - rank)``
+    grows with the segment and its running maximum holds, within the current
+    segment, ``U + 1`` minus the minimum rank since the segment opened (a
+    reaching step counts as rank ``U``). One ``cumsum`` and one ``cummax`` over
+    ``(B, R, T)`` (time last, contiguous), no range-minimum table.
 
     Shapes:
-        ``u``: ``(B, T)``; returns ``(B, T, R)``, ``(B, T, R)``, ``(B, T)``.
+        ``u``: ``(B, T)``; returns ``(B, R, T)``, ``(B, R, T)``, ``(B, T)``.
     """
-    t = u.shape[-1]
     n_levels = layout.beta_levels.numel()
     # number of beta levels strictly below each input; monotone in u, so the
     # minimum over a window commutes with it
     rank = torch.searchsorted(layout.beta_levels, u.contiguous(), side="left")
-    idx = torch.arange(t, device=u.device).view(1, t, 1)
-    up = u.unsqueeze(-1) >= layout.row_alpha
-    last = torch.where(up, idx, -1).cummax(dim=1).values
-    reached = last >= 0
-    window_rank = _window_min(rank, last + 1, n_levels)
+    up = u.unsqueeze(1) >= layout.row_alpha.unsqueeze(-1)  # (B, R, T)
+    segment = torch.cumsum(up, dim=-1)  # reaching steps so far, per row
+    reached = segment > 0
+    inv_rank = torch.where(up, 1, (n_levels + 1 - rank).unsqueeze(1))
+    offset = segment * (n_levels + 2)
+    best = (offset + inv_rank).cummax(dim=-1).values - offset
+    window_rank = n_levels + 1 - best
     run_rank = rank.cummin(dim=1).values
     return reached, window_rank, run_rank
 
@@ -210,9 +185,10 @@ def exact_states(
     u2, batch = _flatten_batch(u)
     reached, window_rank, run_rank = _row_events(u2, layout)
     if last:
-        reached, window_rank = reached[:, -1:], window_rank[:, -1:]
+        reached, window_rank = reached[..., -1:], window_rank[..., -1:]
         run_rank = run_rank[:, -1:]
     r, q = layout.row, layout.beta_rank
+    reached, window_rank = reached.transpose(1, 2), window_rank.transpose(1, 2)
     up_after = q < window_rank[..., r]  # (B, T, M)
     init = initial.reshape(-1, 1, initial.shape[-1]) if initial.ndim > 1 else initial
     keep = q < run_rank.unsqueeze(-1)
@@ -257,7 +233,7 @@ def exact_magnetization(
     # row sums of weights below each beta level: (R, U + 1)
     w_below = torch.gather(w_cum, 1, layout.below)
     signed = 2.0 * w_below - w_row  # row magnetisation if levels < j are up
-    up_part = torch.gather(signed, 1, window_rank.permute(2, 0, 1).reshape(n_rows, -1))
+    up_part = torch.gather(signed, 1, window_rank.transpose(0, 1).reshape(n_rows, -1))
     # hysterons that never switched up: initial state below the running
     # minimum, -1 above it
     k0 = run_rank.reshape(1, -1).expand(n_rows, -1)
@@ -276,7 +252,7 @@ def exact_magnetization(
         k0b = run_rank.unsqueeze(1).expand(nb, n_rows, t)
         never_part = torch.gather(never_table, 2, k0b).permute(1, 0, 2)
         never_part = never_part.reshape(n_rows, -1)
-    reached_f = reached.permute(2, 0, 1).reshape(n_rows, -1)
+    reached_f = reached.transpose(0, 1).reshape(n_rows, -1)
     m = torch.where(reached_f, up_part, never_part).sum(dim=0)
     return m.view(*batch, t)
 
@@ -369,3 +345,53 @@ def smooth_states(
     rising = (direction > 0).unsqueeze(-1)
     s = _segment_state(rising, s_k, u_k, u2.unsqueeze(-1), alpha, beta, width)
     return s.reshape(*batch, t, m)
+
+
+def exact_stream_step(
+    u: Tensor, layout: RowLayout, weights: Tensor, initial: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Weighted sums of exact relay states along one chunk, and the state after it.
+
+    One pass over the chunk serves several weight vectors (a model's weights
+    and the directions of a predictive band) and the final state, so that a
+    long history can be streamed chunk by chunk in bounded memory: feed the
+    returned state as ``initial`` of the next chunk.
+
+    Args:
+        u: Normalised inputs [1] of one chunk, shape ``(T,)``, inside ``[0, 1]``.
+        layout: :class:`RowLayout` of the hysterons.
+        weights: Weight vectors (any sign), shape ``(K, M)``.
+        initial: States before the chunk, in ``[-1, 1]``, shape ``(M,)``.
+
+    Returns:
+        ``(sums, final)``: ``sums[k, t] = sum_i weights[k, i] * s_i(t)``, shape
+        ``(K, T)``, and the states after the last step, shape ``(M,)``.
+
+    Shapes:
+        See Args/Returns.
+    """
+    reached, window_rank, run_rank = _row_events(u.reshape(1, -1), layout)
+    reached, window_rank, run_rank = reached[0], window_rank[0], run_rank[0]
+    n_k = weights.shape[0]
+    n_rows, t = window_rank.shape
+    below = layout.below.expand(n_k, -1, -1)
+    w_pad = torch.cat([weights, weights.new_zeros(n_k, 1)], dim=1)[:, layout.index]
+    w_cum = F.pad(torch.cumsum(w_pad, dim=-1), (1, 0))  # (K, R, L + 1)
+    w_row = w_cum[..., -1:]
+    w_below = torch.gather(w_cum, 2, below)  # (K, R, U + 1)
+    signed = 2.0 * w_below - w_row
+    up_part = torch.gather(signed, 2, window_rank.expand(n_k, -1, -1))
+    init = initial.to(weights.dtype)
+    init_pad = torch.cat([init, init.new_zeros(1)])[layout.index]  # (R, L)
+    s_cum = F.pad(torch.cumsum(w_pad * init_pad, dim=-1), (1, 0))
+    never_table = torch.gather(s_cum, 2, below) + w_below - w_row
+    k0 = run_rank.view(1, 1, t).expand(n_k, n_rows, t)
+    never_part = torch.gather(never_table, 2, k0)
+    sums = torch.where(reached, up_part, never_part).sum(dim=1)
+    # states after the last step
+    r, q = layout.row, layout.beta_rank
+    one = init.new_ones(())
+    up_after = torch.where(q < window_rank[r, -1], one, -one)
+    never = torch.where(q < run_rank[-1], init, -one)
+    final = torch.where(reached[r, -1], up_after, never)
+    return sums, final

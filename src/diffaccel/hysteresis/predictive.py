@@ -1,0 +1,269 @@
+"""Fit a magnet's Preisach model with a predictive band; stream long predictions.
+
+:func:`fit_magnet` is the front door used by the CLI, the benchmarks and the
+acceptance tests. Choices that cannot be read from physics are made by
+validation on the training rows only: the last ``validation_fraction`` of the
+training rows is held out, the candidates (symmetric density or not) are
+fitted on the rest and scored on them, and the validation residuals calibrate
+the predictive band. The chosen model is then refitted on all training rows.
+Whether the density is symmetric follows the physics of the input range
+(:func:`symmetric_default`) unless the caller says.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from diffaccel.hysteresis.band import LaplaceBand, laplace_band
+from diffaccel.hysteresis.fit import MIN_FIT_POINTS, FitResult, fit_preisach
+from diffaccel.hysteresis.mesh import PreisachMesh
+from diffaccel.hysteresis.preisach import PreisachModel
+from diffaccel.hysteresis.states import exact_stream_step
+
+__all__ = [
+    "RANGE_MARGIN",
+    "MagnetFit",
+    "default_input_range",
+    "symmetric_default",
+    "fit_magnet",
+    "predict_stream",
+]
+
+# margin added to the training input range so that nearby inputs stay inside
+RANGE_MARGIN = 0.01
+# rows held out of the training rows for validation (at least 2)
+VALIDATION_FRACTION = 0.25
+
+
+def symmetric_default(input_range: Sequence[float]) -> bool:
+    """Whether a density should be symmetric by default: a range centred on 0.
+
+    The symmetry of magnets and soft magnetic materials,
+    ``mu(alpha, beta) = mu(-beta, -alpha)``, holds about zero input (zero
+    field); a model's symmetry is about the centre of its input range, so the
+    two agree when the range is centred on zero (bipolar magnets, B-H loops;
+    within 5 % of the range). A unipolar range (e.g. 0 .. 165 A) is not.
+    The training rows cannot settle this themselves: for a B-H loop fitted on
+    its virgin curve and first descent they never exercise the mirrored
+    hysterons (see ``benchmarks/preisach_acceptance.py``).
+    """
+    lo, hi = (float(v) for v in input_range)
+    return abs(lo + hi) <= 0.05 * (hi - lo)
+
+
+def default_input_range(
+    current: Tensor, initial_state: str = "negative"
+) -> tuple[float, float]:
+    """Model input range from training inputs [input units].
+
+    The training span plus ``RANGE_MARGIN`` of it on both sides. A magnet that
+    starts ``"demagnetized"`` was demagnetised about zero input, which is then
+    the centre of its Preisach plane: the range is symmetric about 0,
+    ``+-(1 + RANGE_MARGIN) max|u|``.
+
+    Args:
+        current: Training inputs [input units], shape ``(T,)``, finite.
+        initial_state: The model's initial state kind.
+
+    Returns:
+        ``(lo, hi)`` with ``lo < hi``.
+    """
+    lo, hi = float(current.min()), float(current.max())
+    if initial_state == "demagnetized":
+        top = (1.0 + RANGE_MARGIN) * max(abs(lo), abs(hi), 1e-12)
+        return (-top, top)
+    pad = RANGE_MARGIN * max(hi - lo, abs(hi), 1e-12)
+    return (lo - pad, hi + pad)
+
+
+@dataclass
+class MagnetFit:
+    """Outcome of :func:`fit_magnet`.
+
+    Attributes:
+        model: The Preisach model fitted on all training rows.
+        band: Its predictive band (one standard deviation with noise).
+        result: The final :class:`FitResult`.
+        symmetric: Whether the chosen density is symmetric.
+        validation: ``[{"symmetric", "val_rows", "val_rmse"}]``: rms error
+            [output units] on the training rows held out for validation.
+        calibration: Band factor measured on the validation rows (>= 1).
+        seconds: Wall-clock time of everything [s].
+    """
+
+    model: PreisachModel
+    band: LaplaceBand
+    result: FitResult
+    symmetric: bool
+    validation: list[dict] = field(default_factory=list)
+    calibration: float = 1.0
+    seconds: float = 0.0
+
+
+def _build(mesh_size, input_range, initial_state, symmetric) -> PreisachModel:
+    return PreisachModel(
+        PreisachMesh.triangular(mesh_size),
+        input_range=input_range,
+        initial_state=initial_state,
+        symmetric=symmetric,
+    )
+
+
+def fit_magnet(
+    current: Tensor,
+    field: Tensor,
+    *,
+    mesh_size: int = 30,
+    symmetric: bool | None = None,
+    initial_state: str = "negative",
+    input_range: Sequence[float] | None = None,
+    steps: int = 300,
+    smoothness: float = 0.0,
+    validation_fraction: float = VALIDATION_FRACTION,
+    callback: Callable[[int, float], None] | None = None,
+) -> MagnetFit:
+    """Fit a Preisach model and its predictive band to one training history.
+
+    Args:
+        current: Training inputs in time order [input units], shape ``(T,)``.
+        field: Training outputs [output units], shape ``(T,)``.
+        mesh_size: Cells per axis of the triangular mesh.
+        symmetric: Symmetric density; ``None``: :func:`symmetric_default` of
+            the input range.
+        initial_state: Magnet state before ``current[0]``.
+        input_range: ``(lo, hi)`` [input units]; default
+            :func:`default_input_range`. Must hold every training input.
+        steps: L-BFGS iterations per fit.
+        smoothness: Density roughness penalty (see :func:`fit_preisach`).
+        validation_fraction: Share of the last training rows held out to
+            choose ``symmetric`` and calibrate the band.
+        callback: ``callback(step, loss)`` of every fit, in turn.
+
+    Returns:
+        A :class:`MagnetFit`.
+
+    Raises:
+        ValueError: for bad series (see :func:`fit_preisach`), an input range
+            that misses training inputs, or too few rows to validate.
+    """
+    start = time.perf_counter()
+    u = torch.as_tensor(current, dtype=torch.float64)
+    y = torch.as_tensor(field, dtype=torch.float64)
+    if u.ndim != 1 or u.shape != y.shape:
+        raise ValueError(
+            f"current and field need equal shapes (T,); got {tuple(u.shape)} and "
+            f"{tuple(y.shape)}."
+        )
+    if not (torch.isfinite(u).all() and torch.isfinite(y).all()):
+        raise ValueError("current or field contains NaN or infinite values.")
+    rng = tuple(input_range) if input_range is not None else None
+    if rng is None:
+        rng = default_input_range(u, initial_state)
+    # every check that can fail runs before the first fit
+    _build(mesh_size, rng, initial_state, bool(symmetric)).check_input_range(
+        u, "training inputs"
+    )
+    n_val = max(2, round(validation_fraction * u.numel()))
+    n_fit = u.numel() - n_val
+    if n_fit < MIN_FIT_POINTS:
+        raise ValueError(
+            f"{u.numel()} training rows leave {n_fit} to fit after holding out "
+            f"{n_val} for validation; need at least {MIN_FIT_POINTS + 2} rows."
+        )
+    if float(y[:n_fit].max() - y[:n_fit].min()) <= 0:
+        raise ValueError("output is constant over the fitted rows; nothing to fit.")
+    chosen = symmetric_default(rng) if symmetric is None else bool(symmetric)
+    model = _build(mesh_size, rng, initial_state, chosen)
+    fit_preisach(
+        model, u[:n_fit], y[:n_fit], steps=steps, smoothness=smoothness,
+        callback=callback,
+    )  # fmt: skip
+    with torch.no_grad():
+        pred = model(u)
+    validation = [
+        {
+            "symmetric": chosen,
+            "val_rows": n_val,
+            "val_rmse": float((pred[n_fit:] - y[n_fit:]).pow(2).mean().sqrt()),
+        }
+    ]
+    # calibrate the band on the validation rows
+    band = laplace_band(model, u[:n_fit], y[:n_fit])
+    with torch.no_grad():
+        std = band.std(model, u)[n_fit:]
+    z = (pred[n_fit:] - y[n_fit:]) / std
+    calibration = max(1.0, float(z.pow(2).mean().sqrt()))
+    # final fit on all training rows
+    model = _build(mesh_size, rng, initial_state, chosen)
+    result = fit_preisach(
+        model, u, y, steps=steps, smoothness=smoothness, callback=callback
+    )
+    band = laplace_band(model, u, y, calibration=calibration)
+    return MagnetFit(
+        model=model,
+        band=band,
+        result=result,
+        symmetric=chosen,
+        validation=validation,
+        calibration=calibration,
+        seconds=time.perf_counter() - start,
+    )
+
+
+def predict_stream(
+    model: PreisachModel,
+    chunks: Iterable[Tensor],
+    band: LaplaceBand | None = None,
+    initial_state: str | Tensor | None = None,
+) -> Iterator[tuple[Tensor, Tensor | None]]:
+    """Predictions along a long history, chunk by chunk, in bounded memory.
+
+    Each chunk's exact hysteron state is carried into the next, so the result
+    equals ``model(cat(chunks))`` (and ``band.std`` of it) whatever the chunk
+    sizes, with memory set by the largest chunk.
+
+    Args:
+        model: A Preisach model.
+        chunks: Consecutive input chunks [input units], each shape ``(T_c,)``.
+        band: Predictive band of the model, or ``None`` (std not computed).
+        initial_state: State before the first chunk; ``None`` is the model's own.
+
+    Yields:
+        ``(prediction, std)`` per chunk [output units], shapes ``(T_c,)``;
+        ``std`` is ``None`` without a band. Inputs beyond the range warn once
+        per chunk (:class:`~diffaccel.hysteresis.InputRangeWarning`).
+    """
+    with torch.no_grad():
+        state = model.initial_states(initial_state)
+        if state.ndim != 1:
+            raise ValueError("predict_stream needs one history: state shape (M,).")
+        w = model.weights
+        weights = (w / w.sum()).unsqueeze(0)
+        affine = None
+        if band is not None:
+            affine, band_w = band.hysteron_weights(model)
+            weights = torch.cat([weights, band_w.to(weights)], dim=0)
+        for chunk in chunks:
+            if chunk.numel() == 0:
+                continue
+            un = model.normalize_input(chunk)
+            sums, state = exact_stream_step(
+                un.clamp(0.0, 1.0), model._layout, weights, state
+            )
+            y = model.offset + model.slope * un + model.scale * sums[0]
+            pred = model.output_loc + model.output_scale * y
+            std = None
+            if band is not None:
+                std = model.output_scale * band.std_from_sums(affine, un, sums[1:])
+            yield pred, std
+
+
+def rms(x: Tensor) -> float:
+    """Root mean square of a tensor (``nan`` when empty)."""
+    return float(x.pow(2).mean().sqrt()) if x.numel() else math.nan
