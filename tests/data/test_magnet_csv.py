@@ -87,3 +87,37 @@ def test_reads_slac_measurements() -> None:
     assert len(h) == 187
     assert h.header[:3] == ["run", "time_s", "current_A"]
     assert 164 < float(h.input.max()) < 166
+
+
+def test_utf8_bom_is_accepted(tmp_path: Path) -> None:
+    p = tmp_path / "bom.csv"
+    p.write_bytes("current_A,field_Tm\n1,2\n".encode("utf-8-sig"))
+    h = read_magnet_csv(p)
+    assert h.header == ["current_A", "field_Tm"] and h.input.tolist() == [1.0]
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("current_A,field_Tm,current_A\n1,2,3\n", "appears more than once"),
+        ("current_A,field_Tm\n1," + "9" * 5000 + "\n", "a cell of 5000 characters"),
+    ],
+    ids=["duplicate-column", "long-cell"],
+)
+def test_bad_headers_and_cells(tmp_path: Path, text: str, match: str) -> None:
+    with pytest.raises(FormatError, match=match):
+        read_magnet_csv(_write(tmp_path, text))
+
+
+def test_stream_reader_chunks_and_checks(tmp_path: Path) -> None:
+    from diffaccel.data import iter_magnet_csv
+
+    p = _write(tmp_path, "current_A\n" + "".join(f"{i}\n" for i in range(10)))
+    header, chunks = iter_magnet_csv(p, "current_A", chunk_rows=4)
+    got = [(len(rows), x) for rows, x in chunks]
+    assert header == ["current_A"]
+    assert [n for n, _ in got] == [4, 4, 2]
+    assert torch.cat([x for _, x in got]).tolist() == [float(i) for i in range(10)]
+    bad = _write(tmp_path, "current_A\n1\n2\nx\n")
+    with pytest.raises(FormatError, match="row 3: expected a number"):
+        list(iter_magnet_csv(bad, "current_A", chunk_rows=2)[1])

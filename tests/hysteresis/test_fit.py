@@ -8,7 +8,13 @@ import pytest
 import torch
 
 from diffaccel.data import read_magnet_csv
-from diffaccel.hysteresis import FitResult, PreisachMesh, PreisachModel, fit_preisach
+from diffaccel.hysteresis import (
+    FitResult,
+    PreisachMesh,
+    PreisachModel,
+    fit_magnet,
+    fit_preisach,
+)
 from diffaccel.hysteresis.fit import density_roughness
 from diffaccel.hysteresis.synthetic import synthetic_measurement
 
@@ -98,8 +104,22 @@ def test_learned_initial_state_is_fitted() -> None:
         (torch.arange(5.0) * 10, torch.arange(5.0), "input_range"),
         (torch.zeros(2, 5), torch.zeros(2, 5), "1-D"),
         (torch.arange(5.0), torch.ones(5), "constant"),
+        (
+            torch.arange(5.0, dtype=F64),
+            torch.tensor([0, 1, 1e300, 3, 4.0], dtype=F64),
+            "1e\\+100",
+        ),
     ],
-    ids=["length", "too-few", "nan-current", "inf-field", "outside", "2d", "constant"],
+    ids=[
+        "length",
+        "too-few",
+        "nan-current",
+        "inf-field",
+        "outside",
+        "2d",
+        "constant",
+        "1e300",
+    ],
 )
 def test_bad_data_raises(current, field, match) -> None:
     model = PreisachModel(PreisachMesh.triangular(5), input_range=(0.0, 10.0))
@@ -131,16 +151,26 @@ def test_callback_sees_every_step() -> None:
     assert seen == list(range(7)) and res.steps == 7
 
 
+def _line_rms(current: torch.Tensor, field: torch.Tensor, n: int) -> float:
+    """Held-out rms of a straight line fitted to the first ``n`` rows."""
+    basis = torch.stack([torch.ones_like(current), current], dim=1)
+    coef = torch.linalg.lstsq(basis[:n], field[:n, None]).solution
+    return float(((basis @ coef).squeeze(1)[n:] - field[n:]).pow(2).mean().sqrt())
+
+
 @pytest.mark.skipif(not SLAC.exists(), reason="needs /work/shared reference data")
 def test_slac_quadrupole_acceptance() -> None:
-    # spec: fit the first 62 points, predict the other 125 within 3 % of range
+    # issue 11: fit the first 62 points, predict the other 125 with less than
+    # half the straight line's rms (line 0.197 % of range; the CLI default
+    # reaches about 0.3 of it)
     hist = read_magnet_csv(SLAC)
     current, field = hist.input, hist.output
-    span = float(field[:62].max() - field[:62].min())
-    model = PreisachModel(
-        PreisachMesh.triangular(44), input_range=(-0.01, float(current.max()) + 0.01)
-    )
-    fit_preisach(model, current[:62], field[:62], steps=100, smoothness=0.0)
+    fit = fit_magnet(current[:62], field[:62], steps=100)
+    assert fit.symmetric is False  # unipolar range
     with torch.no_grad():
-        pred = model(current)
-    assert _rms_percent(pred[62:], field[62:], span) < 3.0
+        pred = fit.model(current)
+        std = fit.band.std(fit.model, current)
+    err = pred[62:] - field[62:]
+    assert float(err.pow(2).mean().sqrt()) < 0.5 * _line_rms(current, field, 62)
+    # the band is honest there: most held-out rows inside 2 std
+    assert float((err.abs() < 2 * std[62:]).double().mean()) >= 0.8

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import math
+import warnings
 from pathlib import Path
 
 import click
@@ -15,28 +17,28 @@ from diffaccel.data import (
     DEFAULT_OUTPUT_COLUMN,
     atomic_write,
     atomic_write_text,
+    iter_magnet_csv,
     read_magnet_csv,
-    write_csv_atomic,
 )
-from diffaccel.hysteresis import PreisachMesh, PreisachModel, fit_preisach
+from diffaccel.hysteresis import (
+    CONFIG_FILE,
+    MODEL_FILE,
+    InputRangeWarning,
+    fit_magnet,
+    load_fit,
+    predict_stream,
+    save_fit,
+)
+from diffaccel.hysteresis.predictive import rms
 from diffaccel.plotting.hysteresis import plot_preisach_density, plot_preisach_fit
 
 __all__ = ["hysteresis"]
 
-MODEL_FILE = "model.pt"
-CONFIG_FILE = "model.json"
 SUMMARY_FILE = "summary.json"
 FIGURES = ("fit.png", "density.png")
-# margin added to the training input range so that nearby inputs stay valid
-RANGE_MARGIN = 0.01
-
-
-def _write_json(dest: Path, obj: dict) -> None:
-    atomic_write_text(dest, json.dumps(obj, indent=2) + "\n")
-
-
-def _rms(x: torch.Tensor) -> float | None:
-    return float(x.pow(2).mean().sqrt()) if x.numel() else None
+PREDICTION = "prediction"
+PREDICTION_STD = "prediction_std"
+CHUNK_ROWS = 20_000
 
 
 @click.group("hysteresis")
@@ -66,9 +68,16 @@ def hysteresis() -> None:
 @click.option(
     "--mesh-size",
     type=click.IntRange(min=2),
-    default=44,
+    default=30,
     show_default=True,
-    help="Cells per axis of the triangular Preisach mesh (44: 990 hysterons).",
+    help="Cells per axis of the triangular Preisach mesh (30: 465 hysterons).",
+)
+@click.option(
+    "--symmetric/--no-symmetric",
+    default=None,
+    help="Density symmetric about the centre of the input range, "
+    "mu(a, b) = mu(-b, -a). Default: symmetric when the range is centred on 0 "
+    "(bipolar magnets, B-H loops).",
 )
 @click.option(
     "--smoothness",
@@ -79,24 +88,21 @@ def hysteresis() -> None:
 )
 @click.option("--steps", type=click.IntRange(min=1), default=300, show_default=True)
 @click.option(
-    "--optimizer",
-    type=click.Choice(["lbfgs", "adam"]),
-    default="lbfgs",
-    show_default=True,
-)
-@click.option(
     "--initial-state",
     type=click.Choice(["negative", "positive", "demagnetized", "learned"]),
     default="negative",
     show_default=True,
-    help="Magnet state before the first row.",
+    help="Magnet state before the first row (demagnetized: a virgin curve; "
+    "its input range is then centred on 0).",
 )
 @click.option(
     "--input-range",
     type=(float, float),
     default=None,
-    help="Model input range LO HI [input units]; default: training rows +- 1 %.",
+    help="Model input range LO HI [input units]; default: training rows +- 1 % "
+    "(+- 1.01 max|input| for --initial-state demagnetized).",
 )
+@click.option("--no-figures", is_flag=True, help="Skip fit.png and density.png.")
 @click.option("--force", is_flag=True, help="Overwrite files of an earlier fit in OUT.")
 def fit_command(
     data: Path,
@@ -105,17 +111,18 @@ def fit_command(
     output_col: str,
     out_dir: Path,
     mesh_size: int,
+    symmetric: bool | None,
     smoothness: float,
     steps: int,
-    optimizer: str,
     initial_state: str,
     input_range: tuple[float, float] | None,
+    no_figures: bool,
     force: bool,
 ) -> None:
     """Fit a Preisach model to the first N rows of DATA (CSV) and test on the rest."""
     try:
         hist = read_magnet_csv(data, input_col, output_col)
-    except ValueError as err:
+    except (OSError, ValueError) as err:
         raise click.ClickException(str(err)) from err
     if train_rows > len(hist):
         raise click.BadParameter(
@@ -130,49 +137,42 @@ def fit_command(
         )
     u, y = hist.input, hist.output
     u_tr, y_tr = u[:train_rows], y[:train_rows]
-    if input_range is None:
-        lo, hi = float(u_tr.min()), float(u_tr.max())
-        pad = RANGE_MARGIN * max(hi - lo, abs(hi), 1e-12)
-        input_range = (lo - pad, hi + pad)
     try:
-        model = PreisachModel(
-            PreisachMesh.triangular(mesh_size),
-            input_range=input_range,
-            initial_state=initial_state,
-        )
-        # L-BFGS reports every objective evaluation (their number is not
-        # known in advance); Adam every step
-        total = steps if optimizer == "adam" else None
-        unit = "step" if optimizer == "adam" else "eval"
-        with tqdm(total=total, desc="fit", unit=unit, leave=False) as bar:
+        with tqdm(desc="fit", unit="eval", leave=False) as bar:
 
             def progress(step: int, loss: float) -> None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{loss:.3g}", refresh=False)
 
-            result = fit_preisach(
-                model,
+            fit = fit_magnet(
                 u_tr,
                 y_tr,
-                optimizer=optimizer,
+                mesh_size=mesh_size,
+                symmetric=symmetric,
+                initial_state=initial_state,
+                input_range=input_range,
                 steps=steps,
                 smoothness=smoothness,
                 callback=progress,
             )
-        with torch.no_grad():
-            u_te = u[train_rows:]
-            in_range = (u_te >= input_range[0]) & (u_te <= input_range[1])
-            if not bool(in_range.all()):
-                raise ValueError(
-                    f"test rows hold inputs outside the model's input range "
-                    f"{input_range}; pass a wider --input-range."
-                )
-            pred = model(u)
+        model = fit.model
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", InputRangeWarning)
+            with torch.no_grad():
+                pred = model(u)
+                std = fit.band.std(model, u)
     except ValueError as err:
         raise click.ClickException(str(err)) from err
-    span = float(y.max() - y.min())
+    notes = [str(w.message) for w in caught if w.category is InputRangeWarning]
+    span = float(y_tr.max() - y_tr.min())
+    n_te = len(hist) - train_rows
     resid = pred - y
-    train_rmse, test_rmse = _rms(resid[:train_rows]), _rms(resid[train_rows:])
+    train_rmse = rms(resid[:train_rows])
+    test_rmse = rms(resid[train_rows:]) if n_te else None
+    basis = torch.stack([torch.ones_like(u), u], dim=1)
+    coef = torch.linalg.lstsq(basis[:train_rows], y_tr[:, None]).solution
+    line_rmse = rms((basis @ coef).squeeze(1)[train_rows:] - y[train_rows:])
+    inside = (resid[train_rows:].abs() <= 2.0 * std[train_rows:]).double()
 
     def pct(v: float | None) -> float | None:
         return None if v is None else 100.0 * v / span
@@ -183,55 +183,67 @@ def fit_command(
         "output_column": output_col,
         "rows": len(hist),
         "train_rows": train_rows,
-        "test_rows": len(hist) - train_rows,
+        "test_rows": n_te,
         "output_range": span,
+        "output_range_rows": "training",
         "train_rmse": train_rmse,
         "train_rmse_percent": pct(train_rmse),
         "test_rmse": test_rmse,
         "test_rmse_percent": pct(test_rmse),
-        "fit_seconds": result.seconds,
-        "optimizer": optimizer,
-        "steps": result.steps,
+        "straight_line_test_rmse": line_rmse if n_te else None,
+        "test_inside_2std": float(inside.mean()) if n_te else None,
+        "test_mean_std": float(std[train_rows:].mean()) if n_te else None,
+        "fit_seconds": fit.seconds,
+        "steps": fit.result.steps,
         "mesh_size": mesh_size,
         "n_hysterons": int(model.alpha.numel()),
+        "symmetric": fit.symmetric,
+        "band_calibration": fit.calibration,
+        "band_directions": int(fit.band.directions.shape[0]),
+        "validation": fit.validation,
         "smoothness": smoothness,
         "initial_state": initial_state,
-        "input_range": list(input_range),
+        "input_range": list(model.input_range),
+        "notes": notes,
     }
-    out_dir.mkdir(parents=True, exist_ok=True)
-    tensors = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
-    atomic_write(out_dir / MODEL_FILE, lambda p: torch.save(tensors, p))
-    config = {**model.config(), "input_column": input_col, "output_column": output_col}
-    _write_json(out_dir / CONFIG_FILE, config)
-    fig = plot_preisach_fit(
+    save_fit(
+        out_dir,
         model,
-        u,
-        y,
-        n_train=train_rows,
-        input_label=input_col,
-        output_label=output_col,
+        fit.band,
+        extra={"input_column": input_col, "output_column": output_col},
     )
-    atomic_write(out_dir / "fit.png", lambda p: fig.savefig(p, format="png", dpi=120))
-    fig = plot_preisach_density(model, input_label=input_col)
-    atomic_write(
-        out_dir / "density.png", lambda p: fig.savefig(p, format="png", dpi=120)
-    )
-    _write_json(out_dir / SUMMARY_FILE, summary)
+    if not no_figures:
+        fig = plot_preisach_fit(
+            model,
+            u,
+            y,
+            n_train=train_rows,
+            std=std,
+            input_label=input_col,
+            output_label=output_col,
+        )
+        atomic_write(
+            out_dir / "fit.png", lambda p: fig.savefig(p, format="png", dpi=120)
+        )
+        fig = plot_preisach_density(model, input_label=input_col)
+        atomic_write(
+            out_dir / "density.png", lambda p: fig.savefig(p, format="png", dpi=120)
+        )
+    atomic_write_text(out_dir / SUMMARY_FILE, json.dumps(summary, indent=2) + "\n")
+    for note in notes:
+        click.echo(f"note: {note}", err=True)
     test_txt = (
-        "n/a" if test_rmse is None else f"{test_rmse:.4g} ({pct(test_rmse):.3f} %)"
+        "n/a"
+        if test_rmse is None
+        else f"{test_rmse:.4g} ({pct(test_rmse):.3f} %; straight line "
+        f"{pct(line_rmse):.3f} %), {100 * float(inside.mean()):.0f} % of them "
+        "inside 2 std"
     )
     click.echo(
-        f"fit {train_rows} rows in {result.seconds:.2f} s: train rmse "
-        f"{train_rmse:.4g} ({pct(train_rmse):.3f} %), test rmse {test_txt} "
-        f"of output range {span:.4g}; wrote {out_dir}"
+        f"fit {train_rows} rows in {fit.seconds:.2f} s (symmetric {fit.symmetric}): "
+        f"train rmse {train_rmse:.4g} ({pct(train_rmse):.3f} %), held-out rmse "
+        f"{test_txt}; % of the training output range {span:.4g}; wrote {out_dir}"
     )
-
-
-def load_fitted_model(fit_dir: Path) -> tuple[PreisachModel, dict]:
-    """Model and config written by ``diffaccel hysteresis fit`` (safe loading)."""
-    config = json.loads((fit_dir / CONFIG_FILE).read_text())
-    tensors = torch.load(fit_dir / MODEL_FILE, weights_only=True, map_location="cpu")
-    return PreisachModel.from_config(config, tensors), config
 
 
 @hysteresis.command("predict")
@@ -243,34 +255,87 @@ def load_fitted_model(fit_dir: Path) -> tuple[PreisachModel, dict]:
     "data",
     type=click.Path(exists=True, dir_okay=False, path_type=Path),
     required=True,
-    help="CSV with the input column of the fit, rows in time order.",
+    help="CSV with the input column of the fit, rows in time order (any length).",
 )
 @click.option(
     "--out", "out_file", type=click.Path(dir_okay=False, path_type=Path), required=True
 )
-@click.option("--force", is_flag=True, help="Overwrite OUT if it exists.")
+@click.option(
+    "--force",
+    is_flag=True,
+    help="Overwrite OUT if it exists, and replace prediction columns of the input.",
+)
 def predict_command(fit_dir: Path, data: Path, out_file: Path, force: bool) -> None:
-    """Predict the output for every row of a CSV, from the fit's initial state."""
+    """Predict every row of a CSV (streamed), from the fit's initial state.
+
+    Writes the input's columns plus ``prediction`` and ``prediction_std`` (one
+    standard deviation, including measurement noise) [output units].
+    """
     if out_file.exists() and not force:
         raise click.ClickException(f"{out_file} exists; pass --force to overwrite.")
+    if out_file.resolve() == data.resolve():
+        raise click.ClickException(
+            f"--out {out_file} is the input file; write the predictions elsewhere."
+        )
     try:
-        model, config = load_fitted_model(fit_dir)
-    except (OSError, ValueError, KeyError, RuntimeError) as err:
+        model, band, config = load_fit(fit_dir)
+    except ValueError as err:
         raise click.ClickException(f"cannot load a fit from {fit_dir}: {err}") from err
     in_col = config.get("input_column", DEFAULT_INPUT_COLUMN)
-    out_col = config.get("output_column", DEFAULT_OUTPUT_COLUMN)
     try:
-        hist = read_magnet_csv(data, in_col, out_col, require_output=False)
-        with torch.no_grad():
-            pred = model(hist.input)
+        header, chunks = iter_magnet_csv(data, in_col, chunk_rows=CHUNK_ROWS)
+    except (OSError, ValueError) as err:
+        raise click.ClickException(str(err)) from err
+    clash = [c for c in (PREDICTION, PREDICTION_STD) if c in header]
+    if clash and not force:
+        raise click.ClickException(
+            f"{data} already has column(s) {clash}; pass --force to replace them "
+            "in the output (the input file is never changed)."
+        )
+    keep = [i for i, c in enumerate(header) if c not in clash]
+    out_header = [header[i] for i in keep] + [PREDICTION, PREDICTION_STD]
+    stats = {"rows": 0, "finite": True, "min": math.inf, "max": -math.inf}
+
+    def write(path: Path) -> None:
+        pending: list[list[list[str]]] = []
+
+        def inputs():
+            for rows, x in chunks:
+                pending.append(rows)
+                stats["min"] = min(stats["min"], float(x.min()))
+                stats["max"] = max(stats["max"], float(x.max()))
+                yield x
+
+        with open(path, "w", newline="", encoding="utf-8") as f:
+            writer = csv.writer(f, lineterminator="\n")
+            writer.writerow(out_header)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", InputRangeWarning)  # noted below
+                for pred, std in predict_stream(model, inputs(), band):
+                    rows = pending.pop(0)
+                    sd = std.tolist() if std is not None else [math.nan] * len(rows)
+                    for row, p, s in zip(rows, pred.tolist(), sd, strict=True):
+                        writer.writerow([row[i] for i in keep] + [repr(p), repr(s)])
+                    stats["rows"] += len(rows)
+                    stats["finite"] &= bool(torch.isfinite(pred).all())
+
+    try:
+        atomic_write(out_file, write)
     except ValueError as err:
         raise click.ClickException(str(err)) from err
-    name = f"{out_col}_predicted"
-    rows = [
-        [*row, repr(float(p))] for row, p in zip(hist.rows, pred.tolist(), strict=True)
-    ]
-    write_csv_atomic(out_file, [*hist.header, name], rows, overwrite=force)
-    finite = all(math.isfinite(v) for v in pred.tolist())
-    click.echo(f"predicted {len(rows)} rows ({name}); wrote {out_file}")
-    if not finite:
+    lo, hi = model.input_range
+    beyond = max(lo - stats["min"], stats["max"] - hi, 0.0)
+    if beyond > 0:
+        click.echo(
+            f"note: inputs reach up to {beyond:.4g} "
+            f"({100 * beyond / (hi - lo):.3g} % of the range) outside the "
+            f"model's input range [{lo:.6g}, {hi:.6g}]; predicted as saturated "
+            "(every hysteron switched) plus the linear term.",
+            err=True,
+        )
+    click.echo(
+        f"predicted {stats['rows']} rows ({PREDICTION}, {PREDICTION_STD}); "
+        f"wrote {out_file}"
+    )
+    if not stats["finite"]:
         raise click.ClickException("predictions contain non-finite values.")

@@ -11,6 +11,7 @@ from diffaccel.data.magnet_csv import (
     DEFAULT_INPUT_COLUMN,
     DEFAULT_OUTPUT_COLUMN,
     MagnetHistory,
+    iter_magnet_csv,
     read_magnet_csv,
     write_csv_atomic,
 )
@@ -53,6 +54,7 @@ __all__ = [
     "average_shots",
     "center_centroids",
     "crop_to_beam",
+    "iter_magnet_csv",
     "make_synthetic_quad_scan",
     "median_filter",
     "normalize",

@@ -13,7 +13,7 @@ import csv
 import io
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,13 +26,17 @@ from diffaccel.data.errors import FormatError
 __all__ = [
     "DEFAULT_INPUT_COLUMN",
     "DEFAULT_OUTPUT_COLUMN",
+    "MAX_CELL_CHARS",
     "MagnetHistory",
+    "iter_magnet_csv",
     "read_magnet_csv",
     "write_csv_atomic",
 ]
 
 DEFAULT_INPUT_COLUMN = "current_A"
 DEFAULT_OUTPUT_COLUMN = "field_Tm"
+# longest accepted cell (a number, a label); longer ones are not magnet data
+MAX_CELL_CHARS = 1000
 
 
 @dataclass
@@ -60,9 +64,11 @@ class MagnetHistory:
         return self.input.numel()
 
 
-def _parse_column(rows: list[list[str]], col: int, name: str, path: str) -> Tensor:
+def _parse_column(
+    rows: list[list[str]], col: int, name: str, path: str, first: int = 0
+) -> Tensor:
     values = []
-    for i, row in enumerate(rows):
+    for i, row in enumerate(rows, start=first):
         try:
             v = float(row[col])
         except (ValueError, IndexError):
@@ -80,6 +86,47 @@ def _parse_column(rows: list[list[str]], col: int, name: str, path: str) -> Tens
     return torch.tensor(values, dtype=torch.float64)
 
 
+def _rows(path: str | os.PathLike) -> Iterator[tuple[int, list[str]]]:
+    """Non-blank CSV rows with their line numbers; a UTF-8 BOM is accepted."""
+    path_s = str(path)
+    try:
+        with open(path, encoding="utf-8-sig", newline="") as f:
+            reader = csv.reader(f)
+            while True:
+                try:
+                    row = next(reader)
+                except StopIteration:
+                    return
+                except csv.Error as err:
+                    raise FormatError(
+                        f"{path_s}: line {reader.line_num}: not valid CSV ({err})."
+                    ) from None
+                if not any(c.strip() for c in row):
+                    continue
+                for c in row:
+                    if len(c) > MAX_CELL_CHARS:
+                        raise FormatError(
+                            f"{path_s}: line {reader.line_num}: a cell of {len(c)} "
+                            f"characters (at most {MAX_CELL_CHARS}); not magnet data."
+                        )
+                yield reader.line_num, row
+    except UnicodeDecodeError as err:
+        raise FormatError(f"{path_s}: not UTF-8 text ({err.reason}).") from None
+
+
+def _header(path_s: str, row: list[str]) -> list[str]:
+    header = [c.strip() for c in row]
+    seen: set[str] = set()
+    for name in header:
+        if name in seen:
+            raise FormatError(
+                f"{path_s}: column name {name!r} appears more than once in the "
+                "header; names must be unique."
+            )
+        seen.add(name)
+    return header
+
+
 def read_magnet_csv(
     path: str | os.PathLike,
     input_column: str = DEFAULT_INPUT_COLUMN,
@@ -89,7 +136,7 @@ def read_magnet_csv(
     """Read a time-ordered magnet history from a CSV file.
 
     Args:
-        path: CSV file with a header row.
+        path: CSV file with a header row (UTF-8, with or without a BOM).
         input_column: Name of the input column (e.g. current [A]).
         output_column: Name of the output column (e.g. field [T m]).
         require_output: Raise if the output column is missing; otherwise
@@ -100,8 +147,9 @@ def read_magnet_csv(
 
     Raises:
         FileNotFoundError: if ``path`` does not exist.
-        FormatError: (a ``ValueError``) for an empty file, a missing column,
-            ragged rows or cells that are not finite numbers.
+        FormatError: (a ``ValueError``) for an empty file, a missing or
+            repeated column, ragged rows, cells longer than ``MAX_CELL_CHARS``
+            or cells that are not finite numbers.
 
     Example:
         >>> import tempfile, pathlib
@@ -112,11 +160,12 @@ def read_magnet_csv(
         ([0.0, 10.0], [0.03, 0.35])
     """
     path_s = str(path)
-    text = Path(path).read_text()
-    rows = [r for r in csv.reader(io.StringIO(text)) if any(c.strip() for c in r)]
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{path_s}: no such file.")
+    rows = [r for _, r in _rows(path)]
     if not rows:
         raise FormatError(f"{path_s}: empty file; expected a header row and data.")
-    header = [c.strip() for c in rows[0]]
+    header = _header(path_s, rows[0])
     data = rows[1:]
     if not data:
         raise FormatError(f"{path_s}: header only; expected at least one data row.")
@@ -146,6 +195,67 @@ def read_magnet_csv(
         header=header,
         rows=[list(r) for r in data],
     )
+
+
+def iter_magnet_csv(
+    path: str | os.PathLike, input_column: str, chunk_rows: int = 50_000
+) -> tuple[list[str], Iterator[tuple[list[list[str]], Tensor]]]:
+    """Stream a long magnet CSV: its header and chunks of rows with their inputs.
+
+    Checks as :func:`read_magnet_csv` (header and input column up front, each
+    chunk's rows as they arrive), holding one chunk in memory.
+
+    Args:
+        path: CSV file with a header row.
+        input_column: Name of the input column.
+        chunk_rows: Rows per chunk (>= 1).
+
+    Returns:
+        ``(header, chunks)``; ``chunks`` yields ``(rows, inputs)`` with the
+        cells as text and the inputs as float64, shape ``(len(rows),)``.
+
+    Raises:
+        FileNotFoundError: if ``path`` does not exist.
+        FormatError: as :func:`read_magnet_csv` (raised while iterating for
+            problems in data rows).
+    """
+    path_s = str(path)
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{path_s}: no such file.")
+    if chunk_rows < 1:
+        raise ValueError(f"chunk_rows must be >= 1; got {chunk_rows}.")
+    rows_it = _rows(path)
+    first = next(rows_it, None)
+    if first is None:
+        raise FormatError(f"{path_s}: empty file; expected a header row and data.")
+    header = _header(path_s, first[1])
+    if input_column not in header:
+        raise FormatError(
+            f"{path_s}: no input column {input_column!r}; columns are {header}."
+        )
+    col = header.index(input_column)
+
+    def chunks() -> Iterator[tuple[list[list[str]], Tensor]]:
+        buf: list[list[str]] = []
+        done = 0
+        any_rows = False
+        for _, row in rows_it:
+            if len(row) != len(header):
+                raise FormatError(
+                    f"{path_s}: data row {done + len(buf) + 1} has {len(row)} "
+                    f"cells; the header has {len(header)}."
+                )
+            buf.append(row)
+            if len(buf) == chunk_rows:
+                yield buf, _parse_column(buf, col, input_column, path_s, done)
+                done += len(buf)
+                buf, any_rows = [], True
+        if buf:
+            yield buf, _parse_column(buf, col, input_column, path_s, done)
+        elif not any_rows:
+            raise FormatError(f"{path_s}: header only; expected at least one data row.")
+
+    return header, chunks()
 
 
 def write_csv_atomic(

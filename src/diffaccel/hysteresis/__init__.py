@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from diffaccel.hysteresis.band import LaplaceBand, laplace_band
 from diffaccel.hysteresis.bo import HysteresisBO
 from diffaccel.hysteresis.fit import FitResult, fit_preisach
 from diffaccel.hysteresis.hgp import HGPFitResult, HysteresisGP, fit_hysteresis_gp
@@ -16,11 +17,19 @@ from diffaccel.hysteresis.magnet import (
     magnetic_rigidity,
 )
 from diffaccel.hysteresis.mesh import PreisachMesh
+from diffaccel.hysteresis.predictive import (
+    MagnetFit,
+    default_input_range,
+    fit_magnet,
+    predict_stream,
+    symmetric_default,
+)
 from diffaccel.hysteresis.preisach import (
     INITIAL_STATES,
     InputRangeWarning,
     PreisachModel,
 )
+from diffaccel.hysteresis.saved import CONFIG_FILE, MODEL_FILE, load_fit, save_fit
 from diffaccel.hysteresis.synthetic import (
     synthetic_magnet,
     synthetic_measurement,
@@ -28,7 +37,9 @@ from diffaccel.hysteresis.synthetic import (
 )
 
 __all__ = [
+    "CONFIG_FILE",
     "INITIAL_STATES",
+    "MODEL_FILE",
     "FitResult",
     "HGPFitResult",
     "HysteresisBO",
@@ -36,14 +47,23 @@ __all__ = [
     "HystereticMagnet",
     "InputRangeWarning",
     "InverseResult",
+    "LaplaceBand",
+    "MagnetFit",
     "PreisachMesh",
     "PreisachModel",
+    "default_input_range",
     "fit_hysteresis_gp",
+    "fit_magnet",
     "fit_preisach",
     "hysteretic_settings",
     "invert_preisach",
+    "laplace_band",
+    "load_fit",
     "magnetic_rigidity",
     "next_step_output",
+    "predict_stream",
+    "save_fit",
+    "symmetric_default",
     "synthetic_magnet",
     "synthetic_measurement",
     "synthetic_protocol",

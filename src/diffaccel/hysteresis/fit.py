@@ -12,12 +12,20 @@ from torch import Tensor
 
 from diffaccel.hysteresis.preisach import PreisachModel
 
-__all__ = ["MIN_FIT_POINTS", "FitResult", "density_roughness", "fit_preisach"]
+__all__ = [
+    "MIN_FIT_POINTS",
+    "FitResult",
+    "check_series",
+    "density_roughness",
+    "fit_preisach",
+]
 
 logger = logging.getLogger(__name__)
 
 # offset, slope and scale need at least three points; two more to see a loop
 MIN_FIT_POINTS = 5
+# larger magnitudes overflow squares and ranges in float64; no measurement has them
+_MAX_MAGNITUDE = 1e100
 
 
 @dataclass
@@ -85,9 +93,15 @@ class _Roughness(torch.nn.Module):
         return density_roughness(self.model)
 
 
-def _check_series(
+def check_series(
     current: Tensor, field_: Tensor, dtype, device
 ) -> tuple[Tensor, Tensor]:
+    """Checked 1-D training series ``(current, output)`` as ``dtype`` on ``device``.
+
+    Raises:
+        ValueError: naming the problem (shape, length, NaN/inf, magnitude,
+            constant output, too few points).
+    """
     u = torch.as_tensor(current, dtype=dtype, device=device)
     y = torch.as_tensor(field_, dtype=dtype, device=device)
     if u.ndim != 1 or y.ndim != 1:
@@ -105,6 +119,14 @@ def _check_series(
         )
     if not (torch.isfinite(u).all() and torch.isfinite(y).all()):
         raise ValueError("current or output contains NaN or infinite values.")
+    for name, v in (("current", u), ("output", y)):
+        big = v.abs() > _MAX_MAGNITUDE
+        if big.any():
+            i = int(big.nonzero()[0, 0])
+            raise ValueError(
+                f"{name} row {i} is {float(v[i]):.6g}: beyond {_MAX_MAGNITUDE:.0e} "
+                "in magnitude, not a measurement (a unit or parsing error?)."
+            )
     if float(y.max() - y.min()) <= 0:
         raise ValueError("output is constant; nothing to fit.")
     return u, y
@@ -158,7 +180,7 @@ def fit_preisach(
         raise ValueError(f"steps must be >= 1; got {steps}.")
     if smoothness < 0:
         raise ValueError(f"smoothness must be >= 0; got {smoothness}.")
-    u, y = _check_series(current, field, model.alpha.dtype, model.alpha.device)
+    u, y = check_series(current, field, model.alpha.dtype, model.alpha.device)
     model.check_input_range(u, "training inputs")  # before touching the model
     t0 = time.perf_counter()
     with torch.no_grad():

@@ -21,7 +21,12 @@ import torch
 from torch import Tensor
 
 from diffaccel.hysteresis.band import LaplaceBand, laplace_band
-from diffaccel.hysteresis.fit import MIN_FIT_POINTS, FitResult, fit_preisach
+from diffaccel.hysteresis.fit import (
+    MIN_FIT_POINTS,
+    FitResult,
+    check_series,
+    fit_preisach,
+)
 from diffaccel.hysteresis.mesh import PreisachMesh
 from diffaccel.hysteresis.preisach import PreisachModel
 from diffaccel.hysteresis.states import exact_stream_step
@@ -30,9 +35,9 @@ __all__ = [
     "RANGE_MARGIN",
     "MagnetFit",
     "default_input_range",
-    "symmetric_default",
     "fit_magnet",
     "predict_stream",
+    "symmetric_default",
 ]
 
 # margin added to the training input range so that nearby inputs stay inside
@@ -153,15 +158,7 @@ def fit_magnet(
             that misses training inputs, or too few rows to validate.
     """
     start = time.perf_counter()
-    u = torch.as_tensor(current, dtype=torch.float64)
-    y = torch.as_tensor(field, dtype=torch.float64)
-    if u.ndim != 1 or u.shape != y.shape:
-        raise ValueError(
-            f"current and field need equal shapes (T,); got {tuple(u.shape)} and "
-            f"{tuple(y.shape)}."
-        )
-    if not (torch.isfinite(u).all() and torch.isfinite(y).all()):
-        raise ValueError("current or field contains NaN or infinite values.")
+    u, y = check_series(current, field, torch.float64, None)
     rng = tuple(input_range) if input_range is not None else None
     if rng is None:
         rng = default_input_range(u, initial_state)

@@ -5,6 +5,12 @@ diagonal of the Preisach plane (narrow hysterons dominate, as in soft iron) that
 fades towards high fields, plus a weak uniform floor. The protocol mimics the
 SLAC LCLS-II quadrupole measurements: a major loop, minor loops and an
 alternating "memory trial" sequence, all starting from negative saturation.
+
+:func:`symmetric_magnet` builds magnets with a known *symmetric* density
+(``mu(alpha, beta) = mu(-beta, -alpha)`` about zero input), and
+:func:`bipolar_quadrupole_case` and :func:`bh_loop_case` draw the acceptance
+cases of issue 11 from them: random magnets (one per seed) plus noise, in the
+shape of a bipolar quadrupole cycle and of a soft-iron B-H loop.
 """
 
 from __future__ import annotations
@@ -15,7 +21,14 @@ from torch import Tensor
 from diffaccel.hysteresis.mesh import PreisachMesh
 from diffaccel.hysteresis.preisach import PreisachModel
 
-__all__ = ["synthetic_magnet", "synthetic_measurement", "synthetic_protocol"]
+__all__ = [
+    "bh_loop_case",
+    "bipolar_quadrupole_case",
+    "symmetric_magnet",
+    "synthetic_magnet",
+    "synthetic_measurement",
+    "synthetic_protocol",
+]
 
 
 def synthetic_magnet(
@@ -110,3 +123,138 @@ def synthetic_measurement(
     full = float(model.output_scale)
     field = field + noise * full * torch.randn(field.shape, generator=gen, dtype=dtype)
     return current, field, model
+
+
+def symmetric_magnet(
+    half_range: float,
+    ridge: float,
+    spread: float,
+    floor: float,
+    slope: float,
+    scale: float,
+    full_scale: float,
+    offset: float = 0.0,
+    initial_state: str = "negative",
+    n: int = 40,
+    dtype: torch.dtype = torch.float64,
+) -> PreisachModel:
+    """A Preisach magnet with a known density symmetric about zero input.
+
+    Density ``exp(-(w / ridge)^2 / 2) exp(-(c / spread)^2 / 2) + floor`` with
+    ``w = alpha - beta`` and ``c`` the distance of ``(alpha + beta) / 2`` from
+    the centre, on ``[-half_range, half_range]``: narrow hysterons dominate and
+    switch near zero field, as in soft iron.
+
+    Args:
+        half_range: The magnet's own input range is ``+-half_range`` [input units].
+        ridge: Width of the density across the diagonal [1, normalised].
+        spread: Width along the diagonal [1, normalised].
+        floor: Uniform part of the density [1].
+        slope: Linear (reversible) term [normalised output per full range].
+        scale: Hysteretic part [normalised output].
+        full_scale: Output normalisation [output units].
+        offset: Output offset [normalised output].
+        initial_state: Its initial state kind.
+        n: Cells per axis of its mesh.
+        dtype: Floating dtype.
+
+    Returns:
+        The model, symmetric by construction (``model.symmetric`` is True).
+    """
+    mesh = PreisachMesh.triangular(n=n, dtype=dtype)
+    model = PreisachModel(
+        mesh,
+        input_range=(-half_range, half_range),
+        initial_state=initial_state,
+        symmetric=True,
+        dtype=dtype,
+    )
+    width = mesh.alpha - mesh.beta
+    centre = 0.5 * (mesh.alpha + mesh.beta) - 0.5
+    density = (
+        torch.exp(-0.5 * (width / ridge) ** 2)
+        * torch.exp(-0.5 * (centre / spread) ** 2)
+        + floor
+    )
+    with torch.no_grad():
+        model.density = density
+        model.output_loc.fill_(0.0)
+        model.output_scale.fill_(full_scale)
+        model.slope.fill_(slope)
+        model.scale.fill_(scale)
+        model.offset.fill_(offset)
+    return model
+
+
+def _uniform(gen: torch.Generator, lo: float, hi: float) -> float:
+    return lo + (hi - lo) * float(torch.rand((), generator=gen, dtype=torch.float64))
+
+
+def bipolar_quadrupole_case(
+    seed: int = 0, i_max: float = 6.0, step: float = 1.0
+) -> tuple[Tensor, Tensor, int, PreisachModel]:
+    """A bipolar quadrupole cycled ``-i_max -> +i_max -> -i_max``, with noise.
+
+    The magnet (drawn from ``seed``) saturates beyond ``1.1 .. 1.5 i_max``, its
+    hysteresis is 2-8 % of full scale and the noise 1e-4 to 5e-4 of full
+    scale. With the defaults: 25 points, the first 17 (the ascending branch and
+    four points back down) for fitting, the last 8 to predict.
+
+    Returns:
+        ``(current [A] (T,), field [T m] (T,), n_train, true magnet)``; the
+        magnet starts saturated negative (``initial_state="negative"``).
+    """
+    gen = torch.Generator().manual_seed(seed)
+    magnet = symmetric_magnet(
+        half_range=i_max * _uniform(gen, 1.1, 1.5),
+        ridge=_uniform(gen, 0.05, 0.2),
+        spread=_uniform(gen, 0.2, 0.6),
+        floor=_uniform(gen, 0.005, 0.05),
+        slope=1.0,
+        scale=_uniform(gen, 0.02, 0.08),
+        full_scale=_uniform(gen, 0.5, 2.0),
+        offset=-0.5,
+    )
+    up = torch.arange(-i_max, i_max + 0.5 * step, step, dtype=torch.float64)
+    current = torch.cat([up, up.flip(0)[1:]])
+    with torch.no_grad():
+        field = magnet(current)
+    noise = _uniform(gen, 1e-4, 5e-4) * float(magnet.output_scale)
+    field = field + noise * torch.randn(field.shape, generator=gen, dtype=field.dtype)
+    n_train = up.numel() + 4
+    return current, field, n_train, magnet
+
+
+def bh_loop_case(
+    seed: int = 0, h_max: float = 1.0, points: int = 15
+) -> tuple[Tensor, Tensor, int, PreisachModel]:
+    """A soft-iron B-H loop from the demagnetised state, with noise.
+
+    Virgin curve ``0 -> h_max`` and first descent ``h_max -> 0`` (``2 points +
+    1`` rows, for fitting), then the negative half ``0 -> -h_max -> 0`` (``2
+    points`` rows, to predict). The sample (drawn from ``seed``) saturates
+    beyond ``1.1 .. 1.6 h_max``; its reversible part is 2-10 % of the
+    hysteretic one and the noise 1e-3 to 3e-3 of the loop's range.
+
+    Returns:
+        ``(H [A/m] (T,), B [T] (T,), n_train, true sample)``; the sample starts
+        demagnetised (``initial_state="demagnetized"``).
+    """
+    gen = torch.Generator().manual_seed(1000 + seed)
+    magnet = symmetric_magnet(
+        half_range=h_max * _uniform(gen, 1.1, 1.6),
+        ridge=_uniform(gen, 0.03, 0.1),
+        spread=_uniform(gen, 0.1, 0.3),
+        floor=_uniform(gen, 0.002, 0.02),
+        slope=_uniform(gen, 0.02, 0.1),
+        scale=1.0,
+        full_scale=1.5,
+        initial_state="demagnetized",
+    )
+    up = torch.linspace(0.0, h_max, points + 1, dtype=torch.float64)
+    current = torch.cat([up, up.flip(0)[1:], -up[1:], -up.flip(0)[1:]])
+    with torch.no_grad():
+        field = magnet(current)
+    noise = _uniform(gen, 1e-3, 3e-3) * float(field.max() - field.min())
+    field = field + noise * torch.randn(field.shape, generator=gen, dtype=field.dtype)
+    return current, field, 2 * points + 1, magnet

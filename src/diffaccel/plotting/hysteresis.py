@@ -50,7 +50,10 @@ def plot_preisach_density(
     ax.set_aspect("equal")
     ax.set_xlabel(f"beta: down threshold, {input_label}")
     ax.set_ylabel(f"alpha: up threshold, {input_label}")
-    ax.set_title(f"Preisach density ({alpha.size} hysterons)")
+    kind = "symmetric " if model.symmetric else ""
+    ax.set_title(f"Preisach density, {kind}({alpha.size} hysterons)")
+    if model.symmetric:  # the mirror line alpha + beta = lo + hi
+        ax.plot([lo, hi], [hi, lo], color="w", lw=0.8, ls="--")
     fig.colorbar(art, ax=ax, label="density [1]")
     return fig
 
@@ -60,6 +63,7 @@ def plot_preisach_fit(
     current: Tensor,
     field: Tensor,
     n_train: int | None = None,
+    std: Tensor | None = None,
     initial_state: str | Tensor | None = None,
     input_label: str = "current [A]",
     output_label: str = "field [T m]",
@@ -72,6 +76,8 @@ def plot_preisach_fit(
         field: Measured outputs [output units], shape ``(T,)``.
         n_train: Rows ``[:n_train]`` were fitted, the rest are predictions;
             ``None`` means all were fitted.
+        std: Predictive standard deviation [output units], shape ``(T,)``;
+            drawn as a 2-std band about the prediction when given.
         initial_state: State before ``current[0]``; ``None`` is the model's own.
         input_label: Input axis label with unit.
         output_label: Output axis label with unit.
@@ -82,12 +88,17 @@ def plot_preisach_fit(
         and predicted rows in orange.
 
     Raises:
-        ValueError: if ``current`` and ``field`` have different shapes.
+        ValueError: if ``current``, ``field`` (and ``std``) have different
+            shapes.
     """
     if current.shape != field.shape or current.ndim != 1:
         raise ValueError(
             "current and field must both have shape (T,); got "
             f"{tuple(current.shape)} and {tuple(field.shape)}."
+        )
+    if std is not None and std.shape != current.shape:
+        raise ValueError(
+            f"std must have shape {tuple(current.shape)}; got {tuple(std.shape)}."
         )
     with torch.no_grad():
         pred = _np(model(current, initial_state))
@@ -95,7 +106,7 @@ def plot_preisach_fit(
     n = len(u) if n_train is None else int(n_train)
     idx = np.arange(len(u))
     resid = y - pred
-    span = float(np.ptp(y)) or 1.0
+    span = float(np.ptp(y[:n])) or 1.0  # range of the fitted rows
     # subtract the best straight line so that the loops (often < 1 % of the
     # output) are visible
     coef = np.polyfit(u, y, 1)
@@ -105,6 +116,12 @@ def plot_preisach_fit(
     ax_loop, ax_res = fig.subplots(1, 2)
     ax_loop.plot(u[:n], yl[:n], "o", ms=3.5, color="C0", label="measured (fit)")
     ax_loop.plot(u[:n], pl[:n], "-", lw=1, color="C0", alpha=0.7, label="model (fit)")
+    if std is not None:
+        band = 2.0 * _np(std)
+        ax_loop.errorbar(
+            u, pl, yerr=band, fmt="none", ecolor="grey", elinewidth=0.8, capsize=2,
+            alpha=0.6, label="model +- 2 std",
+        )  # fmt: skip
     if n < len(u):
         ax_loop.plot(u[n:], yl[n:], "s", ms=3.5, color="C1", label="measured (test)")
         ax_loop.plot(
@@ -119,6 +136,9 @@ def plot_preisach_fit(
     ax_res.plot(idx[:n], 100 * resid[:n] / span, "o-", ms=3, lw=0.8, color="C0")
     if n < len(u):
         ax_res.plot(idx[n:], 100 * resid[n:] / span, "s-", ms=3, lw=0.8, color="C1")
+    if std is not None:
+        band = 200.0 * _np(std) / span
+        ax_res.fill_between(idx, -band, band, color="grey", alpha=0.25, lw=0)
         ax_res.axvline(n - 0.5, color="grey", ls="--", lw=0.8)
 
     def rms(r: np.ndarray) -> float:

@@ -1,0 +1,111 @@
+"""Fitted Preisach models on disk: ``model.json`` (settings) and ``model.pt`` (tensors).
+
+``model.pt`` holds the model's ``state_dict`` and, under keys ``band.*``, its
+predictive band; it is read with ``torch.load(weights_only=True)``. Every
+mismatch between the two files is a one-line ``ValueError`` naming the file.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+
+from diffaccel.data import atomic_write, atomic_write_text
+from diffaccel.hysteresis.band import LaplaceBand
+from diffaccel.hysteresis.preisach import PreisachModel
+
+__all__ = ["CONFIG_FILE", "MODEL_FILE", "load_fit", "save_fit"]
+
+MODEL_FILE = "model.pt"
+CONFIG_FILE = "model.json"
+_BAND = "band."
+
+
+def save_fit(
+    fit_dir: str | Path,
+    model: PreisachModel,
+    band: LaplaceBand | None = None,
+    extra: dict | None = None,
+) -> None:
+    """Write ``model.pt`` and ``model.json`` into ``fit_dir`` (atomically each).
+
+    Args:
+        fit_dir: Folder (created if missing).
+        model: The fitted model.
+        band: Its predictive band, if any.
+        extra: JSON-serialisable entries added to ``model.json`` (e.g. column
+            names); they must not shadow the model's own settings.
+    """
+    fit_dir = Path(fit_dir)
+    fit_dir.mkdir(parents=True, exist_ok=True)
+    tensors = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+    if band is not None:
+        for k, v in band.state_dict().items():
+            tensors[_BAND + k] = v.detach().cpu().clone()
+    config = {**(extra or {}), **model.config(), "band": band is not None}
+    atomic_write(fit_dir / MODEL_FILE, lambda p: torch.save(tensors, p))
+    atomic_write_text(fit_dir / CONFIG_FILE, json.dumps(config, indent=2) + "\n")
+
+
+def load_fit(fit_dir: str | Path) -> tuple[PreisachModel, LaplaceBand | None, dict]:
+    """Read a fit written by :func:`save_fit` (safe loading, checked).
+
+    Returns:
+        ``(model, band or None, config)``.
+
+    Raises:
+        ValueError: for a missing, unreadable or inconsistent file (e.g. a
+            ``model.pt`` whose hysteron count differs from ``model.json``).
+    """
+    fit_dir = Path(fit_dir)
+    cfg_path, pt_path = fit_dir / CONFIG_FILE, fit_dir / MODEL_FILE
+    for p in (cfg_path, pt_path):
+        if not p.is_file():
+            raise ValueError(f"{p}: missing; is {fit_dir} a hysteresis fit folder?")
+    try:
+        config = json.loads(cfg_path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{cfg_path}: not valid JSON ({err}).") from None
+    if not isinstance(config, dict):
+        raise ValueError(f"{cfg_path}: expected a JSON object.")
+    try:
+        tensors = torch.load(pt_path, weights_only=True, map_location="cpu")
+    except Exception as err:  # torch raises several types for corrupt files
+        msg = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise ValueError(f"{pt_path}: cannot read tensors ({msg}).") from None
+    if not isinstance(tensors, dict) or not all(
+        isinstance(v, torch.Tensor) for v in tensors.values()
+    ):
+        raise ValueError(f"{pt_path}: expected a dict of tensors.")
+    n_cfg = config.get("n_hysterons")
+    raw = tensors.get("raw_density")
+    if raw is None or raw.ndim != 1:
+        raise ValueError(f"{pt_path}: no raw_density vector.")
+    if n_cfg is not None and int(n_cfg) != raw.numel():
+        raise ValueError(
+            f"{pt_path} holds {raw.numel()} hysterons but {cfg_path} says "
+            f"{n_cfg}; the two files come from different fits."
+        )
+    band_t = {k[len(_BAND) :]: v for k, v in tensors.items() if k.startswith(_BAND)}
+    model_t = {k: v for k, v in tensors.items() if not k.startswith(_BAND)}
+    try:
+        model = PreisachModel.from_config(config, model_t)
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as err:
+        msg = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise ValueError(f"{fit_dir}: inconsistent model files ({msg}).") from None
+    band = None
+    if band_t:
+        try:
+            band = LaplaceBand(
+                band_t["directions"], band_t["noise_std"], float(band_t["calibration"])
+            )
+        except (KeyError, ValueError) as err:
+            raise ValueError(f"{pt_path}: malformed band ({err}).") from None
+        if band.n_hysterons != raw.numel():
+            raise ValueError(
+                f"{pt_path}: band has {band.n_hysterons} hysterons, the model "
+                f"{raw.numel()}."
+            )
+    return model, band, config
