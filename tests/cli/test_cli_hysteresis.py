@@ -139,7 +139,7 @@ def test_predict_beyond_range_saturates_with_note(
     y = [float(r[1]) for r in rows]
     # saturated: beyond the range only the linear term changes the output
     lo, hi = model.input_range
-    slope = float(model.output_scale * model.slope) / (hi - lo)
+    slope = float((model.output_scale * model.slope).detach()) / (hi - lo)
     assert y[3] - y[2] == pytest.approx(2.0 * slope, rel=1e-9)
 
 
