@@ -141,8 +141,27 @@ def _corrupt(path: Path, action: str) -> None:
             del h5.attrs["format"]
         elif action == "wrong_format":
             h5.attrs["format"] = "image-stack"
-        elif action == "version_2":
-            h5.attrs["format_version"] = 2
+        elif action == "version_3":
+            h5.attrs["format_version"] = 3
+        elif action == "version_1_7":
+            h5.attrs["format_version"] = 1.7
+        elif action == "species_not_utf8":
+            h5.attrs["species"] = np.bytes_(b"electr\xffon")
+        elif action == "species_number":
+            h5.attrs["species"] = 3
+        elif action == "screen_not_last":
+            spec = json.loads(h5.attrs["beamline"])
+            h5.attrs["beamline"] = json.dumps([spec[0], spec[2], spec[1]])
+        elif action == "huge_drift":
+            spec = json.loads(h5.attrs["beamline"])
+            spec[1]["length"] = 1e30
+            h5.attrs["beamline"] = json.dumps(spec)
+        elif action == "huge_setting":
+            h5["settings"][1, 0] = 1e12
+        elif action == "one_pixel":
+            attrs = dict(h5["images"].attrs)
+            del h5["images"]
+            h5["images"] = np.ones((5, 2, 1, 1), dtype=np.float32)
         elif action == "no_p0c":
             del h5.attrs["p0c"]
         elif action == "bad_json":
@@ -187,9 +206,16 @@ def _corrupt(path: Path, action: str) -> None:
 CORRUPTIONS = [
     ("no_format", r"/: missing attribute 'format'"),
     ("wrong_format", r"format: expected 'quad-scan'; found 'image-stack'"),
-    ("version_2", r"reads version 1; found 2"),
+    ("version_3", r"/.format_version: this reader reads versions 1, 2; found 3"),
+    ("version_1_7", r"/.format_version: expected an integer \(1 or 2\); found 1.7"),
+    ("species_not_utf8", r"/.species: expected UTF-8 text; found bytes"),
+    ("species_number", r"/.species: expected a text attribute; found int"),
+    ("screen_not_last", r"/beamline: the Screen 'SCREEN' must be the last element"),
+    ("huge_drift", r"beamline\[1\] \(Drift 'D1'\).length: expected \|value\| <= 1000"),
+    ("huge_setting", r"'Q1.k1' = 1e\+12 at setting 1; expected \|value\| <= 10000"),
+    ("one_pixel", r"/images: expected a screen of at least 2 x 2 pixels"),
     ("no_p0c", r"missing attribute 'p0c'"),
-    ("bad_json", r"'beamline': invalid JSON"),
+    ("bad_json", r"/.beamline: invalid JSON"),
     ("no_images", r"/images: missing dataset"),
     ("no_screen", r"/screen: missing group"),
     ("settings_rows", r"settings: expected 5 rows .* found shape \(4, 1\)"),
@@ -214,8 +240,11 @@ def test_reader_names_the_problem(
 ) -> None:
     path = write_quad_scan(dataset, tmp_path / "scan.h5")
     _corrupt(path, action)
-    with pytest.raises(FormatError, match=message):
+    with pytest.raises(FormatError, match=message) as info:
         read_quad_scan(path)
+    # one line that names the file
+    assert str(info.value).startswith(f"{path}: ")
+    assert "\n" not in str(info.value)
 
 
 def test_reader_missing_file(tmp_path: Path) -> None:
@@ -237,7 +266,11 @@ BAD_FIELDS = [
     ("names_count", {"setting_names": ["Q1.k1", "Q1.length"]}, r"expected 1 names"),
     ("name_syntax", {"setting_names": ["k1"]}, r"expected 'ELEMENT.parameter'"),
     ("p0c_negative", {"p0c": -1.0}, r"p0c: expected a finite value > 0 \[eV\]"),
-    ("pixel_zero", {"pixel_size": (0.0, 1e-3)}, r"pixel_size: expected \(x, y\) > 0"),
+    (
+        "pixel_zero",
+        {"pixel_size": (0.0, 1e-3)},
+        r"pixel_size: expected \(x, y\) > 0 and <= 10 m",
+    ),
     ("center_nan", {"center": (math.nan, 0.0)}, r"center: expected finite"),
     ("species", {"species": "muon"}, r"species: expected one of"),
     ("gt_shape", {"ground_truth": torch.zeros(10, 4)}, r"ground_truth: expected shape"),

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 import time
 from pathlib import Path
 from typing import Any
@@ -15,11 +14,13 @@ from tqdm import tqdm
 
 from diffaccel.data import (
     FormatError,
+    MultiScanDataset,
     QuadScanDataset,
     atomic_write,
     atomic_write_text,
-    read_quad_scan,
+    read_scans,
     write_openpmd_particles,
+    write_scans,
 )
 from diffaccel.plotting.reconstruction import (
     plot_corner,
@@ -32,11 +33,14 @@ from diffaccel.reconstruction import (
     ReconstructionConfig,
     ScreenForwardModel,
     StepInfo,
-    image_errors,
+    as_scans,
+    clean_json,
+    evaluate,
     load,
-    moment_errors,
+    predict_dataset,
+    predicted_dataset,
     reconstruct,
-    sliced_wasserstein,
+    training_selection,
 )
 from diffaccel.reconstruction.training import checkpoint_config
 
@@ -46,116 +50,38 @@ CHECKPOINT = "checkpoint.pt"
 _DEFAULTS = ReconstructionConfig()
 
 
-def parse_train_indices(text: str, k: int) -> list[int]:
-    """``even`` | ``odd`` | ``all`` | ``0,2,4`` -> indices in ``[0, k)``."""
-    t = text.strip().lower()
-    if t == "even":
-        return list(range(0, k, 2))
-    if t == "odd":
-        return list(range(1, k, 2))
-    if t == "all":
-        return list(range(k))
-    try:
-        idx = [int(v) for v in t.split(",") if v.strip()]
-    except ValueError as err:
-        raise click.BadParameter(
-            f"expected even, odd, all or a comma-separated list; got {text!r}"
-        ) from err
-    bad = [i for i in idx if not 0 <= i < k]
-    if not idx or bad or len(set(idx)) != len(idx):
-        raise click.BadParameter(
-            f"indices must be distinct and in [0, {k}); got {text!r}"
-        )
-    return idx
-
-
-def _clean(obj: Any) -> Any:
-    """Replace NaN/inf by None so the JSON is standard."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_clean(v) for v in obj]
-    return obj
-
-
-def summarize(
-    result: Reconstruction, dataset: QuadScanDataset, train_idx: list[int]
-) -> dict[str, Any]:
-    """Moments with ensemble spread, flags and metrics for ``summary.json``."""
-    k = dataset.n_settings
-    test_idx = [i for i in range(k) if i not in set(train_idx)]
-    pred = result.predict_images(dataset.settings)
-    meas = dataset.mean_images()
-    metrics: dict[str, Any] = {
-        "images_train": image_errors(pred[train_idx], meas[train_idx]),
-    }
-    if test_idx:
-        metrics["images_held_out"] = image_errors(pred[test_idx], meas[test_idx])
-    moments = result.moments()
-    unconstrained = result.unconstrained_coordinates()
-    rel_spread = {}
-    for i, c in enumerate(("x", "px", "y", "py", "z", "pz")):
-        m, s = moments["rms"]["mean"][i], moments["rms"]["std"][i]
-        rel_spread[c] = s / m if m > 0 else None
-    if dataset.ground_truth is not None:
-        sample = result.sample(100_000)
-        truth = dataset.ground_truth.to(torch.float64)
-        dims = result.config.dims
-        metrics["ground_truth"] = moment_errors(sample, truth)
-        g = torch.Generator().manual_seed(0)
-        metrics["ground_truth"][f"sliced_wasserstein_{dims}d"] = float(
-            sliced_wasserstein(sample[:20_000, :dims], truth[:, :dims], generator=g)
-        )
-    return _clean(
-        {
-            "dataset": dataset.metadata.get("source_path", None),
-            "config": result.config.to_dict(),
-            "train_indices": train_idx,
-            "held_out_indices": test_idx,
-            "snapshots": result.n_snapshots,
-            "moments": moments,
-            "rms_relative_ensemble_spread": rel_spread,
-            "unconstrained_coordinates": unconstrained,
-            "unconstrained_note": (
-                "coordinates the scan does not see to first order (their column of "
-                "the transfer matrices to screen x/y is ~0); their values follow the "
-                "prior (ReconstructionConfig.longitudinal_scale), so their moments "
-                "are unknown: the small ensemble spread of these coordinates is NOT "
-                "an uncertainty estimate"
-            ),
-            "uncertainty_note": (
-                "std = spread over snapshot-ensemble members; it describes "
-                "optimisation scatter and under-covers the actual error (on "
-                "benchmarks with known truth the error was several std)"
-            ),
-            "metrics": metrics,
-            "timings_s": result.info.get("timings_s", {}),
-        }
-    )
-
-
 def write_figures(
-    result: Reconstruction, dataset: QuadScanDataset, train_idx: list[int], out: Path
+    result: Reconstruction,
+    dataset: MultiScanDataset,
+    summary: dict[str, Any],
+    out: Path,
+    predicted: dict[str, torch.Tensor],
 ) -> list[Path]:
-    """Write the four PNG figures into ``out``; returns their paths."""
-    k = dataset.n_settings
-    pred = result.predict_images(dataset.settings)
-    train = set(train_idx)
+    """Write the PNG figures into ``out``; returns their paths.
+
+    ``phase_space.png`` (corner plot, truth overlaid when known),
+    ``training.png``, ``rms_evolution.png`` and one measured-vs-predicted image
+    grid per scan: ``images.png`` for a single scan, ``images_<scan>.png``
+    otherwise (held-out settings marked).
+    """
     figs = {
         "phase_space.png": plot_corner(result, dataset.ground_truth),
-        "images.png": plot_image_comparison(
-            dataset.mean_images(),
-            pred,
-            dataset.settings,
-            setting_name=dataset.setting_names[0],
-            extent=result.forward.extent_mm(),
-            held_out=[i not in train for i in range(k)],
-        ),
         "training.png": plot_training_curves(result),
         "rms_evolution.png": plot_rms_evolution(result, dataset.ground_truth),
     }
+    for name, scan in dataset:
+        train = set(summary["scans"][name]["train_indices"])
+        fwd = ScreenForwardModel.from_dataset(scan)
+        fig_name = "images.png" if len(dataset) == 1 else f"images_{name}.png"
+        figs[fig_name] = plot_image_comparison(
+            scan.mean_images(),
+            predicted[name],
+            scan.settings,
+            setting_name=", ".join(scan.setting_names),
+            extent=fwd.extent_mm(),
+            held_out=[i not in train for i in range(scan.n_settings)],
+            title=f"scan {name!r}" if len(dataset) > 1 else "",
+        )
     paths = []
     for name, fig in figs.items():
         path = out / name
@@ -188,15 +114,19 @@ def run_reconstruction(
     device: str,
     resume: bool,
     figures: bool = True,
-    dataset: QuadScanDataset | None = None,
+    dataset: QuadScanDataset | MultiScanDataset | None = None,
 ) -> dict[str, Any]:
     """Reconstruct, then write ensemble, summary.json, particles and figures."""
     t0 = time.perf_counter()
     try:
-        ds = dataset if dataset is not None else read_quad_scan(dataset_path)
+        ds = dataset if dataset is not None else read_scans(dataset_path)
     except (FormatError, OSError) as err:
         raise click.ClickException(f"cannot read {dataset_path}: {err}") from err
-    idx = parse_train_indices(train_indices, ds.n_settings)
+    ds = as_scans(ds)
+    try:
+        selection = training_selection(ds, train_indices)
+    except ValueError as err:
+        raise click.BadParameter(str(err), param_hint="--train-indices") from err
     ck = out / CHECKPOINT
     if resume and ck.exists():
         try:
@@ -214,7 +144,7 @@ def run_reconstruction(
         result = reconstruct(
             ds,
             config,
-            train_indices=idx,
+            train_indices=selection,
             checkpoint=ck,
             resume=resume,
             callback=callback,
@@ -227,17 +157,20 @@ def run_reconstruction(
     t_train = time.perf_counter() - t0
     result.info["dataset"] = str(dataset_path)
     result.save(out, overwrite=True)
-    summary = summarize(result, ds, idx)
+    predicted = predict_dataset(result, ds)
+    summary = evaluate(result, ds, train_indices=selection, predicted=predicted)
     summary["dataset"] = str(dataset_path)
     parts = write_openpmd_particles(
         out / "particles.h5", result.sample(100_000), ds.p0c, ds.species, overwrite=True
     )
     summary["particles_file"] = parts.name
     if figures:
-        summary["figures"] = [p.name for p in write_figures(result, ds, idx, out)]
+        summary["figures"] = [
+            p.name for p in write_figures(result, ds, summary, out, predicted)
+        ]
     summary["timings_s"]["total_wall"] = time.perf_counter() - t0
     summary["timings_s"]["reconstruct_wall"] = t_train
-    atomic_write_text(out / "summary.json", json.dumps(_clean(summary), indent=2))
+    atomic_write_text(out / "summary.json", json.dumps(clean_json(summary), indent=2))
     return summary
 
 
@@ -276,15 +209,18 @@ def run_reconstruction(
     "--train-indices",
     default="all",
     show_default=True,
-    help="Settings to train on: all, even, odd, or a list like 0,2,4; the others "
-    "are held out and scored (use 'even' to validate on the odd settings).",
+    help="Settings to train on, per scan: all, even, odd or a list like 0,2,4 "
+    "(the same rule in every scan), or SCAN:RULE;SCAN:RULE (e.g. "
+    "'dipole_off:0,1,4,5;dipole_on:all'; scans not named are held out). The "
+    "others are held out and scored.",
 )
 @click.option(
     "--dims",
     type=click.Choice(["4", "6"]),
     default="4",
     show_default=True,
-    help="4: transverse phase space only; 6: also z, pz (weakly constrained).",
+    help="4: transverse phase space only; 6: also z, pz (seen with a deflecting "
+    "cavity and/or dispersion; otherwise weakly constrained).",
 )
 @click.option(
     "--image-loss",
@@ -358,20 +294,23 @@ def reconstruct_command(
     "dataset_path",
     type=click.Path(exists=True, dir_okay=False, path_type=Path),
     default=None,
-    help="Predict for this file's settings and screen grid.",
+    help="Predict every scan and setting of this file (version 1 or 2), on its "
+    "screen grids.",
 )
 @click.option(
     "--settings",
     "settings_text",
     default=None,
     help="Instead of --dataset: values of the scanned parameter(s) of the "
-    "training scan, e.g. '-3,0,2.5' (one parameter) or '1:2;3:4' (rows ';').",
+    "(first) training scan, e.g. '-3,0,2.5' (one parameter) or '1:2;3:4' (rows ';').",
 )
 @click.option(
     "--out",
     type=click.Path(dir_okay=False, path_type=Path),
     required=True,
-    help="Output .npy file, (K, H, W) float32, each image sums to 1.",
+    help="Output file: .h5 writes a quad-scan file of the same format version as "
+    "--dataset with the predicted images (one shot, each summing to 1); .npy "
+    "writes (K, H, W) float32 (one scan only).",
 )
 @click.option(
     "--particles",
@@ -396,35 +335,65 @@ def predict(
         raise click.ClickException(f"{out} exists; pass --force to overwrite it")
     if (dataset_path is None) == (settings_text is None):
         raise click.ClickException("give exactly one of --dataset or --settings")
+    suffix = out.suffix.lower()
+    if suffix not in (".h5", ".hdf5", ".npy"):
+        raise click.ClickException(
+            f"--out {out}: expected a .h5 (quad-scan file) or .npy file name"
+        )
+    if suffix != ".npy" and dataset_path is None:
+        raise click.ClickException(
+            "--out .h5 needs --dataset (the file whose settings and screens to "
+            "predict); with --settings write .npy"
+        )
     try:
         result = load(result_dir)
         if dataset_path is not None:
-            other = read_quad_scan(dataset_path)
-            fwd = ScreenForwardModel.from_dataset(
-                other, blur_pixels=result.config.blur_pixels
-            )
-            settings = other.settings
+            other = read_scans(dataset_path)
+            predicted = predict_dataset(result, other, n_particles=particles, seed=seed)
         else:
             fwd = result.forward
             rows = [r for r in settings_text.replace(" ", "").split(";") if r]
             if len(fwd.names) == 1 and len(rows) == 1:
-                rows = rows[0].split(",")
-                vals = [[float(v)] for v in rows]
+                vals = [[float(v)] for v in rows[0].split(",") if v]
             else:
                 vals = [[float(v) for v in r.split(":")] for r in rows]
+            if not vals:
+                raise ValueError(f"--settings {settings_text!r} holds no value")
             settings = torch.tensor(vals, dtype=torch.float64)
-        images = result.predict_images(
-            settings, forward=fwd, n_particles=particles, seed=seed
-        )
+            images = result.predict_images(
+                settings, forward=fwd, n_particles=particles, seed=seed
+            )
     except (FormatError, ValueError, FileNotFoundError, OSError) as err:
         raise click.ClickException(str(err)) from err
     out.parent.mkdir(parents=True, exist_ok=True)
-    array = images.numpy().astype(np.float32)
+    if suffix == ".npy":
+        if dataset_path is not None:
+            if len(predicted) != 1:
+                raise click.ClickException(
+                    f"{dataset_path} holds {len(predicted)} scans; write them to an "
+                    ".h5 file (--out PRED.h5)"
+                )
+            images = next(iter(predicted.values()))
+        array = images.numpy().astype(np.float32)
 
-    def _save(p: Path) -> None:
-        with p.open("wb") as f:
-            np.save(f, array)
+        def _save(p: Path) -> None:
+            with p.open("wb") as f:
+                np.save(f, array)
 
-    atomic_write(out, _save)
-    k, h, w = images.shape
-    click.echo(f"wrote {out}: {k} images of {h} x {w} pixels")
+        atomic_write(out, _save)
+        k, h, w = images.shape
+        click.echo(f"wrote {out}: {k} images of {h} x {w} pixels")
+        return
+    try:
+        written = write_scans(
+            predicted_dataset(other, predicted, source=str(result_dir)),
+            out,
+            overwrite=force,
+        )
+    except (FormatError, ValueError) as err:
+        raise click.ClickException(str(err)) from err
+    n = sum(v.shape[0] for v in predicted.values())
+    click.echo(
+        f"wrote {written}: {n} predicted images in {len(predicted)} scan(s) "
+        f"(format version {other.format_version})"
+    )

@@ -47,7 +47,7 @@ __all__ = ["synthetic"]
 @click.option("--k1-max", type=float, default=15.0, show_default=True, help="[1/m^2]")
 @click.option(
     "--shape",
-    type=(click.IntRange(min=1), click.IntRange(min=1)),
+    type=(click.IntRange(min=2), click.IntRange(min=2)),
     default=(64, 64),
     show_default=True,
     help="Screen rows H and columns W [pixels].",

@@ -32,6 +32,13 @@ from diffaccel.data.quad_scan import (
     read_quad_scan,
     write_quad_scan,
 )
+from diffaccel.data.scans import (
+    SINGLE_SCAN_NAME,
+    MultiScanDataset,
+    parse_selection,
+    read_scans,
+    write_scans,
+)
 from diffaccel.data.synthetic import (
     DEFAULT_BEAMLINE,
     PRESETS,
@@ -45,8 +52,10 @@ __all__ = [
     "DEFAULT_OUTPUT_COLUMN",
     "FORMAT_VERSION",
     "PRESETS",
+    "SINGLE_SCAN_NAME",
     "FormatError",
     "MagnetHistory",
+    "MultiScanDataset",
     "QuadScanDataset",
     "atomic_write",
     "atomic_write_bytes",
@@ -58,14 +67,17 @@ __all__ = [
     "make_synthetic_quad_scan",
     "median_filter",
     "normalize",
+    "parse_selection",
     "pool",
     "read_magnet_csv",
     "read_openpmd_particles",
     "read_quad_scan",
+    "read_scans",
     "sample_preset_beam",
     "subtract_background",
     "threshold",
     "write_csv_atomic",
     "write_openpmd_particles",
     "write_quad_scan",
+    "write_scans",
 ]

@@ -31,6 +31,7 @@ __all__ = [
     "BMAD_COORDINATES",
     "FORMAT_NAME",
     "FORMAT_VERSION",
+    "PARAMETER_LIMITS",
     "PARAMETER_UNITS",
     "QuadScanDataset",
     "read_quad_scan",
@@ -39,6 +40,8 @@ __all__ = [
 
 FORMAT_NAME = "quad-scan"
 FORMAT_VERSION = 1
+#: Versions read by this module (2: several scans, see diffaccel.data.scans).
+READ_VERSIONS = (1, 2)
 BMAD_COORDINATES = ("x", "px", "y", "py", "z", "pz")
 CHEETAH_COORDINATES = ("x", "px", "y", "py", "tau", "delta")
 BMAD_CONVENTION = (
@@ -60,6 +63,28 @@ PARAMETER_UNITS: dict[str, tuple[str, ...]] = {
     "voltage": ("V",),
     "frequency": ("Hz",),
 }
+
+#: Plausible magnitudes of element parameters and scan settings (``|value| <=
+#: limit``, SI units). Larger values are almost always a unit or typing error
+#: (a 1e30 m drift, k1 in T/m) and would silently put the beam off the screen.
+PARAMETER_LIMITS: dict[str, float] = {
+    "length": 1e3,  # m
+    "k1": 1e4,  # 1/m^2 (a 0.1 m quadrupole of k1 = 1e4 has f = 1 mm)
+    "dx": 1.0,  # m
+    "dy": 1.0,  # m
+    "tilt": 10.0,  # rad
+    "angle": 10.0,  # rad
+    "e1": 1.5,  # rad (tan(e) diverges at pi / 2)
+    "e2": 1.5,  # rad
+    "phase": 1e3,  # rad
+    "voltage": 1e10,  # V
+    "frequency": 1e12,  # Hz
+}
+#: Largest pixel size and screen-centre offset accepted [m].
+MAX_PIXEL_SIZE = 10.0
+MAX_CENTER = 1.0
+#: Smallest screen: image moments need at least two pixels per axis.
+MIN_PIXELS = 2
 
 
 @dataclass(frozen=True, eq=False)
@@ -334,6 +359,27 @@ def _validate_spec(spec: list[dict]) -> dict[str, dict]:
             f"beamline: expected exactly one element of type 'Screen'; found "
             f"{len(screens)} ({screens})"
         )
+    if spec[-1]["type"] != "Screen":
+        raise FormatError(
+            f"beamline: the Screen {screens[0]!r} must be the last element (the "
+            f"beamline ends at the screen); found {spec[-1]['type']} "
+            f"{spec[-1]['name']!r} after it"
+        )
+    for i, element in enumerate(spec):
+        for key, value in element.items():
+            limit = PARAMETER_LIMITS.get(key)
+            if limit is None or isinstance(value, bool):
+                continue
+            try:
+                big = float(np.max(np.abs(np.asarray(value, dtype=np.float64))))
+            except (TypeError, ValueError):
+                continue  # Beamline.from_spec above reports non-numbers
+            if not big <= limit:
+                raise FormatError(
+                    f"beamline[{i}] ({element['type']} {element['name']!r}).{key}: "
+                    f"expected |value| <= {limit:g} {PARAMETER_UNITS[key][0]}; found "
+                    f"{value!r} (a unit or typing error?)"
+                )
     return by_name
 
 
@@ -378,6 +424,22 @@ def _validate_settings_names(
             )
 
 
+def _check_setting_limits(names: list[str], settings: Tensor) -> None:
+    for p, name in enumerate(names):
+        limit = PARAMETER_LIMITS.get(name.partition(".")[2])
+        if limit is None or settings.shape[0] == 0:
+            continue
+        column = settings[:, p].abs()
+        if bool((column > limit).any()):
+            k = int(torch.argmax(column))
+            raise FormatError(
+                f"settings: {name!r} = {float(settings[k, p]):g} at setting {k}; "
+                f"expected |value| <= {limit:g} "
+                f"{PARAMETER_UNITS[name.partition('.')[2]][0]} (a unit or typing "
+                "error?)"
+            )
+
+
 def _validate(ds: QuadScanDataset) -> None:
     images, settings = ds.images, ds.settings
     if not images.is_floating_point():
@@ -393,6 +455,11 @@ def _validate(ds: QuadScanDataset) -> None:
     if min(images.shape) < 1:
         raise FormatError(
             f"images: expected no empty axis; found {tuple(images.shape)}"
+        )
+    if min(images.shape[2:]) < MIN_PIXELS:
+        raise FormatError(
+            f"images: expected a screen of at least {MIN_PIXELS} x {MIN_PIXELS} "
+            f"pixels (H, W); found {tuple(images.shape[2:])}"
         )
     if settings.ndim != 2:
         raise FormatError(
@@ -426,9 +493,14 @@ def _validate(ds: QuadScanDataset) -> None:
             f"images: image of setting {k} (shot {s}) is all zero; "
             f"{int(empty.sum())} all-zero image(s) in total"
         )
-    if ds.pixel_size[0] <= 0 or ds.pixel_size[1] <= 0:
+    if not all(0 < v <= MAX_PIXEL_SIZE for v in ds.pixel_size):
         raise FormatError(
-            f"screen.pixel_size: expected (x, y) > 0 [m]; found {ds.pixel_size}"
+            f"screen.pixel_size: expected (x, y) > 0 and <= {MAX_PIXEL_SIZE:g} m; "
+            f"found {ds.pixel_size}"
+        )
+    if not all(abs(v) <= MAX_CENTER for v in ds.center):
+        raise FormatError(
+            f"screen.center: expected |x|, |y| <= {MAX_CENTER:g} m; found {ds.center}"
         )
     if ds.species not in SPECIES:
         raise FormatError(f"species: expected one of {SPECIES}; found {ds.species!r}")
@@ -436,6 +508,7 @@ def _validate(ds: QuadScanDataset) -> None:
     _validate_settings_names(
         ds.setting_names, ds.setting_units, elements, int(settings.shape[1])
     )
+    _check_setting_limits(ds.setting_names, settings)
     gt = ds.ground_truth
     if gt is not None:
         if gt.ndim != 2 or gt.shape[-1] != 6 or gt.shape[0] < 1:
@@ -456,12 +529,23 @@ def _validate(ds: QuadScanDataset) -> None:
 
 
 # ---------------------------------------------------------------------- reading
-def _as_str(value: Any) -> str:
-    if isinstance(value, bytes):
-        return value.decode()
+def _as_str(value: Any, where: str) -> str:
+    """An HDF5 text attribute as ``str`` (UTF-8 bytes accepted)."""
     if isinstance(value, np.ndarray) and value.shape == ():
-        return _as_str(value.item())
-    return str(value)
+        value = value.item()
+    if isinstance(value, bytes | np.bytes_):
+        try:
+            return bytes(value).decode("utf-8")
+        except UnicodeDecodeError as err:
+            raise FormatError(
+                f"{where}: expected UTF-8 text; found bytes that are not UTF-8 "
+                f"({err.reason} at byte {err.start})"
+            ) from err
+    if isinstance(value, str):
+        return str(value)
+    raise FormatError(
+        f"{where}: expected a text attribute; found {type(value).__name__} {value!r}"
+    )
 
 
 def _attr(obj: h5py.HLObject, key: str, where: str) -> Any:
@@ -469,52 +553,209 @@ def _attr(obj: h5py.HLObject, key: str, where: str) -> Any:
         raise FormatError(
             f"{where}: missing attribute {key!r} (found: {sorted(obj.attrs)})"
         )
-    return obj.attrs[key]
+    try:
+        return obj.attrs[key]
+    except (OSError, TypeError, ValueError) as err:
+        raise FormatError(f"{where}.{key}: unreadable attribute ({err})") from err
+
+
+def _text_attr(obj: h5py.HLObject, key: str, where: str) -> str:
+    return _as_str(_attr(obj, key, where), f"{where}.{key}")
 
 
 def _json_attr(obj: h5py.HLObject, key: str, where: str) -> Any:
-    raw = _as_str(_attr(obj, key, where))
+    raw = _text_attr(obj, key, where)
     try:
         return json.loads(raw)
     except json.JSONDecodeError as err:
         raise FormatError(
-            f"{where} attribute {key!r}: invalid JSON ({err.msg} at char {err.pos}); "
+            f"{where}.{key}: invalid JSON ({err.msg} at char {err.pos}); "
             f"found {raw[:80]!r}"
         ) from err
 
 
-def _dataset(h5: h5py.File, key: str) -> h5py.Dataset:
-    if key not in h5 or not isinstance(h5[key], h5py.Dataset):
-        raise FormatError(f"/{key}: missing dataset (found: {sorted(h5)})")
-    return h5[key]
+def _dataset(group: h5py.Group, key: str, where: str) -> h5py.Dataset:
+    if key not in group or not isinstance(group[key], h5py.Dataset):
+        raise FormatError(f"{where}{key}: missing dataset (found: {sorted(group)})")
+    return group[key]
 
 
 def _float_attr(obj: h5py.HLObject, key: str, where: str) -> float:
     value = _attr(obj, key, where)
     try:
-        return float(np.asarray(value).item())
+        out = float(np.asarray(value).item())
     except (TypeError, ValueError) as err:
         raise FormatError(f"{where}.{key}: expected a number; found {value!r}") from err
+    if not math.isfinite(out):
+        raise FormatError(f"{where}.{key}: expected a finite number; found {out}")
+    return out
 
 
-def _read_ground_truth(group: h5py.Dataset, p0c: float, species: str) -> Tensor:
+def _read_version(h5: h5py.File) -> int:
+    """The checked ``format`` and integer ``format_version`` of an open file."""
+    fmt = _text_attr(h5, "format", "/")
+    if fmt != FORMAT_NAME:
+        raise FormatError(f"/.format: expected {FORMAT_NAME!r}; found {fmt!r}")
+    raw = _attr(h5, "format_version", "/")
+    try:
+        value = np.asarray(raw).item()
+        number = float(value)
+    except (TypeError, ValueError) as err:
+        raise FormatError(
+            f"/.format_version: expected an integer; found {raw!r}"
+        ) from err
+    if isinstance(value, bool) or not number.is_integer():
+        raise FormatError(
+            f"/.format_version: expected an integer (1 or 2); found {value!r}"
+        )
+    version = int(number)
+    if version not in READ_VERSIONS:
+        raise FormatError(
+            f"/.format_version: this reader reads versions "
+            f"{', '.join(map(str, READ_VERSIONS))}; found {version}"
+        )
+    return version
+
+
+def _string_list(value: Any, where: str) -> list[str]:
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise FormatError(f"{where}: expected a JSON list of strings; found {value!r}")
+    return value
+
+
+@dataclass
+class _Root:
+    """Beam-level fields of a quad-scan file (shared by all of its scans)."""
+
+    p0c: float
+    species: str
+    ground_truth: Tensor | None
+    metadata: dict[str, Any]
+
+
+def _read_root(h5: h5py.File) -> _Root:
+    p0c = _float_attr(h5, "p0c", "/")
+    species = _text_attr(h5, "species", "/")
+    if species not in SPECIES:
+        raise FormatError(f"/.species: expected one of {SPECIES}; found {species!r}")
+    metadata: dict[str, Any] = {}
+    if "metadata" in h5.attrs:
+        metadata = _json_attr(h5, "metadata", "/")
+        if not isinstance(metadata, dict):
+            raise FormatError(
+                f"/.metadata: expected a JSON object; found {type(metadata).__name__}"
+            )
+    if "description" in h5.attrs:
+        metadata["description"] = _text_attr(h5, "description", "/")
+    ground_truth = None
+    if "ground_truth" in h5:
+        if not isinstance(h5["ground_truth"], h5py.Group) or (
+            "particles" not in h5["ground_truth"]
+        ):
+            raise FormatError("/ground_truth: missing dataset 'particles'")
+        ground_truth = _read_ground_truth(h5["ground_truth/particles"], p0c, species)
+    return _Root(p0c, species, ground_truth, metadata)
+
+
+def _read_ground_truth(data: h5py.Dataset, p0c: float, species: str) -> Tensor:
     where = "/ground_truth/particles"
-    coords = _json_attr(group, "coordinates", where)
-    data = torch.from_numpy(np.asarray(group[()], dtype=np.float64))
-    if data.ndim != 2 or data.shape[-1] != 6:
-        raise FormatError(f"{where}: expected shape (N, 6); found {tuple(data.shape)}")
+    coords = _json_attr(data, "coordinates", where)
+    try:
+        values = torch.from_numpy(np.asarray(data[()], dtype=np.float64))
+    except (TypeError, ValueError) as err:
+        raise FormatError(f"{where}: expected float numbers ({err})") from err
+    if values.ndim != 2 or values.shape[-1] != 6:
+        raise FormatError(
+            f"{where}: expected shape (N, 6); found {tuple(values.shape)}"
+        )
+    if not isinstance(coords, list):
+        coords = [coords]
     if tuple(coords) == BMAD_COORDINATES:
-        return data
+        return values
     if tuple(coords) == CHEETAH_COORDINATES:
-        return cheetah_to_bmad(data, p0c, Species.from_name(species))
+        return cheetah_to_bmad(values, p0c, Species.from_name(species))
     raise FormatError(
         f"{where}.coordinates: expected {list(BMAD_COORDINATES)} (Bmad) or "
         f"{list(CHEETAH_COORDINATES)} (cheetah); found {coords}"
     )
 
 
+def _read_array(group: h5py.Group, key: str, where: str, dtype: Any) -> Tensor:
+    data = _dataset(group, key, where)
+    try:
+        return torch.from_numpy(np.asarray(data[()], dtype=dtype))
+    except (TypeError, ValueError) as err:
+        raise FormatError(
+            f"{where}{key}: expected real numbers; found dtype {data.dtype} ({err})"
+        ) from err
+
+
+def _read_scan(group: h5py.Group, where: str, root: _Root) -> QuadScanDataset:
+    """One scan (beamline, images, settings, screen) from ``group``.
+
+    ``where`` is the group's path with a trailing slash (``"/"`` for version 1,
+    ``"/scans/NAME/"`` for version 2); errors name the field by that path.
+    """
+    spec = _json_attr(group, "beamline", where.rstrip("/") or "/")
+    images = _read_array(group, "images", where, np.float32)
+    settings = _read_array(group, "settings", where, np.float64)
+    settings_ds = group["settings"]
+    names = _string_list(
+        _json_attr(settings_ds, "names", f"{where}settings"),
+        f"{where}settings.names",
+    )
+    units = _string_list(
+        _json_attr(settings_ds, "units", f"{where}settings"),
+        f"{where}settings.units",
+    )
+    if "screen" not in group or not isinstance(group["screen"], h5py.Group):
+        raise FormatError(f"{where}screen: missing group (found: {sorted(group)})")
+    screen = group["screen"]
+    pixel_size = tuple(
+        _float_attr(screen, f"pixel_size_{a}", f"{where}screen") for a in "xy"
+    )
+    center = tuple(_float_attr(screen, f"center_{a}", f"{where}screen") for a in "xy")
+    try:
+        return QuadScanDataset(
+            images=images,
+            settings=settings,
+            setting_names=names,
+            setting_units=units,
+            p0c=root.p0c,
+            species=root.species,
+            beamline_spec=spec,
+            pixel_size=pixel_size,  # type: ignore[arg-type]
+            center=center,  # type: ignore[arg-type]
+            ground_truth=root.ground_truth,
+            metadata=root.metadata,
+        )
+    except FormatError as err:
+        # container messages name the field ("settings.names: ..."); add the path
+        raise FormatError(f"{where}{err}") from err
+
+
+def open_quad_scan(path: str | os.PathLike) -> h5py.File:
+    """Open a quad-scan file for reading, with clear errors.
+
+    Raises:
+        FileNotFoundError: if ``path`` does not exist.
+        FormatError: if it is not a readable HDF5 file.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"quad-scan file not found: {path}")
+    if path.is_dir():
+        raise FormatError(f"{path}: is a directory, not a quad-scan file")
+    try:
+        return h5py.File(path, "r")
+    except OSError as err:
+        raise FormatError(f"{path}: not a readable HDF5 file ({err})") from err
+
+
 def read_quad_scan(path: str | os.PathLike) -> QuadScanDataset:
-    """Read a quad-scan HDF5 file (format "quad-scan", version 1).
+    """Read a quad-scan HDF5 file holding one scan (version 1, or 2 with one scan).
+
+    For files with several scans use :func:`diffaccel.data.read_scans`.
 
     Args:
         path: File to read.
@@ -526,98 +767,95 @@ def read_quad_scan(path: str | os.PathLike) -> QuadScanDataset:
 
     Raises:
         FileNotFoundError: if ``path`` does not exist.
-        FormatError: naming the attribute or dataset that is missing or invalid.
+        FormatError: naming the file and the attribute or dataset that is
+            missing or invalid, or a version-2 file with several scans.
     """
     path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"quad-scan file not found: {path}")
-    try:
-        h5 = h5py.File(path, "r")
-    except OSError as err:
-        raise FormatError(f"{path}: not a readable HDF5 file ({err})") from err
-    with h5:
-        fmt = _as_str(_attr(h5, "format", "/"))
-        if fmt != FORMAT_NAME:
-            raise FormatError(f"/.format: expected {FORMAT_NAME!r}; found {fmt!r}")
-        version = _attr(h5, "format_version", "/")
+    with open_quad_scan(path) as h5:
         try:
-            version = int(np.asarray(version).item())
-        except (TypeError, ValueError) as err:
-            raise FormatError(
-                f"/.format_version: expected an integer; found {version!r}"
-            ) from err
-        if version != FORMAT_VERSION:
-            raise FormatError(
-                f"/.format_version: this reader reads version {FORMAT_VERSION}; "
-                f"found {version}"
-            )
-        p0c = _float_attr(h5, "p0c", "/")
-        species = _as_str(_attr(h5, "species", "/"))
-        spec = _json_attr(h5, "beamline", "/")
-        images_ds = _dataset(h5, "images")
-        settings_ds = _dataset(h5, "settings")
-        names = _json_attr(settings_ds, "names", "/settings")
-        units = _json_attr(settings_ds, "units", "/settings")
-        for key, value in (("names", names), ("units", units)):
-            if not isinstance(value, list) or not all(
-                isinstance(v, str) for v in value
-            ):
+            version = _read_version(h5)
+            root = _read_root(h5)
+            if version == 1:
+                return _read_scan(h5, "/", root)
+            names = scan_names(h5)
+            if len(names) != 1:
                 raise FormatError(
-                    f"/settings.{key}: expected a JSON list of strings; found {value!r}"
+                    f"/scans: holds {len(names)} scans ({names}); read the file "
+                    "with diffaccel.data.read_scans"
                 )
-        if "screen" not in h5:
-            raise FormatError(f"/screen: missing group (found: {sorted(h5)})")
-        screen = h5["screen"]
-        pixel_size = tuple(
-            _float_attr(screen, f"pixel_size_{a}", "/screen") for a in "xy"
-        )
-        center = tuple(_float_attr(screen, f"center_{a}", "/screen") for a in "xy")
-        if min(pixel_size) <= 0:
-            raise FormatError(
-                f"/screen.pixel_size_x/y: expected > 0 [m]; found {pixel_size}"
-            )
-        metadata: dict[str, Any] = {}
-        if "metadata" in h5.attrs:
-            metadata = _json_attr(h5, "metadata", "/")
-            if not isinstance(metadata, dict):
-                raise FormatError(
-                    "/.metadata: expected a JSON object; found "
-                    f"{type(metadata).__name__}"
-                )
-        if "description" in h5.attrs:
-            metadata["description"] = _as_str(h5.attrs["description"])
-        images = torch.from_numpy(np.asarray(images_ds[()], dtype=np.float32))
-        settings = torch.from_numpy(np.asarray(settings_ds[()], dtype=np.float64))
-        ground_truth = None
-        if "ground_truth" in h5:
-            if "particles" not in h5["ground_truth"]:
-                raise FormatError("/ground_truth: missing dataset 'particles'")
-            if species not in SPECIES:
-                raise FormatError(
-                    f"/.species: expected one of {SPECIES}; found {species!r}"
-                )
-            ground_truth = _read_ground_truth(
-                h5["ground_truth/particles"], p0c, species
-            )
-    try:
-        return QuadScanDataset(
-            images=images,
-            settings=settings,
-            setting_names=names,
-            setting_units=units,
-            p0c=p0c,
-            species=species,
-            beamline_spec=spec,
-            pixel_size=pixel_size,  # type: ignore[arg-type]
-            center=center,  # type: ignore[arg-type]
-            ground_truth=ground_truth,
-            metadata=metadata,
-        )
-    except FormatError as err:
-        raise FormatError(f"{path}: {err}") from err
+            return _read_scan(h5["scans"][names[0]], f"/scans/{names[0]}/", root)
+        except FormatError as err:
+            raise FormatError(f"{path}: {err}") from err
+
+
+def scan_names(h5: h5py.File) -> list[str]:
+    """Names of the scans of an open version-2 file, in file order.
+
+    Raises:
+        FormatError: if ``/scans`` is missing, empty or holds a non-group.
+    """
+    if "scans" not in h5 or not isinstance(h5["scans"], h5py.Group):
+        raise FormatError(f"/scans: missing group (found: {sorted(h5)})")
+    scans = h5["scans"]
+    names = list(scans)
+    if not names:
+        raise FormatError("/scans: expected at least one scan group; found none")
+    for name in names:
+        if not isinstance(scans[name], h5py.Group):
+            raise FormatError(f"/scans/{name}: expected a group; found a dataset")
+    return names
 
 
 # ---------------------------------------------------------------------- writing
+def _json_dumps(value: Any, field_name: str) -> str:
+    try:
+        return json.dumps(value)
+    except (TypeError, ValueError) as err:
+        raise FormatError(f"{field_name}: not JSON-serialisable ({err})") from err
+
+
+def write_root(h5: h5py.File, dataset: QuadScanDataset, version: int) -> None:
+    """Root attributes and ground truth of ``dataset`` into an open file."""
+    metadata = dict(dataset.metadata)
+    description = metadata.pop("description", None)
+    h5.attrs["format"] = FORMAT_NAME
+    h5.attrs["format_version"] = np.int64(version)
+    h5.attrs["p0c"] = np.float64(dataset.p0c)
+    h5.attrs["species"] = dataset.species
+    h5.attrs["metadata"] = _json_dumps(metadata, "metadata")
+    if description is not None:
+        h5.attrs["description"] = str(description)
+    if dataset.ground_truth is not None:
+        gt = h5.create_group("ground_truth").create_dataset(
+            "particles",
+            data=dataset.ground_truth.detach().cpu().double().numpy(),
+        )
+        gt.attrs["coordinates"] = json.dumps(list(BMAD_COORDINATES))
+        gt.attrs["convention"] = BMAD_CONVENTION
+
+
+def write_scan(group: h5py.Group, dataset: QuadScanDataset) -> None:
+    """Beamline, images, settings and screen of one scan into ``group``."""
+    group.attrs["beamline"] = _json_dumps(dataset.beamline_spec, "beamline")
+    group.create_dataset(
+        "images",
+        data=dataset.images.detach().cpu().numpy().astype(np.float32),
+        compression="gzip",
+        compression_opts=4,
+        shuffle=True,
+    )
+    settings = group.create_dataset(
+        "settings", data=dataset.settings.detach().cpu().numpy()
+    )
+    settings.attrs["names"] = json.dumps(dataset.setting_names)
+    settings.attrs["units"] = json.dumps(dataset.setting_units)
+    screen = group.create_group("screen")
+    screen.attrs["pixel_size_x"] = np.float64(dataset.pixel_size[0])
+    screen.attrs["pixel_size_y"] = np.float64(dataset.pixel_size[1])
+    screen.attrs["center_x"] = np.float64(dataset.center[0])
+    screen.attrs["center_y"] = np.float64(dataset.center[1])
+
+
 def write_quad_scan(
     dataset: QuadScanDataset, path: str | os.PathLike, overwrite: bool = False
 ) -> Path:
@@ -627,6 +865,7 @@ def write_quad_scan(
     place with ``os.replace``, so readers never see a half-written file. The
     ground truth is stored in Bmad coordinates; ``metadata`` (minus
     ``description``, which becomes its own attribute) is stored as JSON.
+    Several scans: :func:`diffaccel.data.write_scans` (version 2).
 
     Args:
         dataset: The dataset; it is validated again before writing.
@@ -649,51 +888,13 @@ def write_quad_scan(
         raise FileExistsError(
             f"{path} exists; pass overwrite=True (CLI: --force) to replace it"
         )
-    metadata = dict(dataset.metadata)
-    description = metadata.pop("description", None)
-    try:
-        beamline_json = json.dumps(dataset.beamline_spec)
-    except (TypeError, ValueError) as err:
-        raise FormatError(f"beamline: not JSON-serialisable ({err})") from err
-    try:
-        metadata_json = json.dumps(metadata)
-    except (TypeError, ValueError) as err:
-        raise FormatError(f"metadata: not JSON-serialisable ({err})") from err
+    _json_dumps(dataset.beamline_spec, "beamline")
+    _json_dumps(dataset.metadata, "metadata")
     path.parent.mkdir(parents=True, exist_ok=True)
 
     def _write(tmp: Path) -> None:
         with h5py.File(tmp, "w") as h5:
-            h5.attrs["format"] = FORMAT_NAME
-            h5.attrs["format_version"] = np.int64(FORMAT_VERSION)
-            h5.attrs["p0c"] = np.float64(dataset.p0c)
-            h5.attrs["species"] = dataset.species
-            h5.attrs["beamline"] = beamline_json
-            h5.attrs["metadata"] = metadata_json
-            if description is not None:
-                h5.attrs["description"] = str(description)
-            h5.create_dataset(
-                "images",
-                data=dataset.images.detach().cpu().numpy().astype(np.float32),
-                compression="gzip",
-                compression_opts=4,
-                shuffle=True,
-            )
-            settings = h5.create_dataset(
-                "settings", data=dataset.settings.detach().cpu().numpy()
-            )
-            settings.attrs["names"] = json.dumps(dataset.setting_names)
-            settings.attrs["units"] = json.dumps(dataset.setting_units)
-            screen = h5.create_group("screen")
-            screen.attrs["pixel_size_x"] = np.float64(dataset.pixel_size[0])
-            screen.attrs["pixel_size_y"] = np.float64(dataset.pixel_size[1])
-            screen.attrs["center_x"] = np.float64(dataset.center[0])
-            screen.attrs["center_y"] = np.float64(dataset.center[1])
-            if dataset.ground_truth is not None:
-                gt = h5.create_group("ground_truth").create_dataset(
-                    "particles",
-                    data=dataset.ground_truth.detach().cpu().double().numpy(),
-                )
-                gt.attrs["coordinates"] = json.dumps(list(BMAD_COORDINATES))
-                gt.attrs["convention"] = BMAD_CONVENTION
+            write_root(h5, dataset, 1)
+            write_scan(h5, dataset)
 
     return atomic_write(path, _write)

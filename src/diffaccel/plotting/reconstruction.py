@@ -143,6 +143,7 @@ def plot_image_comparison(
     extent: Sequence[float] | None = None,
     held_out: Sequence[bool] | None = None,
     max_columns: int = 10,
+    title: str = "",
 ) -> Figure:
     """Measured vs predicted screen images, one column per setting.
 
@@ -153,11 +154,12 @@ def plot_image_comparison(
     Args:
         measured: Sum-normalised measured images ``(K, H, W)``.
         predicted: Sum-normalised predicted images ``(K, H, W)``.
-        settings: Settings ``(K, P)``; the first column labels each panel.
-        setting_name: Label of that column (e.g. ``"Q1.k1"``).
+        settings: Settings ``(K, P)``; their values label each panel.
+        setting_name: Label of the columns (e.g. ``"Q1.k1"``).
         extent: ``(x_min, x_max, y_min, y_max)`` of the screen [mm].
         held_out: Per setting, True if it was not used for training.
         max_columns: Settings per block.
+        title: Prefix of the figure title (e.g. the scan name).
 
     Returns:
         The figure.
@@ -167,7 +169,10 @@ def plot_image_comparison(
     if m.shape != p.shape:
         raise ValueError(f"measured {m.shape} and predicted {p.shape} differ.")
     k = m.shape[0]
-    s = torch.as_tensor(settings).reshape(k, -1)[:, 0].tolist()
+    s = [
+        ", ".join(f"{v:.3g}" for v in row)
+        for row in torch.as_tensor(settings).reshape(k, -1).tolist()
+    ]
     cols = min(k, max_columns)
     blocks = -(-k // cols)
     fig = Figure(figsize=(1.45 * cols + 0.8, 4.4 * blocks))
@@ -190,7 +195,7 @@ def plot_image_comparison(
         bot.imshow(p[idx] - m[idx], cmap="RdBu_r", vmin=-dmax, vmax=dmax, **kw)
         ho = held_out is not None and bool(held_out[idx])
         top.set_title(
-            f"{s[idx]:.3g}" + (" (test)" if ho else ""),
+            s[idx] + (" (test)" if ho else ""),
             fontsize=8,
             color="C3" if ho else "k",
         )
@@ -199,7 +204,8 @@ def plot_image_comparison(
             mid.set_ylabel("predicted")
             bot.set_ylabel("pred - meas")
     fig.suptitle(
-        f"Screen images per setting {setting_name} (colour scale per column; "
+        (f"{title}: " if title else "")
+        + f"Screen images per setting {setting_name} (colour scale per column; "
         f"difference scale +-{dmax:.2g})"
     )
     fig.tight_layout()

@@ -7,6 +7,12 @@ Example:
 """
 
 from diffaccel.reconstruction.ensemble import Reconstruction, load
+from diffaccel.reconstruction.evaluation import (
+    clean_json,
+    evaluate,
+    predict_dataset,
+    predicted_dataset,
+)
 from diffaccel.reconstruction.forward import ScreenForwardModel
 from diffaccel.reconstruction.generator import BeamGenerator
 from diffaccel.reconstruction.initial import GaussianGuess, fit_gaussian
@@ -24,7 +30,11 @@ from diffaccel.reconstruction.metrics import (
     moment_errors,
     sliced_wasserstein,
 )
-from diffaccel.reconstruction.pipeline import reconstruct
+from diffaccel.reconstruction.pipeline import (
+    as_scans,
+    reconstruct,
+    training_selection,
+)
 from diffaccel.reconstruction.training import (
     ReconstructionConfig,
     StepInfo,
@@ -42,8 +52,11 @@ __all__ = [
     "ScreenForwardModel",
     "StepInfo",
     "TrainingState",
+    "as_scans",
     "beam_moments",
+    "clean_json",
     "cyclic_cosine_lr",
+    "evaluate",
     "fit_gaussian",
     "gaussian_entropy",
     "gaussian_prior_term",
@@ -53,9 +66,12 @@ __all__ = [
     "load_checkpoint",
     "moment_errors",
     "penalty_schedule",
+    "predict_dataset",
+    "predicted_dataset",
     "reconstruct",
     "robust_covariance",
     "save_checkpoint",
     "sliced_wasserstein",
     "train_generator",
+    "training_selection",
 ]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Mapping
 from pathlib import Path
 
 import torch
@@ -17,7 +18,11 @@ from diffaccel.reconstruction.metrics import COORDINATES, beam_moments
 from diffaccel.reconstruction.training import ReconstructionConfig
 
 ENSEMBLE_FILE = "ensemble.pt"
-ENSEMBLE_VERSION = 1
+#: 2: one forward model per scan (``forwards``); 1 (still read): one ``forward``.
+ENSEMBLE_VERSION = 2
+_READ_VERSIONS = (1, 2)
+#: Scan name of a version-1 ensemble's forward model (as ``data.SINGLE_SCAN_NAME``).
+_SINGLE_SCAN = "scan"
 
 #: Scalar moments reported by :meth:`Reconstruction.moments`.
 SCALAR_MOMENTS = (
@@ -44,7 +49,8 @@ class Reconstruction:
     Args:
         config: Settings the ensemble was trained with.
         snapshots: Generator state dicts, one per ensemble member ``E``.
-        forward: Forward model of the training scan (beamline, screen, names).
+        forward: Forward model of each training scan ``{scan name: model}`` (a
+            single model is stored under the name ``"scan"``).
         history: Training curves (``loss``, ``image_loss``, ``entropy``, ``lr``,
             ``penalty``, ``rms`` per step; ``snapshot_steps``).
         info: JSON-serialisable extras (train indices, timings, dataset path).
@@ -58,7 +64,7 @@ class Reconstruction:
         self,
         config: ReconstructionConfig,
         snapshots: list[dict],
-        forward: ScreenForwardModel,
+        forward: ScreenForwardModel | Mapping[str, ScreenForwardModel],
         history: dict,
         info: dict | None = None,
     ) -> None:
@@ -66,7 +72,11 @@ class Reconstruction:
             raise ValueError("a reconstruction needs at least one snapshot.")
         self.config = config
         self.snapshots = snapshots
-        self.forward = forward
+        if isinstance(forward, ScreenForwardModel):
+            forward = {_SINGLE_SCAN: forward}
+        self.forwards: dict[str, ScreenForwardModel] = dict(forward)
+        if not self.forwards:
+            raise ValueError("a reconstruction needs at least one forward model.")
         self.history = history
         self.info = dict(info or {})
         self._generators = [self._build(s) for s in snapshots]
@@ -79,6 +89,16 @@ class Reconstruction:
         gen.load_state_dict(state)
         gen.requires_grad_(False)
         return gen
+
+    @property
+    def forward(self) -> ScreenForwardModel:
+        """Forward model of the first (or only) training scan."""
+        return next(iter(self.forwards.values()))
+
+    @property
+    def scan_names(self) -> list[str]:
+        """Names of the training scans (keys of :attr:`forwards`)."""
+        return list(self.forwards)
 
     @property
     def n_snapshots(self) -> int:
@@ -135,6 +155,7 @@ class Reconstruction:
         settings: Tensor,
         *,
         forward: ScreenForwardModel | None = None,
+        scan: str | None = None,
         n_particles: int = 50_000,
         per_snapshot: bool = False,
         seed: int = 0,
@@ -148,6 +169,8 @@ class Reconstruction:
             settings: Values of the scanned parameters, one row per setting.
             forward: Another forward model (e.g. a different screen grid or
                 beamline); defaults to the training scan's.
+            scan: Name of the training scan whose forward model to use
+                (default the first); ignored when ``forward`` is given.
             n_particles: Particles per ensemble member.
             per_snapshot: Return ``(E, K, H, W)`` instead of the mean.
             seed: Sampling seed.
@@ -159,7 +182,16 @@ class Reconstruction:
         Raises:
             ValueError: if ``settings`` has the wrong number of columns or NaNs.
         """
-        fwd = forward if forward is not None else self.forward
+        if forward is not None:
+            fwd = forward
+        elif scan is not None:
+            if scan not in self.forwards:
+                raise ValueError(
+                    f"no training scan named {scan!r}; scans are {self.scan_names}."
+                )
+            fwd = self.forwards[scan]
+        else:
+            fwd = self.forward
         settings = fwd.check_settings(settings)
         beams = self.sample(n_particles, per_snapshot=True, seed=seed)
         with torch.no_grad():
@@ -225,11 +257,21 @@ class Reconstruction:
         through weak chromatic or no effects at all: its reconstruction is set by
         the prior and the ensemble spread understates its uncertainty.
         """
-        settings = torch.as_tensor(self.info.get("train_settings", []))
-        if settings.numel() == 0:
+        per_scan = self.info.get("scans")
+        if not isinstance(per_scan, dict):
+            per_scan = {self.scan_names[0]: self.info}
+        rows_list = []
+        for name, fwd in self.forwards.items():
+            sets = torch.as_tensor(
+                per_scan.get(name, {}).get("train_settings", []), dtype=torch.float64
+            )
+            if sets.numel() == 0:
+                continue
+            r = fwd.transfer_matrices(sets)
+            rows_list.append(r[:, [0, 2], :].abs().amax(dim=(0, 1)))  # (6,)
+        if not rows_list:
             return []
-        r = self.forward.transfer_matrices(settings.to(torch.float64))
-        rows = r[:, [0, 2], :].abs().amax(dim=(0, 1))  # (6,)
+        rows = torch.stack(rows_list).amax(0)
         flags = []
         pos_ref = float(rows[[0, 2]].max())
         mom_ref = float(rows[[1, 3]].max())
@@ -256,7 +298,9 @@ class Reconstruction:
             "ensemble_version": ENSEMBLE_VERSION,
             "config": self.config.to_dict(),
             "snapshots": self.snapshots,
-            "forward": json.dumps(self.forward.to_spec()),
+            "forwards": json.dumps(
+                {name: f.to_spec() for name, f in self.forwards.items()}
+            ),
             "history": json.dumps(self.history),
             "info": json.dumps(self.info),
         }
@@ -282,12 +326,23 @@ def load(directory: str | os.PathLike) -> Reconstruction:
         d = torch.load(path, weights_only=True, map_location="cpu")
     except Exception as exc:
         raise ValueError(f"cannot read {path}: {exc}") from exc
-    if not isinstance(d, dict) or d.get("ensemble_version") != ENSEMBLE_VERSION:
-        raise ValueError(f"{path} is not a diffaccel ensemble (version 1).")
+    if not isinstance(d, dict) or d.get("ensemble_version") not in _READ_VERSIONS:
+        raise ValueError(
+            f"{path} is not a diffaccel ensemble (versions {_READ_VERSIONS})."
+        )
+    if d["ensemble_version"] == 1:
+        forwards = {
+            _SINGLE_SCAN: ScreenForwardModel.from_spec(json.loads(d["forward"]))
+        }
+    else:
+        forwards = {
+            name: ScreenForwardModel.from_spec(spec)
+            for name, spec in json.loads(d["forwards"]).items()
+        }
     return Reconstruction(
         config=ReconstructionConfig.from_dict(d["config"]),
         snapshots=list(d["snapshots"]),
-        forward=ScreenForwardModel.from_spec(json.loads(d["forward"])),
+        forward=forwards,
         history=json.loads(d["history"]),
         info=json.loads(d["info"]),
     )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -16,8 +17,9 @@ class GaussianGuess:
 
     Args:
         mean: Centroid in Bmad coordinates ``(6,)`` float64.
-        cov: Covariance ``(6, 6)`` float64; the longitudinal block is zero
-            (images at one screen after quads and drifts do not constrain it).
+        cov: Covariance ``(6, 6)`` float64; rows and columns of coordinates
+            the scans do not see (z, pz after quadrupoles and drifts only) are
+            zero.
     """
 
     mean: Tensor
@@ -31,22 +33,30 @@ class GaussianGuess:
     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Initial scale, offset, correlation and prior widths for a generator.
 
+        A longitudinal coordinate the scans see (fitted variance > 0: z with a
+        deflecting cavity, pz with dispersion) starts from the fitted Gaussian
+        like the transverse ones; one they do not see starts uncorrelated with
+        rms ``longitudinal_scale``.
+
         Returns:
             ``scale (dims,)``, ``offset (dims,)``, ``correlation (dims, dims)`` and
-            ``prior_std (dims,)`` (transverse: ``prior_factor`` times the fitted
-            widths; longitudinal: ``longitudinal_scale``), all float64.
+            ``prior_std (dims,)`` (``prior_factor`` times the fitted widths;
+            unseen longitudinal coordinates: ``longitudinal_scale``), all float64.
         """
         cov = self.cov[:dims, :dims].clone()
         mean = self.mean[:dims].clone()
+        seen = [True] * dims
         if dims == 6:
-            cov[4:, :] = 0.0
-            cov[:, 4:] = 0.0
-            cov[4, 4] = longitudinal_scale[0] ** 2
-            cov[5, 5] = longitudinal_scale[1] ** 2
+            for i in (4, 5):
+                if not float(cov[i, i]) > 0:
+                    seen[i] = False
+                    cov[i, :] = 0.0
+                    cov[:, i] = 0.0
+                    cov[i, i] = longitudinal_scale[i - 4] ** 2
         scale = cov.diagonal().sqrt()
         corr = cov / (scale[:, None] * scale[None, :])
         prior = scale.clone()
-        prior[:4] *= prior_factor
+        prior[torch.tensor(seen)] *= prior_factor
         return scale, mean, corr, prior
 
 
@@ -58,51 +68,95 @@ def _psd_2x2(s00: Tensor, s01: Tensor, s11: Tensor, floor: float) -> tuple:
     return s00, s01.clamp(-lim, lim), s11
 
 
+def _observed(rows: Tensor, tolerance: float = 1e-3) -> list[int]:
+    """Coordinates whose column of the screen rows ``(M, 6)`` is not ~0.
+
+    Positions (x, y, z) are compared with the largest x/y column, momenta
+    (px, py, pz) with the largest px/py column.
+    """
+    col = rows.abs().amax(0)
+    ref_pos = float(col[[0, 2]].max())
+    ref_mom = float(col[[1, 3]].max())
+    refs = (ref_pos, ref_mom, ref_pos, ref_mom, ref_pos, ref_mom)
+    return [i for i in range(6) if float(col[i]) > tolerance * refs[i]]
+
+
+def _nearest_correlation(cov: Tensor, max_corr: float = 0.98) -> Tensor:
+    """``cov`` made positive definite in correlation space (eigenvalues clipped)."""
+    d = cov.diagonal().clamp_min(1e-300).sqrt()
+    c = cov / (d[:, None] * d[None, :])
+    c = 0.5 * (c + c.T)
+    w, v = torch.linalg.eigh(c)
+    c = v @ torch.diag(w.clamp_min(1.0 - max_corr)) @ v.T
+    e = c.diagonal().sqrt()
+    c = c / (e[:, None] * e[None, :])
+    return c * (d[:, None] * d[None, :])
+
+
 def fit_gaussian(
-    forward: ScreenForwardModel, images: Tensor, settings: Tensor
+    forward: ScreenForwardModel | Sequence[ScreenForwardModel],
+    images: Tensor | Sequence[Tensor],
+    settings: Tensor | Sequence[Tensor],
 ) -> GaussianGuess:
-    """Fit the transverse 4x4 centroid and covariance of a beam to image moments.
+    """Fit the centroid and covariance of a beam to image moments of one or more scans.
 
     Linear optics: for each setting the transfer matrix ``R_k`` comes from the
-    forward model (finite differences of the tracking), the screen centroid is
-    ``R_k mean`` and the screen second moments are ``R_k Sigma R_k^T``; the
-    measured centroids, ``<x^2>``, ``<y^2>`` and ``<xy>`` of the images (minus the
-    blur the forward model adds) give a linear least-squares problem for the 4
-    centroid and 10 covariance entries. The result is projected onto a positive
-    definite matrix; it is a starting point, not a reconstruction.
+    forward model, the screen centroid is ``R_k mean`` and the screen second
+    moments are ``R_k Sigma R_k^T``; the measured centroids, ``<x^2>``,
+    ``<y^2>`` and ``<xy>`` of the images (minus the blur the forward model adds)
+    give a linear least-squares problem for the centroid and covariance entries
+    of the coordinates the scans see (x, px, y, py; z with a deflecting cavity,
+    pz with dispersion). The result is projected onto a positive definite
+    matrix; it is a starting point, not a reconstruction. Unseen coordinates get
+    zero mean and zero (co)variance.
 
     Args:
-        forward: Forward model of the scan.
-        images: Sum-normalised images.
-        settings: Settings of those images.
+        forward: Forward model of each scan (or one model).
+        images: Sum-normalised images of each scan.
+        settings: Settings of those images, one tensor per scan.
 
     Shapes:
-        ``images (K, H, W)``, ``settings (K, P)``.
+        Scan ``s``: ``images (K_s, H_s, W_s)``, ``settings (K_s, P_s)``.
 
     Returns:
         A :class:`GaussianGuess` (float64, on the CPU).
     """
-    img = images.detach().to("cpu", torch.float64)
-    img = img / img.sum((-2, -1), keepdim=True).clamp_min(1e-300)
-    xs, ys = (a.to("cpu", torch.float64) for a in forward.pixel_axes())
-    px = img.sum(-2)  # (K, W)
-    py = img.sum(-1)  # (K, H)
-    mx = (px * xs).sum(-1)
-    my = (py * ys).sum(-1)
-    blur_x, blur_y = (b**2 for b in forward.blur_sigma())
-    vxx = (px * (xs - mx[:, None]) ** 2).sum(-1) - blur_x
-    vyy = (py * (ys - my[:, None]) ** 2).sum(-1) - blur_y
-    dx = xs[None, None, :] - mx[:, None, None]
-    dy = ys[None, :, None] - my[:, None, None]
-    vxy = (img * dx * dy).sum((-2, -1))
-    r = forward.transfer_matrices(settings).to("cpu", torch.float64)  # (K, 6, 6)
-    rx, ry = r[:, 0, :4], r[:, 2, :4]
-    # centroid: [mx; my] = [rx; ry] @ mean4
+    forwards = list(forward) if isinstance(forward, list | tuple) else [forward]
+    image_list = list(images) if isinstance(images, list | tuple) else [images]
+    setting_list = list(settings) if isinstance(settings, list | tuple) else [settings]
+    rx_all, ry_all, mx_all, my_all, vxx_all, vyy_all, vxy_all = ([] for _ in range(7))
+    floors, drift = [], 0.0
+    for fwd, imgs, sets in zip(forwards, image_list, setting_list, strict=True):
+        img = imgs.detach().to("cpu", torch.float64)
+        img = img / img.sum((-2, -1), keepdim=True).clamp_min(1e-300)
+        xs, ys = (a.to("cpu", torch.float64) for a in fwd.pixel_axes())
+        px = img.sum(-2)  # (K, W)
+        py = img.sum(-1)  # (K, H)
+        mx = (px * xs).sum(-1)
+        my = (py * ys).sum(-1)
+        blur_x, blur_y = (b**2 for b in fwd.blur_sigma())
+        vxx_all.append((px * (xs - mx[:, None]) ** 2).sum(-1) - blur_x)
+        vyy_all.append((py * (ys - my[:, None]) ** 2).sum(-1) - blur_y)
+        dx = xs[None, None, :] - mx[:, None, None]
+        dy = ys[None, :, None] - my[:, None, None]
+        vxy_all.append((img * dx * dy).sum((-2, -1)))
+        mx_all.append(mx)
+        my_all.append(my)
+        r = fwd.transfer_matrices(sets).to("cpu", torch.float64)  # (K, 6, 6)
+        rx_all.append(r[:, 0, :])
+        ry_all.append(r[:, 2, :])
+        floors.append(float(xs.diff().abs().mean()) * 0.5)
+        drift = max(drift, float(fwd.drift_length()))
+    rx, ry = torch.cat(rx_all), torch.cat(ry_all)
+    seen = sorted(set(range(4)) | set(_observed(torch.cat([rx, ry]))))
+    rx, ry = rx[:, seen], ry[:, seen]
+    n = len(seen)
+    # centroid: [mx; my] = [rx; ry] @ mean
     a = torch.cat([rx, ry], 0)
-    b = torch.cat([mx, my], 0)
-    mean4 = torch.linalg.lstsq(a, b[:, None]).solution[:, 0]
-    # second moments: linear in the 10 upper-triangular entries of Sigma4
-    iu = torch.triu_indices(4, 4)
+    b = torch.cat([torch.cat(mx_all), torch.cat(my_all)], 0)
+    mean_seen = torch.linalg.lstsq(a, b[:, None]).solution[:, 0]
+    # second moments: linear in the upper-triangular entries of Sigma
+    iu = torch.triu_indices(n, n)
     mult = torch.where(iu[0] == iu[1], 1.0, 2.0).to(torch.float64)
 
     def rows(u: Tensor, v: Tensor) -> Tensor:
@@ -111,26 +165,36 @@ def fit_gaussian(
         return uv[:, iu[0], iu[1]] * mult
 
     a2 = torch.cat([rows(rx, rx), rows(ry, ry), rows(rx, ry)], 0)
-    b2 = torch.cat([vxx, vyy, vxy], 0)
+    b2 = torch.cat([torch.cat(vxx_all), torch.cat(vyy_all), torch.cat(vxy_all)], 0)
     # scale unknowns for conditioning
     col = a2.abs().amax(0).clamp_min(1e-300)
     sol = torch.linalg.lstsq(a2 / col, b2[:, None]).solution[:, 0] / col
-    s4 = torch.zeros(4, 4, dtype=torch.float64)
-    s4[iu[0], iu[1]] = sol
-    s4 = s4 + s4.T - torch.diag(s4.diagonal())
-    floor = float(xs.diff().abs().mean()) * 0.5
+    s_seen = torch.zeros(n, n, dtype=torch.float64)
+    s_seen[iu[0], iu[1]] = sol
+    s_seen = s_seen + s_seen.T - torch.diag(s_seen.diagonal())
+    s4 = s_seen[:4, :4].clone()
+    floor = min(floors)
     for p, q in ((0, 1), (2, 3)):
         s00, s01, s11 = _psd_2x2(s4[p, p], s4[p, q], s4[q, q], floor)
         if s4[q, q] <= 0 or s4[p, p] <= 0:
             # quad scan did not resolve the divergence: use a beam waist guess
-            s11 = s00 / float(forward.drift_length()) ** 2
+            s11 = s00 / drift**2
             s01 = torch.zeros_like(s01)
         s4[p, p], s4[p, q], s4[q, p], s4[q, q] = s00, s01, s01, s11
     if torch.linalg.eigvalsh(s4).min() <= 0:
         s4[:2, 2:] = 0.0
         s4[2:, :2] = 0.0
+    s_seen[:4, :4] = s4
+    if n > 4:
+        # longitudinal variances: at least a small fraction of a resolvable size
+        for i in range(4, n):
+            if s_seen[i, i] <= 0:
+                s_seen[i, :] = 0.0
+                s_seen[:, i] = 0.0
+                s_seen[i, i] = (1e-3 * floor) ** 2 if seen[i] == 4 else 1e-8
+        s_seen = _nearest_correlation(s_seen)
     mean = torch.zeros(6, dtype=torch.float64)
-    mean[:4] = mean4
+    mean[seen] = mean_seen
     cov = torch.zeros(6, 6, dtype=torch.float64)
-    cov[:4, :4] = s4
+    cov[torch.tensor(seen)[:, None], torch.tensor(seen)[None, :]] = s_seen
     return GaussianGuess(mean=mean, cov=cov)

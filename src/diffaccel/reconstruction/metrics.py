@@ -81,7 +81,8 @@ def moment_errors(reconstructed: Tensor, truth: Tensor) -> dict[str, float]:
         ``rms_<coord>`` and ``emit_x/y/z/4d/6d``: ``(reco - truth) / truth``
         (NaN where the truth is 0, e.g. a 4D beam's z); ``corr_max_abs`` and
         ``corr_rms``: max and rms absolute difference of the transverse 4x4
-        correlation matrices.
+        correlation matrices; ``corr_diff_<a>_<b>``: reconstructed minus true
+        correlation coefficient of coordinates ``a``, ``b`` (all 15 pairs).
     """
     a, b = beam_moments(reconstructed), beam_moments(truth)
     out: dict[str, float] = {}
@@ -97,6 +98,13 @@ def moment_errors(reconstructed: Tensor, truth: Tensor) -> dict[str, float]:
     d = (a["corr"][:4, :4] - b["corr"][:4, :4]).abs()
     out["corr_max_abs"] = float(d.max())
     out["corr_rms"] = float(d.square().mean().sqrt())
+    for i in range(6):
+        for j in range(i + 1, 6):
+            name = f"corr_diff_{COORDINATES[i]}_{COORDINATES[j]}"
+            diff = float(a["corr"][i, j] - b["corr"][i, j])
+            # NaN where either beam has no spread in a coordinate (4D: z, pz)
+            zero = float(a["rms"][i] * a["rms"][j] * b["rms"][i] * b["rms"][j]) == 0
+            out[name] = math.nan if zero else diff
     return out
 
 

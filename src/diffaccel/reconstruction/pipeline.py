@@ -1,15 +1,16 @@
-"""End-to-end reconstruction of a quad-scan dataset."""
+"""End-to-end reconstruction of a quad-scan dataset (one or several scans)."""
 
 from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import torch
 
 from diffaccel.data.quad_scan import QuadScanDataset
+from diffaccel.data.scans import MultiScanDataset, parse_selection
 from diffaccel.reconstruction.ensemble import Reconstruction
 from diffaccel.reconstruction.forward import ScreenForwardModel
 from diffaccel.reconstruction.initial import fit_gaussian
@@ -20,37 +21,101 @@ from diffaccel.reconstruction.training import (
     train_generator,
 )
 
+TrainIndices = Sequence[int] | Mapping[str, Sequence[int]] | str | None
 
-def _check_images(images: torch.Tensor) -> None:
+
+def as_scans(dataset: QuadScanDataset | MultiScanDataset) -> MultiScanDataset:
+    """A dataset as scans of one beam (a single scan is named ``"scan"``)."""
+    if isinstance(dataset, MultiScanDataset):
+        return dataset
+    if isinstance(dataset, QuadScanDataset):
+        return MultiScanDataset.from_scan(dataset)
+    raise TypeError(
+        f"dataset: expected a QuadScanDataset or MultiScanDataset; got "
+        f"{type(dataset).__name__}"
+    )
+
+
+def training_selection(
+    dataset: MultiScanDataset, train_indices: TrainIndices
+) -> dict[str, list[int]]:
+    """Training settings per scan, checked, from any accepted form.
+
+    Args:
+        dataset: The scans.
+        train_indices: None (every setting of every scan); a rule string for
+            :func:`~diffaccel.data.parse_selection`; a list of indices (applied
+            to every scan); or ``{scan: indices}`` (scans not named: none).
+
+    Returns:
+        ``{scan name: indices}`` for every scan, at least one index in total.
+
+    Raises:
+        ValueError: naming the scan for an index out of range, a repeated
+            index, an unknown scan, or an empty selection.
+    """
+    if train_indices is None:
+        return {name: list(range(scan.n_settings)) for name, scan in dataset}
+    if isinstance(train_indices, str):
+        return parse_selection(train_indices, dataset)
+    if isinstance(train_indices, Mapping):
+        unknown = sorted(set(train_indices) - set(dataset.names))
+        if unknown:
+            raise ValueError(
+                f"train_indices: unknown scan(s) {unknown}; scans are {dataset.names}."
+            )
+        raw = {name: list(train_indices.get(name, [])) for name in dataset.names}
+    else:
+        raw = {name: list(train_indices) for name in dataset.names}
+    out = {}
+    for name, idx in raw.items():
+        k = dataset[name].n_settings
+        idx = [int(i) for i in idx]
+        if any(i < 0 or i >= k for i in idx) or len(set(idx)) != len(idx):
+            raise ValueError(
+                f"train_indices of scan {name!r} must be distinct integers in "
+                f"[0, {k}); got {idx}."
+            )
+        out[name] = idx
+    if not any(out.values()):
+        raise ValueError("train_indices select no setting in any scan.")
+    return out
+
+
+def _check_images(images: torch.Tensor, scan: str) -> None:
     if not torch.isfinite(images).all():
-        raise ValueError("measured images contain NaN or infinite values.")
+        raise ValueError(f"scan {scan!r}: measured images contain NaN or inf.")
     sums = images.sum((-2, -1))
     if (sums <= 0).any():
         bad = torch.nonzero(sums <= 0).flatten().tolist()
-        raise ValueError(f"measured images {bad} are all zero (or negative).")
+        raise ValueError(
+            f"scan {scan!r}: measured images {bad} are all zero (or negative)."
+        )
 
 
 def reconstruct(
-    dataset: QuadScanDataset,
+    dataset: QuadScanDataset | MultiScanDataset,
     config: ReconstructionConfig | None = None,
     *,
-    train_indices: Sequence[int] | None = None,
+    train_indices: TrainIndices = None,
     checkpoint: str | os.PathLike | None = None,
     resume: bool = False,
     callback: Callable[[StepInfo], None] | None = None,
     device: str | torch.device = "cpu",
 ) -> Reconstruction:
-    """Reconstruct the initial phase space of a beam from a quad-scan dataset.
+    """Reconstruct the initial phase space of a beam from one or several scans.
 
-    Builds the forward model of the dataset (beamline, screen, scanned names),
-    fits a Gaussian to the image moments as a starting point, and trains a
-    snapshot ensemble of beam generators on the shot-averaged, sum-normalised
-    images of ``train_indices``.
+    Builds the forward model of every scan (beamline, screen, scanned names),
+    fits a Gaussian to the image moments of all training images as a starting
+    point, and trains a snapshot ensemble of beam generators on the
+    shot-averaged, sum-normalised training images of every scan.
 
     Args:
-        dataset: The scan (images ``(K, S, H, W)``, settings ``(K, P)``).
+        dataset: One scan (images ``(K, S, H, W)``, settings ``(K, P)``) or
+            several (:class:`~diffaccel.data.MultiScanDataset`).
         config: Training settings; defaults to :class:`ReconstructionConfig`.
-        train_indices: Settings used for training (default all).
+        train_indices: Training settings, see :func:`training_selection`
+            (default all settings of all scans).
         checkpoint: Checkpoint file (written atomically during training).
         resume: Continue from ``checkpoint`` if it exists (the stored config
             must equal ``config``).
@@ -59,22 +124,26 @@ def reconstruct(
         device: ``"cpu"``, ``"cuda"``...
 
     Returns:
-        The :class:`Reconstruction`; ``info`` holds ``train_indices``,
-        ``train_settings`` and timings [s].
+        The :class:`Reconstruction`; ``info["scans"][name]`` holds each scan's
+        ``train_indices`` and ``train_settings``; for a single scan they are
+        also at the top level of ``info``, with timings [s].
 
     Raises:
         ValueError: for NaN or all-zero images, bad indices, or a checkpoint
-            written with a different config.
+            written with a different config (naming the scan where one is
+            concerned).
     """
     config = config or ReconstructionConfig()
-    k = dataset.n_settings
-    idx = list(range(k)) if train_indices is None else [int(i) for i in train_indices]
-    if not idx or any(i < 0 or i >= k for i in idx) or len(set(idx)) != len(idx):
-        raise ValueError(
-            f"train_indices must be distinct integers in [0, {k}); got {idx}."
-        )
-    images = dataset.mean_images()
-    _check_images(images)
+    scans = as_scans(dataset)
+    selection = training_selection(scans, train_indices)
+    used = [name for name in scans.names if selection[name]]
+    measured, settings, forwards = [], [], {}
+    for name in used:
+        scan = scans[name]
+        images = scan.mean_images()
+        _check_images(images, name)
+        measured.append(images[selection[name]])
+        settings.append(scan.settings[selection[name]])
     if resume and checkpoint is not None and Path(checkpoint).exists():
         stored = checkpoint_config(checkpoint)
         if stored != config:
@@ -83,14 +152,15 @@ def reconstruct(
                 f"({stored}); resume with the same options."
             )
     t0 = time.perf_counter()
-    forward = ScreenForwardModel.from_dataset(dataset, blur_pixels=config.blur_pixels)
-    measured = images[idx]
-    settings = dataset.settings[idx]
-    guess = fit_gaussian(forward, measured, settings)
+    for name in used:
+        forwards[name] = ScreenForwardModel.from_dataset(
+            scans[name], blur_pixels=config.blur_pixels
+        )
+    guess = fit_gaussian(list(forwards.values()), measured, settings)
     t1 = time.perf_counter()
     state = train_generator(
-        forward,
-        measured.to(device),
+        list(forwards.values()),
+        [m.to(device) for m in measured],
         settings,
         guess,
         config,
@@ -99,14 +169,23 @@ def reconstruct(
         callback=callback,
         device=device,
     )
-    forward.to("cpu")
-    info = {
-        "train_indices": idx,
-        "train_settings": settings.tolist(),
-        "setting_names": list(dataset.setting_names),
+    for fwd in forwards.values():
+        fwd.to("cpu")
+    per_scan = {
+        name: {
+            "train_indices": selection[name],
+            "train_settings": scans[name].settings[selection[name]].tolist(),
+            "setting_names": list(scans[name].setting_names),
+        }
+        for name in used
+    }
+    info: dict = {
+        "scans": per_scan,
         "initial_guess_mean": guess.mean.tolist(),
         "initial_guess_cov": guess.cov.tolist(),
         "timings_s": {"initial_fit": t1 - t0, "training": state.elapsed_s},
         "device": str(device),
     }
-    return Reconstruction(config, state.snapshots, forward, state.history, info)
+    if len(scans) == 1:
+        info.update(per_scan[used[0]])
+    return Reconstruction(config, state.snapshots, forwards, state.history, info)

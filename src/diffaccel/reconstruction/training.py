@@ -6,9 +6,10 @@ import logging
 import math
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -190,10 +191,14 @@ def _new_history() -> dict[str, list]:
     }
 
 
+def _as_list(value: Any) -> list:
+    return list(value) if isinstance(value, list | tuple) else [value]
+
+
 def train_generator(
-    forward: ScreenForwardModel,
-    measured: Tensor,
-    settings: Tensor,
+    forward: ScreenForwardModel | Sequence[ScreenForwardModel],
+    measured: Tensor | Sequence[Tensor],
+    settings: Tensor | Sequence[Tensor],
     guess: GaussianGuess,
     config: ReconstructionConfig,
     *,
@@ -210,34 +215,54 @@ def train_generator(
     coordinates the images do not see), ``D`` the image distance of
     :func:`~diffaccel.reconstruction.losses.image_distance` between the
     *unnormalised* simulated images (sum = fraction on screen) and the
-    sum-normalised measured ones, and ``lambda(t)`` the schedule of
+    sum-normalised measured ones, averaged over the images of all scans (each
+    image weighs the same), and ``lambda(t)`` the schedule of
     :func:`~diffaccel.reconstruction.losses.penalty_schedule`. Adam with a cosine
     cyclic learning rate; the generator weights at the end of each cycle are one
     ensemble member.
 
+    Every step draws one fresh sample of ``n_particles`` and images it through
+    every scan (a Python loop over the scans, fixed shapes within each). With
+    ``dims = 4`` (``pz = 0`` exactly) the scans use linear maps (see
+    :meth:`ScreenForwardModel.images_linear`); with ``dims = 6`` they track
+    exactly (chromatic quadrupoles, RF curvature of a deflecting cavity).
+
     Args:
-        forward: Screen forward model (tracking + imaging).
-        measured: Sum-normalised measured images (float32).
-        settings: Scan settings of those images.
+        forward: Screen forward model of each scan (tracking + imaging); a single
+            model for a single scan.
+        measured: Sum-normalised measured images of each scan (float32).
+        settings: Scan settings of those images, one tensor per scan.
         guess: Gaussian fitted to the image moments (initialises the generator).
         config: Training settings.
         checkpoint: File for atomic checkpoints; None disables them.
         resume: Continue from ``checkpoint`` if it exists.
         callback: Called with a :class:`StepInfo` after every step; an exception
             raised there stops training (the last checkpoint stays valid).
-        device: Device to train on; default that of ``measured``.
+        device: Device to train on; default that of the first ``measured``.
 
     Shapes:
-        ``measured (K, H, W)``, ``settings (K, P)``.
+        Scan ``s``: ``measured (K_s, H_s, W_s)``, ``settings (K_s, P_s)``.
 
     Returns:
         The final :class:`TrainingState` (``snapshots`` holds one CPU state dict
         per cycle, ``history`` the per-step curves).
+
+    Raises:
+        ValueError: if the numbers of forward models, image stacks and settings
+            differ.
     """
-    device = torch.device(device) if device is not None else measured.device
-    measured = measured.to(device=device, dtype=torch.float32)
-    settings = settings.to(device=device)
-    forward = forward.to(device)
+    forwards = _as_list(forward)
+    measured_list = _as_list(measured)
+    settings_list = _as_list(settings)
+    if not (len(forwards) == len(measured_list) == len(settings_list) >= 1):
+        raise ValueError(
+            f"need one forward model, image stack and settings tensor per scan; got "
+            f"{len(forwards)}, {len(measured_list)} and {len(settings_list)}."
+        )
+    device = torch.device(device) if device is not None else measured_list[0].device
+    measured_list = [m.to(device=device, dtype=torch.float32) for m in measured_list]
+    settings_list = [s.to(device=device) for s in settings_list]
+    forwards = [f.to(device) for f in forwards]
     gen_rng = torch.Generator(device=device).manual_seed(config.seed)
     init_rng = torch.Generator().manual_seed(config.seed)
     dims = config.dims
@@ -268,8 +293,14 @@ def train_generator(
 
     # dims = 4: pz = 0 exactly, so linear maps reproduce the tracking (see
     # ScreenForwardModel.images_linear); dims = 6 tracks chromatically.
-    maps = forward.transfer_matrices(settings).to(device) if dims == 4 else None
-    allowance = off_screen_allowance(measured)
+    maps: list[Tensor | None] = [
+        f.transfer_matrices(s).to(device) if dims == 4 else None
+        for f, s in zip(forwards, settings_list, strict=True)
+    ]
+    allowances = [off_screen_allowance(m) for m in measured_list]
+    scans = list(
+        zip(forwards, measured_list, settings_list, maps, allowances, strict=True)
+    )
     total = config.epochs
     cyc = config.cycle_length
     hist = state.history
@@ -283,11 +314,14 @@ def train_generator(
         particles = model(
             config.n_particles, generator=gen_rng, quasi_random=config.quasi_random
         )
-        if maps is not None:
-            sim = forward.images_linear(particles, maps)
-        else:
-            sim = forward.images(particles, settings)
-        dist = image_penalty(sim, measured, config.image_loss, allowance).mean()
+        per_image = []
+        for fwd, meas, sets, lin, allow in scans:
+            if lin is not None:
+                sim = fwd.images_linear(particles, lin)
+            else:
+                sim = fwd.images(particles, sets)
+            per_image.append(image_penalty(sim, meas, config.image_loss, allow))
+        dist = torch.cat(per_image).mean()
         xs = particles[:, :dims].to(torch.float64)  # one conversion for both terms
         entropy = gaussian_entropy(xs, radius=config.entropy_radius, scale=norm)
         cross = gaussian_prior_term(xs - prior_mean, prior_std)
