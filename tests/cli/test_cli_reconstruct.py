@@ -6,10 +6,19 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+import torch
 from click.testing import CliRunner
 
 from diffaccel.cli import main
-from diffaccel.data import make_synthetic_quad_scan, write_quad_scan
+from diffaccel.data import (
+    MultiScanDataset,
+    make_synthetic_quad_scan,
+    read_quad_scan,
+    read_scans,
+    sample_preset_beam,
+    write_quad_scan,
+    write_scans,
+)
 
 FAST = ["--particles", "512", "--epochs", "6", "--snapshots", "2"]
 
@@ -181,3 +190,108 @@ def test_bad_input_gives_a_clear_error(
     assert r.exit_code != 0
     assert "Error" in r.output and "Traceback" not in r.output
     assert not isinstance(r.exception, (IndexError, KeyError, TypeError))
+
+
+# ------------------------------------------------------------------ several scans
+@pytest.fixture(scope="module")
+def two_scan_file(tmp_path_factory) -> Path:
+    """Format version 2: one beam, a straight scan and one after a dipole."""
+    beam = sample_preset_beam("gaussian", 2000, torch.Generator().manual_seed(4))
+    straight = make_synthetic_quad_scan(
+        particles=beam, n_settings=4, k1_range=(-8.0, 8.0), screen_shape=(24, 24)
+    )
+    bent_line = [
+        {"type": "Quadrupole", "name": "Q1", "length": 0.1, "k1": 0.0},
+        {"type": "Drift", "name": "D1", "length": 0.5},
+        {"type": "Dipole", "name": "B1", "length": 0.3, "angle": 0.3},
+        {"type": "Drift", "name": "D2", "length": 0.5},
+        {"type": "Screen", "name": "S2"},
+    ]
+    bent = make_synthetic_quad_scan(
+        particles=beam,
+        beamline_spec=bent_line,
+        n_settings=3,
+        k1_range=(-5.0, 5.0),
+        screen_shape=(16, 20),
+        pixel_size=(1.5e-3, 1.5e-3),
+    )
+    path = tmp_path_factory.mktemp("v2") / "two.h5"
+    write_scans(MultiScanDataset({"straight": straight, "bent": bent}), path)
+    return path
+
+
+def test_reconstruct_and_predict_version_2(two_scan_file: Path, tmp_path) -> None:
+    out = tmp_path / "out"
+    r = CliRunner().invoke(
+        main,
+        [
+            "reconstruct",
+            str(two_scan_file),
+            "--out",
+            str(out),
+            "--dims",
+            "6",
+            "--train-indices",
+            "straight:0,2;bent:all",
+            *FAST,
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    s = json.loads((out / "summary.json").read_text())
+    assert s["scans"]["straight"]["held_out_indices"] == [1, 3]
+    assert s["scans"]["bent"]["held_out_indices"] == []
+    assert (out / "images_straight.png").exists() and (out / "images_bent.png").exists()
+    pred = tmp_path / "pred.h5"
+    args = ["predict", str(out), "--dataset", str(two_scan_file), "--out", str(pred)]
+    r = CliRunner().invoke(main, [*args, "--particles", "1000"])
+    assert r.exit_code == 0, r.output
+    got, want = read_scans(pred), read_scans(two_scan_file)
+    assert got.format_version == 2 and got.names == want.names
+    for name, scan in want:
+        assert got[name].shape == (scan.n_settings, 1, *scan.screen_shape)
+        assert torch.equal(got[name].settings, scan.settings)
+        torch.testing.assert_close(
+            got[name].images.sum((-2, -1)),
+            torch.ones(scan.n_settings, 1),
+            rtol=0,
+            atol=1e-5,
+        )
+    # several scans do not fit one .npy array: a clear error
+    r = CliRunner().invoke(main, [*args[:-1], str(tmp_path / "p.npy")])
+    assert r.exit_code == 1 and "holds 2 scans" in r.output
+
+
+def test_predict_h5_of_a_version_1_file_is_version_1(
+    result_dir: Path, scan_file: Path, tmp_path: Path
+) -> None:
+    pred = tmp_path / "pred.h5"
+    r = CliRunner().invoke(
+        main,
+        ["predict", str(result_dir), "--dataset", str(scan_file), "--out", str(pred)],
+    )
+    assert r.exit_code == 0, r.output
+    with h5py.File(pred, "r") as h5:
+        assert int(h5.attrs["format_version"]) == 1
+    assert read_quad_scan(pred).shape == (6, 1, 24, 24)
+
+
+@pytest.mark.parametrize(
+    ("rule", "message"),
+    [("straight:9", "indices must be distinct and in [0, 4)"), ("x:1", "SCAN:RULE")],
+    ids=["out_of_range", "unknown_scan"],
+)
+def test_bad_train_indices_name_the_scan(
+    two_scan_file: Path, tmp_path: Path, rule: str, message: str
+) -> None:
+    r = CliRunner().invoke(
+        main,
+        [
+            "reconstruct",
+            str(two_scan_file),
+            "--out",
+            str(tmp_path / "o"),
+            f"--train-indices={rule}",
+            *FAST,
+        ],
+    )
+    assert r.exit_code == 2 and message in r.output

@@ -117,7 +117,7 @@ def evaluate(
     *,
     train_indices: Mapping[str, Sequence[int]] | None = None,
     predicted: Mapping[str, Tensor] | None = None,
-    n_truth_sample: int = 100_000,
+    n_sample: int = 100_000,
 ) -> dict[str, Any]:
     """Moments, image errors per scan and ground-truth errors of a reconstruction.
 
@@ -129,7 +129,8 @@ def evaluate(
             default those stored in ``result.info`` (for a held-out file pass
             ``{}``: every setting counts as held out).
         predicted: Images from :func:`predict_dataset` (computed if None).
-        n_truth_sample: Particles drawn to compare with the ground truth.
+        n_sample: Particles drawn (per member for the moments) to compute the
+            moments and to compare with the ground truth.
 
     Returns:
         JSON-ready dict: ``scans`` (per scan: ``train_indices``,
@@ -169,14 +170,14 @@ def evaluate(
         pooled = _pooled(parts)
         if pooled is not None:
             metrics[key] = pooled
-    moments = result.moments()
+    moments = result.moments(n=n_sample)
     rel_spread = {}
     for i, c in enumerate(COORDINATES):
         m, s = moments["rms"]["mean"][i], moments["rms"]["std"][i]
         rel_spread[c] = s / m if m > 0 else None
     truth = scans.ground_truth
     if truth is not None:
-        sample = result.sample(n_truth_sample)
+        sample = result.sample(n_sample)
         truth = truth.to(torch.float64)
         dims = result.config.dims
         gt = moment_errors(sample, truth)

@@ -1,0 +1,127 @@
+"""Reconstruction from several scans of one beam (format version 2)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from diffaccel.data import (
+    MultiScanDataset,
+    make_synthetic_quad_scan,
+    sample_preset_beam,
+)
+from diffaccel.reconstruction import (
+    ReconstructionConfig,
+    evaluate,
+    load,
+    predict_dataset,
+    predicted_dataset,
+    reconstruct,
+    training_selection,
+)
+
+BENT = [
+    {"type": "Quadrupole", "name": "Q1", "length": 0.1, "k1": 0.0},
+    {"type": "Drift", "name": "D1", "length": 0.5},
+    {"type": "Dipole", "name": "B1", "length": 0.3, "angle": 0.3},
+    {"type": "Drift", "name": "D2", "length": 0.5},
+    {"type": "Screen", "name": "S2"},
+]
+
+
+@pytest.fixture(scope="module")
+def two_scans() -> MultiScanDataset:
+    """One beam seen straight ahead (24 x 24 px) and after a dipole (16 x 20 px)."""
+    g = torch.Generator().manual_seed(3)
+    beam = sample_preset_beam("gaussian", 4000, g)
+    straight = make_synthetic_quad_scan(
+        particles=beam,
+        n_settings=5,
+        k1_range=(-8.0, 8.0),
+        screen_shape=(24, 24),
+        pixel_size=(1e-3, 1e-3),
+    )
+    bent = make_synthetic_quad_scan(
+        particles=beam,
+        beamline_spec=BENT,
+        n_settings=3,
+        k1_range=(-5.0, 5.0),
+        screen_shape=(16, 20),
+        pixel_size=(1.5e-3, 1.5e-3),
+    )
+    return MultiScanDataset({"straight": straight, "bent": bent})
+
+
+CONFIG = ReconstructionConfig(dims=6, n_particles=512, epochs=6, snapshots=2)
+
+
+@pytest.fixture(scope="module")
+def result(two_scans):
+    return reconstruct(
+        two_scans, CONFIG, train_indices={"straight": [0, 2, 4], "bent": [0, 1, 2]}
+    )
+
+
+def test_every_scan_is_trained_and_recorded(result, two_scans) -> None:
+    assert result.scan_names == ["straight", "bent"]
+    assert result.info["scans"]["straight"]["train_indices"] == [0, 2, 4]
+    assert result.info["scans"]["bent"]["train_settings"] == (
+        two_scans["bent"].settings.tolist()
+    )
+    # the dipole's dispersion makes pz visible: the initial fit sees it
+    assert result.info["initial_guess_cov"][5][5] > 0
+    assert "pz" not in result.unconstrained_coordinates()
+
+
+def test_predict_dataset_images_every_scan_on_its_grid(result, two_scans) -> None:
+    pred = predict_dataset(result, two_scans, n_particles=1000)
+    assert pred["straight"].shape == (5, 24, 24)
+    assert pred["bent"].shape == (3, 16, 20)
+    for images in pred.values():
+        torch.testing.assert_close(
+            images.sum((-2, -1)), torch.ones(images.shape[0]), rtol=0, atol=1e-5
+        )
+
+
+def test_evaluate_reports_per_scan_and_pooled_errors(result, two_scans) -> None:
+    s = evaluate(result, two_scans, n_sample=10_000)
+    assert s["scans"]["straight"]["held_out_indices"] == [1, 3]
+    assert "images_held_out" not in s["scans"]["bent"]
+    per = s["scans"]["straight"]["images_held_out"]["relative_l1"]
+    # only the straight scan has held-out images, so the pooled value is its own
+    assert s["metrics"]["images_held_out"]["relative_l1"] == pytest.approx(per)
+    assert s["metrics"]["images_train"]["n_images"] == 6
+    assert "corr_diff_z_pz" in s["metrics"]["ground_truth"]
+
+
+def test_predicted_dataset_keeps_the_layout(result, two_scans) -> None:
+    pred = predicted_dataset(two_scans, predict_dataset(result, two_scans))
+    assert pred.names == two_scans.names
+    assert pred["bent"].shape == (3, 1, 16, 20)
+    assert torch.equal(pred["bent"].settings, two_scans["bent"].settings)
+    assert pred.metadata["preprocessing"][-1]["step"] == "predicted"
+
+
+def test_save_load_keeps_every_forward_model(result, tmp_path: Path) -> None:
+    result.save(tmp_path)
+    back = load(tmp_path)
+    assert back.scan_names == ["straight", "bent"]
+    assert back.forwards["bent"].screen.shape == (16, 20)
+    torch.testing.assert_close(back.sample(100), result.sample(100))
+
+
+@pytest.mark.parametrize(
+    ("selection", "message"),
+    [
+        ({"nope": [0]}, r"unknown scan\(s\) \['nope'\]"),
+        ({"bent": [3]}, r"scan 'bent' must be distinct integers in \[0, 3\)"),
+        ([0, 4], r"scan 'bent' must be distinct integers in \[0, 3\)"),
+        ({"bent": []}, r"select no setting"),
+    ],
+    ids=["unknown_scan", "out_of_range", "list_out_of_range", "empty"],
+)
+def test_training_selection_errors_name_the_scan(two_scans, selection, message):
+    with pytest.raises(ValueError, match=message):
+        training_selection(two_scans, selection)
