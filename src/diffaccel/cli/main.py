@@ -1,15 +1,97 @@
-"""The ``diffaccel`` command-line tool: one click group, commands in sibling modules."""
+"""The ``diffaccel`` command-line tool: one click group, commands in sibling modules.
+
+Each command's module (and with it torch, h5py, matplotlib, gpytorch, botorch...)
+is imported only when that command runs: ``diffaccel --help`` lists the commands
+from the table below without importing any of them, so it costs the start-up of
+Python and click alone. ``tests/cli/test_main.py`` checks that the table's help
+lines equal the commands' own docstrings and that ``--help`` stays light.
+"""
 
 from __future__ import annotations
 
+import importlib
 import logging
 
 import click
+from click.utils import make_default_short_help
 
 from diffaccel import __version__
 
+#: command name -> (module, attribute, one-line help shown by ``diffaccel --help``)
+COMMANDS: dict[str, tuple[str, str, str]] = {
+    "demo": (
+        "diffaccel.cli.demo",
+        "demo",
+        "Simulate a 6D quad scan and reconstruct it end to end (a few minutes on CPU).",
+    ),
+    "hysteresis": (
+        "diffaccel.cli.hysteresis",
+        "hysteresis",
+        "Preisach hysteresis models of magnets: fit and predict.",
+    ),
+    "predict": (
+        "diffaccel.cli.reconstruct",
+        "predict",
+        "Ensemble-mean screen images of a reconstruction (RESULT_DIR) for new "
+        "settings.",
+    ),
+    "reconstruct": (
+        "diffaccel.cli.reconstruct",
+        "reconstruct_command",
+        "Reconstruct a beam's phase space from the quad-scan file DATASET.",
+    ),
+    "synthetic": (
+        "diffaccel.cli.synthetic",
+        "synthetic",
+        "Simulate a quadrupole scan of a known beam and write it to OUT (HDF5).",
+    ),
+}
+#: group name -> subcommands defined in other modules, as (module, attribute)
+SUBCOMMANDS: dict[str, list[tuple[str, str]]] = {
+    "hysteresis": [("diffaccel.cli.hysteresis_gp", "gp_fit")],
+}
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+
+def load_command(name: str) -> click.Command:
+    """Import the module of command ``name`` and return the command.
+
+    Only ``cli`` modules are loaded this way (the leaf room: nothing imports it,
+    so deferring these imports cannot hide an import cycle).
+    """
+    module, attr, _ = COMMANDS[name]
+    cmd = getattr(importlib.import_module(module), attr)
+    for sub_module, sub_attr in SUBCOMMANDS.get(name, []):
+        sub = getattr(importlib.import_module(sub_module), sub_attr)
+        cmd.add_command(sub)
+    return cmd
+
+
+class _LazyGroup(click.Group):
+    """A click group whose commands are imported when they are invoked."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(COMMANDS)
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        if cmd_name not in COMMANDS:
+            return None
+        if cmd_name not in self.commands:
+            self.commands[cmd_name] = load_command(cmd_name)
+        return self.commands[cmd_name]
+
+    def format_commands(
+        self, ctx: click.Context, formatter: click.HelpFormatter
+    ) -> None:
+        # the table's help lines, so that listing imports no command module
+        # (same truncation as click.Group.format_commands)
+        names = self.list_commands(ctx)
+        limit = formatter.width - 6 - max(len(n) for n in names)
+        rows = [(n, make_default_short_help(COMMANDS[n][2], limit)) for n in names]
+        with formatter.section("Commands"):
+            formatter.write_dl(rows)
+
+
+@click.group(cls=_LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="diffaccel")
 @click.option(
     "-v", "--verbose", count=True, help="More log output (-v info, -vv debug)."
@@ -18,26 +100,3 @@ def main(verbose: int) -> None:
     """Differentiable modeling of particle accelerators."""
     level = logging.WARNING - 10 * min(verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
-
-
-# Commands register themselves below (one module per command family).
-from diffaccel.cli.synthetic import synthetic  # noqa: E402
-
-main.add_command(synthetic)
-
-from diffaccel.cli.hysteresis import hysteresis  # noqa: E402
-
-main.add_command(hysteresis)
-
-from diffaccel.cli.hysteresis_gp import gp_fit  # noqa: E402
-
-hysteresis.add_command(gp_fit)
-
-from diffaccel.cli.reconstruct import predict, reconstruct_command  # noqa: E402
-
-main.add_command(reconstruct_command)
-main.add_command(predict)
-
-from diffaccel.cli.demo import demo  # noqa: E402
-
-main.add_command(demo)

@@ -1,0 +1,65 @@
+"""The ``diffaccel`` group: commands load when they run, ``--help`` stays light."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import click
+import pytest
+from click.testing import CliRunner
+
+from diffaccel.cli.main import COMMANDS, SUBCOMMANDS, load_command, main
+
+# libraries no command listing needs (torch alone takes seconds to import)
+HEAVY = ("torch", "numpy", "scipy", "h5py", "matplotlib", "gpytorch", "botorch", "tqdm")
+
+
+def test_help_imports_no_command_module_and_no_heavy_library() -> None:
+    code = (
+        "import sys\n"
+        "from diffaccel.cli.main import main\n"
+        "try:\n"
+        "    main(['--help'])\n"
+        "except SystemExit:\n"
+        "    pass\n"
+        f"heavy = sorted({set(HEAVY)!r} & set(sys.modules))\n"
+        "cmds = sorted(m for m in sys.modules if m.startswith('diffaccel.cli.')"
+        " and m != 'diffaccel.cli.main')\n"
+        "print('RESULT', heavy, cmds)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    )
+    assert "RESULT [] []" in out.stdout, out.stdout
+    for name in COMMANDS:  # every command is still listed
+        assert f"\n  {name} " in out.stdout
+
+
+@pytest.mark.parametrize("name", sorted(COMMANDS))
+def test_table_help_line_is_the_commands_own(name: str) -> None:
+    cmd = load_command(name)
+    assert isinstance(cmd, click.Command)
+    assert cmd.get_short_help_str(limit=1000) == COMMANDS[name][2]
+
+
+@pytest.mark.parametrize("name", sorted(COMMANDS))
+def test_command_help_runs(name: str) -> None:
+    result = CliRunner().invoke(main, [name, "--help"])
+    assert result.exit_code == 0, result.output
+    assert result.output.startswith(f"Usage: main {name} ")
+
+
+def test_subcommands_of_groups_are_attached() -> None:
+    for group, subs in SUBCOMMANDS.items():
+        cmd = load_command(group)
+        assert isinstance(cmd, click.Group)
+        for module, attr in subs:
+            sub = getattr(sys.modules[module], attr)
+            assert cmd.commands[sub.name] is sub
+
+
+def test_unknown_command_is_a_usage_error() -> None:
+    result = CliRunner().invoke(main, ["reconstrut"])
+    assert result.exit_code == 2
+    assert "No such command 'reconstrut'" in result.output
