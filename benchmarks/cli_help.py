@@ -42,7 +42,7 @@ def main() -> None:
         "reconstruct_help": [exe or "diffaccel", "reconstruct", "--help"],
     }
     times: dict[str, list[float]] = {k: [] for k in runs}
-    for k, cmd in runs.items():  # warm the file cache once
+    for cmd in runs.values():  # warm the file cache once
         _time(cmd)
     for _ in range(args.repeats):
         for k, cmd in runs.items():
