@@ -32,6 +32,11 @@ from diffaccel.data.quad_scan import (
     read_quad_scan,
     write_quad_scan,
 )
+from diffaccel.data.result_folder import (
+    ResultFolder,
+    ResultFolderError,
+    result_folder,
+)
 from diffaccel.data.scans import (
     SINGLE_SCAN_NAME,
     MultiScanDataset,
@@ -57,6 +62,8 @@ __all__ = [
     "MagnetHistory",
     "MultiScanDataset",
     "QuadScanDataset",
+    "ResultFolder",
+    "ResultFolderError",
     "atomic_write",
     "atomic_write_bytes",
     "atomic_write_text",
@@ -73,6 +80,7 @@ __all__ = [
     "read_openpmd_particles",
     "read_quad_scan",
     "read_scans",
+    "result_folder",
     "sample_preset_beam",
     "subtract_background",
     "threshold",

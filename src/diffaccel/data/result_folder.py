@@ -1,0 +1,255 @@
+"""All-or-nothing result folders: a run's outputs appear together or not at all.
+
+A command that writes a folder of results (``reconstruct``, ``demo``,
+``hysteresis fit``, ``hysteresis gp-fit``) writes into a staging folder beside
+the destination, ``.<name>.partial``, and swaps it in when everything is
+written. A failure at any point leaves an earlier result in the destination
+untouched. A lock file beside the destination, ``.<name>.lock``, refuses a
+second run into the same folder while one is running; a lock left by a process
+that no longer exists (on this host) is taken over.
+
+The staging folder of a failed run is removed, unless the command asks to keep
+it (``keep_partial=True``): a reconstruction keeps its checkpoint there, so
+``--resume`` continues the interrupted run. The swap is two renames within the
+parent folder (old result aside, staging in) and then the removal of the old
+result; were the process killed between the renames, the old result is still
+there as ``.<name>.old``.
+
+A destination is only replaced with ``force`` (or ``resume``), and only if it
+is empty, holds the marker file that every result folder gets
+(``.diffaccel-result``), or holds nothing but names the command declares as its
+own (results written before markers existed). A folder with anything else in
+it, or one holding an input of the run, is refused: nothing a user gave is
+deleted.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import json
+import os
+import shutil
+import socket
+import time
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+__all__ = ["MARKER", "ResultFolder", "ResultFolderError", "result_folder"]
+
+#: Marker file written into every result folder (JSON: command, time).
+MARKER = ".diffaccel-result"
+
+
+class ResultFolderError(OSError):
+    """A result folder cannot be written: busy, not ours, not writable."""
+
+
+class ResultFolder:
+    """A result folder being written: files go to :attr:`path` (the staging folder).
+
+    Attributes:
+        out: The destination folder.
+        path: The staging folder to write into; swapped in as ``out`` on success.
+        previous: ``out`` as it was at the start if it held a result (where a
+            resume may find earlier files), else None.
+    """
+
+    def __init__(self, out: Path, path: Path, previous: Path | None) -> None:
+        self.out = out
+        self.path = path
+        self.previous = previous
+
+    def __truediv__(self, name: str) -> Path:
+        return self.path / name
+
+
+def _sibling(out: Path, tag: str) -> Path:
+    return out.parent / f".{out.name}.{tag}"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    except OSError:
+        return False
+    return True
+
+
+def _take_lock(lock: Path, out: Path) -> None:
+    me = {"pid": os.getpid(), "host": socket.gethostname(), "time": time.time()}
+    for _ in range(2):
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            try:
+                holder = json.loads(lock.read_text(encoding="utf-8"))
+                pid, host = int(holder["pid"]), str(holder["host"])
+            except (OSError, ValueError, KeyError, TypeError):
+                pid, host = -1, ""  # unreadable or half-written lock
+                if time.time() - _mtime(lock) < 5.0:
+                    pid, host = 0, "?"  # being written right now: treat as busy
+            stale = host == socket.gethostname() and pid > 0 and not _pid_alive(pid)
+            if pid == -1 or stale:
+                lock.unlink(missing_ok=True)
+                continue
+            raise ResultFolderError(
+                f"{out} is being written by another run (pid {pid} on {host}, lock "
+                f"{lock}); wait for it to finish, or delete the lock file if no such "
+                "run exists."
+            ) from None
+        except OSError as err:
+            raise ResultFolderError(
+                f"cannot write next to {out}: {err.strerror or err} ({lock})"
+            ) from err
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            json.dump(me, f)
+        return
+    raise ResultFolderError(f"cannot take the lock {lock} for {out}; try again.")
+
+
+def _mtime(path: Path) -> float:
+    try:
+        return path.stat().st_mtime
+    except OSError:
+        return 0.0
+
+
+def _foreign(out: Path, owned: Iterable[str]) -> list[str]:
+    """Entries of ``out`` that are not (or may not be) results of the command."""
+    entries = sorted(p.name for p in out.iterdir())
+    if not entries or MARKER in entries:
+        return []
+    pats = list(owned)
+    return [n for n in entries if not any(fnmatch.fnmatch(n, p) for p in pats)]
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    try:
+        path.resolve().relative_to(folder.resolve())
+    except ValueError:
+        return False
+    return True
+
+
+@contextmanager
+def result_folder(
+    out: str | os.PathLike,
+    *,
+    command: str,
+    force: bool = False,
+    resume: bool = False,
+    keep_partial: bool = False,
+    owned: Iterable[str] = (),
+    inputs: Iterable[str | os.PathLike] = (),
+) -> Iterator[ResultFolder]:
+    """Write a result folder all-or-nothing (see the module docstring).
+
+    Args:
+        out: Destination folder.
+        command: Name of the command, recorded in the marker file.
+        force: Replace an existing result in ``out``.
+        resume: Continue a kept staging folder (implies ``force`` for ``out``);
+            without a staging folder, start one from ``out``'s files.
+        keep_partial: Keep the staging folder when the body raises (a later
+            ``resume`` continues from it); otherwise it is removed.
+        owned: Glob patterns of the files the command writes; a folder without
+            a marker holding only such names counts as an earlier result.
+        inputs: Files the run reads; refused if one lies inside ``out``.
+
+    Yields:
+        The :class:`ResultFolder`; write into ``folder.path``.
+
+    Raises:
+        ResultFolderError: ``out`` is a file, holds a result and neither
+            ``force`` nor ``resume`` is given, holds files that are not a
+            result, holds an input, is being written by another run, or cannot
+            be written (checked before the body runs).
+
+    Example:
+        >>> import tempfile
+        >>> out = Path(tempfile.mkdtemp()) / "run"
+        >>> with result_folder(out, command="doc") as folder:
+        ...     _ = (folder.path / "a.txt").write_text("1")
+        >>> sorted(p.name for p in out.iterdir())
+        ['.diffaccel-result', 'a.txt']
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ResultFolderError(f"--out {out} exists and is not a folder.")
+    parent = out.parent if str(out.parent) else Path(".")
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ResultFolderError(
+            f"cannot create the folder {parent}: {err.strerror or err}"
+        ) from err
+    for src in inputs:
+        if out.exists() and _inside(Path(src), out):
+            raise ResultFolderError(
+                f"input {src} lies inside --out {out}, which this run replaces; "
+                "move it or choose another --out."
+            )
+    lock = _sibling(out, "lock")
+    _take_lock(lock, out)
+    staging = _sibling(out, "partial")
+    try:
+        has_result = out.exists() and any(out.iterdir())
+        if has_result:
+            foreign = _foreign(out, owned)
+            if foreign:
+                raise ResultFolderError(
+                    f"--out {out} holds files that are not a diffaccel result "
+                    f"({', '.join(foreign[:5])}{', ...' if len(foreign) > 5 else ''})"
+                    "; choose another (new or empty) folder."
+                )
+            if not (force or resume):
+                raise ResultFolderError(
+                    f"--out {out} is not empty; pass --force to replace it or "
+                    "--resume to continue an interrupted run."
+                )
+            if not os.access(out, os.W_OK | os.X_OK):
+                raise ResultFolderError(f"--out {out} is not writable.")
+        if staging.exists() and not resume:
+            shutil.rmtree(staging)
+        if not staging.exists():
+            staging.mkdir()
+            if resume and has_result:  # continue from the completed folder's files
+                for p in out.iterdir():
+                    if p.is_file():
+                        shutil.copy2(p, staging / p.name)
+        probe = staging / ".write-test"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except ResultFolderError:
+        lock.unlink(missing_ok=True)
+        raise
+    except OSError as err:
+        lock.unlink(missing_ok=True)
+        raise ResultFolderError(
+            f"cannot write results next to {out}: {err.strerror or err} "
+            f"({getattr(err, 'filename', None) or staging})"
+        ) from err
+    folder = ResultFolder(out, staging, out if has_result else None)
+    try:
+        try:
+            yield folder
+        except BaseException:
+            if not keep_partial:
+                shutil.rmtree(staging, ignore_errors=True)
+            raise
+        marker = {"command": command, "written": time.time(), "pid": os.getpid()}
+        (staging / MARKER).write_text(json.dumps(marker) + "\n", encoding="utf-8")
+        old = _sibling(out, "old")
+        if old.exists():
+            shutil.rmtree(old)
+        if out.exists():
+            os.replace(out, old)
+        os.replace(staging, out)
+        shutil.rmtree(old, ignore_errors=True)
+    finally:
+        lock.unlink(missing_ok=True)

@@ -1,0 +1,163 @@
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from diffaccel.data import ResultFolderError, result_folder
+from diffaccel.data.result_folder import MARKER
+
+
+class _Late(Exception):
+    pass
+
+
+def _write(out: Path, files: dict[str, str], **kw) -> None:
+    with result_folder(out, command="test", **kw) as folder:
+        for name, text in files.items():
+            (folder.path / name).write_text(text)
+
+
+def _names(out: Path) -> set[str]:
+    return {p.name for p in out.iterdir()} - {MARKER}
+
+
+def test_new_folder_gets_every_file_and_a_marker(tmp_path: Path) -> None:
+    out = tmp_path / "a" / "run"
+    _write(out, {"x.txt": "1", "y.txt": "2"})
+    assert _names(out) == {"x.txt", "y.txt"}
+    assert json.loads((out / MARKER).read_text())["command"] == "test"
+    # nothing left beside it: no lock, no staging folder
+    assert sorted(p.name for p in out.parent.iterdir()) == ["run"]
+
+
+def test_late_failure_with_force_leaves_the_old_result(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    _write(out, {"x.txt": "old", "fig.png": "old"})
+    with pytest.raises(_Late), result_folder(out, command="test", force=True) as f:
+        (f.path / "x.txt").write_text("new")
+        raise _Late
+    assert (out / "x.txt").read_text() == "old" and _names(out) == {"x.txt", "fig.png"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+
+
+def test_force_replaces_the_whole_folder(tmp_path: Path) -> None:
+    """--force --no-figures must not keep the old figures."""
+    out = tmp_path / "run"
+    _write(out, {"x.txt": "old", "fig.png": "old"})
+    _write(out, {"x.txt": "new"}, force=True)
+    assert _names(out) == {"x.txt"} and (out / "x.txt").read_text() == "new"
+
+
+def test_refuses_a_result_without_force(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    _write(out, {"x.txt": "old"})
+    with pytest.raises(ResultFolderError, match="not empty; pass --force"):
+        _write(out, {"x.txt": "new"})
+    assert (out / "x.txt").read_text() == "old"
+
+
+def test_refuses_to_replace_a_folder_of_other_files(tmp_path: Path) -> None:
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "thesis.tex").write_text("precious")
+    with pytest.raises(ResultFolderError, match=r"not a diffaccel result \(thesis"):
+        _write(out, {"x.txt": "new"}, force=True)
+    assert (out / "thesis.tex").read_text() == "precious"
+
+
+def test_unmarked_folder_of_owned_names_is_an_earlier_result(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "summary.json").write_text("{}")
+    _write(out, {"summary.json": "[]"}, force=True, owned=["summary.json", "*.png"])
+    assert (out / "summary.json").read_text() == "[]"
+
+
+def test_refuses_an_input_inside_the_folder(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    _write(out, {"data.h5": "measured"})
+    with pytest.raises(ResultFolderError, match="lies inside --out"):
+        _write(out, {"x": "1"}, force=True, inputs=[out / "data.h5"])
+    assert (out / "data.h5").read_text() == "measured"
+
+
+def test_out_is_a_file(tmp_path: Path) -> None:
+    (tmp_path / "f").write_text("")
+    with pytest.raises(ResultFolderError, match="not a folder"):
+        _write(tmp_path / "f", {"x": "1"})
+
+
+def test_a_second_run_is_refused_while_one_runs(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    with result_folder(out, command="test") as folder:
+        (folder.path / "x.txt").write_text("first")
+        with pytest.raises(ResultFolderError, match="being written by another run"):
+            _write(out, {"x.txt": "second"}, force=True)
+    assert (out / "x.txt").read_text() == "first"
+
+
+def test_lock_of_a_live_process_refuses(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        lock = tmp_path / ".run.lock"
+        import socket
+
+        lock.write_text(json.dumps({"pid": proc.pid, "host": socket.gethostname()}))
+        with pytest.raises(ResultFolderError, match=f"pid {proc.pid}"):
+            _write(out, {"x": "1"})
+    finally:
+        proc.kill()
+        proc.wait()
+    # the process is gone: its lock is stale and taken over
+    _write(out, {"x": "1"})
+    assert (out / "x").read_text() == "1"
+    assert not (tmp_path / ".run.lock").exists()
+
+
+def test_garbled_old_lock_is_taken_over(tmp_path: Path) -> None:
+    lock = tmp_path / ".run.lock"
+    lock.write_text("{not json")
+    os.utime(lock, (0, 0))
+    _write(tmp_path / "run", {"x": "1"})
+    assert not lock.exists()
+
+
+def test_keep_partial_then_resume(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    with (
+        pytest.raises(_Late),
+        result_folder(out, command="test", keep_partial=True) as f,
+    ):
+        (f.path / "checkpoint").write_text("step 5")
+        raise _Late
+    assert not out.exists()
+    with result_folder(out, command="test", resume=True, keep_partial=True) as f:
+        assert (f.path / "checkpoint").read_text() == "step 5"
+        (f.path / "result").write_text("done")
+    assert _names(out) == {"checkpoint", "result"}
+
+
+def test_resume_of_a_completed_result_starts_from_its_files(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    _write(out, {"checkpoint": "step 10"})
+    with result_folder(out, command="test", resume=True) as f:
+        assert (f.path / "checkpoint").read_text() == "step 10"
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root ignores file permissions")
+def test_read_only_parent_is_reported_before_the_run(tmp_path: Path) -> None:
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    try:
+        with pytest.raises(ResultFolderError, match="cannot write"):
+            with result_folder(ro / "run", command="test"):
+                pytest.fail("the body must not run")
+    finally:
+        ro.chmod(0o700)
