@@ -20,7 +20,9 @@ from diffaccel.data import (
     write_scans,
 )
 
-FAST = ["--particles", "512", "--epochs", "6", "--snapshots", "2"]
+FAST = ["--particles", "512", "--steps", "6", "--snapshots", "2"]
+# the same with the --epochs alias (kept from before the rename to --steps)
+FAST_ALIAS = ["--particles", "512", "--epochs", "6", "--snapshots", "2"]
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +52,7 @@ def result_dir(scan_file: Path, tmp_path_factory) -> Path:
             "--out",
             str(out),
             "--train-indices=even",
-            *FAST,
+            *FAST_ALIAS,
         ],
     )
     assert r.exit_code == 0, r.output
@@ -60,6 +62,7 @@ def result_dir(scan_file: Path, tmp_path_factory) -> Path:
 def test_reconstruct_writes_summary_ensemble_figures(result_dir: Path) -> None:
     s = json.loads((result_dir / "summary.json").read_text())
     assert s["train_indices"] == [0, 2, 4] and s["held_out_indices"] == [1, 3, 5]
+    assert s["config"]["steps"] == 6  # given as --epochs 6 (alias)
     assert len(s["moments"]["rms"]["mean"]) == 6
     assert "relative_l1" in s["metrics"]["images_held_out"]
     assert "rms_x" in s["metrics"]["ground_truth"]

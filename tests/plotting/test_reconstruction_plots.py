@@ -19,7 +19,7 @@ def scan_and_result():
     ds = make_synthetic_quad_scan(
         "correlated", n_particles=1000, n_settings=4, screen_shape=(24, 24), seed=0
     )
-    cfg = ReconstructionConfig(n_particles=512, epochs=4, snapshots=2, dims=6)
+    cfg = ReconstructionConfig(n_particles=512, steps=4, snapshots=2, dims=6)
     return ds, reconstruct(ds, cfg)
 
 

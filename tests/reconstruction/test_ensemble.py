@@ -7,7 +7,7 @@ import torch
 
 from diffaccel.reconstruction import ReconstructionConfig, load, reconstruct
 
-FAST = {"n_particles": 1024, "epochs": 12, "snapshots": 3}
+FAST = {"n_particles": 1024, "steps": 12, "snapshots": 3}
 
 
 @pytest.fixture(scope="module")

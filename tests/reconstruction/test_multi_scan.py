@@ -54,7 +54,7 @@ def two_scans() -> MultiScanDataset:
     return MultiScanDataset({"straight": straight, "bent": bent})
 
 
-CONFIG = ReconstructionConfig(dims=6, n_particles=512, epochs=6, snapshots=2)
+CONFIG = ReconstructionConfig(dims=6, n_particles=512, steps=6, snapshots=2)
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ from diffaccel.reconstruction import (
     reconstruct,
 )
 
-FAST = {"n_particles": 1024, "epochs": 24, "snapshots": 3, "checkpoint_every": 5}
+FAST = {"n_particles": 1024, "steps": 24, "snapshots": 3, "checkpoint_every": 5}
 
 
 class _Stop(Exception):
@@ -19,7 +19,7 @@ class _Stop(Exception):
 
 
 def test_training_lowers_the_image_mismatch(small_scan) -> None:
-    cfg = ReconstructionConfig(**{**FAST, "epochs": 30, "snapshots": 1})
+    cfg = ReconstructionConfig(**{**FAST, "steps": 30, "snapshots": 1})
     r = reconstruct(small_scan, cfg, train_indices=[0, 2, 4])
     h = r.history["image_loss"]
     assert sum(h[-5:]) / 5 < 0.7 * sum(h[:5]) / 5
@@ -37,8 +37,8 @@ def test_snapshot_per_cycle_and_schedule(small_scan) -> None:
 
 
 def test_same_seed_same_result(small_scan) -> None:
-    a = reconstruct(small_scan, ReconstructionConfig(**{**FAST, "epochs": 6}))
-    b = reconstruct(small_scan, ReconstructionConfig(**{**FAST, "epochs": 6}))
+    a = reconstruct(small_scan, ReconstructionConfig(**{**FAST, "steps": 6}))
+    b = reconstruct(small_scan, ReconstructionConfig(**{**FAST, "steps": 6}))
     for sa, sb in zip(a.snapshots, b.snapshots, strict=True):
         for k in sa:
             assert torch.equal(sa[k], sb[k]), k
@@ -72,13 +72,11 @@ def test_resume_equals_uninterrupted_run(
 
 def test_resume_with_other_config_is_refused(small_scan, tmp_path: Path) -> None:
     ck = tmp_path / "ck.pt"
-    reconstruct(
-        small_scan, ReconstructionConfig(**{**FAST, "epochs": 6}), checkpoint=ck
-    )
+    reconstruct(small_scan, ReconstructionConfig(**{**FAST, "steps": 6}), checkpoint=ck)
     with pytest.raises(ValueError, match="different config"):
         reconstruct(
             small_scan,
-            ReconstructionConfig(**{**FAST, "epochs": 6, "seed": 1}),
+            ReconstructionConfig(**{**FAST, "steps": 6, "seed": 1}),
             checkpoint=ck,
             resume=True,
         )
@@ -94,7 +92,7 @@ def test_corrupt_checkpoint(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        ({"epochs": 10, "snapshots": 3}, "multiple of snapshots"),
+        ({"steps": 10, "snapshots": 3}, "multiple of snapshots"),
         ({"dims": 5}, "dims must be 4 or 6"),
         ({"image_loss": "l3"}, "image_loss"),
         ({"n_particles": 3}, "n_particles"),
@@ -112,8 +110,14 @@ def test_bad_train_indices(small_scan) -> None:
 
 
 def test_six_dimensional_training_runs(small_scan) -> None:
-    cfg = ReconstructionConfig(**{**FAST, "dims": 6, "epochs": 6})
+    cfg = ReconstructionConfig(**{**FAST, "dims": 6, "steps": 6})
     r = reconstruct(small_scan, cfg)
     x = r.sample(500)
     assert (x[:, 4:].std(0) > 0).all()
     assert "z" in r.unconstrained_coordinates()
+
+
+def test_config_files_from_before_the_steps_rename_are_read() -> None:
+    d = ReconstructionConfig(steps=6, snapshots=2).to_dict()
+    d["epochs"] = d.pop("steps")
+    assert ReconstructionConfig.from_dict(d).steps == 6

@@ -94,7 +94,7 @@ def demo(out: Path, force: bool, seed: int) -> None:
     click.echo(f"wrote {path}; reconstructing (6D, 300 steps)...")
     # 6D tracking is chromatic (slower than the 4D linear maps): fewer, smaller
     # steps keep the demo well under a minute on two quiet CPU cores.
-    config = ReconstructionConfig(dims=6, seed=seed, epochs=300, n_particles=4096)
+    config = ReconstructionConfig(dims=6, seed=seed, steps=300, n_particles=4096)
     summary = run_reconstruction(
         path, out, config, "even", "cpu", resume=False, dataset=ds
     )

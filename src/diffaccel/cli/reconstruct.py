@@ -133,7 +133,7 @@ def run_reconstruction(
             config = checkpoint_config(ck)
         except Exception as err:
             raise click.ClickException(f"cannot resume from {ck}: {err}") from err
-    bar = tqdm(total=config.epochs, desc="reconstruct", unit="step", leave=False)
+    bar = tqdm(total=config.steps, desc="reconstruct", unit="step", leave=False)
 
     def callback(info: StepInfo) -> None:
         bar.n = info.step
@@ -190,11 +190,13 @@ def run_reconstruction(
     help="Fresh particles per training step.",
 )
 @click.option(
+    "--steps",
     "--epochs",
+    "steps",
     type=click.IntRange(min=1),
-    default=_DEFAULTS.epochs,
+    default=_DEFAULTS.steps,
     show_default=True,
-    help="Optimisation steps (multiple of --snapshots).",
+    help="Optimisation steps (multiple of --snapshots); --epochs is an alias.",
 )
 @click.option(
     "--snapshots",
@@ -242,7 +244,7 @@ def reconstruct_command(
     dataset: Path,
     out: Path,
     particles: int,
-    epochs: int,
+    steps: int,
     snapshots: int,
     seed: int,
     device: str,
@@ -260,7 +262,7 @@ def reconstruct_command(
         config = ReconstructionConfig(
             dims=int(dims),
             n_particles=particles,
-            epochs=epochs,
+            steps=steps,
             snapshots=snapshots,
             seed=seed,
             image_loss=image_loss,  # type: ignore[arg-type]

@@ -51,7 +51,7 @@ class ReconstructionConfig:
         n_particles: Fresh particles drawn at every step.
         width: MLP hidden width.
         depth: MLP hidden layers.
-        epochs: Total optimisation steps (one step sees every training image).
+        steps: Total optimisation steps (one step sees every training image).
         snapshots: Cosine learning-rate cycles; one ensemble member per cycle.
         lr_max: Learning rate at the start of each cycle.
         lr_min: Learning rate at the end of each cycle (snapshot point).
@@ -92,7 +92,7 @@ class ReconstructionConfig:
     n_particles: int = 6144
     width: int = 48
     depth: int = 2
-    epochs: int = 300
+    steps: int = 300
     snapshots: int = 5
     lr_max: float = 1e-2
     lr_min: float = 1e-4
@@ -110,14 +110,14 @@ class ReconstructionConfig:
     def __post_init__(self) -> None:
         if self.dims not in (4, 6):
             raise ValueError(f"dims must be 4 or 6; got {self.dims}.")
-        if self.snapshots < 1 or self.epochs < self.snapshots:
+        if self.snapshots < 1 or self.steps < self.snapshots:
             raise ValueError(
-                f"need 1 <= snapshots <= epochs; got snapshots={self.snapshots}, "
-                f"epochs={self.epochs}."
+                f"need 1 <= snapshots <= steps; got snapshots={self.snapshots}, "
+                f"steps={self.steps}."
             )
-        if self.epochs % self.snapshots:
+        if self.steps % self.snapshots:
             raise ValueError(
-                f"epochs ({self.epochs}) must be a multiple of snapshots "
+                f"steps ({self.steps}) must be a multiple of snapshots "
                 f"({self.snapshots}) so that every cycle has the same length."
             )
         if self.n_particles < 16:
@@ -132,7 +132,7 @@ class ReconstructionConfig:
     @property
     def cycle_length(self) -> int:
         """Steps per learning-rate cycle."""
-        return self.epochs // self.snapshots
+        return self.steps // self.snapshots
 
     def to_dict(self) -> dict:
         """Plain-Python form (JSON and ``weights_only`` safe)."""
@@ -144,6 +144,8 @@ class ReconstructionConfig:
     def from_dict(cls, d: dict) -> ReconstructionConfig:
         """Inverse of :meth:`to_dict`."""
         d = dict(d)
+        if "epochs" in d:  # files written before the rename to ``steps``
+            d["steps"] = d.pop("epochs")
         d["longitudinal_scale"] = tuple(d["longitudinal_scale"])
         return cls(**d)
 
@@ -301,7 +303,7 @@ def train_generator(
     scans = list(
         zip(forwards, measured_list, settings_list, maps, allowances, strict=True)
     )
-    total = config.epochs
+    total = config.steps
     cyc = config.cycle_length
     hist = state.history
     t0 = time.perf_counter() - state.elapsed_s
