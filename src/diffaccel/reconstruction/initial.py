@@ -186,12 +186,19 @@ def fit_gaussian(
         s4[2:, :2] = 0.0
     s_seen[:4, :4] = s4
     if n > 4:
-        # longitudinal variances: at least a small fraction of a resolvable size
+        # A seen longitudinal variance the least squares leaves <= 0 (pz behind a
+        # dipole downstream of the quadrupole is nearly degenerate with the
+        # px-pz covariance): a quarter of the largest variance the screen sizes
+        # allow, uncorrelated; the training then sets it.
+        v_all = torch.cat([torch.cat(vxx_all), torch.cat(vyy_all)]).clamp_min(0)
+        r_all = torch.cat([rx, ry], 0)
         for i in range(4, n):
             if s_seen[i, i] <= 0:
+                coef = r_all[:, i].square()
+                ok = coef > 1e-6 * coef.max()
                 s_seen[i, :] = 0.0
                 s_seen[:, i] = 0.0
-                s_seen[i, i] = (1e-3 * floor) ** 2 if seen[i] == 4 else 1e-8
+                s_seen[i, i] = 0.25 * float((v_all[ok] / coef[ok]).min())
         s_seen = _nearest_correlation(s_seen)
     mean = torch.zeros(6, dtype=torch.float64)
     mean[seen] = mean_seen

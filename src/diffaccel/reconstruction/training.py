@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from diffaccel.data import atomic_write
+from diffaccel.dynamics.images import gaussian_blur
 from diffaccel.reconstruction.forward import ScreenForwardModel
 from diffaccel.reconstruction.generator import BeamGenerator
 from diffaccel.reconstruction.initial import GaussianGuess
@@ -80,8 +81,18 @@ class ReconstructionConfig:
             GPSR benchmark.
         entropy_radius: Mahalanobis scale of the redescending weights of the
             tail-robust covariance (see ``robust_covariance``).
+        loss_smoothing: Rms [pixels] of a Gaussian applied to both the measured
+            and the simulated images before they are compared (the simulated
+            ones get it on top of ``blur_pixels``). A sample of N particles makes
+            sparse, noisy images, and the KL distance of noisy images is lower
+            for a wider beam (its tails cover more measured pixels): on the 6D
+            benchmark, 6144 truth particles imaged at 0.5 pixel scored better
+            10 % wider than true. Smoothing by one pixel averages the noise over
+            ~12 pixels and puts the minimum back at the true size. 0 compares
+            the images as they are.
         longitudinal_scale: Initial and prior rms of (z [m], pz [1]) when
-            ``dims = 6``.
+            ``dims = 6`` and the scans do not see them (with a deflecting cavity
+            or dispersion they come from the fitted image moments).
         prior_factor: Transverse prior widths are this factor times the widths of
             the Gaussian fitted to the image moments.
         seed: Seed of the explicit ``torch.Generator`` (weights and samples).
@@ -102,6 +113,7 @@ class ReconstructionConfig:
     quasi_random: bool = True
     blur_pixels: float = 1.0
     entropy_radius: float = 4.0
+    loss_smoothing: float = 0.0
     longitudinal_scale: tuple[float, float] = (1e-3, 1e-3)
     prior_factor: float = 3.0
     seed: int = 0
@@ -125,6 +137,11 @@ class ReconstructionConfig:
         if self.image_loss not in ("l1", "l2", "kl"):
             raise ValueError(
                 f"image_loss must be 'l1', 'l2' or 'kl'; got {self.image_loss!r}."
+            )
+        if not self.loss_smoothing >= 0 or not self.blur_pixels >= 0:
+            raise ValueError(
+                f"blur_pixels and loss_smoothing must be >= 0; got "
+                f"{self.blur_pixels}, {self.loss_smoothing}."
             )
         if not self.lr_max > 0 or not self.lr_min >= 0:
             raise ValueError("learning rates must be positive.")
@@ -197,6 +214,25 @@ def _as_list(value: Any) -> list:
     return list(value) if isinstance(value, list | tuple) else [value]
 
 
+def _smoothed(
+    forwards: list[ScreenForwardModel], measured: list[Tensor], sigma_px: float
+) -> tuple[list[ScreenForwardModel], list[Tensor]]:
+    """Forward models and measured images both smoothed by ``sigma_px`` pixels."""
+    out_f, out_m = [], []
+    for f, m in zip(forwards, measured, strict=True):
+        total = math.hypot(f.blur_pixels, sigma_px)
+        out_f.append(
+            ScreenForwardModel(
+                f.beamline, f.names, f.p0c, species=f.species, blur_pixels=total
+            )
+        )
+        psx, psy = f.screen.pixel_size
+        blurred = gaussian_blur(m, (sigma_px * psx, sigma_px * psy), (psx, psy))
+        # not renormalised: mass blurred off the screen is lost on both sides
+        out_m.append(blurred)
+    return out_f, out_m
+
+
 def train_generator(
     forward: ScreenForwardModel | Sequence[ScreenForwardModel],
     measured: Tensor | Sequence[Tensor],
@@ -264,6 +300,10 @@ def train_generator(
     device = torch.device(device) if device is not None else measured_list[0].device
     measured_list = [m.to(device=device, dtype=torch.float32) for m in measured_list]
     settings_list = [s.to(device=device) for s in settings_list]
+    if config.loss_smoothing > 0:
+        forwards, measured_list = _smoothed(
+            forwards, measured_list, config.loss_smoothing
+        )
     forwards = [f.to(device) for f in forwards]
     gen_rng = torch.Generator(device=device).manual_seed(config.seed)
     init_rng = torch.Generator().manual_seed(config.seed)
