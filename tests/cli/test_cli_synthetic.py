@@ -78,3 +78,25 @@ def test_beam_off_screen_is_an_error(tmp_path: Path) -> None:
     assert result.exit_code == 1
     assert "misses the screen" in result.output
     assert not (tmp_path / "s.h5").exists()
+
+
+def test_awa6d_layout_writes_version_2(tmp_path: Path) -> None:
+    from diffaccel.data import read_scans
+
+    out = tmp_path / "six.h5"
+    args = ["synthetic", str(out), "--layout", "awa6d", "--particles", "3000"]
+    r = CliRunner().invoke(main, [*args, "--settings", "2", "--shape", "32", "32"])
+    assert r.exit_code == 0, r.output
+    ms = read_scans(out)
+    assert ms.names == ["dipole_off", "dipole_on"]
+    assert ms["dipole_on"].shape == (4, 1, 32, 32)
+    assert ms["dipole_on"].setting_names == ["SCAN_QUAD.k1", "SCAN_TDC.voltage"]
+    r = CliRunner().invoke(main, [*args, "--pixel-size", "1e-3", "--force"])
+    assert r.exit_code == 2 and "DYG1/DYG2 calibration" in r.output
+
+
+def test_shape_one_by_one_is_refused(tmp_path: Path) -> None:
+    r = CliRunner().invoke(
+        main, ["synthetic", str(tmp_path / "s.h5"), "--shape", "1", "1"]
+    )
+    assert r.exit_code == 2 and "Invalid value for '--shape'" in r.output

@@ -210,3 +210,36 @@ def test_gpsr_size_screen(method: str) -> None:
     ys, xs = ds.pixel_centers()
     assert (img.sum(-2) * xs).sum(-1).abs().max() < 1e-4
     assert (img.sum(-1) * ys).sum(-1).abs().max() < 1e-4
+
+
+# ------------------------------------------------------------------ AWA 6D layout
+def test_awa6d_layout_two_scans_settings_grid() -> None:
+    from diffaccel.data import make_synthetic_awa6d
+
+    ms = make_synthetic_awa6d(
+        "gaussian", n_particles=4000, k1_values=[-6.0, 0.0, 6.0], screen_shape=(48, 48)
+    )
+    assert ms.names == ["dipole_off", "dipole_on"] and ms.format_version == 2
+    for name, scan in ms:
+        assert scan.shape == (6, 1, 48, 48), name
+        # (k1, V) in the order (k1_0, 0), (k1_0, 4 MV), (k1_1, 0), ...
+        assert scan.settings[:, 0].tolist() == [-6.0, -6.0, 0.0, 0.0, 6.0, 6.0]
+        assert scan.settings[:, 1].tolist() == [0.0, 4e6] * 3
+        # every image keeps the beam on the screen (the preset is sized for it)
+        assert min(scan.metadata["synthetic"]["fraction_on_screen"]) > 0.98
+    # the TDC streak: with 4 MV the image second moment about its centroid grows
+    # by (R_z * sigma_z)^2 with R_z ~ 3 m/m and sigma_z = 0.8 mm, i.e. several
+    # times the unstreaked spot at k1 = 0; allow a factor 2 to be safe
+    scan = ms["dipole_off"]
+    img = scan.mean_images().double()
+    ys, xs = scan.pixel_centers()
+
+    def spread(i: int) -> float:
+        p = img[i]
+        mx = (p.sum(0) * xs).sum()
+        my = (p.sum(1) * ys).sum()
+        return float(
+            (p.sum(0) * (xs - mx) ** 2).sum() + (p.sum(1) * (ys - my) ** 2).sum()
+        )
+
+    assert spread(3) > 2 * spread(2)

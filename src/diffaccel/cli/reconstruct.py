@@ -233,9 +233,9 @@ def run_reconstruction(
 @click.option(
     "--blur",
     type=click.FloatRange(min=0),
-    default=_DEFAULTS.blur_pixels,
-    show_default=True,
-    help="Point-spread rms of simulated images [pixels].",
+    default=None,
+    help="Point-spread rms of simulated images [pixels] [default: 1.0 for "
+    "--dims 4, 0.5 for --dims 6].",
 )
 @click.option("--no-figures", is_flag=True, help="Skip the PNG figures.")
 @click.option("--force", is_flag=True, help="Overwrite a non-empty --out.")
@@ -251,7 +251,7 @@ def reconstruct_command(
     train_indices: str,
     dims: str,
     image_loss: str,
-    blur: float,
+    blur: float | None,
     no_figures: bool,
     force: bool,
     resume: bool,

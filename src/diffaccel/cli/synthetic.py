@@ -5,8 +5,16 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
+import torch
 
-from diffaccel.data import FormatError, make_synthetic_quad_scan, write_quad_scan
+from diffaccel.data import (
+    FormatError,
+    make_synthetic_awa6d,
+    make_synthetic_quad_scan,
+    read_openpmd_particles,
+    write_quad_scan,
+    write_scans,
+)
 from diffaccel.data.synthetic import PRESETS
 
 __all__ = ["synthetic"]
@@ -14,6 +22,16 @@ __all__ = ["synthetic"]
 
 @click.command("synthetic")
 @click.argument("out", type=click.Path(dir_okay=False, path_type=Path))
+@click.option(
+    "--layout",
+    type=click.Choice(["quad", "awa6d"]),
+    default="quad",
+    show_default=True,
+    help="quad: Quadrupole 0.1 m + Drift 1 m + Screen (format version 1). awa6d: "
+    "the AWA 6D layout (quadrupole 0.11 m, 1.3 GHz TDC off/4 MV, 20 degree "
+    "dipole off/on, screens DYG1/DYG2 of 96 x 96 pixels; two scans, format "
+    "version 2; k1 -12 ... 12 in 9 steps unless given).",
+)
 @click.option(
     "--preset",
     type=click.Choice(PRESETS),
@@ -39,25 +57,27 @@ __all__ = ["synthetic"]
     "--settings",
     "n_settings",
     type=click.IntRange(min=1),
-    default=20,
-    show_default=True,
-    help="Number of quadrupole settings K.",
+    default=None,
+    help="Number of quadrupole settings K [default: 20; awa6d: 9].",
 )
-@click.option("--k1-min", type=float, default=-25.0, show_default=True, help="[1/m^2]")
-@click.option("--k1-max", type=float, default=15.0, show_default=True, help="[1/m^2]")
+@click.option(
+    "--k1-min", type=float, default=None, help="[1/m^2] [default: -25; awa6d: -12]"
+)
+@click.option(
+    "--k1-max", type=float, default=None, help="[1/m^2] [default: 15; awa6d: 12]"
+)
 @click.option(
     "--shape",
     type=(click.IntRange(min=2), click.IntRange(min=2)),
-    default=(64, 64),
-    show_default=True,
-    help="Screen rows H and columns W [pixels].",
+    default=None,
+    help="Screen rows H and columns W [pixels] [default: 64 64; awa6d: 96 96].",
 )
 @click.option(
     "--pixel-size",
     type=click.FloatRange(min=0, min_open=True),
-    default=1e-3,
-    show_default=True,
-    help="Pixel size [m] (square pixels).",
+    default=None,
+    help="Pixel size [m] (square pixels) [default: 1e-3; awa6d: the DYG1/DYG2 "
+    "calibration scaled to --shape].",
 )
 @click.option(
     "--p0c",
@@ -69,9 +89,8 @@ __all__ = ["synthetic"]
     "--method",
     "image_method",
     type=click.Choice(["kde", "cic"]),
-    default="kde",
-    show_default=True,
-    help="Screen image model (KDE bandwidth: one pixel).",
+    default=None,
+    help="Screen image model (KDE bandwidth: one pixel) [default: kde; awa6d: cic].",
 )
 @click.option(
     "--noise",
@@ -97,16 +116,17 @@ __all__ = ["synthetic"]
 @click.option("--force", is_flag=True, help="Overwrite OUT if it exists.")
 def synthetic(
     out: Path,
+    layout: str,
     preset: str,
     particle_file: Path | None,
     n_particles: int,
-    n_settings: int,
-    k1_min: float,
-    k1_max: float,
-    shape: tuple[int, int],
-    pixel_size: float,
+    n_settings: int | None,
+    k1_min: float | None,
+    k1_max: float | None,
+    shape: tuple[int, int] | None,
+    pixel_size: float | None,
     p0c: float | None,
-    image_method: str,
+    image_method: str | None,
     noise: float,
     noise_model: str,
     shots: int,
@@ -116,6 +136,32 @@ def synthetic(
     """Simulate a quadrupole scan of a known beam and write it to OUT (HDF5)."""
     if out.exists() and not force:
         raise click.ClickException(f"{out} exists; pass --force to overwrite it")
+    if layout == "awa6d":
+        _awa6d(
+            out,
+            preset,
+            particle_file,
+            n_particles,
+            n_settings,
+            k1_min,
+            k1_max,
+            shape,
+            pixel_size,
+            p0c,
+            image_method or "cic",
+            noise,
+            noise_model,
+            shots,
+            seed,
+            force,
+        )
+        return
+    n_settings = 20 if n_settings is None else n_settings
+    k1_min = -25.0 if k1_min is None else k1_min
+    k1_max = 15.0 if k1_max is None else k1_max
+    shape = (64, 64) if shape is None else shape
+    pixel_size = 1e-3 if pixel_size is None else pixel_size
+    image_method = image_method or "kde"
     try:
         ds = make_synthetic_quad_scan(
             preset,  # type: ignore[arg-type]
@@ -142,4 +188,64 @@ def synthetic(
         f"of {h}x{w} px at {pixel_size * 1e3:g} mm, {beam}, "
         f"{ds.ground_truth.shape[0]} particles, p0c {ds.p0c / 1e6:g} MeV, "
         f"{image_method} images, noise {noise:g} ({noise_model}), seed {seed}"
+    )
+
+
+def _awa6d(
+    out: Path,
+    preset: str,
+    particle_file: Path | None,
+    n_particles: int,
+    n_settings: int | None,
+    k1_min: float | None,
+    k1_max: float | None,
+    shape: tuple[int, int] | None,
+    pixel_size: float | None,
+    p0c: float | None,
+    image_method: str,
+    noise: float,
+    noise_model: str,
+    shots: int,
+    seed: int,
+    force: bool,
+) -> None:
+    """``synthetic --layout awa6d``: two scans of the AWA 6D layout (version 2)."""
+    if pixel_size is not None:
+        raise click.BadParameter(
+            "the awa6d layout uses the DYG1/DYG2 calibration; scale it with --shape",
+            param_hint="--pixel-size",
+        )
+    k = 9 if n_settings is None else n_settings
+    lo = -12.0 if k1_min is None else k1_min
+    hi = 12.0 if k1_max is None else k1_max
+    try:
+        particles = None
+        if particle_file is not None:
+            particles, file_p0c, _ = read_openpmd_particles(particle_file)
+            p0c = file_p0c if p0c is None else p0c
+        ms = make_synthetic_awa6d(
+            preset,  # type: ignore[arg-type]
+            particles=particles,
+            n_particles=n_particles,
+            p0c=43.36e6 if p0c is None else p0c,
+            k1_values=torch.linspace(lo, hi, k, dtype=torch.float64),
+            screen_shape=(96, 96) if shape is None else shape,
+            image_method=image_method,  # type: ignore[arg-type]
+            noise=noise,
+            noise_model=noise_model,  # type: ignore[arg-type]
+            shots=shots,
+            seed=seed,
+        )
+        write_scans(ms, out, overwrite=force)
+    except (FormatError, ValueError, FileExistsError) as err:
+        raise click.ClickException(str(err)) from err
+    sizes = ", ".join(
+        f"{name} {s.n_settings}x{s.n_shots} of {s.screen_shape[0]}x{s.screen_shape[1]}"
+        for name, s in ms
+    )
+    beam = f"preset {preset}" if particle_file is None else f"beam {particle_file}"
+    click.echo(
+        f"wrote {out} (format version 2, AWA 6D layout): scans {sizes}; k1 {lo:g} "
+        f".. {hi:g} 1/m^2 x TDC {{0, 4 MV}}; {beam}, {ms.ground_truth.shape[0]} "
+        f"particles, {image_method} images, noise {noise:g}, seed {seed}"
     )

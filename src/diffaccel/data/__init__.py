@@ -45,13 +45,16 @@ from diffaccel.data.scans import (
     write_scans,
 )
 from diffaccel.data.synthetic import (
+    AWA6D_BEAMLINES,
     DEFAULT_BEAMLINE,
     PRESETS,
+    make_synthetic_awa6d,
     make_synthetic_quad_scan,
     sample_preset_beam,
 )
 
 __all__ = [
+    "AWA6D_BEAMLINES",
     "DEFAULT_BEAMLINE",
     "DEFAULT_INPUT_COLUMN",
     "DEFAULT_OUTPUT_COLUMN",
@@ -71,6 +74,7 @@ __all__ = [
     "center_centroids",
     "crop_to_beam",
     "iter_magnet_csv",
+    "make_synthetic_awa6d",
     "make_synthetic_quad_scan",
     "median_filter",
     "normalize",

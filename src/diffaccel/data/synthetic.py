@@ -19,11 +19,14 @@ from torch import Tensor
 
 from diffaccel.data.particles_io import read_openpmd_particles
 from diffaccel.data.quad_scan import QuadScanDataset
+from diffaccel.data.scans import MultiScanDataset
 from diffaccel.dynamics import Beamline, Species
 
 __all__ = [
+    "AWA6D_BEAMLINES",
     "DEFAULT_BEAMLINE",
     "PRESETS",
+    "make_synthetic_awa6d",
     "make_synthetic_quad_scan",
     "sample_preset_beam",
 ]
@@ -323,4 +326,152 @@ def make_synthetic_quad_scan(
         center=center,
         ground_truth=beam,
         metadata=metadata,
+    )
+
+
+# ---------------------------------------------------------------------- 6D layout
+#: The AWA 6D layout (GPSR 6D experiment, Argonne Wakefield Accelerator): a
+#: 0.11 m quadrupole, a 1.3 GHz deflecting cavity (tilt pi/2: vertical streak,
+#: Bmad convention) and either a drift to screen DYG1 ("dipole_off") or a
+#: 20 degree spectrometer dipole to screen DYG2 ("dipole_on"). Geometry as in
+#: the beamline attributes of the shared ``sixd_synthetic_*.h5`` files.
+AWA6D_BEAMLINES: dict[str, list[dict]] = {
+    "dipole_off": [
+        {"type": "Quadrupole", "name": "SCAN_QUAD", "length": 0.11, "k1": 0.0},
+        {"type": "Drift", "name": "D1", "length": 0.730702},
+        {
+            "type": "TransverseDeflectingCavity",
+            "name": "SCAN_TDC",
+            "length": 0.01,
+            "voltage": 0.0,
+            "frequency": 1.3e9,
+            "phase": 0.0,
+            "tilt": math.pi / 2,
+        },
+        {"type": "Drift", "name": "D2", "length": 0.475798},
+        {"type": "Drift", "name": "SCAN_DIPOLE_OFF", "length": 0.3018},
+        {"type": "Drift", "name": "D3", "length": 0.7381},
+        {"type": "Screen", "name": "DYG1"},
+    ],
+    "dipole_on": [
+        {"type": "Quadrupole", "name": "SCAN_QUAD", "length": 0.11, "k1": 0.0},
+        {"type": "Drift", "name": "D1", "length": 0.730702},
+        {
+            "type": "TransverseDeflectingCavity",
+            "name": "SCAN_TDC",
+            "length": 0.01,
+            "voltage": 0.0,
+            "frequency": 1.3e9,
+            "phase": 0.0,
+            "tilt": math.pi / 2,
+        },
+        {"type": "Drift", "name": "D2", "length": 0.475798},
+        {
+            "type": "Dipole",
+            "name": "SCAN_DIPOLE",
+            "length": 0.3080171612876794,
+            "angle": -math.radians(20.0),
+            "e1": 0.0,
+            "e2": -math.radians(20.0),
+        },
+        {"type": "Drift", "name": "D3", "length": 0.7284155741333849},
+        {"type": "Screen", "name": "DYG2"},
+    ],
+}
+#: Pixel sizes of DYG1 and DYG2 [m] (square pixels).
+AWA6D_PIXEL_SIZE = {
+    "dipole_off": 2.7253091221439543e-4,
+    "dipole_on": 2.2466741181235926e-4,
+}
+#: Scale of the preset beams for this layout (x, px, y, py, z, pz): about
+#: 0.5 mm, 0.26 mrad, 0.8 mm and 0.37 % rms, so that every setting stays on
+#: the 96 x 96 pixel screens.
+_AWA6D_BEAM_SCALE = (1 / 3, 0.43, 1 / 3, 0.43, 0.8, 0.74)
+
+
+def make_synthetic_awa6d(
+    preset: Literal["gaussian", "correlated", "nonlinear"] = "nonlinear",
+    *,
+    particles: Tensor | None = None,
+    n_particles: int = 100_000,
+    p0c: float = 43.36e6,
+    k1_values: Sequence[float] | Tensor | None = None,
+    voltages: Sequence[float] = (0.0, 4e6),
+    screen_shape: tuple[int, int] = (96, 96),
+    image_method: Literal["kde", "cic"] = "cic",
+    noise: float = 0.0,
+    noise_model: Literal["poisson", "gaussian"] = "poisson",
+    shots: int = 1,
+    seed: int = 0,
+) -> MultiScanDataset:
+    """Simulate the AWA 6D measurement of a known beam (two scans, version 2).
+
+    Each scan (``"dipole_off"``, ``"dipole_on"``; see :data:`AWA6D_BEAMLINES`)
+    records every quadrupole strength at every TDC voltage, in the order
+    ``(k1_0, V_0), (k1_0, V_1), (k1_1, V_0), ...``. The beam is tracked exactly
+    (chromatic quadrupole, RF curvature, exact dipole) and imaged as in
+    :func:`make_synthetic_quad_scan`.
+
+    Args:
+        preset: Beam preset (see :func:`sample_preset_beam`), scaled to this
+            layout, when ``particles`` is not given.
+        particles: Initial particles in Bmad coordinates ``(N, 6)``.
+        n_particles: Preset particles N.
+        p0c: Reference momentum times c [eV].
+        k1_values: Quadrupole strengths [1/m^2]; default -12 ... 12 in 9 steps.
+        voltages: TDC voltages [V]; default off and 4 MV.
+        screen_shape: (H, W) of both screens [pixels].
+        image_method: ``"cic"`` (default) or ``"kde"`` (one-pixel bandwidth).
+        noise: Relative noise at the peak pixel (0: none).
+        noise_model: ``"poisson"`` or ``"gaussian"``.
+        shots: Shots per setting.
+        seed: Seed of the beam sample and the noise.
+
+    Returns:
+        A :class:`MultiScanDataset` with the scans ``dipole_off`` and
+        ``dipole_on`` and the beam as ground truth.
+
+    Example:
+        >>> ms = make_synthetic_awa6d(n_particles=2000, k1_values=[-6.0, 6.0],
+        ...                           screen_shape=(32, 32))
+        >>> ms.names, ms["dipole_on"].shape
+        (['dipole_off', 'dipole_on'], (4, 1, 32, 32))
+    """
+    generator = torch.Generator().manual_seed(int(seed))
+    if particles is None:
+        beam = sample_preset_beam(preset, n_particles, generator)
+        beam = beam * torch.tensor(_AWA6D_BEAM_SCALE, dtype=beam.dtype)
+    else:
+        beam = torch.as_tensor(particles, dtype=torch.float64)
+    k1 = torch.as_tensor(
+        torch.linspace(-12.0, 12.0, 9) if k1_values is None else k1_values,
+        dtype=torch.float64,
+    ).flatten()
+    volts = torch.as_tensor(voltages, dtype=torch.float64).flatten()
+    settings = torch.stack(torch.meshgrid(k1, volts, indexing="ij"), dim=-1).reshape(
+        -1, 2
+    )
+    scans = {}
+    for name, spec in AWA6D_BEAMLINES.items():
+        ps = AWA6D_PIXEL_SIZE[name] * 96 / screen_shape[1]
+        scans[name] = make_synthetic_quad_scan(
+            particles=beam,
+            beamline_spec=spec,
+            p0c=p0c,
+            settings=settings,
+            setting_names=("SCAN_QUAD.k1", "SCAN_TDC.voltage"),
+            setting_units=("1/m^2", "V"),
+            screen_shape=screen_shape,
+            pixel_size=(ps, ps),
+            image_method=image_method,
+            noise=noise,
+            noise_model=noise_model,
+            shots=shots,
+            seed=seed,
+            dtype=torch.float64,
+        )
+    source = "tensor" if particles is not None else f"preset {preset}"
+    return MultiScanDataset(
+        scans,
+        metadata={"description": f"synthetic AWA 6D layout, {source}, seed {seed}"},
     )
