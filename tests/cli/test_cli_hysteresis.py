@@ -93,7 +93,7 @@ def test_predict_reproduces_fit_and_keeps_columns(
     got_std = torch.tensor([float(r[-1]) for r in rows[1:]], dtype=torch.float64)
     # streamed in chunks vs one pass: float64 round-off of the state sums
     torch.testing.assert_close(got, expect, rtol=0, atol=1e-12)
-    torch.testing.assert_close(got_std, expect_std, rtol=1e-9, atol=0)
+    torch.testing.assert_close(got_std, expect_std, rtol=1e-5, atol=0)  # float32 sums
     assert (got_std > 0).all()
     # and predicted rmse on the held-out rows equals the summary's
     summary = json.loads((out / "summary.json").read_text())

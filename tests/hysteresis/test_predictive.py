@@ -98,4 +98,4 @@ def test_stream_equals_one_pass(chunk: int) -> None:
     got_std = torch.cat([s for _, s in parts])
     # float64 round-off of prefix sums in a different order
     torch.testing.assert_close(got, whole, rtol=0, atol=1e-12)
-    torch.testing.assert_close(got_std, whole_std, rtol=1e-9, atol=1e-15)
+    torch.testing.assert_close(got_std, whole_std, rtol=1e-5, atol=0)  # float32 sums

@@ -1,0 +1,112 @@
+"""``hysteresis predict`` on a long history: time and peak memory, streamed.
+
+A fit folder with a 990-hysteron model (mesh 44) and its predictive band is
+written, then a CSV of ``--rows`` random set-points (default 10^6) is
+predicted by the CLI in a fresh process: ``wall_s`` and ``peak_rss_mb`` (the
+child's peak resident memory, everything included: Python, torch, CSV
+parsing and writing). The library part alone (``predict_stream`` with the
+band, and the mean only) is timed in this process, as the median of
+``--repeats`` runs.
+
+Anchor (from issue 11, not re-run: the old one-pass code needs 8.5 GB): the
+same 10^6 rows x 1000 hysterons took 58 s and 8.5 GB before streaming.
+Targets: at least 10x faster (5.8 s) and under 500 MB.
+
+Prints one JSON object on the last line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from _meta import emit, git_commit
+
+from diffaccel.data import write_csv_atomic
+from diffaccel.hysteresis import fit_magnet, predict_stream, save_fit
+from diffaccel.hysteresis.synthetic import synthetic_measurement
+
+ANCHOR = {"source": "issue 11", "wall_s": 58.0, "peak_rss_mb": 8500.0}
+TARGETS = {"wall_s": 5.8, "peak_rss_mb": 500.0}
+MESH = 44
+
+
+def _child_peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rows", type=int, default=1_000_000)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--out", type=Path, default=None, help="also write the JSON")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    current, field, _ = synthetic_measurement(noise=1e-4, seed=0)
+    fit = fit_magnet(current, field, mesh_size=MESH, steps=100)
+    model, band = fit.model, fit.band
+    gen = torch.Generator().manual_seed(0)
+    u = 10.0 * torch.rand(args.rows, generator=gen, dtype=torch.float64)
+    times_band, times_mean = [], []
+    for _ in range(args.repeats):
+        t0 = time.perf_counter()
+        for _pred, _std in predict_stream(model, u.split(20_000), band):
+            pass
+        times_band.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        for _pred, _ in predict_stream(model, u.split(20_000)):
+            pass
+        times_mean.append(time.perf_counter() - t0)
+    with tempfile.TemporaryDirectory() as tmp:
+        fit_dir = Path(tmp) / "fit"
+        save_fit(fit_dir, model, band, extra={"input_column": "current_A"})
+        data = Path(tmp) / "long.csv"
+        write_csv_atomic(data, ["current_A"], [[v] for v in u.tolist()])
+        out = Path(tmp) / "pred.csv"
+        exe = Path(sys.executable).with_name("diffaccel")  # the console script
+        cmd = [str(exe), "hysteresis", "predict"]
+        cmd += [str(fit_dir), "--input", str(data), "--out", str(out)]
+        env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
+        t0 = time.perf_counter()
+        subprocess.run(cmd, check=True, capture_output=True, env=env)
+        wall = time.perf_counter() - t0
+        peak = _child_peak_mb()
+        with out.open() as f:
+            n_out = sum(1 for _ in f) - 1
+    result = {
+        "name": "preisach_stream",
+        "device": "cpu",
+        "threads": args.threads,
+        "dtype": "float64",
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+        "git_commit": git_commit(),
+        "rows": args.rows,
+        "n_hysterons": int(model.alpha.numel()),
+        "band_directions": int(band.directions.shape[0]),
+        "cli_wall_s": wall,
+        "cli_peak_rss_mb": peak,
+        "cli_rows_written": n_out,
+        "library_with_band_s": statistics.median(times_band),
+        "library_with_band_spread_s": [min(times_band), max(times_band)],
+        "library_mean_only_s": statistics.median(times_mean),
+        "anchor": ANCHOR,
+        "targets": TARGETS,
+        "speedup_vs_anchor": ANCHOR["wall_s"] / wall,
+        "meets_targets": wall <= TARGETS["wall_s"] and peak <= TARGETS["peak_rss_mb"],
+    }
+    emit(result, args.out)
+
+
+if __name__ == "__main__":
+    main()
