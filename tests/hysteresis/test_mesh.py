@@ -72,3 +72,24 @@ def test_bad_triangular_arguments_raise() -> None:
 def test_to_changes_dtype() -> None:
     mesh = PreisachMesh.triangular(4).to(dtype=torch.float32)
     assert mesh.alpha.dtype == torch.float32 and mesh.area.dtype == torch.float32
+
+
+@pytest.mark.parametrize(
+    ("n", "refine", "band"),
+    [(1, 0, 1), (9, 0, 1), (6, 2, 2)],
+    ids=["n1", "n9", "refined"],
+)
+def test_mirror_index_maps_to_mirror_points(n: int, refine: int, band: int) -> None:
+    mesh = PreisachMesh.triangular(n, refine=refine, band=band)
+    mirror = mesh.mirror_index()
+    assert torch.equal(mirror[mirror], torch.arange(len(mesh)))
+    # (alpha, beta) -> (1 - beta, 1 - alpha), to float64 round-off
+    torch.testing.assert_close(mesh.alpha[mirror], 1 - mesh.beta, rtol=0, atol=1e-12)
+    torch.testing.assert_close(mesh.beta[mirror], 1 - mesh.alpha, rtol=0, atol=1e-12)
+    torch.testing.assert_close(mesh.area[mirror], mesh.area, rtol=1e-12, atol=0)
+
+
+def test_mirror_index_rejects_asymmetric_mesh() -> None:
+    mesh = PreisachMesh.from_points([0.5, 0.9], [0.1, 0.2])
+    with pytest.raises(ValueError, match="no mirror image"):
+        mesh.mirror_index()

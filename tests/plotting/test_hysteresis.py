@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from matplotlib.figure import Figure
@@ -38,3 +39,26 @@ def test_fit_figure_rejects_mismatched_series() -> None:
     magnet = synthetic_magnet()
     with pytest.raises(ValueError, match="shape"):
         plot_preisach_fit(magnet, torch.zeros(5), torch.zeros(4))
+
+
+def test_symmetric_density_figure_draws_mirror_line() -> None:
+    model = PreisachModel(
+        PreisachMesh.triangular(8), input_range=(-6.0, 6.0), symmetric=True
+    )
+    ax = plot_preisach_density(model).axes[0]
+    assert "symmetric" in ax.get_title()
+    # the diagonal and the mirror line alpha + beta = lo + hi
+    ends = {tuple(np.round(line.get_xydata()[[0, -1]].ravel(), 9)) for line in ax.lines}
+    assert (-6.0, 6.0, 6.0, -6.0) in ends
+
+
+def test_fit_figure_draws_band() -> None:
+    current, field, _ = synthetic_measurement(noise=0.0)
+    magnet = synthetic_magnet()
+    std = torch.full_like(current, 0.01)
+    fig = plot_preisach_fit(magnet, current, field, n_train=21, std=std)
+    loop, res = fig.axes[:2]
+    assert "model +- 2 std" in [t.get_text() for t in loop.get_legend().get_texts()]
+    assert len(res.collections) == 1  # the residual band
+    with pytest.raises(ValueError, match="std must have shape"):
+        plot_preisach_fit(magnet, current, field, std=std[:-1])

@@ -244,7 +244,8 @@ def fit_command(
     click.echo(
         f"fit {train_rows} rows in {fit.seconds:.2f} s (symmetric {fit.symmetric}): "
         f"train rmse {train_rmse:.4g} ({pct(train_rmse):.3f} %), held-out rmse "
-        f"{test_txt}; % of the training output range {span:.4g}; wrote {out_dir}"
+        f"{test_txt}; percentages of the training output range {span:.4g}; "
+        f"wrote {out_dir}"
     )
 
 

@@ -180,7 +180,13 @@ class PreisachModel(nn.Module):
         missing = {"alpha", "beta", "area", "raw_density"} - set(state_dict)
         if missing:
             raise ValueError(f"state_dict misses {sorted(missing)}.")
-        dtype = getattr(torch, str(config.get("dtype", "float64")))
+        name = str(config.get("dtype", "float64"))
+        dtype = getattr(torch, name, None)
+        if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
+            raise ValueError(
+                f"config dtype must name a floating torch dtype such as 'float64'; "
+                f"got {name!r}."
+            )
         mesh = PreisachMesh(state_dict["alpha"], state_dict["beta"], state_dict["area"])
         model = cls(
             mesh,
