@@ -10,8 +10,8 @@ from diffaccel.hysteresis.states import (
     RowLayout,
     demagnetized_state,
     exact_magnetization,
-    exact_stream_step,
     exact_states,
+    exact_stream_step,
     smooth_states,
 )
 
