@@ -134,7 +134,8 @@ def run_gpsr(ds, train, test, epochs: int) -> dict:
     x[:, 4:] = 0.0  # a 4D reconstruction: no longitudinal information
     meas = ds.mean_images()
     fwd = ScreenForwardModel.from_dataset(ds)
-    ours = fwd.images_linear(x.float(), fwd.transfer_matrices(ds.settings))
+    maps = fwd.linear_maps(ds.settings, monochromatic=True)  # quad + drift: exact
+    ours = fwd.images_linear(x.float(), maps)
     ours = ours / ours.sum((-2, -1), keepdim=True)
     return {
         "wall_s": wall,

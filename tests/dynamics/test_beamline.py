@@ -83,7 +83,7 @@ def test_linearized_matches_transfer_map_and_exact_near_axis(make_beam) -> None:
     k1 = torch.linspace(-20.0, 20.0, 4, dtype=torch.float64)
     lin = line.with_params({"Q1.k1": k1}).linearized(P0C)
     assert isinstance(lin["Q1..D1"], LinearMap)
-    assert lin["Q1..D1"].matrix.shape == (4, 6, 6)
+    assert lin["Q1..D1"].matrix.shape == (4, 7, 7)
     beam = make_beam(30, sizes=(1e-7,) * 6)
     exact = line.track(beam, P0C, k1.unsqueeze(-1), ["Q1.k1"])
     linear = lin.track_screens(beam, P0C)["SCREEN"]

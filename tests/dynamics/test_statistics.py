@@ -65,7 +65,7 @@ def test_emittances_of_sample() -> None:
 def test_emittance_invariant_under_linear_transport(make_beam) -> None:
     beam = make_beam(2000, sizes=(1e-3, 1e-4, 1e-3, 1e-4, 0.0, 0.0))
     k1 = torch.linspace(-20.0, 20.0, 4, dtype=F64)
-    r = Quadrupole("Q", 0.3, k1).transfer_map(43e6)
+    r = Quadrupole("Q", 0.3, k1).transfer_map(43e6)[..., :6, :6]
     out = beam @ r.transpose(-1, -2)
     # symplectic (det 1) 2x2 blocks: emittance conserved to round-off
     torch.testing.assert_close(

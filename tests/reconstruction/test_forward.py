@@ -20,21 +20,86 @@ def _model(blur: float = 1.0) -> ScreenForwardModel:
     )
 
 
-def test_transfer_matrix_of_drift_setting() -> None:
-    r = _model().transfer_matrices(torch.tensor([[0.0]]))[0]
-    # k1 = 0: a 1.1 m drift; central differences of a linear map: round-off only
-    assert r[0, 1].item() == pytest.approx(1.1, rel=1e-6)
-    assert r[2, 3].item() == pytest.approx(1.1, rel=1e-6)
-    assert r[0, 0].item() == pytest.approx(1.0, rel=1e-6)
+def test_transfer_map_of_drift_setting() -> None:
+    r = _model().transfer_maps(torch.tensor([[0.0]]))[0]
+    # k1 = 0: a 1.1 m drift, composed analytically: round-off only
+    assert r.shape == (7, 7)
+    assert r[0, 1].item() == pytest.approx(1.1, rel=1e-14)
+    assert r[2, 3].item() == pytest.approx(1.1, rel=1e-14)
+    assert r[0, 0].item() == 1.0
+    assert r[:6, 6].abs().max().item() == 0.0  # aligned: no orbit offset
 
 
 def test_linear_maps_reproduce_tracking_for_pz_zero(gaussian_beam) -> None:
     fwd = _model(blur=0.0)
     x = gaussian_beam.float()
     exact = fwd.images(x, K1)
-    lin = fwd.images_linear(x, fwd.transfer_matrices(K1))
+    lin = fwd.images_linear(x, fwd.linear_maps(K1, monochromatic=True))
     # only the px^2 ~ 1e-6 terms of the exact drift differ: float32 level
     assert (exact - lin).abs().max() < 1e-5
+
+
+def _centroid(images: torch.Tensor, fwd: ScreenForwardModel) -> torch.Tensor:
+    xs, ys = fwd.pixel_axes()
+    img = images.double() / images.double().sum((-2, -1), keepdim=True)
+    return torch.stack([(img.sum(-2) * xs).sum(-1), (img.sum(-1) * ys).sum(-1)], -1)
+
+
+@pytest.mark.parametrize("scanned", [False, True], ids=["fixed-dx", "scanned-Q1.dx"])
+def test_quad_offset_moves_linear_and_tracked_images_alike(
+    scanned: bool, gaussian_beam
+) -> None:
+    # a 2 mm horizontal quadrupole offset: the linear path must shift the images
+    # exactly as tracking does (it used to drop dx and train on centred images)
+    k1 = torch.tensor([-10.0, 0.0, 7.0], dtype=torch.float64)
+    if scanned:
+        fwd = ScreenForwardModel(
+            Beamline.from_spec(SPEC), ["Q1.k1", "Q1.dx"], 43e6, blur_pixels=0.0
+        )
+        sets = torch.stack([k1, torch.full_like(k1, 2e-3)], -1)
+    else:
+        spec = [{**SPEC[0], "dx": 2e-3}, *SPEC[1:]]
+        fwd = ScreenForwardModel(
+            Beamline.from_spec(spec), ["Q1.k1"], 43e6, blur_pixels=0.0
+        )
+        sets = k1[:, None]
+    x = gaussian_beam.float()
+    maps = fwd.linear_maps(sets, monochromatic=True)
+    assert maps is not None
+    exact = fwd.images(x, sets)
+    lin = fwd.images_linear(x, maps)
+    # same particles in both paths: equal up to the drift's px^2 terms (float32)
+    assert (exact - lin).abs().max() < 1e-5
+    aligned = _model(blur=0.0).images(x, k1[:, None])
+    shift = _centroid(exact, fwd) - _centroid(aligned, fwd)
+    # the shift is the map's orbit offset (the beam's own centroid cancels; CIC
+    # keeps first moments exactly): at k1 = -10 1/m^2 the defocusing quad pushes
+    # the beam, 2 mm off its axis, to about -2.0 mm; at k1 = 0 nothing moves
+    torch.testing.assert_close(shift[:, 0], maps[:, 0, 6], rtol=0, atol=2e-6)
+    assert shift[0, 0].item() < -1.5e-3
+    assert abs(shift[1, 0].item()) < 2e-6
+    assert shift[:, 1].abs().max().item() < 2e-6
+
+
+def test_linear_maps_refused_where_not_exact() -> None:
+    spec = [
+        SPEC[0],
+        {
+            "type": "TransverseDeflectingCavity",
+            "name": "T",
+            "length": 0.1,
+            "voltage": 0.0,
+            "frequency": 1.3e9,
+            "tilt": 1.5707963267948966,
+        },
+        *SPEC[1:],
+    ]
+    fwd = ScreenForwardModel(Beamline.from_spec(spec), ["Q1.k1", "T.voltage"], 43e6)
+    off = torch.tensor([[1.0, 0.0], [2.0, 0.0]], dtype=torch.float64)
+    on = torch.tensor([[1.0, 0.0], [2.0, 4e6]], dtype=torch.float64)
+    assert fwd.linear_maps(off, monochromatic=True) is not None
+    assert fwd.linear_maps(on, monochromatic=True) is None  # sin(k z): track
+    assert fwd.linear_maps(off, monochromatic=False) is None  # chromatic: track
 
 
 def test_images_sum_to_fraction_on_screen(gaussian_beam) -> None:

@@ -338,16 +338,31 @@ class Beamline(nn.Module):
         return stack_columns(coords), screens
 
     def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
-        """Product of the elements' linear maps, shape ``(*K, 6, 6)``."""
+        """Product of the elements' affine maps, shape ``(*K, 7, 7)``.
+
+        ``A_n @ ... @ A_1`` (see :class:`Element` for the affine layout): the
+        first-order map of the whole line about the reference orbit, offsets of
+        misaligned elements included.
+        """
         r = None
         for e in self.elements:
             if isinstance(e, Screen):
                 continue
             m = e.transfer_map(p0c, species)
-            r = m if r is None else m @ r
+            r = m if r is None else m.to(r) @ r
         if r is None:
-            return torch.eye(6, dtype=torch.float64)
+            return torch.eye(7, dtype=torch.float64)
         return r
+
+    def linear_map_is_exact(self, monochromatic: bool) -> bool:
+        """Whether :meth:`transfer_map` / :meth:`linearized` reproduce tracking.
+
+        True when every element's :meth:`Element.linear_map_is_exact` is (for
+        beams with ``pz = 0`` if ``monochromatic``); apply scan settings first.
+        A cavity that is switched on, a bending dipole, or any element with
+        length and a beam with energy spread make it False: then track.
+        """
+        return all(e.linear_map_is_exact(monochromatic) for e in self.elements)
 
     def linearized(self, p0c: Tensor | float, species: Species = ELECTRON) -> Beamline:
         """The linear fidelity of this beamline as a new ``Beamline``.
@@ -355,9 +370,10 @@ class Beamline(nn.Module):
         Each run of elements between screens becomes one :class:`LinearMap` (the
         product of their ``transfer_map``); screens are kept, so
         ``track_screens`` works unchanged. Apply scan settings first, e.g.
-        ``bl.with_params({"Q1.k1": k1}).linearized(p0c)``; the result's maps then
-        carry the batch shape ``(*K, 6, 6)``. A run of one element keeps its name;
-        a longer run is named ``"FIRST..LAST"``.
+        ``bl.with_params({"Q1.k1": k1}).linearized(p0c)``; the result's affine
+        maps then carry the batch shape ``(*K, 7, 7)``. The result reproduces
+        tracking only where :meth:`linear_map_is_exact` says so. A run of one
+        element keeps its name; a longer run is named ``"FIRST..LAST"``.
         """
         out: list[Element] = []
         run: list[Element] = []

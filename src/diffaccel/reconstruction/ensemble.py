@@ -267,7 +267,7 @@ class Reconstruction:
             )
             if sets.numel() == 0:
                 continue
-            r = fwd.transfer_matrices(sets)
+            r = fwd.transfer_maps(sets)[:, :6, :6]
             rows_list.append(r[:, [0, 2], :].abs().amax(dim=(0, 1)))  # (6,)
         if not rows_list:
             return []

@@ -14,8 +14,6 @@ from diffaccel.dynamics.elements.screen import Screen
 from diffaccel.dynamics.images import cic_image
 from diffaccel.dynamics.species import Species
 
-_FD_STEP = (1e-6, 1e-6, 1e-6, 1e-6, 1e-6, 1e-6)
-
 
 class ScreenForwardModel:
     """Simulated screen images of a beam for any scan settings.
@@ -160,18 +158,20 @@ class ScreenForwardModel:
         return self.screen.image(at_screen, method="cic", blur_sigma=self._blur())
 
     def images_linear(self, particles: Tensor, maps: Tensor) -> Tensor:
-        """Images of particles tracked with precomputed linear maps.
+        """Images of particles tracked with precomputed affine maps.
 
-        For a beam with ``pz = 0`` the maps of :meth:`transfer_matrices` give
-        the transverse screen coordinates to ~1e-5 relative (only the
-        ``px^2`` terms of the exact drift are dropped), at the cost of one
-        batched matrix product instead of the chromatic tracking.
+        With the maps of :meth:`linear_maps` (which exist only where they are
+        exact for the beam) this equals :meth:`images` up to the paraxial terms
+        of the exact drift (relative ``px^2 / 2``), offsets of misaligned
+        elements included, at the cost of one batched matrix product.
 
         Shapes:
-            ``particles (N, 6)``, ``maps (K, 6, 6)`` -> ``(K, H, W)``.
+            ``particles (N, 6)``, ``maps (K, 7, 7)`` -> ``(K, H, W)``.
         """
-        rows = maps[:, [0, 2], :].to(dtype=particles.dtype, device=particles.device)
+        maps = maps.to(dtype=particles.dtype, device=particles.device)
+        rows = maps[:, 0:3:2, :6]  # (K, 2, 6)
         xy = torch.einsum("kij,nj->kin", rows, particles)  # (K, 2, N)
+        xy = xy + maps[:, 0:3:2, 6:]
         scr = self.screen
         return cic_image(
             xy[:, 0],
@@ -216,25 +216,42 @@ class ScreenForwardModel:
             1e3 * (float(ys[-1]) + psy / 2),
         )
 
-    def transfer_matrices(self, settings: Tensor) -> Tensor:
-        """Linear maps to the screen by central differences of the tracking.
+    def transfer_maps(self, settings: Tensor) -> Tensor:
+        """Affine first-order maps to the screen, composed analytically.
+
+        The product of the elements' :meth:`~diffaccel.dynamics.Element.transfer_map`
+        with each row of settings applied: ``A[k, :6, :6]`` the Jacobian about the
+        reference orbit, ``A[k, :6, 6]`` the orbit offset (misaligned elements).
+        Exact for images only where :meth:`linear_maps` returns them.
 
         Shapes:
-            ``settings (K, P)`` -> ``(K, 6, 6)`` float64 (CPU).
+            ``settings (K, P)`` -> ``(K, 7, 7)`` float64 (CPU).
         """
+        return self._scanned(settings).transfer_map(self.p0c, self._species)
+
+    def linear_maps(self, settings: Tensor, *, monochromatic: bool) -> Tensor | None:
+        """:meth:`transfer_maps` if they reproduce the tracking, else None.
+
+        Args:
+            settings: Scan settings ``(K, P)``.
+            monochromatic: True if every particle has ``pz = 0`` (a 4D beam).
+
+        Returns:
+            ``(K, 7, 7)`` float64 (CPU) when every element of the scanned
+            beamline is exactly affine for such a beam
+            (:meth:`~diffaccel.dynamics.Beamline.linear_map_is_exact`); None
+            otherwise (a cavity switched on, a bend, energy spread): then track.
+        """
+        line = self._scanned(settings)
+        if not line.linear_map_is_exact(monochromatic):
+            return None
+        return line.transfer_map(self.p0c, self._species)
+
+    def _scanned(self, settings: Tensor) -> Beamline:
+        """A float64 CPU copy of the beamline with the settings applied."""
         s = self.check_settings(settings).cpu()
-        eps = torch.tensor(_FD_STEP, dtype=torch.float64)
-        probes = torch.cat([torch.diag(eps), -torch.diag(eps)], 0)  # (12, 6)
         line = Beamline.from_spec(self.beamline.to_spec())
-        out = line.track_screens(
-            probes,
-            self.p0c,
-            settings=s,
-            names=self.names,
-            species=self._species,
-        )[self.screen.name]  # (K, 12, 6)
-        r = (out[:, :6, :] - out[:, 6:, :]) / (2 * eps[:, None])  # (K, in, out)
-        return r.transpose(-1, -2)
+        return line.with_params({n: s[:, p] for p, n in enumerate(self.names)})
 
     def drift_length(self) -> float:
         """Total beamline length [m] (a scale for divergence guesses)."""

@@ -100,8 +100,8 @@ def fit_gaussian(
 ) -> GaussianGuess:
     """Fit the centroid and covariance of a beam to image moments of one or more scans.
 
-    Linear optics: for each setting the transfer matrix ``R_k`` comes from the
-    forward model, the screen centroid is ``R_k mean`` and the screen second
+    Linear optics: for each setting the affine map ``(R_k, c_k)`` comes from the
+    forward model, the screen centroid is ``R_k mean + c_k`` and the screen second
     moments are ``R_k Sigma R_k^T``; the measured centroids, ``<x^2>``,
     ``<y^2>`` and ``<xy>`` of the images (minus the blur the forward model adds)
     give a linear least-squares problem for the centroid and covariance entries
@@ -140,18 +140,19 @@ def fit_gaussian(
         dx = xs[None, None, :] - mx[:, None, None]
         dy = ys[None, :, None] - my[:, None, None]
         vxy_all.append((img * dx * dy).sum((-2, -1)))
-        mx_all.append(mx)
-        my_all.append(my)
-        r = fwd.transfer_matrices(sets).to("cpu", torch.float64)  # (K, 6, 6)
-        rx_all.append(r[:, 0, :])
-        ry_all.append(r[:, 2, :])
+        r = fwd.transfer_maps(sets).to("cpu", torch.float64)  # (K, 7, 7) affine
+        # centroids less the orbit offsets of misaligned elements
+        mx_all.append(mx - r[:, 0, 6])
+        my_all.append(my - r[:, 2, 6])
+        rx_all.append(r[:, 0, :6])
+        ry_all.append(r[:, 2, :6])
         floors.append(float(xs.diff().abs().mean()) * 0.5)
         drift = max(drift, float(fwd.drift_length()))
     rx, ry = torch.cat(rx_all), torch.cat(ry_all)
     seen = sorted(set(range(4)) | set(_observed(torch.cat([rx, ry]))))
     rx, ry = rx[:, seen], ry[:, seen]
     n = len(seen)
-    # centroid: [mx; my] = [rx; ry] @ mean
+    # centroid: [mx; my] - offsets = [rx; ry] @ mean
     a = torch.cat([rx, ry], 0)
     b = torch.cat([torch.cat(mx_all), torch.cat(my_all)], 0)
     mean_seen = torch.linalg.lstsq(a, b[:, None]).solution[:, 0]

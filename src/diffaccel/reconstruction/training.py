@@ -277,9 +277,11 @@ def train_generator(
 
     Every step draws one fresh sample of ``n_particles`` and images it through
     every scan (a Python loop over the scans, fixed shapes within each). With
-    ``dims = 4`` (``pz = 0`` exactly) the scans use linear maps (see
-    :meth:`ScreenForwardModel.images_linear`); with ``dims = 6`` they track
-    exactly (chromatic quadrupoles, RF curvature of a deflecting cavity).
+    ``dims = 4`` (``pz = 0`` exactly) a scan whose affine maps are exact (see
+    :meth:`ScreenForwardModel.linear_maps`) uses them
+    (:meth:`ScreenForwardModel.images_linear`); otherwise, and with
+    ``dims = 6``, scans track exactly (chromatic quadrupoles, RF curvature of a
+    deflecting cavity, bends).
 
     Args:
         forward: Screen forward model of each scan (tracking + imaging); a single
@@ -349,12 +351,13 @@ def train_generator(
         gen_rng.set_state(state.rng)
         logger.info("resumed from %s at step %d", ckpt, state.step)
 
-    # dims = 4: pz = 0 exactly, so linear maps reproduce the tracking (see
-    # ScreenForwardModel.images_linear); dims = 6 tracks chromatically.
+    # dims = 4: pz = 0 exactly, so affine maps reproduce the tracking where the
+    # beamline allows it (no cavity on, no bend); otherwise (and in 6D) track
     maps: list[Tensor | None] = [
-        f.transfer_matrices(s).to(device) if dims == 4 else None
+        f.linear_maps(s, monochromatic=True) if dims == 4 else None
         for f, s in zip(forwards, settings_list, strict=True)
     ]
+    maps = [m.to(device) if m is not None else None for m in maps]
     allowances = [off_screen_allowance(m) for m in measured_list]
     scans = list(
         zip(forwards, measured_list, settings_list, maps, allowances, strict=True)

@@ -64,7 +64,7 @@ for _i in range(3):
 def test_drift_matrix(species) -> None:
     length = 1.3
     r = Drift("D", length=length).transfer_map(P0C, species)
-    expected = torch.eye(6, dtype=F64)
+    expected = torch.eye(7, dtype=F64)
     expected[0, 1] = expected[2, 3] = length
     expected[4, 5] = length / _gamma2(P0C, species.mass_ev)
     torch.testing.assert_close(r, expected, rtol=1e-14, atol=1e-15)
@@ -100,7 +100,7 @@ def test_dipole_matrix_with_edges() -> None:
     g = angle / length
     r = Dipole("B", length=length, angle=angle, e1=e1, e2=e2).transfer_map(P0C)
     c, s = math.cos(angle), math.sin(angle)
-    body = torch.eye(6, dtype=F64)
+    body = torch.eye(7, dtype=F64)
     body[0, 0], body[0, 1], body[0, 5] = c, s / g, (1 - c) / g
     body[1, 0], body[1, 1], body[1, 5] = -g * s, c, s
     body[2, 3] = length
@@ -108,7 +108,7 @@ def test_dipole_matrix_with_edges() -> None:
     body[4, 5] = length / _gamma2(P0C, ELECTRON.mass_ev) - (length - s / g)
 
     def edge(e: float) -> torch.Tensor:
-        m = torch.eye(6, dtype=F64)
+        m = torch.eye(7, dtype=F64)
         m[1, 0] = g * math.tan(e)
         m[3, 2] = -g * math.tan(e)
         return m
@@ -120,15 +120,96 @@ def test_tdc_matrix() -> None:
     length, volt, freq, phase = 0.4, 1.5e6, 2.856e9, 0.3
     r = TransverseDeflectingCavity("T", length, volt, freq, phase).transfer_map(P0C)
     beta0 = 1 / math.sqrt(1 + (ELECTRON.mass_ev / P0C) ** 2)
-    k0 = 2 * math.pi * freq / (beta0 * SPEED_OF_LIGHT)
-    kick = -volt / P0C * k0 * math.cos(phase)
+    k = 2 * math.pi * freq / SPEED_OF_LIGHT
+    a = volt / P0C  # electrons: +V / p0c
     half = Drift("D", length / 2).transfer_map(P0C)
-    thin = torch.eye(6, dtype=F64)
-    thin[3, 4] = kick
-    thin[5, 2] = kick
+    thin = torch.eye(7, dtype=F64)
+    thin[1, 4] = thin[5, 0] = a * k * math.cos(phase) / beta0
+    thin[1, 6] = a * math.sin(phase)  # centroid kick
     torch.testing.assert_close(r, half @ thin @ half, rtol=1e-12, atol=1e-15)
-    # it streaks: y at the exit depends on z
-    assert abs(r[2, 4].item()) > 0
+
+
+@pytest.mark.parametrize(
+    ("tilt", "kicked", "quiet"),
+    [(0.0, 1, 3), (math.pi / 2, 3, 1)],
+    ids=["tilt0-horizontal", "tilt90-vertical"],
+)
+def test_tdc_streak_plane_follows_bmad(tilt: float, kicked: int, quiet: int) -> None:
+    # Bmad's crab cavity: tilt 0 kicks px, tilt pi/2 kicks py; the head (z > 0)
+    # of an electron bunch goes to +x (+y) at zero phase
+    tdc = TransverseDeflectingCavity("T", 0.0, 1e6, 1.3e9, 0.0, tilt=tilt)
+    head = torch.tensor([[0.0, 0.0, 0.0, 0.0, 1e-3, 0.0]], dtype=F64)
+    out = tdc.track(head, P0C)[0]
+    assert out[kicked].item() > 1e-4
+    # the other plane only sees round-off of cos(pi / 2) ~ 6e-17
+    assert abs(out[quiet].item()) < 1e-15 * out[kicked].item()
+
+
+# ---- affine maps vs autograd Jacobians of the tracking ---------------------------
+
+AFFINE = {
+    "drift": Drift("D", 1.0),
+    "quad_offset": Quadrupole("Q", 0.2, 15.0, dx=2e-3, dy=-1e-3),
+    "quad_offset_tilted": Quadrupole("Q", 0.2, -9.0, tilt=0.3, dx=-1e-3, dy=2e-3),
+    "quad_offset_weak": Quadrupole("Q", 0.2, 1e-3, dx=2e-3),  # series branch
+    "dipole_tilted": Dipole("B", 0.5, 0.3, e1=0.1, e2=-0.05, tilt=0.4),
+    "tdc_tilted": TransverseDeflectingCavity("T", 0.3, 1e6, 1.3e9, 0.0, tilt=0.7),
+}
+
+
+@pytest.mark.parametrize("name", sorted(AFFINE), ids=sorted(AFFINE))
+def test_transfer_map_is_jacobian_and_orbit(name: str) -> None:
+    element = AFFINE[name]
+    m = element.transfer_map(P0C)
+    zero = torch.zeros(6, dtype=F64)
+    # all 36 entries (dispersion and path-length terms of the offset orbit
+    # included) and the orbit offset agree to round-off
+    torch.testing.assert_close(m[:6, :6], _jacobian(element, zero), rtol=0, atol=1e-13)
+    orbit = element.track(zero.unsqueeze(0), P0C)[0]
+    torch.testing.assert_close(m[:6, 6], orbit, rtol=0, atol=1e-17)
+    assert m[6].tolist() == [0.0] * 6 + [1.0]
+    # first-order maps about the reference orbit are symplectic
+    torch.testing.assert_close(m[:6, :6].T @ J @ m[:6, :6], J, rtol=0, atol=1e-12)
+
+
+def test_quad_offset_is_a_dipole_kick() -> None:
+    # thin-lens limit: an offset dx gives the orbit a kick k1 L dx
+    k1, length, dx = 10.0, 1e-4, 2e-3
+    m = Quadrupole("Q", length, k1, dx=dx).transfer_map(P0C)
+    assert m[1, 6].item() == pytest.approx(k1 * length * dx, rel=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("element", "mono", "exact"),
+    [
+        (Drift("D", 1.0), True, True),
+        (Drift("D", 1.0), False, False),
+        (Quadrupole("Q", 0.1, 5.0, dx=1e-3), True, True),
+        (Quadrupole("Q", 0.1, 5.0), False, False),
+        (Dipole("B", 0.5, 0.0), True, True),
+        (Dipole("B", 0.5, 0.2), True, False),
+        (TransverseDeflectingCavity("T", 0.1, 0.0, 1.3e9), True, True),
+        (TransverseDeflectingCavity("T", 0.1, 1e6, 1.3e9), True, False),
+        (
+            TransverseDeflectingCavity("T", 0.1, torch.tensor([0.0, 1e6]), 1.3e9),
+            True,
+            False,
+        ),
+    ],
+    ids=[
+        "drift-mono",
+        "drift-spread",
+        "quad-offset-mono",
+        "quad-spread",
+        "dipole-off",
+        "dipole-bending",
+        "tdc-off",
+        "tdc-on",
+        "tdc-scanned-on",
+    ],
+)
+def test_linear_map_is_exact_flags(element, mono: bool, exact: bool) -> None:
+    assert element.linear_map_is_exact(mono) is exact
 
 
 # ---- tracking vs linear maps at small amplitude ------------------------------------
@@ -151,7 +232,8 @@ def test_track_matches_transfer_map_near_axis(name: str, make_beam) -> None:
     scale = 1e-7
     beam = make_beam(100, sizes=(scale,) * 6)
     out = element.track(beam, P0C)
-    lin = beam @ element.transfer_map(P0C).T
+    m = element.transfer_map(P0C)
+    lin = beam @ m[:6, :6].T + m[:6, 6]
     # the difference is second order: ~ (amplitude)^2 * O(100), far below 1e-9 * scale
     assert (out - lin).abs().max().item() < 1e-6 * scale
 
@@ -242,5 +324,5 @@ def test_chromatic_focusing_matches_thin_slices(k1: float, make_beam) -> None:
     scale = beam[:, :4].abs().max()
     assert ((out - ref).abs().max() / scale).item() < 1e-8
     # and chromaticity is really there: the linear map differs at the pz level
-    lin = (beam @ Quadrupole("Q", length, k1).transfer_map(P0C).T)[:, :4]
+    lin = (beam @ Quadrupole("Q", length, k1).transfer_map(P0C)[:6, :6].T)[:, :4]
     assert ((out - lin).abs().max() / scale).item() > 1e-3

@@ -83,15 +83,22 @@ class _FocusingFunctions(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_cp: Tensor, g_sp: Tensor, g_cm: Tensor, g_sm: Tensor) -> Tensor:  # type: ignore[override]
         u, c_plus, s_plus, c_minus, s_minus = ctx.saved_tensors
-        small = u.abs() < _SERIES_LIMIT
-        u_safe = torch.where(small, torch.ones_like(u), u)
-        half_inv = 0.5 / u_safe
-        # s'(v) = -1/6 + v/60 - v^2/1680 + v^3/90720 - ...
-        ser_p = -1 / 6 + u * (1 / 60 - u * (1 / 1680 - u / 90720))
-        ser_m = 1 / 6 + u * (1 / 60 + u * (1 / 1680 + u / 90720))
-        ds_plus = torch.where(small, ser_p, (c_plus - s_plus) * half_inv)
-        ds_minus = torch.where(small, ser_m, (c_minus - s_minus) * half_inv)
+        ds_plus = sinc_derivative(u, c_plus, s_plus)
+        ds_minus = -sinc_derivative(-u, c_minus, s_minus)
         return 0.5 * (g_cm * s_minus - g_cp * s_plus) + g_sp * ds_plus + g_sm * ds_minus
+
+
+def sinc_derivative(u: Tensor, c: Tensor, s: Tensor) -> Tensor:
+    """``ds/du`` of ``s(u) = sin sqrt(u) / sqrt(u)`` given ``C(u)`` and ``s(u)``.
+
+    ``(C - s) / (2u)``, with its Taylor series near ``u = 0`` where the closed
+    form cancels.
+    """
+    small = u.abs() < _SERIES_LIMIT
+    u_safe = torch.where(small, torch.ones_like(u), u)
+    # s'(v) = -1/6 + v/60 - v^2/1680 + v^3/90720 - ...
+    series = -1 / 6 + u * (1 / 60 - u * (1 / 1680 - u / 90720))
+    return torch.where(small, series, (c - s) * (0.5 / u_safe))
 
 
 def focusing_functions(u: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -215,13 +222,18 @@ def to_lab_frame(
 
 
 def roll_matrix(tilt: Tensor) -> Tensor:
-    """6x6 map ``(*K, 6, 6)`` of the lab -> element roll by ``tilt`` [rad]."""
+    """Affine map ``(*K, 7, 7)`` of the lab -> element roll by ``tilt`` [rad]."""
     c, s = tilt.cos(), tilt.sin()
-    rot = torch.eye(6, dtype=tilt.dtype, device=tilt.device).expand(*tilt.shape, 6, 6)
-    rot = rot.clone()
+    rot = affine_identity(tilt.shape, tilt)
     for i in (0, 1):
         rot[..., i, i] = c
         rot[..., i, i + 2] = s
         rot[..., i + 2, i] = -s
         rot[..., i + 2, i + 2] = c
     return rot
+
+
+def affine_identity(shape: Sequence[int], like: Tensor) -> Tensor:
+    """A fresh identity affine map ``(*shape, 7, 7)`` in the dtype of ``like``."""
+    eye = torch.eye(7, dtype=like.dtype, device=like.device)
+    return eye.expand(*shape, 7, 7).clone()

@@ -44,12 +44,12 @@ class Dipole(Element):
         tilt: Roll about the beam axis [rad]; ``pi / 2`` bends vertically.
 
     Shapes:
-        ``track``: ``(*K, N, 6) -> (*K, N, 6)``; ``transfer_map``: ``(*K, 6, 6)``.
+        ``track``: ``(*K, N, 6) -> (*K, N, 6)``; ``transfer_map``: ``(*K, 7, 7)``.
 
     Example:
         >>> b = Dipole("B1", length=0.5, angle=0.2, e1=0.1, e2=0.1)
         >>> b.transfer_map(1e9).shape
-        torch.Size([6, 6])
+        torch.Size([7, 7])
     """
 
     param_names = ("length", "angle", "e1", "e2", "tilt")
@@ -132,7 +132,10 @@ class Dipole(Element):
         return x, px, y, py, z, pz
 
     def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
-        """Linear map at ``pz = 0`` including the edge kicks, shape ``(*K, 6, 6)``."""
+        """Affine first-order map with the edge kicks, shape ``(*K, 7, 7)``.
+
+        The reference particle stays on the axis (zero offset column).
+        """
         g, length, angle = self._curvature(self.length)
         g, length, angle, e1, e2, tilt = torch.broadcast_tensors(
             g, length, angle, self.e1.to(g), self.e2.to(g), self.tilt.to(g)
@@ -146,7 +149,8 @@ class Dipole(Element):
         sinc = torch.sinc(angle / torch.pi)  # sin(a) / a
         half = torch.sinc(angle / (2 * torch.pi))
         one_minus_c_over_g = length * angle * 0.5 * half.square()  # (1 - cos a) / g
-        r = g.new_zeros(*g.shape, 6, 6)
+        r = g.new_zeros(*g.shape, 7, 7)
+        r[..., 6, 6] = 1.0
         r[..., 0, 0] = c
         r[..., 0, 1] = length * sinc
         r[..., 0, 5] = one_minus_c_over_g
@@ -161,7 +165,7 @@ class Dipole(Element):
         r[..., 4, 4] = 1.0
         r[..., 4, 5] = length * mu2 / (1.0 + mu2) - length * (1.0 - sinc)
         r[..., 5, 5] = 1.0
-        eye = torch.eye(6, dtype=r.dtype, device=r.device).expand_as(r)
+        eye = torch.eye(7, dtype=r.dtype, device=r.device).expand_as(r)
         edge1 = eye.clone()
         edge1[..., 1, 0] = g * e1.tan()
         edge1[..., 3, 2] = -g * e1.tan()
@@ -170,3 +174,7 @@ class Dipole(Element):
         edge2[..., 3, 2] = -g * e2.tan()
         rot = roll_matrix(tilt)
         return rot.transpose(-1, -2) @ edge2 @ r @ edge1 @ rot
+
+    def linear_map_is_exact(self, monochromatic: bool) -> bool:
+        """Only when it does not bend (a drift); the exact body has ``g x^2`` terms."""
+        return is_zero(self.length) or (monochromatic and is_zero(self.angle))

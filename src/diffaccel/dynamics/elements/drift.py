@@ -6,7 +6,11 @@ import torch
 from torch import Tensor
 
 from diffaccel.dynamics._validate import as_p0c, check_nonnegative
-from diffaccel.dynamics.elements._kernels import exact_drift
+from diffaccel.dynamics.elements._kernels import (
+    affine_identity,
+    exact_drift,
+    is_zero,
+)
 from diffaccel.dynamics.elements.element import Coords, Element, bcast
 from diffaccel.dynamics.species import ELECTRON, Species
 
@@ -14,12 +18,9 @@ __all__ = ["Drift", "drift_matrix"]
 
 
 def drift_matrix(length: Tensor, p0c: Tensor, species: Species) -> Tensor:
-    """Linear drift map ``(*K, 6, 6)``; ``R12 = R34 = L``, ``R56 = L / gamma0^2``."""
+    """Affine drift map ``(*K, 7, 7)``; ``R12 = R34 = L``, ``R56 = L / gamma0^2``."""
     length, p0c = torch.broadcast_tensors(length, p0c.to(length))
-    r = torch.eye(6, dtype=length.dtype, device=length.device).expand(
-        *length.shape, 6, 6
-    )
-    r = r.clone()
+    r = affine_identity(length.shape, length)
     mu2 = (species.mass_ev / p0c).square()
     r[..., 0, 1] = length
     r[..., 2, 3] = length
@@ -39,7 +40,7 @@ class Drift(Element):
         length: Length [m], shape ``()`` or ``(*K,)``; must be >= 0.
 
     Shapes:
-        ``track``: ``(*K, N, 6) -> (*K, N, 6)``; ``transfer_map``: ``(*K, 6, 6)``.
+        ``track``: ``(*K, N, 6) -> (*K, N, 6)``; ``transfer_map``: ``(*K, 7, 7)``.
 
     Raises:
         ValueError: if any ``length`` is negative.
@@ -73,6 +74,10 @@ class Drift(Element):
         return x, px, y, py, z, pz
 
     def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
-        """Linear map about the reference orbit, shape ``(*K, 6, 6)``."""
+        """Affine map about the reference orbit, shape ``(*K, 7, 7)``."""
         length = self.length
         return drift_matrix(length, as_p0c(p0c, length), species)
+
+    def linear_map_is_exact(self, monochromatic: bool) -> bool:
+        """Exact for ``pz = 0`` beams (or zero length); chromatic otherwise."""
+        return monochromatic or is_zero(self.length)

@@ -30,8 +30,15 @@ def bcast(value: Tensor, like: Tensor) -> Tensor:
 class Element(nn.Module):
     """A beamline element: tracks Bmad coordinates ``(x, px, y, py, z, pz)``.
 
-    Subclasses must implement :meth:`track`; :meth:`transfer_map` (the linear
-    6x6 map about the reference orbit) is optional. Numeric attributes listed in
+    Subclasses must implement :meth:`track`; :meth:`transfer_map` (the affine
+    first-order map about the reference orbit) and :meth:`linear_map_is_exact`
+    are optional.
+
+    Affine maps are ``(*K, 7, 7)`` matrices ``A`` acting on ``(u, 1)``: the
+    linear part ``A[..., :6, :6]`` (the Jacobian) and the offset
+    ``A[..., :6, 6]`` (where the reference particle ends up, e.g. after a
+    misaligned quadrupole); the last row is ``(0, ..., 0, 1)``. Maps compose by
+    matrix products, ``A_beamline = A_n @ ... @ A_1``. Numeric attributes listed in
     ``param_names`` are tensors: buffers, or ``nn.Parameter`` if passed as one.
 
     Broadcasting rule: an attribute of shape ``(*K,)`` acts on particles shaped
@@ -43,7 +50,7 @@ class Element(nn.Module):
         name: Element name, unique inside a ``Beamline``.
 
     Shapes:
-        ``track``: ``(*K, N, 6) -> (*K, N, 6)``; ``transfer_map``: ``(*K, 6, 6)``.
+        ``track``: ``(*K, N, 6) -> (*K, N, 6)``; ``transfer_map``: ``(*K, 7, 7)``.
     """
 
     #: Names of the numeric attributes, in spec order.
@@ -141,10 +148,25 @@ class Element(nn.Module):
         return stack_columns(coords)
 
     def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
-        """Linear 6x6 map about the reference orbit, shape ``(*K, 6, 6)``."""
+        """Affine first-order map about the reference orbit, ``(*K, 7, 7)``.
+
+        ``u_out ~ A[..., :6, :6] @ u_in + A[..., :6, 6]`` (see the class docs).
+        """
         raise NotImplementedError(
             f"{type(self).__name__} does not implement transfer_map."
         )
+
+    def linear_map_is_exact(self, monochromatic: bool) -> bool:
+        """Whether :meth:`transfer_map` reproduces :meth:`track` for such beams.
+
+        True means: for particles with ``pz = 0`` (``monochromatic``) or any
+        ``pz`` (not ``monochromatic``), ``track`` gives the affine map's
+        ``x, px, y, py, pz`` up to the paraxial terms of drifts (relative
+        ``(px^2 + py^2) / 2``, ~1e-8 for typical beams) and ``z`` up to its
+        second-order path-length terms. Callers that need images (the fast
+        linear path) must track when this is False. The default is False.
+        """
+        return False
 
     def to_spec(self) -> dict[str, Any]:
         """A JSON-serialisable dict ``{"type", "name", <params>}`` for this element."""

@@ -7,10 +7,12 @@ from torch import Tensor
 
 from diffaccel.dynamics._validate import as_p0c, check_nonnegative
 from diffaccel.dynamics.elements._kernels import (
+    affine_identity,
     focusing_functions,
     is_zero,
     quad_body,
     roll_matrix,
+    sinc_derivative,
     to_element_frame,
     to_lab_frame,
 )
@@ -27,8 +29,10 @@ class Quadrupole(Element):
     ``x' = px / (1 + pz)`` (px is Px/P0). Approximation: the body is paraxial
     (linear in x, x', y, y' for each particle); ``z`` changes by
     ``L (beta/beta0 - 1) - 1/2 int (x'^2 + y'^2) ds`` (second order), as in Bmad's
-    standard quadrupole tracking. No fringe fields. ``transfer_map`` is the linear
-    map at ``pz = 0`` (no chromatic terms).
+    standard quadrupole tracking. No fringe fields. ``transfer_map`` is the exact
+    first-order (affine) map about the reference orbit: offsets ``dx, dy`` move
+    the orbit (a dipole kick) and give it dispersion; for ``pz = 0`` particles it
+    reproduces ``track`` in ``x, px, y, py`` exactly.
 
     Args:
         name: Element name.
@@ -41,7 +45,7 @@ class Quadrupole(Element):
         dy: Vertical offset of the magnet [m].
 
     Shapes:
-        ``track``: ``(*K, N, 6) -> (*K, N, 6)``; ``transfer_map``: ``(*K, 6, 6)``.
+        ``track``: ``(*K, N, 6) -> (*K, N, 6)``; ``transfer_map``: ``(*K, 7, 7)``.
 
     Raises:
         ValueError: if any ``length`` is negative or an attribute is not finite.
@@ -97,28 +101,71 @@ class Quadrupole(Element):
         return x, px, y, py, z, pz
 
     def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
-        """Linear map at ``pz = 0`` about the magnet axis, shape ``(*K, 6, 6)``.
+        """Affine first-order map about the reference orbit, shape ``(*K, 7, 7)``.
 
-        Offsets ``dx, dy`` shift the orbit (a zeroth-order term) and do not enter
-        this matrix; ``tilt`` rotates it.
+        The Jacobian of :meth:`track` at the reference particle (``u = 0``) and
+        where that particle ends up. In the magnet frame the reference particle
+        sits at ``(x0, y0) = roll(-dx, -dy)``, where the body is expanded: the
+        transverse block is the thick-lens matrix, the ``pz`` column gets the
+        dispersion of the off-axis orbit (``dC/dpz x0`` etc.), the ``z`` row the
+        gradient of the path-length term.
         """
         p0c = as_p0c(p0c, self.length)
-        length, k1, tilt, p0c = torch.broadcast_tensors(
-            self.length, self.k1.to(p0c), self.tilt.to(p0c), p0c
+        length, k1, tilt, dx, dy, p0c = torch.broadcast_tensors(
+            self.length.to(p0c),
+            self.k1.to(p0c),
+            self.tilt.to(p0c),
+            self.dx.to(p0c),
+            self.dy.to(p0c),
+            p0c,
         )
-        c_x, s_x, c_y, s_y = focusing_functions(k1 * length.square())
-        s_x, s_y = s_x * length, s_y * length
         mu2 = (species.mass_ev / p0c).square()
-        r = length.new_zeros(*length.shape, 6, 6)
-        r[..., 0, 0], r[..., 0, 1], r[..., 1, 0], r[..., 1, 1] = (
-            c_x,
-            s_x,
-            -k1 * s_x,
-            c_x,
+        u = k1 * length.square()
+        c_x, s_x, c_y, s_y = focusing_functions(u)
+        ds_x = sinc_derivative(u, c_x, s_x)  # d s(u) / du
+        ds_y = sinc_derivative(-u, c_y, s_y)  # d s(v) / dv at v = -u
+        big_sx, big_sy = s_x * length, s_y * length
+        l3 = length * length.square()
+        ct, st = tilt.cos(), tilt.sin()
+        x0 = -(ct * dx + st * dy)  # reference particle in the magnet frame
+        y0 = -(ct * dy - st * dx)
+        zero = torch.zeros_like(x0)
+        # where the reference particle ends up (magnet frame): the body itself
+        xe, pxe, ye, pye, ze = quad_body(
+            (x0, zero, y0, zero, zero, zero), k1, length, mu2
         )
-        r[..., 2, 2], r[..., 2, 3], r[..., 3, 2], r[..., 3, 3] = c_y, s_y, k1 * s_y, c_y
-        r[..., 4, 4] = 1.0
-        r[..., 4, 5] = length * mu2 / (1.0 + mu2)
-        r[..., 5, 5] = 1.0
+        gx = length - c_x * big_sx  # d i_x / dx = k x0 gx (i_x: int x'^2 ds)
+        gy = length - c_y * big_sy
+        r = affine_identity(length.shape, length)
+        r[..., 0, 0], r[..., 0, 1] = c_x, big_sx
+        r[..., 1, 0], r[..., 1, 1] = -k1 * big_sx, c_x
+        r[..., 2, 2], r[..., 2, 3] = c_y, big_sy
+        r[..., 3, 2], r[..., 3, 3] = k1 * big_sy, c_y
+        # chromatic terms of the off-axis orbit: k = k1 / (1 + pz)
+        r[..., 0, 5] = 0.5 * k1 * length * big_sx * x0
+        r[..., 1, 5] = k1.square() * l3 * ds_x * x0
+        r[..., 2, 5] = -0.5 * k1 * length * big_sy * y0
+        r[..., 3, 5] = k1.square() * l3 * ds_y * y0
+        # z = z + L (beta/beta0 - 1) - (i_x + i_y) / 2, expanded about (x0, y0)
+        r[..., 4, 0] = -0.5 * k1 * x0 * gx
+        r[..., 4, 1] = 0.5 * k1 * x0 * big_sx.square()
+        r[..., 4, 2] = 0.5 * k1 * y0 * gy
+        r[..., 4, 3] = -0.5 * k1 * y0 * big_sy.square()
+        di_x = -0.5 * k1 * x0.square() * (
+            gx + k1 * (0.5 * length * big_sx.square() - c_x * l3 * ds_x)
+        )
+        di_y = 0.5 * k1 * y0.square() * (
+            gy + k1 * (c_y * l3 * ds_y - 0.5 * length * big_sy.square())
+        )
+        r[..., 4, 5] = length * mu2 / (1.0 + mu2) - 0.5 * (di_x + di_y)
+        r[..., 0, 6], r[..., 1, 6], r[..., 2, 6] = xe, pxe, ye
+        r[..., 3, 6], r[..., 4, 6] = pye, ze
         rot = roll_matrix(tilt)
-        return rot.transpose(-1, -2) @ r @ rot
+        out = rot.transpose(-1, -2) @ r @ rot
+        shift = affine_identity(length.shape, length)
+        shift[..., 0, 6], shift[..., 2, 6] = dx, dy
+        return shift @ out
+
+    def linear_map_is_exact(self, monochromatic: bool) -> bool:
+        """Exact for ``pz = 0`` beams, offsets included (chromatic otherwise)."""
+        return monochromatic or is_zero(self.length)

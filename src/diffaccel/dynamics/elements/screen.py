@@ -94,6 +94,10 @@ class Screen(Element):
         """Return the columns unchanged."""
         return coords
 
+    def linear_map_is_exact(self, monochromatic: bool) -> bool:
+        """Always: a screen does not act on the beam."""
+        return True
+
     def image(
         self,
         particles: Tensor,

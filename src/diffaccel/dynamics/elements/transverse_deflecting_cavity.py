@@ -10,6 +10,7 @@ from torch import Tensor
 from diffaccel.dynamics._validate import as_p0c, check_nonnegative
 from diffaccel.dynamics.constants import SPEED_OF_LIGHT
 from diffaccel.dynamics.elements._kernels import (
+    affine_identity,
     exact_drift,
     is_zero,
     roll_matrix,
@@ -24,32 +25,38 @@ __all__ = ["TransverseDeflectingCavity"]
 
 
 class TransverseDeflectingCavity(Element):
-    """Transverse deflecting cavity: drift(L/2), thin RF kick, drift(L/2).
+    """Transverse deflecting (crab) cavity: drift(L/2), thin RF kick, drift(L/2).
 
-    In the cavity frame the kick is vertical:
-    ``py += a sin(phase - k0 z)`` and, by Panofsky-Wenzel,
-    ``pz -= a k0 y cos(phase - k0 z)`` with ``a = |q| voltage / p0c`` and
-    ``k0 = 2 pi frequency / (beta0 c)``. Using the reference velocity ``beta0`` in
-    ``k0`` makes the kick exactly symplectic (the per-particle velocity spread is
-    neglected in the RF phase). ``phase = 0`` is the zero crossing (pure streak,
-    no centroid kick); particles at the head (z > 0) are kicked to -y.
+    Bmad's crab cavity, as cheetah 0.8.4 tracks it. In the cavity frame the kick
+    is horizontal: with ``a = -q voltage / p0c`` (``q`` in units of e; ``+V/p0c``
+    for electrons), ``k = 2 pi frequency / c`` and the RF phase each particle
+    sees, ``phi = phase + k z / beta`` (``beta`` the particle's own velocity,
+    ``z = -beta c t``),
+
+    - ``px += a sin(phi)``;
+    - its energy changes by ``dE / p0c = a k x cos(phi)`` (Panofsky-Wenzel),
+      which sets the new ``pz``; ``z`` is rescaled by ``beta_new / beta_old``.
+
+    ``phase = 0`` is the zero crossing (pure streak, no centroid kick); for
+    electrons particles at the head (``z > 0``) are kicked to ``+x`` at tilt 0.
+    ``tilt`` rolls the cavity: ``0`` streaks horizontally (couples z to x-px),
+    ``pi / 2`` vertically (couples z to y-py).
 
     Args:
         name: Element name.
         length: Length [m], >= 0.
         voltage: Peak deflecting voltage [V].
         frequency: RF frequency [Hz], >= 0.
-        phase: RF phase [rad].
-        tilt: Roll [rad]; ``0`` streaks in y (couples z to y-py), ``pi / 2``
-            streaks in x (couples z to x-px).
+        phase: RF phase [rad] (cheetah's ``phase`` is this divided by 2 pi).
+        tilt: Roll about the beam axis [rad].
 
     Shapes:
-        ``track``: ``(*K, N, 6) -> (*K, N, 6)``; ``transfer_map``: ``(*K, 6, 6)``.
-        The linear map omits the constant kick ``a sin(phase)``.
+        ``track``: ``(*K, N, 6) -> (*K, N, 6)``; ``transfer_map``: ``(*K, 7, 7)``.
+        The map's offset column holds the centroid kick ``a sin(phase)``.
 
     Example:
         >>> tdc = TransverseDeflectingCavity("T1", 0.5, 1e6, 2.856e9)
-        >>> tdc.transfer_map(1e9)[3, 4].item() < 0
+        >>> tdc.transfer_map(1e9)[1, 4].item() > 0  # px grows with z (electrons)
         True
     """
 
@@ -79,12 +86,10 @@ class TransverseDeflectingCavity(Element):
         check_nonnegative("frequency [Hz]", self.frequency, owner)
 
     def _strength(self, p0c: Tensor, species: Species) -> tuple[Tensor, Tensor]:
-        """``a = |q| V / p0c`` and ``k0 = 2 pi f / (beta0 c)`` [1/m]."""
-        mu2 = (species.mass_ev / p0c).square()
-        beta0 = 1.0 / (1.0 + mu2).sqrt()
-        a = abs(species.charge) * self.voltage.to(p0c) / p0c
-        k0 = 2 * math.pi * self.frequency.to(p0c) / (beta0 * SPEED_OF_LIGHT)
-        return a, k0
+        """``a = -q V / p0c`` and ``k = 2 pi f / c`` [1/m]."""
+        a = -species.charge * self.voltage.to(p0c) / p0c
+        k = 2 * math.pi * self.frequency.to(p0c) / SPEED_OF_LIGHT
+        return a, k
 
     def track(
         self, particles: Tensor, p0c: Tensor | float, species: Species = ELECTRON
@@ -95,8 +100,8 @@ class TransverseDeflectingCavity(Element):
     def track_columns(self, coords: Coords, p0c: Tensor, species: Species) -> Coords:
         """Unchecked column tracking (see :meth:`Element.track_columns`)."""
         x, px, y, py, z, pz = coords
-        a, k0 = self._strength(p0c, species)
-        a, k0 = a.unsqueeze(-1), k0.unsqueeze(-1)
+        a, k = self._strength(p0c, species)
+        a, k = a.unsqueeze(-1), k.unsqueeze(-1)
         half = bcast(self.length, x) / 2
         phase = bcast(self.phase, x)
         mu2 = (species.mass_ev / p0c).square().unsqueeze(-1)
@@ -106,24 +111,47 @@ class TransverseDeflectingCavity(Element):
             frame = (zero, zero, bcast(self.tilt, x))
             x, px, y, py = to_element_frame(x, px, y, py, *frame)
         x, y, z = exact_drift(x, px, y, py, z, pz, half, mu2)
-        rf = phase - k0 * z
-        py = py + a * rf.sin()
-        pz = pz - a * k0 * y * rf.cos()
+        p = 1.0 + pz
+        energy = (p.square() + mu2).sqrt()  # E / p0c
+        beta = p / energy
+        rf = phase + k * z / beta
+        px = px + a * rf.sin()
+        d_energy = a * k * x * rf.cos()
+        energy_new = energy + d_energy
+        p_new = (energy_new.square() - mu2).sqrt()
+        # p_new - p without cancellation: (E_new^2 - E^2) / (p_new + p)
+        pz = pz + d_energy * (energy_new + energy) / (p_new + p)
+        z = z * (p_new / energy_new) / beta
         x, y, z = exact_drift(x, px, y, py, z, pz, half, mu2)
         if rolled:
             x, px, y, py = to_lab_frame(x, px, y, py, *frame)
         return x, px, y, py, z, pz
 
     def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
-        """Linear map about the reference orbit, shape ``(*K, 6, 6)``."""
+        """Affine map about the reference orbit, shape ``(*K, 7, 7)``.
+
+        The product of the first-order maps of the half drifts and of the kick
+        about the reference orbit (``px += a sin(phase)``, ``dpx/dz = dpz/dx =
+        a k cos(phase) / beta0``); the Jacobian of :meth:`track` at ``u = 0``
+        when ``sin(phase) = 0``. Never exact for images when the voltage is
+        non-zero (see :meth:`linear_map_is_exact`).
+        """
         p0c = as_p0c(p0c, self.length)
-        a, k0 = self._strength(p0c, species)
-        length, phase, tilt, a, k0, p0c = torch.broadcast_tensors(
-            self.length, self.phase.to(a), self.tilt.to(a), a, k0, p0c
+        a, k = self._strength(p0c, species)
+        length, phase, tilt, a, k, p0c = torch.broadcast_tensors(
+            self.length.to(a), self.phase.to(a), self.tilt.to(a), a, k, p0c
         )
+        mu2 = (species.mass_ev / p0c).square()
+        beta0 = (1.0 + mu2).rsqrt()
         d = drift_matrix(length / 2, p0c, species)
-        kick = torch.eye(6, dtype=d.dtype, device=d.device).expand_as(d).clone()
-        kick[..., 3, 4] = -a * k0 * phase.cos()
-        kick[..., 5, 2] = -a * k0 * phase.cos()
+        kick = affine_identity(length.shape, length)
+        slope = a * k * phase.cos() / beta0
+        kick[..., 1, 4] = slope
+        kick[..., 5, 0] = slope
+        kick[..., 1, 6] = a * phase.sin()
         rot = roll_matrix(tilt)
         return rot.transpose(-1, -2) @ d @ kick @ d @ rot
+
+    def linear_map_is_exact(self, monochromatic: bool) -> bool:
+        """Only when switched off (``sin(k z)`` and the energy kick are nonlinear)."""
+        return is_zero(self.voltage) and (monochromatic or is_zero(self.length))
