@@ -159,6 +159,54 @@ def test_kde_banded_gradcheck(monkeypatch) -> None:
     assert torch.autograd.gradcheck(f, (x, y, w))
 
 
+@pytest.mark.parametrize("weighted", [False, True], ids=["unweighted", "weighted"])
+def test_kde_full_screen_path_equals_windowed_path(monkeypatch, weighted) -> None:
+    """The fixed-shape path (all images at once, no host sync; used off the CPU)
+    gives the windowed path's images and gradients, here on the CPU in float64,
+    with particles off the screen and chunks smaller than the beam."""
+    import diffaccel.dynamics.images as images
+
+    g = torch.Generator().manual_seed(13)
+    n, shape, pixel, h = 500, (24, 30), 1e-3, (1.2e-3, 0.8e-3)
+    x = torch.randn(3, n, generator=g, dtype=F64) * 6e-3
+    y = torch.randn(3, n, generator=g, dtype=F64) * 4e-3 + 1e-3
+    x[:, :2] = torch.tensor([-0.03, 0.02], dtype=F64)  # beyond the edges
+    w = torch.rand(3, n, generator=g, dtype=F64) + 0.5 if weighted else None
+    weight = torch.linspace(-1, 2, 3 * shape[0] * shape[1], dtype=F64)
+    monkeypatch.setattr(images, "_FULL_CHUNK", 128)  # 4 chunks, the last partial
+
+    def run(full: bool):
+        monkeypatch.setattr(images, "_full_screen_path", lambda t: full)
+        xg, yg = x.clone().requires_grad_(True), y.clone().requires_grad_(True)
+        wg = None if w is None else w.clone().requires_grad_(True)
+        image = kde_image(xg, yg, shape, pixel, bandwidth=h, weights=wg)
+        (image * weight.view_as(image)).sum().backward()
+        grads = (xg.grad, yg.grad) + (() if wg is None else (wg.grad,))
+        return (image.detach(), *grads)
+
+    full, windowed = run(True), run(False)
+    # windowed drops kernel values beyond 9 bandwidths (< 3e-18 of the peak)
+    torch.testing.assert_close(full[0], windowed[0], rtol=1e-12, atol=1e-15)
+    for a, b in zip(full[1:], windowed[1:], strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_kde_full_screen_gradcheck(monkeypatch) -> None:
+    import diffaccel.dynamics.images as images
+
+    monkeypatch.setattr(images, "_full_screen_path", lambda t: True)
+    monkeypatch.setattr(images, "_FULL_CHUNK", 4)
+    g = torch.Generator().manual_seed(14)
+    x = (torch.randn(2, 7, generator=g, dtype=F64) * 2e-3).requires_grad_(True)
+    y = (torch.randn(2, 7, generator=g, dtype=F64) * 2e-3).requires_grad_(True)
+    w = (torch.rand(2, 7, generator=g, dtype=F64) + 0.5).requires_grad_(True)
+
+    def f(x, y, w):
+        return kde_image(x, y, (9, 8), 1e-3, bandwidth=1e-3, weights=w)
+
+    assert torch.autograd.gradcheck(f, (x, y, w))
+
+
 def test_cic_and_kde_agree_within_discretisation() -> None:
     g = torch.Generator().manual_seed(3)
     x = torch.randn(10_000, generator=g, dtype=F64) * 6e-3
