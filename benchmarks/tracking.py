@@ -7,7 +7,7 @@ Gaussian KDE (bandwidth one pixel). Forward = track + image; forward+backward ad
 
 Variants: ``ours_*`` exact chromatic tracking, ``Beamline.screen_images`` (the
 images straight from the tracked columns); ``ours_linear_*`` the same lattice
-through ``Beamline.linearized`` (one 6x6 map per setting);
+through ``Beamline.linearized`` (one affine 7x7 map per setting);
 ``cheetah_*`` cheetah 0.8.4 with its default linear quadrupole;
 ``cheetah_dkd_*`` cheetah's exact chromatic ``drift_kick_drift`` quadrupole.
 ``ratio_vs_cheetah_*`` compare like with like (linear vs linear);
