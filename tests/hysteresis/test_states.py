@@ -216,7 +216,7 @@ def test_initial_states(kind: str, u0: float, expected: float) -> None:
     model = PreisachModel(PreisachMesh.triangular(10), initial_state=kind)
     with torch.no_grad():
         m = model.magnetization(torch.tensor([u0], dtype=F64))
-    # the triangular mesh is mirror symmetric: demagnetised m = 0 exactly
+    # the triangular mesh is mirror symmetric: demagnetized m = 0 exactly
     # up to float64 round-off
     torch.testing.assert_close(
         m, torch.tensor([expected], dtype=F64), atol=1e-12, rtol=0

@@ -68,7 +68,7 @@ def default_input_range(
     """Model input range from training inputs [input units].
 
     The training span plus ``RANGE_MARGIN`` of it on both sides. A magnet that
-    starts ``"demagnetized"`` was demagnetised about zero input, which is then
+    starts ``"demagnetized"`` was demagnetized about zero input, which is then
     the centre of its Preisach plane: the range is symmetric about 0,
     ``+-(1 + RANGE_MARGIN) max|u|``.
 

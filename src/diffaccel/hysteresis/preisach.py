@@ -375,7 +375,7 @@ class PreisachModel(nn.Module):
             smooth: See :meth:`states`.
 
         Returns:
-            Magnetisation in ``[-1, 1]``, shape ``(*B, T)``.
+            Magnetization in ``[-1, 1]``, shape ``(*B, T)``.
         """
         return self._magnetization(self.normalize_input(u), initial_state, smooth)
 

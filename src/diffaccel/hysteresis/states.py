@@ -101,7 +101,7 @@ class RowLayout:
 
 
 def demagnetized_state(alpha: Tensor, beta: Tensor) -> Tensor:
-    """States after AC demagnetisation about the centre of the range.
+    """States after AC demagnetization about the centre of the range.
 
     Hysterons below the anti-diagonal ``alpha + beta = 1`` are up, those above it
     down (points on it, to round-off of 1e-9, get 0).
@@ -238,7 +238,7 @@ def exact_magnetization(
     w_row = w_cum[:, -1:]
     # row sums of weights below each beta level: (R, U + 1)
     w_below = torch.gather(w_cum, 1, layout.below)
-    signed = 2.0 * w_below - w_row  # row magnetisation if levels < j are up
+    signed = 2.0 * w_below - w_row  # row magnetization if levels < j are up
     up_part = torch.gather(signed, 1, window_rank.transpose(0, 1).reshape(n_rows, -1))
     # hysterons that never switched up: initial state below the running
     # minimum, -1 above it
@@ -290,7 +290,7 @@ def smooth_states(
 
     The sequence starts from a virtual turning point at input ``start`` with
     states ``initial`` (negative saturation: ``start = 0``; positive: ``1``;
-    demagnetised or learned: ``0.5``), then follows ``u``. Direction changes of
+    demagnetized or learned: ``0.5``), then follows ``u``. Direction changes of
     the input (ignoring flat steps) are turning points; on each monotone segment
     the state follows the module formula, continuous at the turning points.
 

@@ -228,7 +228,7 @@ def bipolar_quadrupole_case(
 def bh_loop_case(
     seed: int = 0, h_max: float = 1.0, points: int = 15
 ) -> tuple[Tensor, Tensor, int, PreisachModel]:
-    """A soft-iron B-H loop from the demagnetised state, with noise.
+    """A soft-iron B-H loop from the demagnetized state, with noise.
 
     Virgin curve ``0 -> h_max`` and first descent ``h_max -> 0`` (``2 points +
     1`` rows, for fitting), then the negative half ``0 -> -h_max -> 0`` (``2
@@ -238,7 +238,7 @@ def bh_loop_case(
 
     Returns:
         ``(H [A/m] (T,), B [T] (T,), n_train, true sample)``; the sample starts
-        demagnetised (``initial_state="demagnetized"``).
+        demagnetized (``initial_state="demagnetized"``).
     """
     gen = torch.Generator().manual_seed(1000 + seed)
     magnet = symmetric_magnet(
