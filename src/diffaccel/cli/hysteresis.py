@@ -264,11 +264,20 @@ def fit_command(
     "--out", "out_file", type=click.Path(dir_okay=False, path_type=Path), required=True
 )
 @click.option(
+    "--chunk-rows",
+    type=click.IntRange(min=1),
+    default=CHUNK_ROWS,
+    show_default=True,
+    help="Rows read, predicted and written at a time (memory grows with it).",
+)
+@click.option(
     "--force",
     is_flag=True,
     help="Overwrite OUT if it exists, and replace prediction columns of the input.",
 )
-def predict_command(fit_dir: Path, data: Path, out_file: Path, force: bool) -> None:
+def predict_command(
+    fit_dir: Path, data: Path, out_file: Path, chunk_rows: int, force: bool
+) -> None:
     """Predict every row of a CSV (streamed), from the fit's initial state.
 
     Writes the input's columns plus ``prediction`` and ``prediction_std`` (one
@@ -286,7 +295,7 @@ def predict_command(fit_dir: Path, data: Path, out_file: Path, force: bool) -> N
         raise click.ClickException(f"cannot load a fit from {fit_dir}: {err}") from err
     in_col = config.get("input_column", DEFAULT_INPUT_COLUMN)
     try:
-        header, chunks = iter_magnet_csv(data, in_col, chunk_rows=CHUNK_ROWS)
+        header, chunks = iter_magnet_csv(data, in_col, chunk_rows=chunk_rows)
     except (OSError, ValueError) as err:
         raise click.ClickException(str(err)) from err
     clash = [c for c in (PREDICTION, PREDICTION_STD) if c in header]
@@ -316,9 +325,17 @@ def predict_command(fit_dir: Path, data: Path, out_file: Path, force: bool) -> N
                 warnings.simplefilter("ignore", InputRangeWarning)  # noted below
                 for pred, std in predict_stream(model, inputs(), band):
                     rows = pending.pop(0)
-                    sd = std.tolist() if std is not None else [math.nan] * len(rows)
-                    for row, p, s in zip(rows, pred.tolist(), sd, strict=True):
-                        writer.writerow([row[i] for i in keep] + [repr(p), repr(s)])
+                    if std is None:
+                        std = torch.full_like(pred, math.nan)
+                    if clash:
+                        rows = [[row[i] for i in keep] for row in rows]
+                    # shortest round-trip text of each float
+                    ps = map(repr, pred.tolist())
+                    ss = map(repr, std.tolist())
+                    for row, p, s in zip(rows, ps, ss, strict=True):
+                        row.append(p)
+                        row.append(s)
+                    writer.writerows(rows)
                     stats["rows"] += len(rows)
                     stats["finite"] &= bool(torch.isfinite(pred).all())
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import csv
 import io
-import math
+import itertools
 import os
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -67,49 +67,59 @@ class MagnetHistory:
 def _parse_column(
     rows: list[list[str]], col: int, name: str, path: str, first: int = 0
 ) -> Tensor:
-    values = []
-    for i, row in enumerate(rows, start=first):
+    try:
+        values = torch.tensor([float(row[col]) for row in rows], dtype=torch.float64)
+    except (ValueError, IndexError):
+        values = None
+    if values is not None:
+        bad = ~torch.isfinite(values)
+        if not bad.any():
+            return values
+        i = int(bad.nonzero()[0, 0])
+        raise FormatError(
+            f"{path}: column {name!r}, data row {first + i + 1}: expected a finite "
+            f"number; found {rows[i][col]!r}."
+        )
+    for i, row in enumerate(rows):  # find the first bad cell for the message
         try:
-            v = float(row[col])
+            float(row[col])
         except (ValueError, IndexError):
             cell = row[col] if col < len(row) else "<missing>"
             raise FormatError(
-                f"{path}: column {name!r}, data row {i + 1}: expected a number; "
-                f"found {cell!r}."
+                f"{path}: column {name!r}, data row {first + i + 1}: expected a "
+                f"number; found {cell!r}."
             ) from None
-        if not math.isfinite(v):
-            raise FormatError(
-                f"{path}: column {name!r}, data row {i + 1}: expected a finite "
-                f"number; found {row[col]!r}."
-            )
-        values.append(v)
-    return torch.tensor(values, dtype=torch.float64)
+    raise AssertionError("unreachable")  # pragma: no cover
 
 
-def _rows(path: str | os.PathLike) -> Iterator[tuple[int, list[str]]]:
-    """Non-blank CSV rows with their line numbers; a UTF-8 BOM is accepted."""
+def _row_batches(path: str | os.PathLike, size: int) -> Iterator[list[list[str]]]:
+    """Non-blank CSV rows in batches of up to ``size``; a UTF-8 BOM is accepted.
+
+    Cells longer than ``MAX_CELL_CHARS`` are refused by the C parser itself
+    (its field size limit, set only while this reader parses).
+    """
     path_s = str(path)
     try:
         with open(path, encoding="utf-8-sig", newline="") as f:
             reader = csv.reader(f)
             while True:
+                limit = csv.field_size_limit(MAX_CELL_CHARS)
                 try:
-                    row = next(reader)
-                except StopIteration:
-                    return
+                    batch = list(itertools.islice(reader, size))
                 except csv.Error as err:
+                    if "field larger than field limit" in str(err):
+                        raise FormatError(
+                            f"{path_s}: line {reader.line_num}: a cell longer than "
+                            f"{MAX_CELL_CHARS} characters; not magnet data."
+                        ) from None
                     raise FormatError(
                         f"{path_s}: line {reader.line_num}: not valid CSV ({err})."
                     ) from None
-                if not any(c.strip() for c in row):
-                    continue
-                for c in row:
-                    if len(c) > MAX_CELL_CHARS:
-                        raise FormatError(
-                            f"{path_s}: line {reader.line_num}: a cell of {len(c)} "
-                            f"characters (at most {MAX_CELL_CHARS}); not magnet data."
-                        )
-                yield reader.line_num, row
+                finally:
+                    csv.field_size_limit(limit)
+                if not batch:
+                    return
+                yield [r for r in batch if "".join(r).strip()]
     except UnicodeDecodeError as err:
         raise FormatError(f"{path_s}: not UTF-8 text ({err.reason}).") from None
 
@@ -162,7 +172,7 @@ def read_magnet_csv(
     path_s = str(path)
     if not Path(path).is_file():
         raise FileNotFoundError(f"{path_s}: no such file.")
-    rows = [r for _, r in _rows(path)]
+    rows = [r for batch in _row_batches(path, 65536) for r in batch]
     if not rows:
         raise FormatError(f"{path_s}: empty file; expected a header row and data.")
     header = _header(path_s, rows[0])
@@ -224,11 +234,15 @@ def iter_magnet_csv(
         raise FileNotFoundError(f"{path_s}: no such file.")
     if chunk_rows < 1:
         raise ValueError(f"chunk_rows must be >= 1; got {chunk_rows}.")
-    rows_it = _rows(path)
-    first = next(rows_it, None)
-    if first is None:
+    batches = _row_batches(path, chunk_rows)
+    first: list[list[str]] = []
+    for batch in batches:
+        if batch:
+            first = batch
+            break
+    if not first:
         raise FormatError(f"{path_s}: empty file; expected a header row and data.")
-    header = _header(path_s, first[1])
+    header = _header(path_s, first[0])
     if input_column not in header:
         raise FormatError(
             f"{path_s}: no input column {input_column!r}; columns are {header}."
@@ -236,23 +250,19 @@ def iter_magnet_csv(
     col = header.index(input_column)
 
     def chunks() -> Iterator[tuple[list[list[str]], Tensor]]:
-        buf: list[list[str]] = []
         done = 0
-        any_rows = False
-        for _, row in rows_it:
-            if len(row) != len(header):
-                raise FormatError(
-                    f"{path_s}: data row {done + len(buf) + 1} has {len(row)} "
-                    f"cells; the header has {len(header)}."
-                )
-            buf.append(row)
-            if len(buf) == chunk_rows:
-                yield buf, _parse_column(buf, col, input_column, path_s, done)
-                done += len(buf)
-                buf, any_rows = [], True
-        if buf:
-            yield buf, _parse_column(buf, col, input_column, path_s, done)
-        elif not any_rows:
+        for batch in itertools.chain([first[1:]], batches):
+            if not batch:
+                continue
+            for i, row in enumerate(batch):
+                if len(row) != len(header):
+                    raise FormatError(
+                        f"{path_s}: data row {done + i + 1} has {len(row)} cells; "
+                        f"the header has {len(header)}."
+                    )
+            yield batch, _parse_column(batch, col, input_column, path_s, done)
+            done += len(batch)
+        if done == 0:
             raise FormatError(f"{path_s}: header only; expected at least one data row.")
 
     return header, chunks()
