@@ -41,14 +41,16 @@ DATASET = DATA / "gpsr_4d_synthetic.h5"
 SYNC_OPS = ("aten::item", "aten::_local_scalar_dense")
 
 
-def _config(args: argparse.Namespace) -> ReconstructionConfig:
-    defaults = ReconstructionConfig()
-    snapshots = defaults.snapshots
-    return ReconstructionConfig(
-        n_particles=args.particles,
-        epochs=args.steps - args.steps % snapshots,
-        snapshots=snapshots,
-    )
+def _config(steps: int, particles: int) -> ReconstructionConfig:
+    return ReconstructionConfig(n_particles=particles, steps=steps)
+
+
+def _profile(ds, train, cfg, device) -> tuple[list, float]:
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as p:
+        t0 = time.perf_counter()
+        reconstruct(ds, cfg, train_indices=train, device=device)
+        wall = time.perf_counter() - t0
+    return list(p.events()), wall
 
 
 def _top_level(events) -> list:
@@ -71,8 +73,8 @@ def _top_level(events) -> list:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--steps", type=int, default=60)
-    ap.add_argument("--skip", type=int, default=20)
+    ap.add_argument("--steps", type=int, default=60, help="short run; long = 2x")
+    ap.add_argument("--repeats", type=int, default=3, help="timed runs per length")
     ap.add_argument("--particles", type=int, default=ReconstructionConfig.n_particles)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=1)
@@ -83,36 +85,34 @@ def main() -> None:
     torch.optim.Adam([torch.zeros(1, requires_grad=True)])  # one-off import
     ds = read_quad_scan(DATASET)
     train = list(range(0, ds.n_settings, 2))
-    cfg = _config(args)
-
-    # 1) timing, unprofiled: wall time between consecutive callbacks
-    stamps: list[float] = []
-    reconstruct(
-        ds,
-        cfg,
-        train_indices=train,
-        device=args.device,
-        callback=lambda info: stamps.append(time.perf_counter()),
-    )
-    gaps = [b - a for a, b in zip(stamps[args.skip :], stamps[args.skip + 1 :])]
-
-    # 2) counts, profiled over steps skip .. end
-    active = cfg.epochs - args.skip
-    sched = torch.profiler.schedule(wait=args.skip - 1, warmup=1, active=active)
-    with torch.profiler.profile(
-        activities=[torch.profiler.ProfilerActivity.CPU], schedule=sched
-    ) as prof:
-        reconstruct(
-            ds,
-            cfg,
-            train_indices=train,
-            device=args.device,
-            callback=lambda info: prof.step(),
-        )
-        events = list(prof.events())
-    aten = [e for e in events if e.name.startswith("aten::")]
-    top = _top_level(events)
-    syncs = sum(e.name in SYNC_OPS for e in aten)
+    short, long = args.steps, 2 * args.steps
+    # per-step figures: (long run - short run) / (long - short steps), so that
+    # set-up, initial fit and the ensemble's bookkeeping cancel; both runs have
+    # the same number of snapshots, hence the same extra reads
+    timings = {}
+    for steps in (short, long):
+        t = []
+        for _ in range(args.repeats):
+            r = reconstruct(
+                ds,
+                _config(steps, args.particles),
+                train_indices=train,
+                device=args.device,
+            )
+            t.append(r.info["timings_s"]["training"])
+        timings[steps] = statistics.median(t)
+    step_time = (timings[long] - timings[short]) / (long - short)
+    counts = {}
+    for steps in (short, long):
+        events, _ = _profile(ds, train, _config(steps, args.particles), args.device)
+        aten = [e for e in events if e.name.startswith("aten::")]
+        counts[steps] = {
+            "all": aten,
+            "top": _top_level(events),
+            "syncs": sum(e.name in SYNC_OPS for e in aten),
+        }
+    d = long - short
+    cfg = _config(short, args.particles)
     result = {
         "name": "reconstruction_step",
         "dataset": str(DATASET.resolve()),
@@ -120,13 +120,16 @@ def main() -> None:
         "threads": torch.get_num_threads(),
         "n_particles": cfg.n_particles,
         "train_images": len(train),
-        "profiled_steps": active,
-        "aten_ops_per_step": len(top) / active,
-        "aten_ops_all_per_step": len(aten) / active,
-        "host_syncs_per_step": syncs / active,
-        "step_time_median_s": statistics.median(gaps),
-        "step_time_p10_s": sorted(gaps)[len(gaps) // 10],
-        "step_time_p90_s": sorted(gaps)[(9 * len(gaps)) // 10],
+        "steps_compared": [short, long],
+        "report_every": cfg.report_every,
+        "aten_ops_per_step": (len(counts[long]["all"]) - len(counts[short]["all"])) / d,
+        "aten_ops_top_level_per_step": (
+            len(counts[long]["top"]) - len(counts[short]["top"])
+        )
+        / d,
+        "host_syncs_per_step": (counts[long]["syncs"] - counts[short]["syncs"]) / d,
+        "step_time_s": step_time,
+        "training_s": timings,
         "acceptance": {"max_aten_ops": 300, "max_host_syncs": 1},
         "load_avg_1min": os.getloadavg()[0],
         "torch": torch.__version__,
@@ -134,12 +137,9 @@ def main() -> None:
         "git_commit": git_commit(),
     }
     if args.top:
-        result["top_ops"] = Counter(e.name for e in top).most_common(args.top)
-        result["sync_parents"] = Counter(
-            e.cpu_parent.name if e.cpu_parent else None
-            for e in aten
-            if e.name == "aten::item"
-        ).most_common(10)
+        ca = Counter(e.name for e in counts[long]["all"])
+        ca.subtract(Counter(e.name for e in counts[short]["all"]))
+        result["top_ops_per_step"] = [(k, v / d) for k, v in ca.most_common(args.top)]
     emit(result, args.json)
 
 

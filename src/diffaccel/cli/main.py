@@ -13,7 +13,6 @@ import importlib
 import logging
 
 import click
-from click.utils import make_default_short_help
 
 from diffaccel import __version__
 
@@ -66,6 +65,11 @@ def load_command(name: str) -> click.Command:
     return cmd
 
 
+def _short_help(text: str, limit: int) -> str:
+    """``text`` shortened as click shortens a command's help in a listing."""
+    return click.Command("_", help=text).get_short_help_str(limit)
+
+
 class _LazyGroup(click.Group):
     """A click group whose commands are imported when they are invoked."""
 
@@ -86,7 +90,7 @@ class _LazyGroup(click.Group):
         # (same truncation as click.Group.format_commands)
         names = self.list_commands(ctx)
         limit = formatter.width - 6 - max(len(n) for n in names)
-        rows = [(n, make_default_short_help(COMMANDS[n][2], limit)) for n in names]
+        rows = [(n, _short_help(COMMANDS[n][2], limit)) for n in names]
         with formatter.section("Commands"):
             formatter.write_dl(rows)
 

@@ -11,7 +11,7 @@ from torch import Tensor
 
 from diffaccel.dynamics.beamline import Beamline
 from diffaccel.dynamics.elements.screen import Screen
-from diffaccel.dynamics.images import cic_image
+from diffaccel.dynamics.images import cic_image, gaussian_blur
 from diffaccel.dynamics.species import Species
 
 
@@ -260,3 +260,119 @@ class ScreenForwardModel:
     def beta_gamma(self) -> float:
         """Relativistic ``beta * gamma = p0c / (m c^2)`` of the reference particle."""
         return self.p0c / self._species.mass_ev
+
+
+# ATen's bilinear grid-sampler backward deposits cloud-in-cell images (its input
+# gradient) and differentiates them (its grid gradient), as in
+# diffaccel.dynamics.images.cic_image; arguments: bilinear, zero padding,
+# align_corners=False
+_grid_sampler_backward = torch.ops.aten.grid_sampler_2d_backward
+_SAMPLER = (0, 0, False)
+
+
+class LinearScreenImages:
+    """Screen images through fixed linear maps for a fixed number of particles.
+
+    The training fast path of :meth:`ScreenForwardModel.images_linear` (same
+    images: cloud-in-cell deposition, then the Gaussian blur, sum = fraction on
+    the screen): everything that does not change between steps (the maps in
+    normalised screen coordinates, the blur matrices, the deposit weights) is
+    prepared once, and one call is a handful of kernels with fixed shapes and no
+    host synchronisation: one batched product gives every image's sampler
+    coordinates, ATen's grid-sampler backward deposits all images at once, two
+    products blur them; the hand-written backward runs the same kernels in
+    reverse.
+
+    Args:
+        forward: The scan's forward model (screen geometry and blur).
+        maps: Linear maps to the screen ``(K, 6, 6)``, or affine ``(K, 7, 7)``
+            (last column: offsets [m]).
+        n: Number of particles of every call.
+        dims: Coordinates the particles carry (4: ``z = pz = 0``; 6: all).
+        dtype: Floating dtype of particles and images.
+        device: Device of particles and images.
+
+    Shapes:
+        ``__call__(particles (n, dims))`` -> ``(K, H, W)``.
+    """
+
+    def __init__(
+        self,
+        forward: ScreenForwardModel,
+        maps: Tensor,
+        n: int,
+        dims: int,
+        *,
+        dtype: torch.dtype = torch.float32,
+        device: str | torch.device | None = None,
+    ) -> None:
+        scr = forward.screen
+        h, w = scr.shape
+        psx, psy = scr.pixel_size
+        cx, cy = scr.center
+        maps = maps.to(dtype=torch.float64, device="cpu")
+        k = maps.shape[0]
+        rows = maps[:, [0, 2], :dims]  # (K, 2, D)
+        if maps.shape[-1] == 7:
+            shift = maps[:, [0, 2], 6]
+        else:
+            shift = torch.zeros(k, 2, dtype=torch.float64)
+        # sampler coordinates (align_corners=False): the screen spans [-1, 1]
+        s = torch.tensor([2.0 / (psx * w), 2.0 / (psy * h)], dtype=torch.float64)
+        centre = torch.tensor([cx, cy], dtype=torch.float64)
+        kw = {"dtype": dtype, "device": device}
+        self.g = (rows * s[:, None]).transpose(1, 2).contiguous().to(**kw)
+        self.g_t = self.g.transpose(1, 2).contiguous()
+        self.offset = ((shift - centre) * s).unsqueeze(1).to(**kw)  # (K, 1, 2)
+        # 1.5 pixels beyond the edges all four corners are off the screen:
+        # such particles deposit nothing and get no gradient (as in cic_image)
+        self.lo = torch.tensor([-1.0 - 3.0 / w, -1.0 - 3.0 / h], **kw)
+        self.hi = torch.tensor([1.0 + 3.0 / w, 1.0 + 3.0 / h], **kw)
+        self.per_particle = torch.full((), 1.0 / n, **kw).expand(k, 1, 1, n)
+        self.template = torch.empty((), **kw).expand(k, 1, h, w)
+        self.shape = (k, h, w)
+        self.n = n
+        blur = forward._blur()
+        self.by = self.bx_t = None
+        if blur is not None:
+            # the blur of dynamics.images.gaussian_blur as two matrices: blurring
+            # the identity in one direction gives that direction's matrix
+            eye_h = torch.eye(h, dtype=torch.float64)[None]
+            eye_w = torch.eye(w, dtype=torch.float64)[None]
+            self.by = gaussian_blur(eye_h, (0.0, blur[1]), (psx, psy))[0].to(**kw)
+            self.bx_t = gaussian_blur(eye_w, (blur[0], 0.0), (psx, psy))[0].to(**kw)
+
+    def __call__(self, particles: Tensor) -> Tensor:
+        return _LinearCIC.apply(particles, self)
+
+
+class _LinearCIC(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x: Tensor, spec: LinearScreenImages) -> Tensor:  # type: ignore[override]
+        k, h, w = spec.shape
+        grid = torch.baddbmm(spec.offset, x.expand(k, *x.shape), spec.g)
+        grid = torch.clamp_(grid, spec.lo, spec.hi).unsqueeze(1)  # (K, 1, N, 2)
+        image = _grid_sampler_backward(
+            spec.per_particle, spec.template, grid, *_SAMPLER, [True, False]
+        )[0].view(k, h, w)
+        if spec.by is not None:
+            image = torch.matmul(torch.matmul(spec.by, image), spec.bx_t)
+        ctx.save_for_backward(grid)
+        ctx.spec = spec
+        return image
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:  # type: ignore[override]
+        (grid,) = ctx.saved_tensors
+        spec = ctx.spec
+        k, h, w = spec.shape
+        if spec.by is not None:  # adjoint of by @ image @ bx_t
+            grad = torch.matmul(spec.by.t(), torch.matmul(grad, spec.bx_t.t()))
+        g = _grid_sampler_backward(
+            spec.per_particle,
+            grad.reshape(k, 1, h, w),
+            grid,
+            *_SAMPLER,
+            [False, True],
+        )[1]
+        return torch.bmm(g.view(k, spec.n, 2), spec.g_t).sum(0), None

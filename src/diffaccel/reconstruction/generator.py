@@ -131,7 +131,7 @@ class BeamGenerator(nn.Module):
         Args:
             n: Number of particles.
             generator: Random generator (on the device of the model).
-            quasi_random: Use a freshly scrambled Sobol sequence (see
+            quasi_random: Use the Sobol sequence with a fresh random digital shift (see
                 :func:`standard_normal_samples`) instead of i.i.d. samples.
         """
         p = self.log_scale
@@ -228,3 +228,103 @@ def standard_normal_samples(
     dev = generator.device if generator is not None else device
     points = sobol_integers(n, dims, device=dev)
     return shifted_sobol_normals(points, generator).to(dtype=dtype, device=device)
+
+
+class FlatGenerator:
+    """Training view of a :class:`BeamGenerator`: one flat parameter vector.
+
+    The module's parameters become views of one tensor ``flat`` (so its
+    ``state_dict``, snapshots and ``load_state_dict`` keep working), and
+    :meth:`sample` runs the generator through a hand-written backward that
+    writes the gradient of every parameter into one flat vector. An optimiser
+    then updates all parameters with a few whole-vector kernels. Together this
+    replaces the ~300 small autograd and optimiser operations of a step by ~40.
+
+    Args:
+        model: The generator (already on its training device and dtype).
+        n: Particles per call of :meth:`sample`.
+        quasi_random: Sobol base samples with a fresh digital shift per call
+            (see :func:`shifted_sobol_normals`) instead of i.i.d. normals.
+
+    Shapes:
+        ``sample(generator)`` -> ``(n, dims)`` (only the generated coordinates;
+        for ``dims = 4``, ``z = pz = 0``).
+    """
+
+    def __init__(self, model: BeamGenerator, n: int, quasi_random: bool) -> None:
+        params = list(model.parameters())
+        self.flat = torch.cat([p.detach().reshape(-1) for p in params])
+        self.grad = torch.zeros_like(self.flat)
+        self._grads: dict[str, Tensor] = {}
+        start = 0
+        for (name, p), _ in zip(model.named_parameters(), params, strict=True):
+            stop = start + p.numel()
+            p.data = self.flat[start:stop].view_as(p)
+            self._grads[name] = self.grad[start:stop].view_as(p)
+            start = stop
+        self.flat.requires_grad_(True)
+        self.model = model
+        self.n = n
+        p = model.log_scale
+        self.points = (
+            sobol_integers(n, model.dims, device=p.device) if quasi_random else None
+        )
+
+    def base(self, generator: torch.Generator | None) -> Tensor:
+        """Fresh standard-normal base samples ``(n, dims)`` on the device."""
+        p = self.model.log_scale
+        if self.points is None:
+            return torch.randn(
+                self.n,
+                self.model.dims,
+                generator=generator,
+                dtype=p.dtype,
+                device=p.device,
+            )
+        return shifted_sobol_normals(self.points, generator).to(p.dtype)
+
+    def sample(self, generator: torch.Generator | None) -> Tensor:
+        """Fresh particles ``(n, dims)``, differentiable with respect to ``flat``."""
+        return _GeneratorFn.apply(self.flat, self.base(generator), self)
+
+
+class _GeneratorFn(torch.autograd.Function):
+    """``BeamGenerator.transform`` (without the zero columns) with its gradient."""
+
+    @staticmethod
+    def forward(ctx, flat: Tensor, base: Tensor, net: FlatGenerator) -> Tensor:  # type: ignore[override]
+        m = net.model
+        linears = [lay for lay in m.mlp if isinstance(lay, nn.Linear)]
+        hidden = [base]
+        h = base
+        for lin in linears[:-1]:
+            h = torch.addmm(lin.bias, h, lin.weight.t()).tanh_()
+            hidden.append(h)
+        last = linears[-1]
+        u = torch.addmm(torch.addmm(last.bias, h, last.weight.t()), base, m.mix.t())
+        factor = m.ref_scale * m.log_scale.exp()
+        x = torch.addcmul(m.ref_scale * m.offset, u, factor)
+        ctx.save_for_backward(u, factor, *hidden)
+        ctx.net = net
+        return x
+
+    @staticmethod
+    def backward(ctx, gx: Tensor) -> tuple[Tensor, None, None]:  # type: ignore[override]
+        u, factor, *hidden = ctx.saved_tensors
+        net = ctx.net
+        m = net.model
+        g = net._grads
+        gu = gx * factor
+        torch.sum(gu * u, 0, out=g["log_scale"])
+        torch.mul(gx.sum(0), m.ref_scale, out=g["offset"])
+        torch.mm(gu.t(), hidden[0], out=g["mix"])
+        names = [n[: -len(".weight")] for n in g if n.endswith(".weight")]
+        linears = [lay for lay in m.mlp if isinstance(lay, nn.Linear)]
+        ga = gu
+        for i in range(len(linears) - 1, -1, -1):
+            torch.mm(ga.t(), hidden[i], out=g[names[i] + ".weight"])
+            torch.sum(ga, 0, out=g[names[i] + ".bias"])
+            if i > 0:
+                gh = torch.mm(ga, linears[i].weight)
+                ga = torch.ops.aten.tanh_backward(gh, hidden[i])
+        return net.grad, None, None

@@ -282,3 +282,132 @@ def cyclic_cosine_lr(
     """
     t = (step % cycle_length) / cycle_length
     return lr_min + 0.5 * (lr_max - lr_min) * (1.0 + math.cos(math.pi * t))
+
+
+class RelativeEntropy:
+    """Training form of ``gaussian_entropy(x) - gaussian_prior_term(x - m, s_p)``.
+
+    The same value as the two functions (tail-robust Gaussian entropy bound minus
+    the cross-entropy of the prior), for a fixed number of particles, with the
+    constants prepared once and a hand-written gradient: a few
+    ``(N, D + 1)`` matrix products per call and no host synchronisation, instead
+    of the ~400 small operations of the autograd version.
+
+    All moments come from the augmented coordinates ``z1 = (x / scale, 1)``: their
+    weighted second-moment matrix ``M = sum_i w_i z1_i z1_i^T / sum_i w_i`` holds
+    the weighted mean and covariance, ``det M`` is the determinant of that
+    covariance, and ``z1^T M^-1 z1 = 1 + d^2`` gives each Mahalanobis distance
+    ``d`` from one product. Rescaling the reference covariance (``N - 1``
+    normalisation at the start, the ``1 + radius^-2`` de-shrinking of
+    :func:`robust_covariance`) rescales ``d^2``, which is folded into the
+    exponent. With the redescending weights held constant (as in
+    :func:`robust_covariance`) the gradient of ``1/2 log det`` with respect to
+    particle ``i`` is ``w_i Sigma^-1 (x_i - mu_w)`` (in scaled units).
+
+    Args:
+        n: Number of particles of every call.
+        scale: Per-coordinate normalisation ``(D,)`` (as in :func:`gaussian_entropy`).
+        prior_mean: Prior centre ``(D,)``.
+        prior_std: Prior rms widths ``(D,)``.
+        radius: Mahalanobis scale of the weights; None for the plain covariance.
+
+    Shapes:
+        ``__call__(particles (N, D))`` -> ``(value (), aux (1 + D,))``: value is
+        ``H - C`` (float64, differentiable); aux holds ``H`` and the plain rms
+        widths of the particles (float64, not differentiable).
+    """
+
+    def __init__(
+        self,
+        n: int,
+        scale: Tensor,
+        prior_mean: Tensor,
+        prior_std: Tensor,
+        radius: float | None = 4.0,
+    ) -> None:
+        if n < 2:
+            raise ValueError(f"need at least 2 particles; got {n}.")
+        f64 = {"dtype": torch.float64, "device": scale.device}
+        self.n = n
+        self.scale = scale.to(**f64)
+        d = self.scale.shape[0]
+        self.dims = d
+        a = self.scale / prior_std.to(**f64)  # prior term in scaled units
+        c = prior_mean.to(**f64) / prior_std.to(**f64)
+        q = torch.zeros(d + 1, d + 1, **f64)
+        q[:d, :d] = torch.diag(a * a)
+        q[:d, d] = q[d, :d] = -a * c
+        q[d, d] = (c * c).sum()
+        self.q = q  # C = 1/2 sum(q * M_plain)
+        self.eye = torch.eye(d + 1, **f64)
+        self.q_cols = q[:, :d] / n  # dC/dz1_i = q z1_i / n
+        self.radius = radius
+        # exponent factors of the weights (see the class docstring): the first
+        # reference is the plain covariance with N - 1 normalisation, the later
+        # ones the weighted covariance times 1 + radius^-2
+        if radius is not None:
+            self.first = -0.5 / radius**2 * (n - 1) / n
+            self.later = -0.5 / radius**2 / (1 + radius**-2)
+        self.var_factor = n / (n - 1)
+        # plain covariance: N - 1 normalisation as in robust_covariance
+        self.plain_shift = 0.5 * d * math.log(n / (n - 1))
+
+    def __call__(self, particles: Tensor) -> tuple[Tensor, Tensor]:
+        return _RelativeEntropyFn.apply(particles, self)
+
+
+class _RelativeEntropyFn(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x: Tensor, spec: RelativeEntropy) -> tuple[Tensor, Tensor]:  # type: ignore[override]
+        n, d = x.shape
+        z1 = x.new_ones(n, d + 1, dtype=torch.float64)
+        torch.div(x, spec.scale, out=z1[:, :d])
+        z1t = z1.t()
+        m0 = torch.mm(z1t, z1).div_(n)  # plain moments
+        cross = 0.5 * torch.mul(spec.q, m0).sum()
+        if spec.radius is None:
+            w = None
+            m = m0
+        else:
+            ref, factor = m0, spec.first
+            for _ in range(_REWEIGHT_ITERATIONS):
+                # (L^-1 z1)^2 summed = z1^T ref^-1 z1 (solve_triangular and
+                # cholesky_ex never check for errors: no host synchronisation)
+                lower = torch.linalg.cholesky_ex(ref)[0]
+                inv_l = torch.linalg.solve_triangular(lower, spec.eye, upper=False)
+                d2 = torch.mm(z1, inv_l.t()).square_().sum(1)
+                w = d2.mul_(factor).exp_()
+                ref = torch.mm(torch.mul(z1t, w), z1)
+                ref = ref / ref[d, d]
+                factor = spec.later
+            w = w.div_(w.sum())
+            m = ref
+        chol = torch.linalg.cholesky_ex(m)[0]
+        entropy = chol.diagonal().log().sum()
+        if w is None:
+            entropy = entropy + spec.plain_shift
+        inv_l = torch.linalg.solve_triangular(chol, spec.eye, upper=False)
+        inv = torch.mm(inv_l.t(), inv_l)
+        mean = m0[d, :d]
+        var = (m0.diagonal()[:d] - mean * mean).mul_(spec.var_factor)
+        rms = var.clamp_min_(0).sqrt_().mul_(spec.scale)
+        aux = torch.cat([entropy.reshape(1), rms])
+        ctx.mark_non_differentiable(aux)
+        ctx.save_for_backward(z1, inv, w)
+        ctx.spec = spec
+        ctx.in_dtype = x.dtype
+        return entropy - cross, aux
+
+    @staticmethod
+    def backward(ctx, grad: Tensor, _aux: Tensor) -> tuple[Tensor | None, None]:  # type: ignore[override]
+        z1, inv, w = ctx.saved_tensors
+        spec = ctx.spec
+        d = spec.dims
+        g = grad / spec.scale  # (D,): d(scaled)/dx and the incoming gradient
+        dh = torch.mm(z1, inv[:, :d])  # rows: Sigma^-1 (z_i - mu_w)
+        if w is None:
+            dh = dh.div_(spec.n)
+        else:
+            dh = dh.mul_(w.unsqueeze(1))
+        gz = torch.addmm(dh, z1, spec.q_cols, alpha=-1.0)
+        return gz.mul_(g).to(ctx.in_dtype), None

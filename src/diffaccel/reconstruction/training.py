@@ -16,14 +16,13 @@ from torch import Tensor
 
 from diffaccel.data import atomic_write
 from diffaccel.dynamics.images import gaussian_blur
-from diffaccel.reconstruction.forward import ScreenForwardModel
-from diffaccel.reconstruction.generator import BeamGenerator
+from diffaccel.reconstruction.forward import LinearScreenImages, ScreenForwardModel
+from diffaccel.reconstruction.generator import BeamGenerator, FlatGenerator
 from diffaccel.reconstruction.initial import GaussianGuess
 from diffaccel.reconstruction.losses import (
     ImageLoss,
+    RelativeEntropy,
     cyclic_cosine_lr,
-    gaussian_entropy,
-    gaussian_prior_term,
     image_penalty,
     off_screen_allowance,
     penalty_schedule,
@@ -31,7 +30,67 @@ from diffaccel.reconstruction.losses import (
 
 logger = logging.getLogger(__name__)
 
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2  # 2: optimiser state of one flat parameter vector
+
+
+class FlatAdam:
+    """Adam on one flat parameter vector, with ``torch.optim.Adam``'s arithmetic.
+
+    The step count and learning rate live on the host, so a step is six
+    whole-vector kernels and never reads the device (``torch.optim.Adam`` reads
+    each parameter's step count back, one host synchronisation per parameter,
+    unless ``capturable``, which CPUs do not support).
+
+    Args:
+        param: The flat parameter vector (updated in place).
+        betas: Decay rates of the first and second moments.
+        eps: Added to the root of the second moment.
+    """
+
+    def __init__(
+        self,
+        param: Tensor,
+        betas: tuple[float, float] = (0.9, 0.999),
+        eps: float = 1e-8,
+    ) -> None:
+        self.param = param
+        self.betas = betas
+        self.eps = eps
+        self.steps = 0
+        self.exp_avg = torch.zeros_like(param, memory_format=torch.preserve_format)
+        self.exp_avg_sq = torch.zeros_like(param, memory_format=torch.preserve_format)
+
+    @torch.no_grad()
+    def step(self, grad: Tensor, lr: float) -> None:
+        """One update with gradient ``grad`` at learning rate ``lr``."""
+        self.steps += 1
+        b1, b2 = self.betas
+        bc1 = 1 - b1**self.steps
+        bc2 = 1 - b2**self.steps
+        self.exp_avg.lerp_(grad, 1 - b1)
+        self.exp_avg_sq.mul_(b2).addcmul_(grad, grad, value=1 - b2)
+        denom = (self.exp_avg_sq.sqrt() / math.sqrt(bc2)).add_(self.eps)
+        self.param.addcdiv_(self.exp_avg, denom, value=-lr / bc1)
+
+    def state_dict(self) -> dict:
+        """``torch.optim``-shaped state (one parameter), for checkpoints."""
+        return {
+            "state": {
+                0: {
+                    "step": torch.tensor(float(self.steps)),
+                    "exp_avg": self.exp_avg.detach().to("cpu").clone(),
+                    "exp_avg_sq": self.exp_avg_sq.detach().to("cpu").clone(),
+                }
+            },
+            "param_groups": [{"betas": list(self.betas), "eps": self.eps}],
+        }
+
+    def load_state_dict(self, d: dict) -> None:
+        """Inverse of :meth:`state_dict`."""
+        s = d["state"][0]
+        self.steps = int(s["step"])
+        self.exp_avg.copy_(s["exp_avg"])
+        self.exp_avg_sq.copy_(s["exp_avg_sq"])
 
 
 #: Defaults of ``(blur_pixels, loss_smoothing)`` by ``dims``. 4D: tuned on the
@@ -84,9 +143,10 @@ class ReconstructionConfig:
             out narrow (rms sizes 2-4 % low on the GPSR benchmark). KL is the
             Poisson log-likelihood of the image, minimised by the mean, and gave
             sizes within ~1.5 % on the same data.
-        quasi_random: Draw the fresh base samples of each step from a newly
-            scrambled Sobol sequence (less image noise, hence less of the L1
-            bias towards narrow beams) instead of i.i.d. normals.
+        quasi_random: Draw the fresh base samples of each step from the Sobol
+            sequence with a new random digital shift, on the device (less image
+            noise, hence less of the L1 bias towards narrow beams) instead of
+            i.i.d. normals.
         blur_pixels: Total point-spread rms of the simulated images [pixels],
             cloud-in-cell deposition (1/6 pixel^2 of variance) included; 1
             matches screens with a ~1 pixel resolution and the 1-pixel KDE of the
@@ -109,6 +169,10 @@ class ReconstructionConfig:
             the Gaussian fitted to the image moments.
         seed: Seed of the explicit ``torch.Generator`` (weights and samples).
         checkpoint_every: Steps between checkpoints (also at every snapshot).
+        report_every: Steps between reads of the losses from the device (the
+            only host synchronisation of training): history, the finite-loss
+            check and the callback happen then (and at snapshots, checkpoints
+            and the last step). Does not change the result.
     """
 
     dims: int = 4
@@ -130,6 +194,7 @@ class ReconstructionConfig:
     prior_factor: float = 3.0
     seed: int = 0
     checkpoint_every: int = 100
+    report_every: int = 10
 
     def __post_init__(self) -> None:
         if self.dims not in (4, 6):
@@ -148,6 +213,8 @@ class ReconstructionConfig:
                 f"steps ({self.steps}) must be a multiple of snapshots "
                 f"({self.snapshots}) so that every cycle has the same length."
             )
+        if self.report_every < 1:
+            raise ValueError(f"report_every must be >= 1; got {self.report_every}.")
         if self.n_particles < 16:
             raise ValueError(f"n_particles must be >= 16; got {self.n_particles}.")
         if self.image_loss not in ("l1", "l2", "kl"):
@@ -185,7 +252,11 @@ class ReconstructionConfig:
 
 @dataclass
 class StepInfo:
-    """Progress report handed to the training callback after every step."""
+    """Progress report handed to the training callback.
+
+    The callback runs every ``report_every`` steps and at snapshots,
+    checkpoints and the last step, with the values of that step.
+    """
 
     step: int
     total: int
@@ -224,6 +295,11 @@ def _new_history() -> dict[str, list]:
         "rms": [],
         "snapshot_steps": [],
     }
+
+
+def _six_columns(x: Tensor) -> Tensor:
+    """Particles ``(N, D)`` with ``z = pz = 0`` appended up to ``(N, 6)``."""
+    return torch.nn.functional.pad(x, (0, 6 - x.shape[1]))
 
 
 def _as_list(value: Any) -> list:
@@ -292,7 +368,8 @@ def train_generator(
         config: Training settings.
         checkpoint: File for atomic checkpoints; None disables them.
         resume: Continue from ``checkpoint`` if it exists.
-        callback: Called with a :class:`StepInfo` after every step; an exception
+        callback: Called with a :class:`StepInfo` every ``config.report_every``
+            steps (and at snapshots, checkpoints and the end); an exception
             raised there stops training (the last checkpoint stays valid).
         device: Device to train on; default that of the first ``measured``.
 
@@ -338,7 +415,9 @@ def train_generator(
         correlation=corr,
         generator=init_rng,
     ).to(device)
-    opt = torch.optim.Adam(model.parameters(), lr=config.lr_max)
+    n = config.n_particles
+    net = FlatGenerator(model, n, config.quasi_random)
+    opt = FlatAdam(net.flat)
     norm = scale.to(device=device, dtype=torch.float64)
     prior_std = prior.to(device=device, dtype=torch.float64)
     prior_mean = offset.to(device=device, dtype=torch.float64)
@@ -346,74 +425,77 @@ def train_generator(
     ckpt = Path(checkpoint) if checkpoint is not None else None
     if resume and ckpt is not None and ckpt.exists():
         state = load_checkpoint(ckpt)
-        model.load_state_dict(state.model)
+        model.load_state_dict(state.model)  # copies into net.flat
         opt.load_state_dict(state.optimizer)
         gen_rng.set_state(state.rng)
         logger.info("resumed from %s at step %d", ckpt, state.step)
 
     # dims = 4: pz = 0 exactly, so affine maps reproduce the tracking where the
     # beamline allows it (no cavity on, no bend); otherwise (and in 6D) track
-    maps: list[Tensor | None] = [
-        f.linear_maps(s, monochromatic=True) if dims == 4 else None
-        for f, s in zip(forwards, settings_list, strict=True)
-    ]
-    maps = [m.to(device) if m is not None else None for m in maps]
+    imagers: list[Callable[[Tensor], Tensor]] = []
+    for f, s in zip(forwards, settings_list, strict=True):
+        lin = f.linear_maps(s, monochromatic=True) if dims == 4 else None
+        if lin is not None:
+            imagers.append(LinearScreenImages(f, lin, n, dims, device=device))
+        else:
+            imagers.append(lambda x, f=f, s=s: f.images(_six_columns(x), s))
     allowances = [off_screen_allowance(m) for m in measured_list]
-    scans = list(
-        zip(forwards, measured_list, settings_list, maps, allowances, strict=True)
+    scans = list(zip(imagers, measured_list, allowances, strict=True))
+    relative_entropy = RelativeEntropy(
+        n, norm, prior_mean, prior_std, radius=config.entropy_radius
     )
     total = config.steps
     cyc = config.cycle_length
     hist = state.history
+    # per-step scalars stay on the device and are read every report_every
+    # steps (one host transfer), at snapshots, checkpoints and the end
+    record = torch.zeros(config.report_every, 9, dtype=torch.float64, device=device)
+    pending: list[tuple[int, float, float]] = []  # (step, lr, penalty) unread
     t0 = time.perf_counter() - state.elapsed_s
     while state.step < total:
         step = state.step
         lr = cyclic_cosine_lr(step, cyc, config.lr_max, config.lr_min)
         lam = penalty_schedule(step, cyc, config.penalty_start, config.penalty_end)
-        for g in opt.param_groups:
-            g["lr"] = lr
-        particles = model(
-            config.n_particles, generator=gen_rng, quasi_random=config.quasi_random
-        )
+        x = net.sample(gen_rng)  # (N, dims)
         per_image = []
-        for fwd, meas, sets, lin, allow in scans:
-            if lin is not None:
-                sim = fwd.images_linear(particles, lin)
-            else:
-                sim = fwd.images(particles, sets)
+        for imager, meas, allow in scans:
+            sim = imager(x)
             per_image.append(image_penalty(sim, meas, config.image_loss, allow))
-        dist = torch.cat(per_image).mean()
-        xs = particles[:, :dims].to(torch.float64)  # one conversion for both terms
-        entropy = gaussian_entropy(xs, radius=config.entropy_radius, scale=norm)
-        cross = gaussian_prior_term(xs - prior_mean, prior_std)
-        loss = -(entropy - cross) + lam * dist.to(torch.float64)
-        # one host transfer per step for the loss, its parts and the rms sizes
-        with torch.no_grad():
-            rms = xs.detach().std(0)
-            if dims < 6:  # the other coordinates are exactly zero
-                rms = torch.cat([rms, rms.new_zeros(6 - dims)])
-            scalars = torch.cat([torch.stack([loss, dist.double(), entropy]), rms])
-        loss_v, dist_v, entropy_v, *rms_v = scalars.to("cpu").tolist()
-        if not math.isfinite(loss_v):
-            raise FloatingPointError(
-                f"loss became {loss_v} at step {step}; the beam may have left "
-                "the screen entirely. Check the screen calibration and settings."
-            )
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
+        dist = (per_image[0] if len(per_image) == 1 else torch.cat(per_image)).mean()
+        rel, aux = relative_entropy(x)  # H - C; (H, rms)
+        loss = torch.sub(dist, rel, alpha=1.0 / lam).mul_(lam)  # lam D - (H - C)
+        (grad,) = torch.autograd.grad(loss, [net.flat])
+        opt.step(grad, lr)
+        torch.cat(
+            [loss.detach().view(1), dist.detach().view(1), aux],
+            out=record[len(pending), : 3 + dims],
+        )
+        pending.append((step, lr, lam))
         state.step = step + 1
-        hist["loss"].append(loss_v)
-        hist["image_loss"].append(dist_v)
-        hist["entropy"].append(entropy_v)
-        hist["lr"].append(lr)
-        hist["penalty"].append(lam)
-        hist["rms"].append(rms_v)
         snap = state.step % cyc == 0
+        save = ckpt is not None and (snap or state.step % config.checkpoint_every == 0)
+        if not (
+            state.step % config.report_every == 0 or snap or save or state.step == total
+        ):
+            continue
+        rows = record[: len(pending)].tolist()  # the host read
+        for (s, lr_s, lam_s), row in zip(pending, rows, strict=True):
+            if not math.isfinite(row[0]):
+                raise FloatingPointError(
+                    f"loss became {row[0]} at step {s}; the beam may have left "
+                    "the screen entirely. Check the screen calibration and settings."
+                )
+            hist["loss"].append(row[0])
+            hist["image_loss"].append(row[1])
+            hist["entropy"].append(row[2])
+            hist["lr"].append(lr_s)
+            hist["penalty"].append(lam_s)
+            hist["rms"].append(row[3:])
+        pending.clear()
         if snap:
             state.snapshots.append(_cpu_state(model.state_dict()))
             hist["snapshot_steps"].append(state.step)
-        if ckpt is not None and (snap or state.step % config.checkpoint_every == 0):
+        if save:
             state.model = _cpu_state(model.state_dict())
             state.optimizer = opt.state_dict()
             state.rng = gen_rng.get_state()
