@@ -6,7 +6,6 @@ the same equations (Bmad's), so only round-off (~1e-14) and cheetah's approximat
 low-energy z correction (a series in pz, ~1e-10 of the z range here) separate them.
 """
 
-
 from __future__ import annotations
 
 import math

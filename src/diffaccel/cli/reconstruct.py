@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -10,6 +11,7 @@ from typing import Any
 import click
 import numpy as np
 import torch
+import torch.distributed as tdist
 from tqdm import tqdm
 
 from diffaccel.data import (
@@ -106,6 +108,26 @@ def prepare_out_dir(out: Path, force: bool, resume: bool) -> None:
             ck.unlink()
 
 
+def _init_distributed(device: str) -> str:
+    """Join the process group that torchrun describes; this process's device."""
+    needed = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")
+    missing = [v for v in needed if v not in os.environ]
+    if missing:
+        raise click.ClickException(
+            f"--distributed needs a launcher such as torchrun (missing {missing}); "
+            "e.g. torchrun --standalone --nproc-per-node 2 -m diffaccel reconstruct "
+            "... --distributed"
+        )
+    if device.startswith("cuda"):
+        device = f"cuda:{int(os.environ['LOCAL_RANK'])}"
+        torch.cuda.set_device(device)
+        backend = "nccl"
+    else:
+        backend = "gloo"
+    tdist.init_process_group(backend)
+    return device
+
+
 def run_reconstruction(
     dataset_path: Path,
     out: Path,
@@ -115,8 +137,15 @@ def run_reconstruction(
     resume: bool,
     figures: bool = True,
     dataset: QuadScanDataset | MultiScanDataset | None = None,
+    distributed: bool = False,
 ) -> dict[str, Any]:
-    """Reconstruct, then write ensemble, summary.json, particles and figures."""
+    """Reconstruct, then write ensemble, summary.json, particles and figures.
+
+    With ``distributed`` (an initialised ``torch.distributed`` group) every
+    process trains its share of the particles and only process 0 writes; the
+    others return an empty dict.
+    """
+    writer = not distributed or tdist.get_rank() == 0
     t0 = time.perf_counter()
     try:
         ds = dataset if dataset is not None else read_scans(dataset_path)
@@ -133,7 +162,13 @@ def run_reconstruction(
             config = checkpoint_config(ck)
         except Exception as err:
             raise click.ClickException(f"cannot resume from {ck}: {err}") from err
-    bar = tqdm(total=config.steps, desc="reconstruct", unit="step", leave=False)
+    bar = tqdm(
+        total=config.steps,
+        desc="reconstruct",
+        unit="step",
+        leave=False,
+        disable=not writer,
+    )
 
     def callback(info: StepInfo) -> None:
         bar.n = info.step
@@ -149,11 +184,14 @@ def run_reconstruction(
             resume=resume,
             callback=callback,
             device=device,
+            distributed=distributed,
         )
     except ValueError as err:
         raise click.ClickException(str(err)) from err
     finally:
         bar.close()
+    if not writer:
+        return {}
     t_train = time.perf_counter() - t0
     result.info["dataset"] = str(dataset_path)
     result.save(out, overwrite=True)
@@ -240,6 +278,13 @@ def run_reconstruction(
 @click.option("--no-figures", is_flag=True, help="Skip the PNG figures.")
 @click.option("--force", is_flag=True, help="Overwrite a non-empty --out.")
 @click.option("--resume", is_flag=True, help="Continue from --out/checkpoint.pt.")
+@click.option(
+    "--distributed",
+    is_flag=True,
+    help="Split every step's particles across the processes started by torchrun "
+    "(gloo on CPUs, NCCL with --device cuda: one GPU per process); process 0 "
+    "writes --out. See docs/distributed.md.",
+)
 def reconstruct_command(
     dataset: Path,
     out: Path,
@@ -255,9 +300,15 @@ def reconstruct_command(
     no_figures: bool,
     force: bool,
     resume: bool,
+    distributed: bool,
 ) -> None:
     """Reconstruct a beam's phase space from the quad-scan file DATASET."""
-    prepare_out_dir(out, force, resume)
+    if distributed:
+        device = _init_distributed(device)
+    if not distributed or tdist.get_rank() == 0:
+        prepare_out_dir(out, force, resume)
+    if distributed:
+        tdist.barrier()  # --out is ready before any process reads a checkpoint
     try:
         config = ReconstructionConfig(
             dims=int(dims),
@@ -271,8 +322,19 @@ def reconstruct_command(
     except ValueError as err:
         raise click.ClickException(str(err)) from err
     summary = run_reconstruction(
-        dataset, out, config, train_indices, device, resume, figures=not no_figures
+        dataset,
+        out,
+        config,
+        train_indices,
+        device,
+        resume,
+        figures=not no_figures,
+        distributed=distributed,
     )
+    if distributed:
+        tdist.destroy_process_group()
+    if not summary:  # a process other than 0 of a distributed run
+        return
     m = summary["metrics"]
     click.echo(f"wrote {out / 'summary.json'}")
     if "images_held_out" in m:

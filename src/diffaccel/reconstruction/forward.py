@@ -291,6 +291,9 @@ class LinearScreenImages:
         dims: Coordinates the particles carry (4: ``z = pz = 0``; 6: all).
         dtype: Floating dtype of particles and images.
         device: Device of particles and images.
+        total: Number of particles of the whole beam when each process images
+            its share of ``n`` (the images of all shares then sum to the beam's);
+            default ``n``.
 
     Shapes:
         ``__call__(particles (n, dims))`` -> ``(K, H, W)``.
@@ -305,6 +308,7 @@ class LinearScreenImages:
         *,
         dtype: torch.dtype = torch.float32,
         device: str | torch.device | None = None,
+        total: int | None = None,
     ) -> None:
         scr = forward.screen
         h, w = scr.shape
@@ -328,7 +332,8 @@ class LinearScreenImages:
         # such particles deposit nothing and get no gradient (as in cic_image)
         self.lo = torch.tensor([-1.0 - 3.0 / w, -1.0 - 3.0 / h], **kw)
         self.hi = torch.tensor([1.0 + 3.0 / w, 1.0 + 3.0 / h], **kw)
-        self.per_particle = torch.full((), 1.0 / n, **kw).expand(k, 1, 1, n)
+        weight = 1.0 / (n if total is None else total)
+        self.per_particle = torch.full((), weight, **kw).expand(k, 1, 1, n)
         self.template = torch.empty((), **kw).expand(k, 1, h, w)
         self.shape = (k, h, w)
         self.n = n

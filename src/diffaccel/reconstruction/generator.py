@@ -245,13 +245,24 @@ class FlatGenerator:
         n: Particles per call of :meth:`sample`.
         quasi_random: Sobol base samples with a fresh digital shift per call
             (see :func:`shifted_sobol_normals`) instead of i.i.d. normals.
+        shard: ``(index, count)``: this process draws share ``index`` of
+            ``count`` equal shares of ``n`` particles (``n`` divisible by
+            ``count``). With ``quasi_random`` and the same random generator
+            state in every process the shares are consecutive blocks of the one
+            Sobol sample that a single process would draw.
 
     Shapes:
         ``sample(generator)`` -> ``(n, dims)`` (only the generated coordinates;
         for ``dims = 4``, ``z = pz = 0``).
     """
 
-    def __init__(self, model: BeamGenerator, n: int, quasi_random: bool) -> None:
+    def __init__(
+        self,
+        model: BeamGenerator,
+        n: int,
+        quasi_random: bool,
+        shard: tuple[int, int] = (0, 1),
+    ) -> None:
         params = list(model.parameters())
         self.flat = torch.cat([p.detach().reshape(-1) for p in params])
         self.grad = torch.zeros_like(self.flat)
@@ -264,11 +275,18 @@ class FlatGenerator:
             start = stop
         self.flat.requires_grad_(True)
         self.model = model
-        self.n = n
+        index, count = shard
+        if n % count:
+            raise ValueError(
+                f"n_particles ({n}) must be divisible by the number of "
+                f"processes ({count})."
+            )
+        self.n = n // count
         p = model.log_scale
-        self.points = (
-            sobol_integers(n, model.dims, device=p.device) if quasi_random else None
-        )
+        self.points = None
+        if quasi_random:
+            pts = sobol_integers(n, model.dims, device=p.device)
+            self.points = pts[index * self.n : (index + 1) * self.n].contiguous()
 
     def base(self, generator: torch.Generator | None) -> Tensor:
         """Fresh standard-normal base samples ``(n, dims)`` on the device."""

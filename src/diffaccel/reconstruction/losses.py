@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Literal
 
 import torch
@@ -310,6 +311,11 @@ class RelativeEntropy:
         prior_mean: Prior centre ``(D,)``.
         prior_std: Prior rms widths ``(D,)``.
         radius: Mahalanobis scale of the weights; None for the plain covariance.
+        reduce: For particles split across processes: sums a small moment
+            matrix over all of them in place (e.g.
+            ``torch.distributed.all_reduce``); ``n`` is then the total number
+            of particles and each process passes its own share. The value, aux
+            and gradients equal those of one process holding all particles.
 
     Shapes:
         ``__call__(particles (N, D))`` -> ``(value (), aux (1 + D,))``: value is
@@ -324,11 +330,13 @@ class RelativeEntropy:
         prior_mean: Tensor,
         prior_std: Tensor,
         radius: float | None = 4.0,
+        reduce: Callable[[Tensor], object] | None = None,
     ) -> None:
         if n < 2:
             raise ValueError(f"need at least 2 particles; got {n}.")
         f64 = {"dtype": torch.float64, "device": scale.device}
         self.n = n
+        self.reduce = reduce
         self.scale = scale.to(**f64)
         d = self.scale.shape[0]
         self.dims = d
@@ -363,7 +371,10 @@ class _RelativeEntropyFn(torch.autograd.Function):
         z1 = x.new_ones(n, d + 1, dtype=torch.float64)
         torch.div(x, spec.scale, out=z1[:, :d])
         z1t = z1.t()
-        m0 = torch.mm(z1t, z1).div_(n)  # plain moments
+        m0 = torch.mm(z1t, z1)  # plain moments
+        if spec.reduce is not None:
+            spec.reduce(m0)
+        m0 = m0.div_(spec.n)
         cross = 0.5 * torch.mul(spec.q, m0).sum()
         if spec.radius is None:
             w = None
@@ -377,10 +388,12 @@ class _RelativeEntropyFn(torch.autograd.Function):
                 inv_l = torch.linalg.solve_triangular(lower, spec.eye, upper=False)
                 d2 = torch.mm(z1, inv_l.t()).square_().sum(1)
                 w = d2.mul_(factor).exp_()
-                ref = torch.mm(torch.mul(z1t, w), z1)
-                ref = ref / ref[d, d]
+                raw = torch.mm(torch.mul(z1t, w), z1)
+                if spec.reduce is not None:
+                    spec.reduce(raw)
+                ref = raw / raw[d, d]  # raw[d, d]: the sum of the weights
                 factor = spec.later
-            w = w.div_(w.sum())
+            w = w.div_(raw[d, d])
             m = ref
         chol = torch.linalg.cholesky_ex(m)[0]
         entropy = chol.diagonal().log().sum()

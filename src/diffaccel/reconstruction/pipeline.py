@@ -102,6 +102,7 @@ def reconstruct(
     resume: bool = False,
     callback: Callable[[StepInfo], None] | None = None,
     device: str | torch.device = "cpu",
+    distributed: bool = False,
 ) -> Reconstruction:
     """Reconstruct the initial phase space of a beam from one or several scans.
 
@@ -122,6 +123,10 @@ def reconstruct(
         callback: Progress callback, see
             :func:`~diffaccel.reconstruction.training.train_generator`.
         device: ``"cpu"``, ``"cuda"``...
+        distributed: Split every step's particles across the processes of the
+            initialised ``torch.distributed`` group (see
+            :func:`~diffaccel.reconstruction.training.train_generator`); every
+            process returns the same reconstruction.
 
     Returns:
         The :class:`Reconstruction`; ``info["scans"][name]`` holds each scan's
@@ -168,6 +173,7 @@ def reconstruct(
         resume=resume,
         callback=callback,
         device=device,
+        distributed=distributed,
     )
     for fwd in forwards.values():
         fwd.to("cpu")

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+import torch.distributed as tdist
 from torch import Tensor
 
 from diffaccel.data import atomic_write
@@ -302,6 +303,25 @@ def _six_columns(x: Tensor) -> Tensor:
     return torch.nn.functional.pad(x, (0, 6 - x.shape[1]))
 
 
+class _SumOverProcesses(torch.autograd.Function):
+    """Sum of a tensor over all processes; every process gets the sum.
+
+    Every process then computes the same loss from the sum, so the gradient of
+    that one loss with respect to each process's part is the incoming gradient
+    itself (not its sum over processes).
+    """
+
+    @staticmethod
+    def forward(ctx, x: Tensor) -> Tensor:  # type: ignore[override]
+        y = x.clone()
+        tdist.all_reduce(y)
+        return y
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> Tensor:  # type: ignore[override]
+        return grad
+
+
 def _as_list(value: Any) -> list:
     return list(value) if isinstance(value, list | tuple) else [value]
 
@@ -336,6 +356,7 @@ def train_generator(
     resume: bool = False,
     callback: Callable[[StepInfo], None] | None = None,
     device: str | torch.device | None = None,
+    distributed: bool = False,
 ) -> TrainingState:
     """Fit a :class:`BeamGenerator` to screen images and collect snapshot members.
 
@@ -372,6 +393,16 @@ def train_generator(
             steps (and at snapshots, checkpoints and the end); an exception
             raised there stops training (the last checkpoint stays valid).
         device: Device to train on; default that of the first ``measured``.
+        distributed: Split the particles of every step across the processes of
+            the initialised default ``torch.distributed`` process group (gloo on
+            CPUs, NCCL on GPUs; launched e.g. by ``torchrun``): each process
+            generates and tracks its share, the images and the moment matrices
+            of the entropy are summed over all processes (all-reduce) and so are
+            the generator's gradients, so every process computes the loss of
+            the whole beam and takes the same optimiser step. With the default
+            quasi-random samples the shares are blocks of the single-process
+            sample: the result equals a single-process run up to the rounding
+            of the sums. Only process 0 writes checkpoints.
 
     Shapes:
         Scan ``s``: ``measured (K_s, H_s, W_s)``, ``settings (K_s, P_s)``.
@@ -416,7 +447,11 @@ def train_generator(
         generator=init_rng,
     ).to(device)
     n = config.n_particles
-    net = FlatGenerator(model, n, config.quasi_random)
+    rank, world = (tdist.get_rank(), tdist.get_world_size()) if distributed else (0, 1)
+    if distributed and not config.quasi_random:
+        gen_rng.manual_seed(config.seed + 7919 * rank)  # independent i.i.d. shares
+    net = FlatGenerator(model, n, config.quasi_random, shard=(rank, world))
+    share = net.n / n  # fraction of the beam this process images
     opt = FlatAdam(net.flat)
     norm = scale.to(device=device, dtype=torch.float64)
     prior_std = prior.to(device=device, dtype=torch.float64)
@@ -436,14 +471,25 @@ def train_generator(
     for f, s in zip(forwards, settings_list, strict=True):
         lin = f.linear_maps(s, monochromatic=True) if dims == 4 else None
         if lin is not None:
-            imagers.append(LinearScreenImages(f, lin, n, dims, device=device))
-        else:
+            imagers.append(
+                LinearScreenImages(f, lin, net.n, dims, device=device, total=n)
+            )
+        elif world == 1:
             imagers.append(lambda x, f=f, s=s: f.images(_six_columns(x), s))
+        else:  # images of a share, weighted by its fraction of the beam
+            imagers.append(lambda x, f=f, s=s: f.images(_six_columns(x), s) * share)
     allowances = [off_screen_allowance(m) for m in measured_list]
     scans = list(zip(imagers, measured_list, allowances, strict=True))
     relative_entropy = RelativeEntropy(
-        n, norm, prior_mean, prior_std, radius=config.entropy_radius
+        n,
+        norm,
+        prior_mean,
+        prior_std,
+        radius=config.entropy_radius,
+        reduce=tdist.all_reduce if distributed else None,
     )
+    if distributed and rank != 0:
+        ckpt = None  # process 0 writes the checkpoints
     total = config.steps
     cyc = config.cycle_length
     hist = state.history
@@ -460,11 +506,15 @@ def train_generator(
         per_image = []
         for imager, meas, allow in scans:
             sim = imager(x)
+            if distributed:
+                sim = _SumOverProcesses.apply(sim)
             per_image.append(image_penalty(sim, meas, config.image_loss, allow))
         dist = (per_image[0] if len(per_image) == 1 else torch.cat(per_image)).mean()
         rel, aux = relative_entropy(x)  # H - C; (H, rms)
         loss = torch.sub(dist, rel, alpha=1.0 / lam).mul_(lam)  # lam D - (H - C)
         (grad,) = torch.autograd.grad(loss, [net.flat])
+        if distributed:  # each process holds its particles' part of the gradient
+            tdist.all_reduce(grad)
         opt.step(grad, lr)
         torch.cat(
             [loss.detach().view(1), dist.detach().view(1), aux],

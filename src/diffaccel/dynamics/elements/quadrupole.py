@@ -151,11 +151,17 @@ class Quadrupole(Element):
         r[..., 4, 1] = 0.5 * k1 * x0 * big_sx.square()
         r[..., 4, 2] = 0.5 * k1 * y0 * gy
         r[..., 4, 3] = -0.5 * k1 * y0 * big_sy.square()
-        di_x = -0.5 * k1 * x0.square() * (
-            gx + k1 * (0.5 * length * big_sx.square() - c_x * l3 * ds_x)
+        di_x = (
+            -0.5
+            * k1
+            * x0.square()
+            * (gx + k1 * (0.5 * length * big_sx.square() - c_x * l3 * ds_x))
         )
-        di_y = 0.5 * k1 * y0.square() * (
-            gy + k1 * (c_y * l3 * ds_y - 0.5 * length * big_sy.square())
+        di_y = (
+            0.5
+            * k1
+            * y0.square()
+            * (gy + k1 * (c_y * l3 * ds_y - 0.5 * length * big_sy.square()))
         )
         r[..., 4, 5] = length * mu2 / (1.0 + mu2) - 0.5 * (di_x + di_y)
         r[..., 0, 6], r[..., 1, 6], r[..., 2, 6] = xe, pxe, ye
