@@ -71,3 +71,14 @@ def test_bad_particles() -> None:
     bad[0, 0] = float("nan")
     with pytest.raises(ValueError, match="NaN"):
         beam_moments(bad)
+
+
+def test_sorted_quantiles_equal_torch_quantile() -> None:
+    from diffaccel.reconstruction.metrics import _sorted_quantiles
+
+    g = torch.Generator().manual_seed(0)
+    v = torch.randn(999, 7, generator=g, dtype=torch.float64).sort(0).values
+    q = torch.linspace(0.0, 1.0, 1001, dtype=torch.float64)
+    assert torch.allclose(
+        _sorted_quantiles(v, q), torch.quantile(v, q, dim=0), rtol=0, atol=1e-14
+    )

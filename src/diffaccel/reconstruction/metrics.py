@@ -156,9 +156,23 @@ def sliced_wasserstein(
     pa = (a @ dirs.to(a.device)).sort(0).values
     pb = (b @ dirs.to(b.device)).sort(0).values
     q = torch.linspace(0.0, 1.0, 1001, dtype=torch.float64, device=a.device)
-    qa = torch.quantile(pa, q, dim=0)
-    qb = torch.quantile(pb, q, dim=0)
-    return (qa - qb).abs().mean()
+    return (_sorted_quantiles(pa, q) - _sorted_quantiles(pb, q)).abs().mean()
+
+
+def _sorted_quantiles(values: Tensor, q: Tensor) -> Tensor:
+    """``torch.quantile(values, q, dim=0)`` of columns already sorted ascending.
+
+    The same linear interpolation between order statistics, without the second
+    sort that ``torch.quantile`` does (which took as long as the first).
+
+    Shapes:
+        ``values (N, P)``, ``q (Q,)`` -> ``(Q, P)``.
+    """
+    pos = q * (values.shape[0] - 1)
+    lo = pos.floor().long().clamp_max(values.shape[0] - 1)
+    hi = (lo + 1).clamp_max(values.shape[0] - 1)
+    frac = (pos - lo).unsqueeze(1)
+    return torch.lerp(values[lo], values[hi], frac)
 
 
 def image_errors(predicted: Tensor, measured: Tensor) -> dict[str, float]:
