@@ -11,6 +11,17 @@ from botorch.fit import fit_gpytorch_mll
 from botorch.models import SingleTaskGP
 from botorch.models.transforms.input import Normalize
 from botorch.optim import optimize_acqf
+from gpytorch.constraints import Positive
+from gpytorch.likelihoods import (
+    BernoulliLikelihood,
+    FixedNoiseGaussianLikelihood,
+    GaussianLikelihood,
+    MultitaskGaussianLikelihood,
+    StudentTLikelihood,
+)
+from gpytorch.likelihoods.gaussian_likelihood import _GaussianLikelihoodBase
+from gpytorch.likelihoods.noise_models import HeteroskedasticNoise
+from gpytorch.means import ConstantMean
 from gpytorch.mlls import ExactMarginalLogLikelihood
 
 from diffaccel.hysteresis import (
@@ -19,7 +30,7 @@ from diffaccel.hysteresis import (
     PreisachModel,
     fit_hysteresis_gp,
 )
-from diffaccel.hysteresis.hgp import _joint_loss, magnetisation_feature
+from diffaccel.hysteresis.hgp import magnetization_feature
 
 DT = torch.float64
 I_MAX = 10.0
@@ -130,15 +141,153 @@ def test_no_hysteresis_fit_reaches_single_task_gp_optimum() -> None:
     assert res.mll == pytest.approx(ref, abs=1e-4)
 
 
-def test_joint_loss_equals_gpytorch_exact_mll() -> None:
-    model = _small_model()
+def test_fixed_noise_without_hysteresis_equals_single_task_gp() -> None:
+    gen = torch.Generator().manual_seed(2)
+    X = torch.rand(20, 1, generator=gen, dtype=DT)
+    Y = torch.cos(5 * X)
+    Yvar = 1e-3 + 4e-3 * torch.rand(20, 1, generator=gen, dtype=DT)
+    bounds = torch.tensor([[0.0], [1.0]], dtype=DT)
+    stgp = SingleTaskGP(X, Y, Yvar, input_transform=Normalize(d=1, bounds=bounds))
+    hgp = HysteresisGP(X, Y, hysteresis={}, bounds=bounds, train_Yvar=Yvar)
+    assert isinstance(hgp.likelihood, FixedNoiseGaussianLikelihood)
+    with torch.no_grad():
+        for m in (stgp, hgp.gp):
+            m.covar_module.lengthscale = torch.tensor([[0.3]], dtype=DT)
+            m.mean_module.constant.fill_(-0.1)
+    Xt = torch.rand(4, 3, 1, generator=gen, dtype=DT)
+    for noise in (False, True):
+        p1 = stgp.posterior(Xt, observation_noise=noise)
+        p2 = hgp.posterior(Xt, observation_noise=noise)
+        # same fixed-noise model, float64: agreement to round-off
+        torch.testing.assert_close(p2.mean, p1.mean, rtol=1e-9, atol=1e-10)
+        torch.testing.assert_close(p2.variance, p1.variance, rtol=1e-8, atol=1e-10)
+    # the model's noise is the given one, in units of train_Y
+    assert float(hgp.noise_sigma) == pytest.approx(float(Yvar.mean().sqrt()), 1e-12)
+
+
+def _dense_exact_mll(model: HysteresisGP) -> torch.Tensor:
+    """Exact MLL per point with priors, written out independently of GPyTorch."""
+    pm = model.hysteresis_models[0]  # carries the model's density
+    with torch.no_grad():
+        m = pm.magnetization(model.train_X[:, 0])
+    feats = (0.5 * (m + 1.0)).unsqueeze(-1)
+    ls = model.gp.covar_module.lengthscale.squeeze()
+    diff = (feats - feats.T) / ls
+    noise = model.likelihood.noise.squeeze()
+    n = feats.shape[0]
+    cov = torch.exp(-0.5 * diff**2) + noise * torch.eye(n, dtype=DT)
+    y = model.gp.train_targets
+    mean = model.gp.mean_module.constant.expand(n)
+    value = torch.distributions.MultivariateNormal(mean, cov).log_prob(y)
+    value = value + model.gp.likelihood.noise_covar.noise_prior.log_prob(noise)
+    value = value + model.gp.covar_module.lengthscale_prior.log_prob(ls)
+    magnet = model.gp.features.magnets[0]
+    value = value + magnet.density_prior.log_prob(magnet.raw_density).sum()
+    return value / n
+
+
+def test_fit_objective_is_gpytorch_exact_mll() -> None:
+    X, Y, _ = _data(0, 0.02, n_cycles=2, n_per_cycle=16)
+    model = HysteresisGP(X, Y, hysteresis={0: _truth(8)}, density_prior_scale=0.5)
+    gen = torch.Generator().manual_seed(9)
+    with torch.no_grad():  # move off the prior centre so the density prior counts
+        magnet = model.gp.features.magnets[0]
+        magnet.raw_density.add_(
+            0.3 * torch.randn(magnet.raw_density.shape, generator=gen, dtype=DT)
+        )
+    mll = model.marginal_log_likelihood()
+    assert type(mll) is ExactMarginalLogLikelihood
     model.train()
-    mll = ExactMarginalLogLikelihood(model.gp.likelihood, model.gp)
-    feats = model.train_features()
-    model.gp.set_train_data(feats, model._train_targets, strict=False)
-    ref = -mll(model.gp(feats), model._train_targets)
-    # same formula computed with one dense Cholesky: float64 round-off
-    torch.testing.assert_close(_joint_loss(model, mll), ref, rtol=1e-10, atol=1e-10)
+    with torch.no_grad():
+        gp_value = mll(model.gp(*model.gp.train_inputs), model.gp.train_targets)
+    # the same Gaussian density, computed densely: float64 round-off
+    torch.testing.assert_close(
+        gp_value, _dense_exact_mll(model), rtol=1e-10, atol=1e-12
+    )
+    res = fit_hysteresis_gp(model, restarts=1, max_iter=40)
+    model.train()
+    with torch.no_grad():
+        after = mll(model.gp(*model.gp.train_inputs), model.gp.train_targets)
+    assert res.mll == pytest.approx(float(after), abs=1e-12)
+    assert res.mll > float(gp_value) + 0.1  # the fit climbed this objective
+
+
+def test_priors_are_registered() -> None:
+    X, Y, _ = _data(0, 0.02, n_cycles=1, n_per_cycle=10)
+    plain = HysteresisGP(X, Y, hysteresis={0: _preisach(5)})
+    names = {name for name, *_ in plain.gp.named_priors()}
+    assert names == {
+        "likelihood.noise_covar.noise_prior",
+        "covar_module.lengthscale_prior",
+    }
+    with_density = HysteresisGP(
+        X, Y, hysteresis={0: _preisach(5)}, density_prior_scale=0.7
+    )
+    priors = {name: prior for name, _, prior, *_ in with_density.gp.named_priors()}
+    prior = priors["features.magnets.0.density_prior"]
+    raw = with_density.gp.features.magnets[0].raw_density
+    torch.testing.assert_close(prior.loc, raw.detach(), rtol=0, atol=0)
+    assert float(prior.scale.max()) == pytest.approx(0.7)
+
+
+def test_density_is_constrained_raw_parameter() -> None:
+    model = _small_model()
+    magnet = model.gp.features.magnets[0]
+    assert isinstance(magnet.raw_density_constraint, Positive)
+    with torch.no_grad():
+        magnet.raw_density.fill_(-40.0)  # softplus keeps it positive
+    assert (magnet.density > 0).all()
+    # hysteresis_models carries the model's density (same softplus map)
+    torch.testing.assert_close(
+        model.hysteresis_models[0].density, magnet.density, rtol=0, atol=0
+    )
+
+
+class _HeteroskedasticGaussian(_GaussianLikelihoodBase):
+    def __init__(self) -> None:
+        super().__init__(noise_covar=HeteroskedasticNoise(ConstantMean()))
+
+
+@pytest.mark.parametrize(
+    ("make", "match"),
+    [
+        (BernoulliLikelihood, "needs a Gaussian likelihood; got BernoulliLikelihood"),
+        (StudentTLikelihood, "needs a Gaussian likelihood; got StudentTLikelihood"),
+        (_HeteroskedasticGaussian, "homoskedastic .* HeteroskedasticNoise"),
+        (
+            lambda: FixedNoiseGaussianLikelihood(noise=torch.full((10,), 1e-3)),
+            "train_Yvar",
+        ),
+        (lambda: MultitaskGaussianLikelihood(num_tasks=2), "homoskedastic"),
+    ],
+    ids=[
+        "bernoulli",
+        "student-t",
+        "heteroskedastic",
+        "fixed-noise-object",
+        "multitask",
+    ],
+)
+def test_unsupported_likelihood_raises(make, match: str) -> None:
+    X, Y, _ = _data(0, 0.02, n_cycles=1, n_per_cycle=10)
+    with pytest.raises(ValueError, match=match):
+        HysteresisGP(X, Y, hysteresis={0: _preisach(5)}, likelihood=make())
+
+
+def test_train_yvar_checks() -> None:
+    X, Y, _ = _data(0, 0.02, n_cycles=1, n_per_cycle=10)
+    with pytest.raises(ValueError, match="negative"):
+        HysteresisGP(X, Y, hysteresis={}, train_Yvar=-torch.ones_like(Y))
+    with pytest.raises(ValueError, match=r"shape \(n, 1\)"):
+        HysteresisGP(X, Y, hysteresis={}, train_Yvar=torch.ones(3, 1, dtype=DT))
+    with pytest.raises(ValueError, match="not both"):
+        HysteresisGP(
+            X,
+            Y,
+            hysteresis={},
+            train_Yvar=torch.ones_like(Y),
+            likelihood=GaussianLikelihood(),
+        )
 
 
 # ----------------------------------------------------------- state handling
@@ -227,7 +376,7 @@ def test_feature_gradient_in_density_gradcheck() -> None:
     raw = (0.3 * torch.randn(pm.raw_density.shape, dtype=DT)).requires_grad_(True)
 
     def feats(r: torch.Tensor) -> torch.Tensor:
-        return magnetisation_feature(states, pm.area * torch.nn.functional.softplus(r))
+        return magnetization_feature(states, pm.area * torch.nn.functional.softplus(r))
 
     assert torch.autograd.gradcheck(feats, (raw,))
 

@@ -62,7 +62,7 @@ class HysteresisBO:
         fit_density: Refit the Preisach densities with the GP (True) or keep
             the given densities (e.g. measured on a test stand) fixed.
         density_prior_scale: Prior width of the refitted raw densities about
-            the given ones (see ``fit_hysteresis_gp``); ``None`` for no prior.
+            the given ones (see ``HysteresisGP``); ``None`` for no prior.
         num_restarts: Starting points of the acquisition optimiser.
         raw_samples: Random samples used to choose those starting points.
         seed: Seed of the fit restarts and acquisition optimiser.
@@ -173,14 +173,18 @@ class HysteresisBO:
             }
         hyst: Mapping[int, PreisachModel] = self.hysteresis
         model = HysteresisGP(
-            self.X, sign * self.Y, hysteresis=hyst, bounds=self.bounds, **modules
+            self.X,
+            sign * self.Y,
+            hysteresis=hyst,
+            bounds=self.bounds,
+            density_prior_scale=self.density_prior_scale if hyst else None,
+            **modules,
         )
         self.last_fit = fit_hysteresis_gp(
             model,
             restarts=self.fit_restarts,
             max_iter=self.fit_max_iter,
             fit_density=self.fit_density,
-            density_prior_scale=self.density_prior_scale,
             seed=self.seed + self._n_fits,
         )
         self._n_fits += 1

@@ -4,8 +4,12 @@ The beam responds to the *magnetic state* of hysteretic magnets, not to their
 currents. :class:`HysteresisGP` feeds each hysteretic input column through a
 Preisach model of the current history and models the beam response as an exact
 Gaussian process of the resulting normalised magnetisations (plain columns are
-ordinary GP inputs). The Preisach densities and the GP hyperparameters are fitted
-together on the exact marginal log likelihood by :func:`fit_hysteresis_gp`.
+ordinary GP inputs). The inner GPyTorch ``ExactGP`` takes the hysteron *states*
+as its inputs (they do not depend on the density) and maps them to
+magnetisations with the Preisach densities, which are constrained raw
+parameters of the model, GPyTorch style. :func:`fit_hysteresis_gp` fits them
+together with the GP hyperparameters on GPyTorch's
+``ExactMarginalLogLikelihood`` with BoTorch's ``fit_gpytorch_mll``.
 
 Time order matters: row ``t`` of ``train_X`` is the setting applied at step ``t``
 and ``posterior(X)`` means "apply the ``q`` settings of ``X`` in order, starting
@@ -23,23 +27,34 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import torch
+from botorch.exceptions.errors import ModelFittingError
+from botorch.fit import fit_gpytorch_mll
 from botorch.models.model import Model
+from botorch.models.transforms.input import Normalize
 from botorch.models.transforms.outcome import OutcomeTransform, Standardize
 from botorch.models.utils.gpytorch_modules import (
     get_covar_module_with_dim_scaled_prior,
     get_gaussian_likelihood_with_lognormal_prior,
 )
-from botorch.optim.closures import ForwardBackwardClosure
 from botorch.optim.fit import fit_gpytorch_mll_scipy
-from botorch.optim.utils import get_parameters_and_bounds
 from botorch.posteriors.gpytorch import GPyTorchPosterior
 from botorch.posteriors.transformed import TransformedPosterior
+from botorch.utils.types import DEFAULT, _DefaultType
+from gpytorch.constraints import Positive
 from gpytorch.distributions import MultivariateNormal
 from gpytorch.kernels import Kernel
-from gpytorch.likelihoods import Likelihood
+from gpytorch.likelihoods import (
+    FixedNoiseGaussianLikelihood,
+    GaussianLikelihood,
+    Likelihood,
+)
+from gpytorch.likelihoods.gaussian_likelihood import _GaussianLikelihoodBase
+from gpytorch.likelihoods.noise_models import HomoskedasticNoise
 from gpytorch.means import ConstantMean, Mean
 from gpytorch.mlls import ExactMarginalLogLikelihood
 from gpytorch.models import ExactGP
+from gpytorch.module import Module as GPyTorchModule
+from gpytorch.priors import NormalPrior
 from gpytorch.utils.warnings import GPInputWarning
 from torch import Tensor, nn
 
@@ -50,7 +65,7 @@ __all__ = [
     "HGPFitResult",
     "HysteresisGP",
     "fit_hysteresis_gp",
-    "magnetisation_feature",
+    "magnetization_feature",
 ]
 
 logger = logging.getLogger(__name__)
@@ -58,26 +73,7 @@ logger = logging.getLogger(__name__)
 _MIN_POINTS = 3
 
 
-class _FeatureGP(ExactGP):
-    """Exact GP on state features in ``[0, 1]^d`` (mean, kernel, likelihood only)."""
-
-    def __init__(
-        self,
-        features: Tensor,
-        targets: Tensor,
-        likelihood: Likelihood,
-        mean_module: Mean,
-        covar_module: Kernel,
-    ) -> None:
-        super().__init__(features, targets, likelihood)
-        self.mean_module = mean_module
-        self.covar_module = covar_module
-
-    def forward(self, x: Tensor) -> MultivariateNormal:
-        return MultivariateNormal(self.mean_module(x), self.covar_module(x))
-
-
-def magnetisation_feature(states: Tensor, weights: Tensor) -> Tensor:
+def magnetization_feature(states: Tensor, weights: Tensor) -> Tensor:
     """GP input of a hysteretic magnet: its normalised magnetisation in ``[0, 1]``.
 
     ``(m + 1) / 2`` with ``m = sum(w * s) / sum(w)``: only the shape of the
@@ -93,21 +89,151 @@ def magnetisation_feature(states: Tensor, weights: Tensor) -> Tensor:
     return 0.5 * (states @ weights / weights.sum() + 1.0)
 
 
+class _MagnetFeature(GPyTorchModule):
+    """Normalised magnetisation of one hysteretic magnet from its hysteron states.
+
+    Holds the magnet's mesh (buffers) and its Preisach density as the
+    constrained raw parameter ``raw_density`` (``density = softplus(raw)``,
+    GPyTorch's ``Positive`` constraint, the same map as ``PreisachModel``),
+    averaged with its mirror image when the Preisach model is symmetric. With
+    ``prior_scale`` a ``NormalPrior`` of that width on ``raw_density`` about its
+    starting value is registered as ``density_prior``.
+    """
+
+    def __init__(self, preisach: PreisachModel, prior_scale: float | None) -> None:
+        super().__init__()
+        m = preisach.alpha.numel()
+        self.register_buffer("alpha", preisach.alpha.detach().clone())
+        self.register_buffer("beta", preisach.beta.detach().clone())
+        self.register_buffer("area", preisach.area.detach().clone())
+        mirror = preisach.mesh.mirror_index() if preisach.symmetric else None
+        self.register_buffer(
+            "mirror", torch.arange(m) if mirror is None else mirror.cpu().clone()
+        )
+        raw = preisach.raw_density.detach().clone()
+        self.register_parameter("raw_density", nn.Parameter(raw))
+        self.register_constraint("raw_density", Positive())
+        if prior_scale is not None:
+            self.register_prior(
+                "density_prior",
+                NormalPrior(raw.clone(), torch.full_like(raw, prior_scale)),
+                "raw_density",
+            )
+
+    @property
+    def density(self) -> Tensor:
+        """Non-negative hysteron density [1], shape ``(M,)``."""
+        d = self.raw_density_constraint.transform(self.raw_density)
+        return 0.5 * (d + d[self.mirror])
+
+    @property
+    def weights(self) -> Tensor:
+        """Hysteron weights ``area * density``, shape ``(M,)``."""
+        return self.area * self.density
+
+    def forward(self, states: Tensor) -> Tensor:
+        return magnetization_feature(states, self.weights)
+
+
+class _StateFeatures(GPyTorchModule):
+    """GP features from encoded inputs ``[plain (p), states_0 (M_0), ...]``."""
+
+    def __init__(
+        self, d: int, hysteretic_dims: tuple[int, ...], magnets: list[_MagnetFeature]
+    ) -> None:
+        super().__init__()
+        self.d = d
+        self.hysteretic_dims = hysteretic_dims
+        self.plain_dims = tuple(i for i in range(d) if i not in hysteretic_dims)
+        self.magnets = nn.ModuleList(magnets)
+
+    def forward(self, z: Tensor) -> Tensor:
+        cols: list[Tensor | None] = [None] * self.d
+        for k, c in enumerate(self.plain_dims):
+            cols[c] = z[..., k]
+        offset = len(self.plain_dims)
+        for c, magnet in zip(self.hysteretic_dims, self.magnets, strict=True):
+            m = magnet.alpha.numel()
+            cols[c] = magnet(z[..., offset : offset + m])
+            offset += m
+        return torch.stack(cols, dim=-1)  # type: ignore[arg-type]
+
+
+class _StateGP(ExactGP):
+    """Exact GP on hysteron states: features (densities), mean, kernel, likelihood."""
+
+    def __init__(
+        self,
+        inputs: Tensor,
+        targets: Tensor,
+        likelihood: Likelihood,
+        features: _StateFeatures,
+        mean_module: Mean,
+        covar_module: Kernel,
+    ) -> None:
+        super().__init__(inputs, targets, likelihood)
+        self.features = features
+        self.mean_module = mean_module
+        self.covar_module = covar_module
+
+    def transform_inputs(self, X: Tensor) -> Tensor:
+        """Identity: the states are already this GP's inputs.
+
+        BoTorch's exact-MLL loss closure calls it on ``train_inputs``.
+        """
+        return X
+
+    def forward(self, z: Tensor) -> MultivariateNormal:
+        x = self.features(z)
+        return MultivariateNormal(self.mean_module(x), self.covar_module(x))
+
+
+def _check_likelihood(likelihood: Likelihood) -> None:
+    """Accept the likelihoods whose exact marginal likelihood the H-GP supports."""
+    if isinstance(likelihood, FixedNoiseGaussianLikelihood):
+        raise ValueError(
+            "pass measured noise variances as train_Yvar (units of train_Y squared) "
+            "instead of a FixedNoiseGaussianLikelihood: the H-GP standardises them "
+            "with train_Y and builds the likelihood itself."
+        )
+    if not isinstance(likelihood, _GaussianLikelihoodBase):
+        raise ValueError(
+            "HysteresisGP fits the exact marginal likelihood, which needs a Gaussian "
+            f"likelihood; got {type(likelihood).__name__}."
+        )
+    if not (
+        isinstance(likelihood, GaussianLikelihood)
+        and type(likelihood.noise_covar) is HomoskedasticNoise
+        and likelihood.noise.numel() == 1
+    ):
+        raise ValueError(
+            "HysteresisGP supports one homoskedastic noise level (GaussianLikelihood) "
+            "or per-point variances given as train_Yvar; got "
+            f"{type(likelihood).__name__} with noise model "
+            f"{type(getattr(likelihood, 'noise_covar', None)).__name__}."
+        )
+
+
 class HysteresisGP(Model):
     """Gaussian-process model of a beam response to the state of hysteretic magnets.
 
     The training inputs are a *history*: row ``t`` of ``train_X`` is the setting
     applied at step ``t`` (in order) and ``train_Y[t]`` the response measured after
     it. Each hysteretic column ``c`` (a key of ``hysteresis``) is a magnet current
-    fed through a copy of its Preisach model; the GP input for that column is the
-    normalised magnetisation ``(m + 1) / 2`` in ``[0, 1]``, where
-    ``m = sum(w * s) / sum(w)``, ``w = density * area``. Field scale and offset are
-    not identifiable from beam data, so only the density *shape* enters. Plain
-    columns are scaled to ``[0, 1]`` with ``bounds``. The GP itself is built as
-    BoTorch's ``SingleTaskGP`` builds its modules (RBF kernel with the
-    dimension-scaled lengthscale prior, constant mean, Gaussian likelihood with a
-    LogNormal noise prior, ``Standardize`` outcome transform), so with no
-    hysteretic columns it is the same model.
+    whose exact hysteron states along the history come from its Preisach model;
+    the GP input for that column is the normalised magnetisation ``(m + 1) / 2``
+    in ``[0, 1]``, where ``m = sum(w * s) / sum(w)``, ``w = density * area``. Field
+    scale and offset are not identifiable from beam data, so only the density
+    *shape* enters. The densities are parameters of this model
+    (``gp.features.magnets[i].raw_density``, positive through GPyTorch's
+    ``Positive`` constraint); ``hysteresis_models`` returns Preisach models
+    carrying them. Plain columns are scaled to ``[0, 1]`` with BoTorch's
+    ``Normalize`` and ``bounds``. The GP itself is built as BoTorch's
+    ``SingleTaskGP`` builds its modules (RBF kernel with the dimension-scaled
+    lengthscale prior, constant mean, Gaussian likelihood with a LogNormal noise
+    prior or, with ``train_Yvar``, a ``FixedNoiseGaussianLikelihood``,
+    ``Standardize`` outcome transform), so with no hysteretic columns it is the
+    same model.
 
     ``posterior(X)`` with ``X`` of shape ``batch x q x d`` means: *starting from the
     magnetic state at the end of the training history, apply the q settings of
@@ -123,17 +249,21 @@ class HysteresisGP(Model):
             hysteretic columns in the units of their Preisach model's
             ``input_range`` (e.g. current [A]).
         train_Y: Measured responses, shape ``(n, 1)``.
-        hysteresis: Map from input column to its Preisach model (copied; the
-            copies live in ``hysteresis_models``). Empty for a plain GP. The
-            state before the first row is the model's initial state, held fixed
-            (a ``"learned"`` initial state is used as it is, not refitted).
+        hysteresis: Map from input column to its Preisach model (copied; its
+            density is the starting point of the fit). Empty for a plain GP.
+            The state before the first row is the model's initial state, held
+            fixed (a ``"learned"`` initial state is used as it is, not refitted).
         bounds: Lower and upper bounds of every input column, shape ``(2, d)``,
             used to scale plain columns to ``[0, 1]``; the data range if omitted.
-        likelihood: Replaces the default Gaussian likelihood.
+        train_Yvar: Measured noise variances of ``train_Y`` [units of ``train_Y``
+            squared], shape ``(n, 1)``; a ``FixedNoiseGaussianLikelihood`` then
+            replaces the fitted noise level.
+        likelihood: Replaces the default Gaussian likelihood; must be a
+            homoskedastic ``GaussianLikelihood`` (other likelihoods are rejected).
         covar_module: Replaces the default kernel (acts on the ``d`` features).
         mean_module: Replaces the default constant mean.
-        outcome_transform: Transform of ``train_Y``; ``Standardize`` by default,
-            ``None`` for none.
+        outcome_transform: Transform of ``train_Y``; ``Standardize`` by default
+            (BoTorch's ``DEFAULT``), ``None`` for none.
         candidate_smoothing: Width of the smooth, rate-independent relays used
             for the settings given to ``posterior`` (normalised Preisach input
             units; see ``diffaccel.hysteresis.states.smooth_states``). They start
@@ -142,13 +272,21 @@ class HysteresisGP(Model):
             function of the candidate currents, which gradient-based acquisition
             optimisers need (exact relays are piecewise constant). ``None``: a quarter
             of the mesh spacing, ``0.25 / sqrt(2 M)``; ``0``: exact relays.
+        density_prior_scale: If set, a ``NormalPrior`` of this standard deviation
+            on each raw (softplus-inverse) density about its given value is
+            registered (``density_prior``): the given density is a prior guess.
+            It matters when few points must constrain many hysterons (e.g. early
+            in optimisation) and fades as data accumulate; the fit's restarts
+            sample it. ``None``: no density prior.
 
     Shapes:
         ``posterior(X)`` maps ``(*b, q, d)`` to a posterior over ``(*b, q, 1)``.
 
     Raises:
         ValueError: for shapes, NaN or infinite values, fewer than 3 points,
-            constant outputs, or a hysteretic column outside ``0..d-1``.
+            constant outputs, a hysteretic column outside ``0..d-1``, training
+            currents outside a Preisach model's ``input_range``, negative
+            ``train_Yvar`` or an unsupported likelihood.
 
     Example:
         >>> import torch
@@ -168,15 +306,23 @@ class HysteresisGP(Model):
         train_Y: Tensor,
         hysteresis: Mapping[int, PreisachModel],
         bounds: Tensor | None = None,
+        train_Yvar: Tensor | None = None,
         likelihood: Likelihood | None = None,
         covar_module: Kernel | None = None,
         mean_module: Mean | None = None,
-        outcome_transform: OutcomeTransform | str | None = "default",
+        outcome_transform: OutcomeTransform | _DefaultType | None = DEFAULT,
         candidate_smoothing: float | None = None,
+        density_prior_scale: float | None = None,
     ) -> None:
         super().__init__()
         # 1. validate
-        _validate_training_data(train_X, train_Y)
+        _validate_training_data(train_X, train_Y, train_Yvar)
+        if likelihood is not None:
+            if train_Yvar is not None:
+                raise ValueError(
+                    "give either train_Yvar (fixed noise) or a likelihood, not both."
+                )
+            _check_likelihood(likelihood)
         d = train_X.shape[-1]
         dims = sorted(int(c) for c in hysteresis)
         for c in dims:
@@ -196,44 +342,64 @@ class HysteresisGP(Model):
             raise ValueError(
                 f"candidate_smoothing must be >= 0 or None; got {candidate_smoothing}."
             )
+        if density_prior_scale is not None and not density_prior_scale > 0:
+            raise ValueError(
+                f"density_prior_scale must be > 0 or None; got {density_prior_scale}."
+            )
         self.hysteretic_dims: tuple[int, ...] = tuple(dims)
         self.plain_dims: tuple[int, ...] = tuple(i for i in range(d) if i not in dims)
         self.candidate_smoothing = candidate_smoothing
-        width = bounds[1] - bounds[0]
+        self.density_prior_scale = density_prior_scale
         self.register_buffer("bounds", bounds.clone())
-        self.register_buffer("_plain_width", torch.where(width > 0, width, 1.0))
         self.register_buffer("train_X", train_X.detach().clone())
         self.register_buffer("train_Y", train_Y.detach().clone())
+        yvar_buffer = None if train_Yvar is None else train_Yvar.detach().clone()
+        self.register_buffer("train_Yvar", yvar_buffer)
 
-        # 2. transform
-        models = [copy.deepcopy(hysteresis[c]).to(train_X) for c in dims]
-        self.hysteresis_models = nn.ModuleList(models)
-        # exact hysteron states along the history do not depend on the density
-        for i, (c, pm) in enumerate(zip(dims, models, strict=True)):
+        # 2. transform: plain columns -> [0, 1]; hysteretic columns -> exact states
+        # along the history (they do not depend on the density)
+        if self.plain_dims:
+            idx = list(self.plain_dims)
+            lo, hi = bounds[0, idx], bounds[1, idx]
+            hi = torch.where(hi > lo, hi, lo + 1.0)  # constant column: shift only
+            self.plain_transform = Normalize(
+                d=len(idx), bounds=torch.stack([lo, hi])
+            ).to(train_X)
+        given = [copy.deepcopy(hysteresis[c]).to(train_X) for c in dims]
+        self._given = given  # plain list: templates for ``hysteresis_models``
+        blocks = [self._plain_features(train_X)]
+        for c, pm in zip(dims, given, strict=True):
             pm.check_input_range(train_X[:, c], f"training inputs of column {c}")
             with torch.no_grad():
-                states = pm.states(train_X[:, c])
-            self.register_buffer(f"_history_states_{i}", states.to(train_X))
-        if outcome_transform == "default":
+                blocks.append(pm.states(train_X[:, c]).to(train_X))
+        train_inputs = torch.cat(blocks, dim=-1)
+        if outcome_transform is DEFAULT:
             outcome_transform = Standardize(m=1)
-        y = train_Y
+        y, yvar = train_Y, train_Yvar
         if outcome_transform is not None:
             outcome_transform.train()
-            y, _ = outcome_transform(train_Y)
+            y, yvar = outcome_transform(train_Y, train_Yvar)
             self.outcome_transform = outcome_transform
-        self.register_buffer("_train_targets", y.squeeze(-1).detach().clone())
 
         # 3. build modules
         if likelihood is None:
-            likelihood = get_gaussian_likelihood_with_lognormal_prior()
+            if yvar is None:
+                likelihood = get_gaussian_likelihood_with_lognormal_prior()
+            else:
+                likelihood = FixedNoiseGaussianLikelihood(noise=yvar.squeeze(-1))
         if covar_module is None:
             covar_module = get_covar_module_with_dim_scaled_prior(ard_num_dims=d)
         if mean_module is None:
             mean_module = ConstantMean()
-        with torch.no_grad():
-            features = self.train_features()
-        self.gp = _FeatureGP(
-            features, self._train_targets, likelihood, mean_module, covar_module
+        magnets = [_MagnetFeature(pm, density_prior_scale) for pm in given]
+        features = _StateFeatures(d, self.hysteretic_dims, magnets)
+        self.gp = _StateGP(
+            train_inputs,
+            y.squeeze(-1).detach(),
+            likelihood,
+            features,
+            mean_module,
+            covar_module,
         )
         # 4. move to train_X
         self.to(train_X)
@@ -256,10 +422,12 @@ class HysteresisGP(Model):
 
     @property
     def noise_sigma(self) -> Tensor:
-        """Fitted observation-noise standard deviation in units of ``train_Y``."""
-        noise = self.gp.likelihood.noise.squeeze()
-        scale = self._outcome_scale()
-        return noise.sqrt() * scale
+        """Observation-noise standard deviation in units of ``train_Y``.
+
+        The fitted level, or with ``train_Yvar`` the root mean given variance.
+        """
+        noise = self.gp.likelihood.noise.mean()
+        return noise.sqrt() * self._outcome_scale()
 
     def _outcome_scale(self) -> Tensor:
         ot = getattr(self, "outcome_transform", None)
@@ -267,27 +435,39 @@ class HysteresisGP(Model):
             return ot.stdvs.squeeze()
         return torch.ones((), dtype=self.train_X.dtype, device=self.train_X.device)
 
+    def marginal_log_likelihood(self) -> ExactMarginalLogLikelihood:
+        """GPyTorch's exact marginal log likelihood of the inner GP.
+
+        Its value on the training data (per point, with every registered prior:
+        noise, lengthscales, densities) is what :func:`fit_hysteresis_gp`
+        maximises over the GP hyperparameters and the Preisach densities.
+        """
+        return ExactMarginalLogLikelihood(self.gp.likelihood, self.gp)
+
     # ---------------------------------------------------------------- features
-    def _weights(self, i: int) -> Tensor:
-        return self.hysteresis_models[i].weights
+    @property
+    def hysteresis_models(self) -> list[PreisachModel]:
+        """Preisach models of the hysteretic columns carrying the current densities.
+
+        New copies on every call (changing them does not change this model).
+        """
+        out = []
+        for pm, magnet in zip(self._given, self.gp.features.magnets, strict=True):
+            pm = copy.deepcopy(pm).to(self.train_X)
+            with torch.no_grad():
+                pm.raw_density.copy_(magnet.raw_density)
+            out.append(pm)
+        return out
+
+    def _plain_features(self, X: Tensor) -> Tensor:
+        if not self.plain_dims:
+            return X[..., :0]
+        return self.plain_transform(X[..., list(self.plain_dims)])
 
     def _normalised(self, i: int, u: Tensor) -> Tensor:
         # settings beyond the Preisach input range saturate every hysteron alike
-        lo, hi = self.hysteresis_models[i].input_range
+        lo, hi = self._given[i].input_range
         return ((u - lo) / (hi - lo)).clamp(0.0, 1.0)
-
-    def _plain_features(self, X: Tensor) -> Tensor:
-        idx = list(self.plain_dims)
-        return (X[..., idx] - self.bounds[0, idx]) / self._plain_width[idx]
-
-    def _assemble(self, X: Tensor, hyst: list[Tensor]) -> Tensor:
-        cols: list[Tensor | None] = [None] * X.shape[-1]
-        plain = self._plain_features(X)
-        for k, c in enumerate(self.plain_dims):
-            cols[c] = plain[..., k]
-        for k, c in enumerate(self.hysteretic_dims):
-            cols[c] = hyst[k]
-        return torch.stack(cols, dim=-1)  # type: ignore[arg-type]
 
     def history_states(self, i: int) -> Tensor:
         """Exact hysteron states of hysteretic input ``i`` along the training history.
@@ -298,14 +478,11 @@ class HysteresisGP(Model):
         Returns:
             States in ``{-1, +1}``, shape ``(n, M)``.
         """
-        return getattr(self, f"_history_states_{i}")
-
-    def current_states(self) -> list[Tensor]:
-        """Hysteron states at the end of the training history, one ``(M,)`` each."""
-        return [self.history_states(i)[-1] for i in range(len(self.hysteretic_dims))]
-
-    def _magnetisation_feature(self, i: int, states: Tensor) -> Tensor:
-        return magnetisation_feature(states, self._weights(i))
+        start = len(self.plain_dims)
+        for magnet in self.gp.features.magnets[:i]:
+            start += magnet.alpha.numel()
+        m = self.gp.features.magnets[i].alpha.numel()
+        return self.gp.train_inputs[0][:, start : start + m]
 
     def train_features(self) -> Tensor:
         """GP inputs along the training history (differentiable in the densities).
@@ -313,23 +490,20 @@ class HysteresisGP(Model):
         Returns:
             Features in ``[0, 1]``, shape ``(n, d)``.
         """
-        hyst = [
-            self._magnetisation_feature(i, self.history_states(i))
-            for i in range(len(self.hysteretic_dims))
-        ]
-        return self._assemble(self.train_X, hyst)
+        return self.gp.features(self.gp.train_inputs[0])
 
     def smoothing_width(self, i: int) -> float:
         """Candidate relay width of hysteretic input ``i`` (normalised units)."""
         if self.candidate_smoothing is not None:
             return float(self.candidate_smoothing)
-        return 0.25 / math.sqrt(2.0 * self.hysteresis_models[i].alpha.numel())
+        return 0.25 / math.sqrt(2.0 * self.gp.features.magnets[i].alpha.numel())
 
-    def features(self, X: Tensor, exact: bool = False) -> Tensor:
-        """GP inputs for settings applied in order after the training history.
+    def encode(self, X: Tensor, exact: bool = False) -> Tensor:
+        """Inputs of the inner GP for settings applied in order after the history.
 
-        Hysteretic columns start from the exact state and input at the end of
-        the history and follow smooth relays of width :meth:`smoothing_width`
+        Plain columns scaled to ``[0, 1]``, then the hysteron states of each
+        hysteretic column. These start from the exact state and input at the end
+        of the history and follow smooth relays of width :meth:`smoothing_width`
         (exact relays if it is 0 or ``exact`` is True).
 
         Args:
@@ -338,29 +512,37 @@ class HysteresisGP(Model):
             exact: Use exact relays whatever the smoothing width.
 
         Returns:
-            Features, shape ``(*b, q, d)``.
+            Encoded inputs, shape ``(*b, q, p + M_1 + ...)`` with ``p`` plain
+            columns and ``M_i`` hysterons of hysteretic column ``i``.
         """
-        hyst = []
-        for i, c in enumerate(self.hysteretic_dims):
-            pm = self.hysteresis_models[i]
+        blocks = [self._plain_features(X)]
+        for i, (c, magnet) in enumerate(
+            zip(self.hysteretic_dims, self.gp.features.magnets, strict=True)
+        ):
             x = self._normalised(i, X[..., c])
             s_end = self.history_states(i)[-1].to(X)
-            alpha, beta = pm.alpha.to(X), pm.beta.to(X)
+            alpha, beta = magnet.alpha.to(X), magnet.beta.to(X)
             width = 0.0 if exact else self.smoothing_width(i)
             if width > 0:
                 x_end = self._normalised(i, self.train_X[-1, c]).to(X)
                 states = smooth_states(x, alpha, beta, s_end, width, start=x_end)
             else:
                 states = exact_states(x, alpha, beta, s_end)
-            hyst.append(self._magnetisation_feature(i, states))
-        return self._assemble(X, hyst)
+            blocks.append(states)
+        return torch.cat(blocks, dim=-1)
 
-    def _sync_train_data(self) -> None:
-        with torch.no_grad():
-            feats = self.train_features()
-        old = self.gp.train_inputs[0]
-        if old.shape != feats.shape or not torch.equal(old, feats):
-            self.gp.set_train_data(feats, self._train_targets, strict=False)
+    def features(self, X: Tensor, exact: bool = False) -> Tensor:
+        """GP features (normalised magnetisations, scaled plain columns) of ``X``.
+
+        Args:
+            X: Settings, shape ``(*b, q, d)``, applied in order after the history
+                (see :meth:`encode`).
+            exact: Use exact relays whatever the smoothing width.
+
+        Returns:
+            Features in ``[0, 1]``, shape ``(*b, q, d)``.
+        """
+        return self.gp.features(self.encode(X, exact=exact))
 
     # --------------------------------------------------------------- posterior
     def _check_X(self, X: Tensor) -> None:
@@ -375,13 +557,22 @@ class HysteresisGP(Model):
     def _wrap(
         self,
         mvn: MultivariateNormal,
-        features: Tensor,
+        inputs: Tensor,
         X: Tensor,
         observation_noise: bool | Tensor,
         posterior_transform: Callable | None,
+        at_history: bool = False,
     ) -> GPyTorchPosterior | TransformedPosterior:
-        if observation_noise is not False:
-            mvn = self.gp.likelihood(mvn, features)
+        lik = self.gp.likelihood
+        shape = mvn.batch_shape + mvn.event_shape
+        if isinstance(observation_noise, Tensor):  # as BoTorch: model units, (..., 1)
+            mvn = lik(mvn, inputs, noise=observation_noise.squeeze(-1).expand(shape))
+        elif observation_noise and isinstance(lik, FixedNoiseGaussianLikelihood):
+            # training points keep their own variances; new points get the mean
+            noise = lik.noise if at_history else lik.noise.mean(-1, keepdim=True)
+            mvn = lik(mvn, inputs, noise=noise.expand(shape))
+        elif observation_noise:
+            mvn = lik(mvn, inputs)
         posterior = GPyTorchPosterior(distribution=mvn)
         ot = getattr(self, "outcome_transform", None)
         if ot is not None:
@@ -405,7 +596,9 @@ class HysteresisGP(Model):
                 order, starting from the magnetic state at the end of the
                 training history.
             output_indices: Must be ``None`` or ``[0]`` (single output).
-            observation_noise: If True, add the fitted observation noise.
+            observation_noise: If True, add the observation noise (fitted, or
+                the mean of ``train_Yvar``); a tensor ``batch x q x 1`` is used as
+                the noise variance in model (standardised) units, as in BoTorch.
             posterior_transform: Optional BoTorch posterior transform.
 
         Returns:
@@ -419,10 +612,9 @@ class HysteresisGP(Model):
             raise ValueError(f"HysteresisGP has one output; got {output_indices}.")
         self._check_X(X)
         self.eval()
-        self._sync_train_data()
-        feats = self.features(X)
-        mvn = self.gp(feats)
-        return self._wrap(mvn, feats, X, observation_noise, posterior_transform)
+        inputs = self.encode(X)
+        mvn = self.gp(inputs)
+        return self._wrap(mvn, inputs, X, observation_noise, posterior_transform)
 
     def posterior_on_history(
         self, observation_noise: bool = False
@@ -430,18 +622,20 @@ class HysteresisGP(Model):
         """Posterior of the responses at the training history itself.
 
         Args:
-            observation_noise: If True, add the fitted observation noise.
+            observation_noise: If True, add the observation noise (with
+                ``train_Yvar``: each point's own variance).
 
         Returns:
             Posterior over shape ``(n, 1)`` (units of ``train_Y``).
         """
         self.eval()
-        self._sync_train_data()
-        feats = self.gp.train_inputs[0]
+        inputs = self.gp.train_inputs[0]
         with warnings.catch_warnings():  # predicting at the training inputs is meant
             warnings.simplefilter("ignore", GPInputWarning)
-            mvn = self.gp(feats)
-        return self._wrap(mvn, feats, self.train_X, observation_noise, None)
+            mvn = self.gp(inputs)
+        return self._wrap(
+            mvn, inputs, self.train_X, observation_noise, None, at_history=True
+        )
 
     def posterior_sequence(
         self, X: Tensor, observation_noise: bool = False
@@ -456,7 +650,8 @@ class HysteresisGP(Model):
 
         Args:
             X: Future settings, shape ``(T, d)`` or ``(*b, T, d)``.
-            observation_noise: If True, add the fitted observation noise.
+            observation_noise: If True, add the observation noise (fitted, or
+                the mean of ``train_Yvar``).
 
         Returns:
             Posterior over ``(T, 1)`` or ``(*b, T, 1)`` (units of ``train_Y``).
@@ -466,13 +661,12 @@ class HysteresisGP(Model):
         """
         self._check_X(X)
         self.eval()
-        self._sync_train_data()
-        feats = self.features(X, exact=True)
-        mvn = self.gp(feats)
-        return self._wrap(mvn, feats, X, observation_noise, None)
+        inputs = self.encode(X, exact=True)
+        mvn = self.gp(inputs)
+        return self._wrap(mvn, inputs, X, observation_noise, None)
 
     def condition_on_observations(
-        self, X: Tensor, Y: Tensor, **kwargs: object
+        self, X: Tensor, Y: Tensor, noise: Tensor | None = None, **kwargs: object
     ) -> HysteresisGP:
         """A new model whose history continues with ``X`` and measurements ``Y``.
 
@@ -482,6 +676,8 @@ class HysteresisGP(Model):
         Args:
             X: Settings applied after the history, in order, shape ``(n', d)``.
             Y: Responses measured after each, shape ``(n', 1)``.
+            noise: Their noise variances ``(n', 1)``; required exactly when the
+                model was built with ``train_Yvar``.
             **kwargs: Not supported; must be empty.
 
         Returns:
@@ -494,41 +690,66 @@ class HysteresisGP(Model):
                 "condition_on_observations takes one continued history: X (n', d), "
                 f"Y (n', 1); got X {tuple(X.shape)}, Y {tuple(Y.shape)}."
             )
-        return self.extended(X, Y)
+        return self.extended(X, Y, Yvar=noise)
 
-    def extended(self, X: Tensor, Y: Tensor) -> HysteresisGP:
-        """Same model (densities, hyperparameters) on the history continued by X, Y.
+    def extended(
+        self, X: Tensor, Y: Tensor, Yvar: Tensor | None = None
+    ) -> HysteresisGP:
+        """Same model (densities, priors, hyperparameters) on the history continued.
 
         Args:
             X: Settings applied after the history, in order, shape ``(n', d)``.
             Y: Responses measured after each, shape ``(n', 1)``.
+            Yvar: Their noise variances ``(n', 1)``; required exactly when the
+                model was built with ``train_Yvar``.
 
         Returns:
             A new :class:`HysteresisGP`; the outcome transform is re-fitted to the
             extended data.
+
+        Raises:
+            ValueError: if ``Yvar`` is missing for a fixed-noise model or given
+                for a fitted-noise one.
         """
+        if (Yvar is None) != (self.train_Yvar is None):
+            raise ValueError(
+                "Yvar is required exactly when the model was built with train_Yvar; "
+                f"model has train_Yvar: {self.train_Yvar is not None}, got Yvar: "
+                f"{Yvar is not None}."
+            )
         new_X = torch.cat([self.train_X, X.to(self.train_X)])
         new_Y = torch.cat([self.train_Y, Y.to(self.train_Y)])
-        hyst = {
-            c: pm
-            for c, pm in zip(self.hysteretic_dims, self.hysteresis_models, strict=True)
-        }
+        modules: dict[str, object] = {}
+        new_Yvar = None
+        if self.train_Yvar is None:
+            modules["likelihood"] = copy.deepcopy(self.gp.likelihood)
+        else:
+            new_Yvar = torch.cat([self.train_Yvar, Yvar.to(self.train_Yvar)])
         ot = getattr(self, "outcome_transform", None)
         new = HysteresisGP(
             new_X,
             new_Y,
-            hysteresis=hyst,
+            hysteresis=dict(zip(self.hysteretic_dims, self._given, strict=True)),
             bounds=self.bounds,
-            likelihood=copy.deepcopy(self.gp.likelihood),
+            train_Yvar=new_Yvar,
             covar_module=copy.deepcopy(self.gp.covar_module),
             mean_module=copy.deepcopy(self.gp.mean_module),
             outcome_transform=None if ot is None else Standardize(m=1),
             candidate_smoothing=self.candidate_smoothing,
+            density_prior_scale=self.density_prior_scale,
+            **modules,
         )
+        with torch.no_grad():  # the fitted densities; the priors stay the given ones
+            for old, mag in zip(
+                self.gp.features.magnets, new.gp.features.magnets, strict=True
+            ):
+                mag.raw_density.copy_(old.raw_density)
         return new
 
 
-def _validate_training_data(train_X: Tensor, train_Y: Tensor) -> None:
+def _validate_training_data(
+    train_X: Tensor, train_Y: Tensor, train_Yvar: Tensor | None
+) -> None:
     if not isinstance(train_X, Tensor) or not isinstance(train_Y, Tensor):
         raise TypeError("train_X and train_Y must be torch tensors.")
     if train_X.dim() != 2:
@@ -553,6 +774,17 @@ def _validate_training_data(train_X: Tensor, train_Y: Tensor) -> None:
             "train_Y contains NaN or infinite values; drop failed measurements "
             "from the outputs only if you keep their settings in the history."
         )
+    if train_Yvar is not None:
+        if not isinstance(train_Yvar, Tensor) or train_Yvar.shape != train_Y.shape:
+            raise ValueError(
+                f"train_Yvar must be a tensor of shape (n, 1) = "
+                f"({train_X.shape[0]}, 1); got "
+                f"{getattr(train_Yvar, 'shape', type(train_Yvar).__name__)}."
+            )
+        if not (torch.isfinite(train_Yvar).all() and (train_Yvar >= 0).all()):
+            raise ValueError(
+                "train_Yvar holds negative, NaN or infinite noise variances."
+            )
     n = train_X.shape[0]
     if n < _MIN_POINTS:
         raise ValueError(
@@ -570,9 +802,11 @@ class HGPFitResult:
     """Outcome of a joint H-GP fit.
 
     Args:
-        mll: Best exact marginal log likelihood per point (with priors).
-        noise_sigma: Fitted noise standard deviation [units of ``train_Y``].
-        restart_mlls: Final ``mll`` of every restart, in order.
+        mll: Exact marginal log likelihood per point (with priors) of the kept
+            parameters.
+        noise_sigma: Noise standard deviation [units of ``train_Y``].
+        restart_mlls: Final ``mll`` of every restart, in order (``-inf`` for a
+            restart that failed numerically).
         best_restart: Index of the restart kept.
         fit_s: Wall-clock time of the fit [s].
     """
@@ -584,50 +818,11 @@ class HGPFitResult:
     fit_s: float
 
 
-def _joint_loss(model: HysteresisGP, mll: ExactMarginalLogLikelihood) -> Tensor:
-    """Negative exact MLL per point, with priors, as GPyTorch's ExactMLL defines it.
-
-    Computed with one dense Cholesky factorisation (no lazy-tensor machinery), which
-    is several times faster for the few hundred points of a magnet history.
-    """
-    gp = model.gp
-    feats = model.train_features()
-    y = model._train_targets
-    n = y.shape[-1]
-    noise = gp.likelihood.noise.reshape(())
-    cov = gp.covar_module(feats).to_dense()
-    cov = cov + noise * torch.eye(n, dtype=cov.dtype, device=cov.device)
-    chol, info = torch.linalg.cholesky_ex(cov)
-    if bool(info):
-        jitter = 1e-6 * cov.diagonal().mean().detach()
-        cov = cov + jitter * torch.eye(n, dtype=cov.dtype, device=cov.device)
-        chol = torch.linalg.cholesky(cov)
-    resid = (y - gp.mean_module(feats)).unsqueeze(-1)
-    alpha = torch.cholesky_solve(resid, chol)
-    value = -0.5 * (resid * alpha).sum() - chol.diagonal().log().sum()
-    value = value - 0.5 * n * math.log(2.0 * math.pi)
-    for _, module, prior, closure, _ in gp.named_priors():
-        value = value + prior.log_prob(closure(module)).sum()
-    return -value / n
-
-
-def _randomise(model: HysteresisGP, generator: torch.Generator) -> None:
-    """Random start: log-normal density jitter, random lengthscales and noise."""
-    dtype, device = model.train_X.dtype, model.train_X.device
-    with torch.no_grad():
-        for pm in model.hysteresis_models:
-            raw = pm.raw_density
-            noise = torch.randn(raw.shape, generator=generator, dtype=dtype)
-            pm.raw_density.copy_(raw + noise.to(device=device, dtype=raw.dtype))
-        kern = model.gp.covar_module
-        if hasattr(kern, "lengthscale"):
-            ls = kern.lengthscale
-            factor = torch.exp(0.7 * torch.randn(ls.shape, generator=generator))
-            kern.lengthscale = (ls * factor.to(ls)).clamp_min(0.05)
-        lik = model.gp.likelihood
-        if hasattr(lik, "noise"):
-            log_noise = -6.0 + 2.0 * torch.rand((), generator=generator)
-            lik.noise = torch.full_like(lik.noise, math.exp(float(log_noise)))
+def _accept_optimizer_warning(w: warnings.WarningMessage) -> bool:
+    """Every restart's end point competes: a stop at the iteration limit or an
+    abnormal line search still leaves a point at least as good as its start."""
+    logger.debug("H-GP fit: %s", w.message)
+    return True
 
 
 def fit_hysteresis_gp(
@@ -635,30 +830,30 @@ def fit_hysteresis_gp(
     restarts: int = 3,
     max_iter: int = 200,
     fit_density: bool = True,
-    density_prior_scale: float | None = None,
     seed: int = 0,
     callback: Callable[[int, float], None] | None = None,
 ) -> HGPFitResult:
     """Fit Preisach densities and GP hyperparameters jointly on the exact MLL.
 
-    L-BFGS-B (BoTorch's scipy fitting routine) maximises the exact marginal log
-    likelihood plus the GP priors (the LogNormal noise prior keeps the model from
-    explaining everything as noise). Restart 0 starts from the model as given;
-    further restarts jitter the densities, lengthscales and noise at random; the
-    best restart is kept. Only density *shapes* are fitted (features use
-    normalised magnetisations), never field scale or offset.
+    BoTorch's ``fit_gpytorch_mll`` maximises GPyTorch's
+    ``ExactMarginalLogLikelihood`` of ``model.gp`` (:meth:`HysteresisGP.
+    marginal_log_likelihood`: data term plus every registered prior, e.g. the
+    LogNormal noise prior that keeps the model from explaining everything as
+    noise, and the density prior if the model has one) with scipy's L-BFGS-B
+    over all its free parameters, the raw densities included. Restarts go
+    through BoTorch's fallback (``pick_best_of_all_attempts``): restart 0 starts
+    from the model as given, later ones from values drawn by
+    ``sample_all_priors``; restarts failing with ``NotPSDError`` are discarded
+    and the best restart is kept. Only density *shapes* are fitted (features
+    use normalised magnetisations), never field scale or offset.
 
     Args:
         model: The model to fit in place.
         restarts: Number of optimisations (``>= 1``).
         max_iter: L-BFGS-B iterations per restart.
         fit_density: If False, keep the Preisach densities fixed (e.g. measured).
-        density_prior_scale: If set, a Gaussian prior of this standard deviation
-            on each raw (softplus-inverse) density about its value when the fit
-            starts, i.e. the given density is a prior guess. It matters when few
-            points must constrain many hysterons (e.g. early in optimisation)
-            and fades as data accumulate. ``None``: no density prior.
-        seed: Seed of the random restarts.
+        seed: Seed of the random restarts (torch's global generator is forked,
+            so the caller's random state is left unchanged).
         callback: Called after each restart with ``(restart, mll)``.
 
     Returns:
@@ -666,67 +861,57 @@ def fit_hysteresis_gp(
 
     Raises:
         ValueError: if ``restarts < 1`` or ``max_iter < 1``.
+        RuntimeError: if every restart failed numerically.
     """
     if restarts < 1 or max_iter < 1:
         raise ValueError(
             f"restarts and max_iter must be >= 1; got {restarts} and {max_iter}."
         )
-    if density_prior_scale is not None and not density_prior_scale > 0:
-        raise ValueError(
-            f"density_prior_scale must be > 0 or None; got {density_prior_scale}."
-        )
     t0 = time.perf_counter()
-    generator = torch.Generator().manual_seed(seed)
-    mll = ExactMarginalLogLikelihood(model.gp.likelihood, model.gp)
-    gp_params, _ = get_parameters_and_bounds(mll)
-    params = {n: p for n, p in gp_params.items() if p.requires_grad}
-    if fit_density:
-        for i, pm in enumerate(model.hysteresis_models):
-            params[f"hysteresis_models.{i}.raw_density"] = pm.raw_density
-    start = copy.deepcopy(model.state_dict())
-    raw0 = [pm.raw_density.detach().clone() for pm in model.hysteresis_models]
-
-    def loss() -> Tensor:
-        value = _joint_loss(model, mll)
-        if fit_density and density_prior_scale is not None:
-            n = model._train_targets.shape[-1]
-            for pm, r0 in zip(model.hysteresis_models, raw0, strict=True):
-                dev = (pm.raw_density - r0) / density_prior_scale
-                value = value + 0.5 * dev.pow(2).sum() / n
-        return value
-
-    best_state, best_value, best_index = None, -math.inf, 0
+    mll = model.marginal_log_likelihood()
     values: list[float] = []
-    for r in range(restarts):
-        model.load_state_dict(start)
-        if r > 0:
-            _randomise(model, generator)
-        model.train()
-        closure = ForwardBackwardClosure(forward=loss, parameters=params)
-        try:
-            fit_gpytorch_mll_scipy(
-                mll, parameters=params, closure=closure, options={"maxiter": max_iter}
-            )
-            with torch.no_grad():
-                value = -float(loss())
-        except (RuntimeError, ValueError) as err:  # numerical failure of one start
-            logger.warning("H-GP restart %d failed: %s", r, err)
-            value = -math.inf
-        values.append(value)
+
+    def optimizer(mll: ExactMarginalLogLikelihood, **kwargs: object) -> object:
+        values.append(-math.inf)  # stays so if the restart raises
+        result = fit_gpytorch_mll_scipy(mll, **kwargs)
+        values[-1] = -float(result.fval)
         if callback is not None:
-            callback(r, value)
-        if value > best_value:
-            best_value, best_index = value, r
-            best_state = copy.deepcopy(model.state_dict())
-    if best_state is None:
-        raise RuntimeError("every H-GP restart failed; check the data for outliers.")
-    model.load_state_dict(best_state)
+            callback(len(values) - 1, values[-1])
+        return result
+
+    densities = [mag.raw_density for mag in model.gp.features.magnets]
+    grads = [p.requires_grad for p in densities]
+    try:
+        for p in densities:
+            p.requires_grad_(fit_density)
+        with torch.random.fork_rng():
+            torch.manual_seed(seed)
+            fit_gpytorch_mll(
+                mll,
+                optimizer=optimizer,
+                optimizer_kwargs={"options": {"maxiter": max_iter}},
+                max_attempts=restarts,
+                pick_best_of_all_attempts=True,
+                warning_handler=_accept_optimizer_warning,
+            )
+    except ModelFittingError as err:
+        raise RuntimeError(
+            f"every one of the {restarts} H-GP fit restarts failed numerically "
+            "(covariance not positive definite); check the data for outliers or "
+            "duplicated rows with different responses."
+        ) from err
+    finally:
+        for p, g in zip(densities, grads, strict=True):
+            p.requires_grad_(g)
+    model.train()
+    with torch.no_grad():
+        value = float(mll(model.gp(*model.gp.train_inputs), model.gp.train_targets))
     model.eval()
-    model._sync_train_data()
+    best = max(range(len(values)), key=lambda r: values[r])
     return HGPFitResult(
-        mll=best_value,
+        mll=value,
         noise_sigma=float(model.noise_sigma.detach()),
         restart_mlls=tuple(values),
-        best_restart=best_index,
+        best_restart=best,
         fit_s=time.perf_counter() - t0,
     )
