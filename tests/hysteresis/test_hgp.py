@@ -166,6 +166,15 @@ def test_fixed_noise_without_hysteresis_equals_single_task_gp() -> None:
         torch.testing.assert_close(p2.variance, p1.variance, rtol=1e-8, atol=1e-10)
     # the model's noise is the given one, in units of train_Y
     assert float(hgp.noise_sigma) == pytest.approx(float(Yvar.mean().sqrt()), 1e-12)
+    X2, Y2 = (
+        torch.tensor([[0.2], [0.7]], dtype=DT),
+        torch.tensor([[0.1], [0.3]], dtype=DT),
+    )
+    with pytest.raises(ValueError, match="Yvar is required exactly"):
+        hgp.condition_on_observations(X2, Y2)
+    new = hgp.condition_on_observations(X2, Y2, noise=torch.full_like(Y2, 2e-3))
+    assert isinstance(new.likelihood, FixedNoiseGaussianLikelihood)
+    torch.testing.assert_close(new.train_Yvar[-2:], torch.full_like(Y2, 2e-3))
 
 
 def _dense_exact_mll(model: HysteresisGP) -> torch.Tensor:

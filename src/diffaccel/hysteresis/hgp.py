@@ -836,10 +836,11 @@ def fit_hysteresis_gp(
     """Fit Preisach densities and GP hyperparameters jointly on the exact MLL.
 
     BoTorch's ``fit_gpytorch_mll`` maximises GPyTorch's
-    ``ExactMarginalLogLikelihood`` of ``model.gp`` (:meth:`HysteresisGP.
-    marginal_log_likelihood`: data term plus every registered prior, e.g. the
-    LogNormal noise prior that keeps the model from explaining everything as
-    noise, and the density prior if the model has one) with scipy's L-BFGS-B
+    ``ExactMarginalLogLikelihood`` of ``model.gp``, as returned by
+    ``model.marginal_log_likelihood()`` (data term plus every registered prior,
+    e.g. the LogNormal noise prior that keeps the model from explaining
+    everything as noise, and the density prior if the model has one) with
+    scipy's L-BFGS-B
     over all its free parameters, the raw densities included. Restarts go
     through BoTorch's fallback (``pick_best_of_all_attempts``): restart 0 starts
     from the model as given, later ones from values drawn by
