@@ -177,7 +177,11 @@ class HysteresisBO:
             sign * self.Y,
             hysteresis=hyst,
             bounds=self.bounds,
-            density_prior_scale=self.density_prior_scale if hyst else None,
+            # a prior on frozen densities only adds a constant to the MLL, which
+            # makes L-BFGS-B's relative stopping test end the fit early
+            density_prior_scale=(
+                self.density_prior_scale if hyst and self.fit_density else None
+            ),
             **modules,
         )
         self.last_fit = fit_hysteresis_gp(
