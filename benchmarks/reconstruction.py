@@ -41,6 +41,7 @@ from diffaccel.dynamics.coordinates import cheetah_to_bmad
 from diffaccel.reconstruction import (
     ReconstructionConfig,
     ScreenForwardModel,
+    evaluate,
     image_errors,
     moment_errors,
     reconstruct,
@@ -61,15 +62,16 @@ def run_diffaccel(ds, train, test) -> dict:
     t0 = time.perf_counter()
     result = reconstruct(ds, cfg, train_indices=train)
     wall = time.perf_counter() - t0
-    pred = result.predict_images(ds.settings)
-    meas = ds.mean_images()
-    x = result.sample(100_000)
+    # the evaluation the CLI writes to summary.json (one scan, named "scan")
+    summary = evaluate(result, ds, n_sample=100_000)
+    scan = summary["scans"]["scan"]
+    gt = summary["metrics"]["ground_truth"]
     return {
         "wall_s": wall,
         "config": cfg.to_dict(),
-        "errors": _errors(x, ds.ground_truth),
-        "held_out_images": image_errors(pred[test], meas[test]),
-        "train_images": image_errors(pred[train], meas[train]),
+        "errors": {k: gt[k] for k in KEYS} | {"corr_max_abs": gt["corr_max_abs"]},
+        "held_out_images": scan["images_held_out"],
+        "train_images": scan["images_train"],
     }
 
 
