@@ -48,6 +48,7 @@ from _meta import emit, git_commit
 from diffaccel.data import read_scans
 from diffaccel.dynamics.coordinates import cheetah_to_bmad
 from diffaccel.reconstruction import (
+    ReconstructionConfig,
     ScreenForwardModel,
     beam_moments,
     image_errors,
@@ -251,7 +252,9 @@ def run_gpsr(train, test, epochs: int, n_particles: int, method: str) -> dict:
         p = pred[i].reshape(scan.n_settings, *scan.screen_shape)
         p = p / p.sum((-2, -1), keepdim=True).clamp_min(1e-30)
         held[name] = image_errors(p, scan.mean_images())["relative_l1"]
-        fwd = ScreenForwardModel.from_dataset(scan, blur_pixels=0.5)
+        fwd = ScreenForwardModel.from_dataset(
+            scan, blur_pixels=ReconstructionConfig(dims=6).blur_pixels
+        )
         ours = fwd.images(x.float(), scan.settings)
         ours = ours / ours.sum((-2, -1), keepdim=True).clamp_min(1e-30)
         held_ours[name] = image_errors(ours, scan.mean_images())["relative_l1"]

@@ -272,8 +272,8 @@ def run_reconstruction(
     "--blur",
     type=click.FloatRange(min=0),
     default=None,
-    help="Point-spread rms of simulated images [pixels] [default: 1.0 for "
-    "--dims 4, 0.5 for --dims 6].",
+    help="Point-spread rms of the measured images [pixels] [default: 1.0 for "
+    "--dims 4; 0.29 = sqrt(1/12), histograms without point spread, for --dims 6].",
 )
 @click.option("--no-figures", is_flag=True, help="Skip the PNG figures.")
 @click.option("--force", is_flag=True, help="Overwrite a non-empty --out.")
