@@ -174,7 +174,8 @@ class ReconstructionConfig:
             the images as they are. None: 0 for ``dims = 4``, 1 for ``dims = 6``.
         burn_in: Cycles whose end is not kept as an ensemble member (the first
             cycle ramps the image penalty). None: 0 for ``dims = 4``, 1 for
-            ``dims = 6``; the ensemble has ``snapshots - burn_in`` members.
+            ``dims = 6`` (0 with a single snapshot); the ensemble has
+            ``snapshots - burn_in`` members.
         longitudinal_scale: Initial and prior rms of (z [m], pz [1]) when
             ``dims = 6`` and the scans do not see them (with a deflecting cavity
             or dispersion they come from the fitted image moments).
@@ -217,8 +218,9 @@ class ReconstructionConfig:
             object.__setattr__(self, "blur_pixels", _DIMS_DEFAULTS[self.dims][0])
         if self.loss_smoothing is None:
             object.__setattr__(self, "loss_smoothing", _DIMS_DEFAULTS[self.dims][1])
-        if self.burn_in is None:
-            object.__setattr__(self, "burn_in", _DIMS_DEFAULTS[self.dims][2])
+        if self.burn_in is None:  # never all members
+            burn_in = min(_DIMS_DEFAULTS[self.dims][2], max(self.snapshots - 1, 0))
+            object.__setattr__(self, "burn_in", burn_in)
         if not 0 <= self.burn_in < self.snapshots:
             raise ValueError(
                 f"burn_in must be in [0, snapshots = {self.snapshots}); got "
