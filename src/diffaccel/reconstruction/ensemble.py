@@ -16,6 +16,7 @@ from diffaccel.reconstruction.forward import ScreenForwardModel
 from diffaccel.reconstruction.generator import BeamGenerator
 from diffaccel.reconstruction.metrics import COORDINATES, beam_moments
 from diffaccel.reconstruction.training import ReconstructionConfig
+from diffaccel.reconstruction.uncertainty import MomentUncertainty
 
 ENSEMBLE_FILE = "ensemble.pt"
 #: 2: one forward model per scan (``forwards``); 1 (still read): one ``forward``.
@@ -159,7 +160,9 @@ class Reconstruction:
         n_particles: int = 50_000,
         per_snapshot: bool = False,
         seed: int = 0,
-    ) -> Tensor:
+        return_std: bool = False,
+        n_draws: int = 8,
+    ) -> Tensor | tuple[Tensor, Tensor]:
         """Ensemble-mean screen images for arbitrary settings.
 
         The beamline is rebuilt from the settings passed on every call (no state
@@ -174,10 +177,17 @@ class Reconstruction:
             n_particles: Particles per ensemble member.
             per_snapshot: Return ``(E, K, H, W)`` instead of the mean.
             seed: Sampling seed.
+            return_std: Also return the per-pixel spread: the std over the
+                members and, when the reconstruction carries a moment-space
+                posterior (:attr:`uncertainty`), over ``n_draws`` posterior
+                beams per member (each member's particles linearly mapped to a
+                drawn centroid and covariance).
+            n_draws: Posterior beams per member for ``return_std``.
 
         Shapes:
             ``settings (K, P)`` -> ``(K, H, W)`` float32, each image summing to 1
-            (all-zero if no particle reaches the screen).
+            (all-zero if no particle reaches the screen); with ``return_std``
+            a pair ``(mean, std)`` of that shape.
 
         Raises:
             ValueError: if ``settings`` has the wrong number of columns or NaNs.
@@ -195,22 +205,48 @@ class Reconstruction:
         settings = fwd.check_settings(settings)
         beams = self.sample(n_particles, per_snapshot=True, seed=seed)
         with torch.no_grad():
-            imgs = torch.stack([fwd.images(b, settings) for b in beams])
-            imgs = imgs / imgs.sum((-2, -1), keepdim=True).clamp_min(1e-30)
-        return imgs if per_snapshot else imgs.mean(0)
+            imgs = _unit_sum(torch.stack([fwd.images(b, settings) for b in beams]))
+            if not return_std:
+                return imgs if per_snapshot else imgs.mean(0)
+            spread = [imgs]
+            unc = self.uncertainty
+            if unc is not None and n_draws > 0:
+                g = torch.Generator().manual_seed(seed + 1)
+                mu, cov = unc.draw(n_draws, g)
+                for b in beams:
+                    drawn = _recolour(b, unc.dims, mu, cov)
+                    spread.append(
+                        _unit_sum(torch.stack([fwd.images(d, settings) for d in drawn]))
+                    )
+            std = torch.cat(spread).std(0)
+        return (imgs if per_snapshot else imgs.mean(0)), std
+
+    @property
+    def uncertainty(self) -> MomentUncertainty | None:
+        """Moment-space posterior stored by ``reconstruct`` (None if absent)."""
+        d = self.info.get("uncertainty")
+        return MomentUncertainty.from_dict(d) if isinstance(d, dict) else None
 
     def moments(self, n: int = 100_000, seed: int = 0) -> dict[str, dict]:
-        """Mean and ensemble spread of the beam moments.
+        """Mean and calibrated 1-sigma uncertainty of the beam moments.
+
+        ``std`` combines (in quadrature) the spread over ensemble members
+        (``std_ensemble``: optimisation scatter) and, when the reconstruction
+        carries a moment-space posterior (:attr:`uncertainty`, written by
+        ``reconstruct``), the posterior std of the same moment
+        (``std_posterior``: measurement error and the directions the scans do
+        not constrain, see :mod:`diffaccel.reconstruction.uncertainty`).
 
         Args:
             n: Particles per member used to compute the moments.
             seed: Sampling seed.
 
         Returns:
-            ``{name: {"mean": value, "std": value, "unit": str}}`` with values
-            floats or nested lists (``centroid``, ``rms`` per coordinate,
-            ``cov``, ``corr``); normalised emittances use ``p0c`` and the species
-            mass of the forward model.
+            ``{name: {"mean": value, "std": value, "std_ensemble": value,
+            "std_posterior": value or None, "unit": str}}`` with values floats
+            or nested lists (``centroid``, ``rms`` per coordinate, ``cov``,
+            ``corr``); normalised emittances use ``p0c`` and the species mass of
+            the forward model.
         """
         beams = self.sample(n, per_snapshot=True, seed=seed)
         per = [beam_moments(b) for b in beams]
@@ -218,6 +254,11 @@ class Reconstruction:
         for m in per:
             m["norm_emit_x"] = m["emit_x"] * bg
             m["norm_emit_y"] = m["emit_y"] * bg
+        unc = self.uncertainty
+        post = unc.moment_std(seed=seed) if unc is not None else None
+        if post is not None:
+            post["norm_emit_x"] = post["emit_x"] * bg
+            post["norm_emit_y"] = post["emit_y"] * bg
         units = {
             "centroid": "m, 1, m, 1, m, 1",
             "rms": "m, 1, m, 1, m, 1",
@@ -238,10 +279,14 @@ class Reconstruction:
         out: dict[str, dict] = {}
         for key, unit in units.items():
             stack = torch.stack([m[key] for m in per])
-            std = stack.std(0) if len(per) > 1 else torch.zeros_like(stack[0])
+            ens = stack.std(0) if len(per) > 1 else torch.zeros_like(stack[0])
+            pst = post[key] if post is not None else None
+            std = ens if pst is None else (ens**2 + pst**2).sqrt()
             out[key] = {
                 "mean": stack.mean(0).tolist(),
                 "std": std.tolist(),
+                "std_ensemble": ens.tolist(),
+                "std_posterior": None if pst is None else pst.tolist(),
                 "unit": unit,
             }
         out["coordinates"] = {"mean": list(COORDINATES), "std": None, "unit": ""}
@@ -346,6 +391,41 @@ def load(directory: str | os.PathLike) -> Reconstruction:
         history=json.loads(d["history"]),
         info=json.loads(d["info"]),
     )
+
+
+def _unit_sum(images: Tensor) -> Tensor:
+    return images / images.sum((-2, -1), keepdim=True).clamp_min(1e-30)
+
+
+def _sym_sqrt(c: Tensor, floor: float = 1e-6) -> Tensor:
+    """Symmetric square root of covariances ``(..., d, d)`` (eigenvalues clipped)."""
+    vals, vecs = torch.linalg.eigh(0.5 * (c + c.transpose(-1, -2)))
+    low = floor * vals.amax(-1, keepdim=True).clamp_min(1e-300)
+    root = vals.clamp_min(0).maximum(low).sqrt()
+    return (vecs * root[..., None, :]) @ vecs.transpose(-1, -2)
+
+
+def _recolour(particles: Tensor, dims: int, mu: Tensor, cov: Tensor) -> Tensor:
+    """Particles linearly mapped to drawn centroids and covariances.
+
+    ``x -> mu_d + T_d (x - mean)`` on the first ``dims`` coordinates with
+    ``T_d = C_d^(1/2) C^(-1/2)`` (symmetric roots of the drawn and the
+    particles' covariance; the identity when they agree), so the mapped beam
+    has exactly the drawn centroid and covariance and otherwise keeps its
+    shape.
+
+    Shapes:
+        ``particles (N, 6)``, ``mu (D, 6)``, ``cov (D, 6, 6)`` -> ``(D, N, 6)``.
+    """
+    x = particles.to(torch.float64)
+    d = dims
+    m = x[:, :d].mean(0)
+    xc = x[:, :d] - m
+    c = xc.T @ xc / (x.shape[0] - 1)
+    t = _sym_sqrt(cov[:, :d, :d]) @ torch.linalg.inv(_sym_sqrt(c, 1e-12))
+    out = x.expand(mu.shape[0], -1, -1).clone()
+    out[..., :d] = xc @ t.transpose(-1, -2) + mu[:, None, :d]
+    return out.to(particles.dtype)
 
 
 def _finite(x: float) -> float | None:

@@ -1,0 +1,194 @@
+"""Calibration of the reported moment uncertainty on reconstructions with known truth.
+
+Reconstructs datasets whose ground-truth beam is known with default settings
+and scores how often the truth lies within 1 and 2 reported std
+(``Reconstruction.moments()[name]["std"]``) of the reported mean, for the rms
+sizes of the reconstructed coordinates and the emittances (x, y, 4D; with
+``--dims 6`` also z and 6D), and the median relative std of the *constrained*
+quantities (those not involving a coordinate listed by
+``Reconstruction.unconstrained_coordinates``).
+
+Datasets:
+- ``gpsr4d``: ``../shared/data/phase_space/gpsr_4d_synthetic.h5``, even settings
+  (check only: nothing was tuned on it);
+- ``sixd``: ``sixd_synthetic_train.h5`` with ``--dims 6`` (``--sixd``; slow);
+- ``quad-<preset>-n<noise>-s<seed>``: quad-only scans simulated here (presets
+  gaussian/correlated/nonlinear, Poisson noise at the peak pixel, seeds),
+  reconstructed with ``--dims 4`` and, for ``--quad-6d`` cases, ``--dims 6``
+  (z and pz unconstrained: each must be within 2 std or carry >= 20 %).
+
+Prints one JSON object: per dataset the per-quantity z-scores, coverage and
+median relative std, and the pooled numbers.
+
+Usage: ``python benchmarks/calibration.py [--quick] [--sixd] [--seeds 0 1]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+from _meta import emit, git_commit
+
+from diffaccel.data import make_synthetic_quad_scan, read_quad_scan
+from diffaccel.reconstruction import ReconstructionConfig, beam_moments, reconstruct
+from diffaccel.reconstruction.pipeline import as_scans
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "phase_space"
+COORDS = ("x", "px", "y", "py", "z", "pz")
+
+
+def score(result, truth: torch.Tensor) -> dict:
+    """z-scores ``|mean - truth| / std`` of rms sizes and emittances."""
+    dims = result.config.dims
+    mom = result.moments()
+    t = beam_moments(truth.to(torch.float64))
+    free = set(result.unconstrained_coordinates())
+    rows = {}
+    for i in range(dims):
+        rows[f"rms_{COORDS[i]}"] = (
+            mom["rms"]["mean"][i],
+            mom["rms"]["std"][i],
+            float(t["rms"][i]),
+            COORDS[i] in free,
+        )
+    emits = ["emit_x", "emit_y", "emit_4d"] + (["emit_z", "emit_6d"] if dims == 6 else [])
+    involve = {
+        "emit_x": {"x", "px"},
+        "emit_y": {"y", "py"},
+        "emit_4d": {"x", "px", "y", "py"},
+        "emit_z": {"z", "pz"},
+        "emit_6d": set(COORDS),
+    }
+    for k in emits:
+        rows[k] = (mom[k]["mean"], mom[k]["std"], float(t[k]), bool(involve[k] & free))
+    out = {}
+    for k, (m, s, tv, unconstrained) in rows.items():
+        out[k] = {
+            "mean": m,
+            "std": s,
+            "truth": tv,
+            "rel_error": (m - tv) / tv if tv else None,
+            "rel_std": s / abs(m) if m else None,
+            "z": abs(m - tv) / s if s > 0 else float("inf"),
+            "unconstrained": unconstrained,
+        }
+    return out
+
+
+def summarise(rows: list[dict]) -> dict:
+    z = [r["z"] for r in rows]
+    rel = [r["rel_std"] for r in rows if not r["unconstrained"] and r["rel_std"]]
+    con = [r["z"] for r in rows if not r["unconstrained"]]
+    return {
+        "n": len(z),
+        "coverage_1sigma": sum(v <= 1 for v in z) / len(z),
+        "coverage_2sigma": sum(v <= 2 for v in z) / len(z),
+        "coverage_2sigma_constrained": (
+            sum(v <= 2 for v in con) / len(con) if con else None
+        ),
+        "median_rel_std_constrained": statistics.median(rel) if rel else None,
+    }
+
+
+def run(name: str, ds, dims: int, train=None, uncertainty: bool = True) -> dict:
+    cfg = ReconstructionConfig(dims=dims)
+    t0 = time.perf_counter()
+    result = reconstruct(ds, cfg, train_indices=train, uncertainty=uncertainty)
+    wall = time.perf_counter() - t0
+    truth = as_scans(ds).ground_truth
+    quantities = score(result, truth)
+    entry = {
+        "dims": dims,
+        "wall_s": wall,
+        "timings_s": result.info.get("timings_s", {}),
+        "unconstrained": result.unconstrained_coordinates(),
+        "quantities": quantities,
+        "diagnostics": (result.info.get("uncertainty") or {}).get("diagnostics"),
+    }
+    entry |= summarise(list(quantities.values()))
+    print(f"{name}: {entry['coverage_2sigma']:.2f} 2-sigma, median rel std "
+          f"{entry['median_rel_std_constrained']}, {wall:.1f} s", file=sys.stderr)
+    return entry
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true", help="one seed, two presets")
+    ap.add_argument("--sixd", action="store_true", help="also the shared 6D file")
+    ap.add_argument("--no-gpsr4d", action="store_true")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    ap.add_argument("--noise", type=float, nargs="+", default=[0.05, 0.2])
+    ap.add_argument("--quad-6d", type=int, default=2, help="quad-only --dims 6 cases")
+    ap.add_argument("--no-uncertainty", action="store_true",
+                    help="ensemble scatter only (today's std), for comparison")
+    args = ap.parse_args()
+    torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
+    unc = not args.no_uncertainty
+    presets = ["gaussian", "nonlinear"] if args.quick else [
+        "gaussian", "correlated", "nonlinear"]
+    seeds = args.seeds[:1] if args.quick else args.seeds
+    datasets: dict[str, dict] = {}
+    t_all = time.perf_counter()
+    if not args.no_gpsr4d:
+        ds = read_quad_scan(DATA / "gpsr_4d_synthetic.h5")
+        datasets["gpsr4d"] = run(
+            "gpsr4d", ds, 4, list(range(0, ds.n_settings, 2)), unc
+        )
+    n6 = 0
+    for preset in presets:
+        for noise in args.noise:
+            for seed in seeds:
+                ds = make_synthetic_quad_scan(
+                    preset, n_particles=10_000, noise=noise, seed=100 + seed
+                )
+                key = f"quad-{preset}-n{noise}-s{seed}"
+                datasets[key] = run(key, ds, 4, None, unc)
+                if n6 < args.quad_6d:
+                    n6 += 1
+                    datasets[key + "-6d"] = run(key + "-6d", ds, 6, None, unc)
+    if args.sixd:
+        from diffaccel.data import read_scans
+
+        ds = read_scans(DATA / "sixd_synthetic_train.h5")
+        datasets["sixd"] = run("sixd", ds, 6, None, unc)
+    pooled_rows = [
+        q for d in datasets.values() for q in d["quantities"].values()
+    ]
+    four = [q for k, d in datasets.items() if d["dims"] == 4
+            for q in d["quantities"].values()]
+    zpz = {}
+    for k, d in datasets.items():
+        if d["dims"] == 6 and k.startswith("quad"):
+            for c in ("rms_z", "rms_pz"):
+                q = d["quantities"][c]
+                zpz[f"{k}:{c}"] = {
+                    "z": q["z"],
+                    "rel_std": q["rel_std"],
+                    "ok": q["z"] <= 2 or (q["rel_std"] or 0) >= 0.2,
+                }
+    result = {
+        "name": "calibration",
+        "uncertainty": unc,
+        "pooled": summarise(pooled_rows),
+        "pooled_dims4": summarise(four) if four else None,
+        "quad_only_6d_z_pz": zpz,
+        "datasets": datasets,
+        "wall_s": time.perf_counter() - t_all,
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+        "machine": platform.machine(),
+        "commit": git_commit(),
+        "note": "timings under contention on a shared 2-core machine",
+    }
+    emit(result)
+
+
+if __name__ == "__main__":
+    main()
