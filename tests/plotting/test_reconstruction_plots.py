@@ -43,3 +43,15 @@ def test_image_comparison_and_curves(scan_and_result, tmp_path) -> None:
     with pytest.raises(ValueError, match="differ"):
         plot_image_comparison(ds.mean_images(), pred[:2], ds.settings)
     assert torch.isfinite(pred).all()
+
+
+def test_image_comparison_shows_the_predicted_spread(scan_and_result, tmp_path) -> None:
+    ds, r = scan_and_result
+    pred, std = r.predict_images(
+        ds.settings, n_particles=1000, return_std=True, n_draws=2
+    )
+    fig = plot_image_comparison(ds.mean_images(), pred, ds.settings, predicted_std=std)
+    assert len([a for a in fig.axes if a.images]) == 4 * 4  # a fourth row
+    fig.savefig(tmp_path / "x.png")
+    with pytest.raises(ValueError, match="predicted_std"):
+        plot_image_comparison(ds.mean_images(), pred, ds.settings, predicted_std=std[:2])

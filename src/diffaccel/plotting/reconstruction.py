@@ -144,12 +144,16 @@ def plot_image_comparison(
     held_out: Sequence[bool] | None = None,
     max_columns: int = 10,
     title: str = "",
+    predicted_std: Tensor | None = None,
 ) -> Figure:
     """Measured vs predicted screen images, one column per setting.
 
     Each block of rows shows measured (top), predicted (middle) and
     predicted - measured (bottom, red/blue, same scale for all settings) for up
-    to ``max_columns`` settings; held-out settings are titled in red.
+    to ``max_columns`` settings; held-out settings are titled in red. With
+    ``predicted_std`` a fourth row shows the per-pixel spread of the prediction
+    (``Reconstruction.predict_images(..., return_std=True)``) on the scale of
+    the difference row, so a difference inside the spread looks no darker.
 
     Args:
         measured: Sum-normalised measured images ``(K, H, W)``.
@@ -160,6 +164,7 @@ def plot_image_comparison(
         held_out: Per setting, True if it was not used for training.
         max_columns: Settings per block.
         title: Prefix of the figure title (e.g. the scan name).
+        predicted_std: Per-pixel spread of the prediction ``(K, H, W)``.
 
     Returns:
         The figure.
@@ -168,6 +173,10 @@ def plot_image_comparison(
     p = predicted.detach().cpu().numpy()
     if m.shape != p.shape:
         raise ValueError(f"measured {m.shape} and predicted {p.shape} differ.")
+    sd = None if predicted_std is None else predicted_std.detach().cpu().numpy()
+    if sd is not None and sd.shape != p.shape:
+        raise ValueError(f"predicted_std {sd.shape} and predicted {p.shape} differ.")
+    nrow = 3 if sd is None else 4
     k = m.shape[0]
     s = [
         ", ".join(f"{v:.3g}" for v in row)
@@ -175,17 +184,18 @@ def plot_image_comparison(
     ]
     cols = min(k, max_columns)
     blocks = -(-k // cols)
-    fig = Figure(figsize=(1.45 * cols + 0.8, 4.4 * blocks))
-    axes = fig.subplots(3 * blocks, cols, squeeze=False)
+    fig = Figure(figsize=(1.45 * cols + 0.8, 1.47 * nrow * blocks))
+    axes = fig.subplots(nrow * blocks, cols, squeeze=False)
     dmax = float(np.abs(p - m).max()) or 1.0
     for idx in range(blocks * cols):
         b, c = divmod(idx, cols)
-        top, mid, bot = axes[3 * b, c], axes[3 * b + 1, c], axes[3 * b + 2, c]
-        for ax in (top, mid, bot):
+        column = [axes[nrow * b + i, c] for i in range(nrow)]
+        top, mid, bot = column[:3]
+        for ax in column:
             ax.set_xticks([])
             ax.set_yticks([])
         if idx >= k:
-            for ax in (top, mid, bot):
+            for ax in column:
                 ax.set_axis_off()
             continue
         vmax = max(float(m[idx].max()), float(p[idx].max()))
@@ -193,6 +203,8 @@ def plot_image_comparison(
         top.imshow(m[idx], cmap="viridis", vmin=0, vmax=vmax, **kw)
         mid.imshow(p[idx], cmap="viridis", vmin=0, vmax=vmax, **kw)
         bot.imshow(p[idx] - m[idx], cmap="RdBu_r", vmin=-dmax, vmax=dmax, **kw)
+        if sd is not None:
+            column[3].imshow(sd[idx], cmap="Reds", vmin=0, vmax=dmax, **kw)
         ho = held_out is not None and bool(held_out[idx])
         top.set_title(
             s[idx] + (" (test)" if ho else ""),
@@ -203,6 +215,8 @@ def plot_image_comparison(
             top.set_ylabel("measured")
             mid.set_ylabel("predicted")
             bot.set_ylabel("pred - meas")
+            if sd is not None:
+                column[3].set_ylabel("pred spread")
     fig.suptitle(
         (f"{title}: " if title else "")
         + f"Screen images per setting {setting_name} (colour scale per column; "

@@ -33,13 +33,20 @@ __all__ = ["clean_json", "evaluate", "predict_dataset", "predicted_dataset"]
 UNCONSTRAINED_NOTE = (
     "coordinates the scans do not see to first order (their column of the "
     "transfer matrices to screen x/y is ~0); their values follow the prior "
-    "(ReconstructionConfig.longitudinal_scale), so their moments are unknown: the "
-    "small ensemble spread of these coordinates is NOT an uncertainty estimate"
+    "(ReconstructionConfig.longitudinal_scale); their std is the prior width of "
+    "the moment-space posterior (>= ~50 % in rms), not a measurement"
 )
 UNCERTAINTY_NOTE = (
-    "std = spread over snapshot-ensemble members; it describes optimisation "
-    "scatter and under-covers the actual error (on benchmarks with known truth "
-    "the error was several std)"
+    "std = calibrated 1-sigma: snapshot-ensemble scatter (std_ensemble) and the "
+    "moment-space posterior (std_posterior: measurement error estimated from the "
+    "training-image residuals, directions the scans do not constrain keep the "
+    "prior width) in quadrature; it does not include model error (a wrong "
+    "beamline, calibration or energy). See docs/uncertainty.md"
+)
+UNCERTAINTY_NOTE_ENSEMBLE_ONLY = (
+    "std = spread over snapshot-ensemble members only (this reconstruction has "
+    "no moment-space posterior); it describes optimisation scatter and "
+    "under-covers the actual error"
 )
 
 
@@ -171,10 +178,13 @@ def evaluate(
         if pooled is not None:
             metrics[key] = pooled
     moments = result.moments(n=n_sample)
-    rel_spread = {}
+    rel_spread, rel_std = {}, {}
     for i, c in enumerate(COORDINATES):
         m, s = moments["rms"]["mean"][i], moments["rms"]["std"][i]
+        rel_std[c] = s / m if m > 0 else None
+        s = moments["rms"]["std_ensemble"][i]
         rel_spread[c] = s / m if m > 0 else None
+    unc = result.info.get("uncertainty")
     truth = scans.ground_truth
     if truth is not None:
         sample = result.sample(n_sample)
@@ -191,10 +201,14 @@ def evaluate(
         "scans": per_scan,
         "snapshots": result.n_snapshots,
         "moments": moments,
+        "rms_relative_std": rel_std,
         "rms_relative_ensemble_spread": rel_spread,
         "unconstrained_coordinates": result.unconstrained_coordinates(),
         "unconstrained_note": UNCONSTRAINED_NOTE,
-        "uncertainty_note": UNCERTAINTY_NOTE,
+        "uncertainty_note": (
+            UNCERTAINTY_NOTE if unc is not None else UNCERTAINTY_NOTE_ENSEMBLE_ONLY
+        ),
+        "uncertainty": None if unc is None else unc.get("diagnostics"),
         "metrics": metrics,
         "timings_s": dict(result.info.get("timings_s", {})),
     }
