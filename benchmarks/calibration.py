@@ -58,7 +58,9 @@ def score(result, truth: torch.Tensor) -> dict:
             float(t["rms"][i]),
             COORDS[i] in free,
         )
-    emits = ["emit_x", "emit_y", "emit_4d"] + (["emit_z", "emit_6d"] if dims == 6 else [])
+    emits = ["emit_x", "emit_y", "emit_4d"] + (
+        ["emit_z", "emit_6d"] if dims == 6 else []
+    )
     involve = {
         "emit_x": {"x", "px"},
         "emit_y": {"y", "py"},
@@ -113,8 +115,11 @@ def run(name: str, ds, dims: int, train=None, uncertainty: bool = True) -> dict:
         "diagnostics": (result.info.get("uncertainty") or {}).get("diagnostics"),
     }
     entry |= summarise(list(quantities.values()))
-    print(f"{name}: {entry['coverage_2sigma']:.2f} 2-sigma, median rel std "
-          f"{entry['median_rel_std_constrained']}, {wall:.1f} s", file=sys.stderr)
+    print(
+        f"{name}: {entry['coverage_2sigma']:.2f} 2-sigma, median rel std "
+        f"{entry['median_rel_std_constrained']}, {wall:.1f} s",
+        file=sys.stderr,
+    )
     return entry
 
 
@@ -126,21 +131,25 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--noise", type=float, nargs="+", default=[0.05, 0.2])
     ap.add_argument("--quad-6d", type=int, default=2, help="quad-only --dims 6 cases")
-    ap.add_argument("--no-uncertainty", action="store_true",
-                    help="ensemble scatter only (today's std), for comparison")
+    ap.add_argument(
+        "--no-uncertainty",
+        action="store_true",
+        help="ensemble scatter only (today's std), for comparison",
+    )
     args = ap.parse_args()
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
     unc = not args.no_uncertainty
-    presets = ["gaussian", "nonlinear"] if args.quick else [
-        "gaussian", "correlated", "nonlinear"]
+    presets = (
+        ["gaussian", "nonlinear"]
+        if args.quick
+        else ["gaussian", "correlated", "nonlinear"]
+    )
     seeds = args.seeds[:1] if args.quick else args.seeds
     datasets: dict[str, dict] = {}
     t_all = time.perf_counter()
     if not args.no_gpsr4d:
         ds = read_quad_scan(DATA / "gpsr_4d_synthetic.h5")
-        datasets["gpsr4d"] = run(
-            "gpsr4d", ds, 4, list(range(0, ds.n_settings, 2)), unc
-        )
+        datasets["gpsr4d"] = run("gpsr4d", ds, 4, list(range(0, ds.n_settings, 2)), unc)
     n6 = 0
     for preset in presets:
         for noise in args.noise:
@@ -158,11 +167,13 @@ def main() -> None:
 
         ds = read_scans(DATA / "sixd_synthetic_train.h5")
         datasets["sixd"] = run("sixd", ds, 6, None, unc)
-    pooled_rows = [
-        q for d in datasets.values() for q in d["quantities"].values()
+    pooled_rows = [q for d in datasets.values() for q in d["quantities"].values()]
+    four = [
+        q
+        for k, d in datasets.items()
+        if d["dims"] == 4
+        for q in d["quantities"].values()
     ]
-    four = [q for k, d in datasets.items() if d["dims"] == 4
-            for q in d["quantities"].values()]
     zpz = {}
     for k, d in datasets.items():
         if d["dims"] == 6 and k.startswith("quad"):

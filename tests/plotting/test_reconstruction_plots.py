@@ -54,4 +54,6 @@ def test_image_comparison_shows_the_predicted_spread(scan_and_result, tmp_path) 
     assert len([a for a in fig.axes if a.images]) == 4 * 4  # a fourth row
     fig.savefig(tmp_path / "x.png")
     with pytest.raises(ValueError, match="predicted_std"):
-        plot_image_comparison(ds.mean_images(), pred, ds.settings, predicted_std=std[:2])
+        plot_image_comparison(
+            ds.mean_images(), pred, ds.settings, predicted_std=std[:2]
+        )

@@ -82,8 +82,9 @@ def test_thin_quad_scan_cannot_see_one_cross_term() -> None:
     null[pairs.index((1, 3))] = -2.0 / length
     assert float((a @ null).abs().max()) < 1e-12
     e = 1e-3 * torch.randn(a.shape[0], generator=torch.Generator().manual_seed(2))
-    cov, *_ = linear_posterior(a, e.double(), torch.ones(a.shape[0]).double(),
-                               torch.ones(10, dtype=F64))
+    cov, *_ = linear_posterior(
+        a, e.double(), torch.ones(a.shape[0]).double(), torch.ones(10, dtype=F64)
+    )
     u = null / null.norm()
     assert float(u @ cov @ u) == pytest.approx(1.0, rel=1e-6)  # prior kept
     seen = torch.zeros(10, dtype=F64)
@@ -93,8 +94,12 @@ def test_thin_quad_scan_cannot_see_one_cross_term() -> None:
 
 def test_covariance_moments_equal_beam_moments(gaussian_beam) -> None:
     x = gaussian_beam.clone()
-    x[:, 4:] = torch.randn(x.shape[0], 2, generator=torch.Generator().manual_seed(4),
-                           dtype=F64) * 1e-3
+    x[:, 4:] = (
+        torch.randn(
+            x.shape[0], 2, generator=torch.Generator().manual_seed(4), dtype=F64
+        )
+        * 1e-3
+    )
     want = beam_moments(x)
     got = covariance_moments(want["centroid"], want["cov"])
     for key, val in want.items():
@@ -127,15 +132,19 @@ def test_recolour_gives_the_drawn_covariance(gaussian_beam) -> None:
 def test_uncertainty_round_trips_through_json() -> None:
     g = torch.Generator().manual_seed(6)
     u = MomentUncertainty(
-        4, torch.zeros(6, dtype=F64), torch.eye(6, dtype=F64),
-        _random_cov(10, g), _random_cov(4, g), {"a": 1},
+        4,
+        torch.zeros(6, dtype=F64),
+        torch.eye(6, dtype=F64),
+        _random_cov(10, g),
+        _random_cov(4, g),
+        {"a": 1},
     )
     back = MomentUncertainty.from_dict(u.to_dict())
     torch.testing.assert_close(back.theta_cov, u.theta_cov, rtol=0, atol=0)
     assert back.diagnostics == {"a": 1}
 
 
-FAST6 = {"dims": 6, "n_particles": 1024, "epochs": 12, "snapshots": 3}
+FAST6 = {"dims": 6, "n_particles": 1024, "steps": 12, "snapshots": 3}
 
 
 @pytest.fixture(scope="module")

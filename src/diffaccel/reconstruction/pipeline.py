@@ -205,7 +205,8 @@ def reconstruct(
     if uncertainty:
         t2 = time.perf_counter()
         attach_uncertainty(
-            result, dict(zip(used, measured, strict=True)),
+            result,
+            dict(zip(used, measured, strict=True)),
             dict(zip(used, settings, strict=True)),
         )
         result.info["timings_s"]["uncertainty"] = time.perf_counter() - t2
@@ -248,7 +249,13 @@ def attach_uncertainty(
         axes.append(fwd.pixel_axes())
     m = beam_moments(result.sample(max(n_particles, 50_000), seed=seed))
     unc = analyse_moments(
-        maps, meas, pred, axes, m["centroid"], m["cov"], result.config.dims,
+        maps,
+        meas,
+        pred,
+        axes,
+        m["centroid"],
+        m["cov"],
+        result.config.dims,
         **options,  # type: ignore[arg-type]
     )
     result.info["uncertainty"] = unc.to_dict()

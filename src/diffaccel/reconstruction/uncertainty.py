@@ -323,10 +323,8 @@ class MomentUncertainty:
         mu[:, :d] += dmu
         return mu, cov
 
-    def moment_std(
-        self, n_draws: int = 2000, seed: int = 0
-    ) -> dict[str, Tensor]:
-        """Posterior standard deviation of every moment of :func:`covariance_moments`."""
+    def moment_std(self, n_draws: int = 2000, seed: int = 0) -> dict[str, Tensor]:
+        """Posterior std of every moment of :func:`covariance_moments`."""
         g = torch.Generator().manual_seed(seed)
         mu, cov = self.draw(n_draws, g)
         moms = covariance_moments(mu, cov)
@@ -440,13 +438,21 @@ def analyse_moments(
         sc_m.append(torch.stack([pm[:, 2], sxy, pm[:, 4]], -1).reshape(-1))
         grp_m.append(torch.full((3 * k,), s))
     theta_cov, shift, r_m, dof_m = linear_posterior(
-        torch.cat(rows_m), torch.cat(res_m), torch.cat(sc_m), prior, torch.cat(grp_m),
+        torch.cat(rows_m),
+        torch.cat(res_m),
+        torch.cat(sc_m),
+        prior,
+        torch.cat(grp_m),
         inflation=inflation,
     )
     cen_prior = sd.clone()  # a centroid off by one rms is plausible a priori
     cen_cov, cen_shift, r_c, dof_c = linear_posterior(
-        torch.cat(rows_c), torch.cat(res_c), torch.cat(sc_c), cen_prior,
-        torch.cat(grp_c), inflation=inflation,
+        torch.cat(rows_c),
+        torch.cat(res_c),
+        torch.cat(sc_c),
+        cen_prior,
+        torch.cat(grp_c),
+        inflation=inflation,
     )
     if bias_term:
         theta_cov = theta_cov + torch.outer(shift, shift)
