@@ -12,6 +12,8 @@ Datasets:
 - ``gpsr4d``: ``../shared/data/phase_space/gpsr_4d_synthetic.h5``, even settings
   (check only: nothing was tuned on it);
 - ``sixd``: ``sixd_synthetic_train.h5`` with ``--dims 6`` (``--sixd``; slow);
+- ``awa6d-<preset>-s<seed>``: the AWA 6D layout (two scans, TDC, dipole)
+  simulated here with ``make_synthetic_awa6d`` (``--awa6d N`` cases; slow);
 - ``quad-<preset>-n<noise>-s<seed>``: quad-only scans simulated here (presets
   gaussian/correlated/nonlinear, Poisson noise at the peak pixel, seeds),
   reconstructed with ``--dims 4`` and, for ``--quad-6d`` cases, ``--dims 6``
@@ -130,6 +132,7 @@ def main() -> None:
     ap.add_argument("--no-gpsr4d", action="store_true")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--noise", type=float, nargs="+", default=[0.05, 0.2])
+    ap.add_argument("--awa6d", type=int, default=0, help="own AWA-6D cases")
     ap.add_argument("--quad-6d", type=int, default=2, help="quad-only --dims 6 cases")
     ap.add_argument(
         "--no-uncertainty",
@@ -162,6 +165,12 @@ def main() -> None:
                 if n6 < args.quad_6d:
                     n6 += 1
                     datasets[key + "-6d"] = run(key + "-6d", ds, 6, None, unc)
+    for i, preset in enumerate(["nonlinear", "correlated", "gaussian"][: args.awa6d]):
+        from diffaccel.data import make_synthetic_awa6d
+
+        ds = make_synthetic_awa6d(preset, n_particles=20_000, noise=0.05, seed=300 + i)
+        key = f"awa6d-{preset}-s{i}"
+        datasets[key] = run(key, ds, 6, None, unc)
     if args.sixd:
         from diffaccel.data import read_scans
 
