@@ -28,6 +28,7 @@ Usage: ``python benchmarks/calibration.py [--quick] [--sixd] [--seeds 0 1]``
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
 import statistics
@@ -117,6 +118,7 @@ def run(name: str, ds, dims: int, train=None, uncertainty: bool = True) -> dict:
         "diagnostics": (result.info.get("uncertainty") or {}).get("diagnostics"),
     }
     entry |= summarise(list(quantities.values()))
+    print(json.dumps({name: entry}), file=sys.stderr)  # partial results survive
     print(
         f"{name}: {entry['coverage_2sigma']:.2f} 2-sigma, median rel std "
         f"{entry['median_rel_std_constrained']}, {wall:.1f} s",
@@ -128,6 +130,12 @@ def run(name: str, ds, dims: int, train=None, uncertainty: bool = True) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="one seed, two presets")
+    ap.add_argument(
+        "--presets",
+        nargs="*",
+        default=["gaussian", "correlated", "nonlinear"],
+        help="quad-only presets (none: no quad-only cases)",
+    )
     ap.add_argument("--sixd", action="store_true", help="also the shared 6D file")
     ap.add_argument("--no-gpsr4d", action="store_true")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
@@ -142,11 +150,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
     unc = not args.no_uncertainty
-    presets = (
-        ["gaussian", "nonlinear"]
-        if args.quick
-        else ["gaussian", "correlated", "nonlinear"]
-    )
+    presets = ["gaussian", "nonlinear"] if args.quick else args.presets
     seeds = args.seeds[:1] if args.quick else args.seeds
     datasets: dict[str, dict] = {}
     t_all = time.perf_counter()
