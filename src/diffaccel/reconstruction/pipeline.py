@@ -241,7 +241,7 @@ def attach_uncertainty(
     for name, images in measured.items():
         fwd = result.forwards[name]
         sets = settings[name]
-        maps.append(fwd.transfer_matrices(sets))
+        maps.append(fwd.transfer_maps(sets)[..., :6, :6])
         meas.append(images.detach().cpu())
         pred.append(
             result.predict_images(sets, scan=name, n_particles=n_particles, seed=seed)
