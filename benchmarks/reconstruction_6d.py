@@ -15,7 +15,8 @@ gpsr runs its 6D recipe in this process on the same data: ``GPSR6DLattice``
 (quadrupole, TDC tilted to streak vertically, spectrometer dipole, two cheetah
 screens), ``NNParticleBeamGenerator``, ``train_gpsr`` (Adam, MAE on sum-normalised
 images). Note: its dipole asks cheetah for ``tracking_method="bmadx"``, which
-cheetah 0.8.4 no longer has; cheetah keeps its linear dipole map silently, and
+cheetah 0.8.4 no longer has; cheetah only warns (PhysicsWarning) and keeps its
+linear dipole map, and
 its quadrupole and TDC are tracked with cheetah's default (linear) maps, so gpsr
 models this beamline without the chromatic and RF-curvature terms that made the
 data. Its particles are scored with the same metrics, its held-out images with
@@ -306,8 +307,9 @@ def main() -> None:
         )
         out["gpsr_note"] = (
             "GPSR6DLattice asks cheetah 0.8.4 for the dipole tracking method "
-            "'bmadx', which no longer exists; cheetah keeps the linear dipole map "
-            "without an error. Quadrupole and TDC use cheetah's linear maps."
+            "'bmadx', which no longer exists; cheetah warns (PhysicsWarning) and "
+            "keeps the linear dipole map, so training runs on a linear dipole. "
+            "Quadrupole and TDC use cheetah's linear maps."
         )
     out["load_avg_1min_at_end"] = os.getloadavg()[0]
     emit(out, args.out)
