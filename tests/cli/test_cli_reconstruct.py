@@ -1,6 +1,8 @@
 from __future__ import annotations
 
 import json
+import os
+import socket
 from pathlib import Path
 
 import h5py
@@ -9,10 +11,12 @@ import pytest
 import torch
 from click.testing import CliRunner
 
+import diffaccel.cli.reconstruct as cli_reconstruct
 from diffaccel.cli import main
 from diffaccel.data import (
     MultiScanDataset,
     make_synthetic_quad_scan,
+    partial_folder,
     read_quad_scan,
     read_scans,
     sample_preset_beam,
@@ -133,25 +137,113 @@ def test_predict_on_another_dataset_and_settings(
     assert np.load(out2).shape == (2, 24, 24)
 
 
-def test_resume_completes_an_interrupted_run(scan_file: Path, tmp_path: Path) -> None:
+def _snapshots(out: Path) -> list[dict]:
+    return torch.load(out / "ensemble.pt", weights_only=True)["snapshots"]
+
+
+def test_resume_completes_an_interrupted_run(
+    scan_file: Path, tmp_path: Path, monkeypatch
+) -> None:
+    """Interrupt at step 4 (checkpoint at the snapshot after step 3), resume, and
+    get the uninterrupted run's ensemble bit for bit."""
+    args = ["reconstruct", str(scan_file), *FAST, "--no-figures"]
+    ref = tmp_path / "ref"
+    assert CliRunner().invoke(main, [*args, "--out", str(ref)]).exit_code == 0
     out = tmp_path / "out"
+    real = cli_reconstruct.reconstruct
+
+    def interrupted(*a, callback=None, **kw):
+        def stop(info):
+            callback(info)
+            if info.step == 4:
+                raise KeyboardInterrupt  # as Ctrl-C
+
+        return real(*a, callback=stop, **kw)
+
+    monkeypatch.setattr(cli_reconstruct, "reconstruct", interrupted)
+    r = CliRunner().invoke(main, [*args, "--out", str(out)])
+    assert r.exit_code == 1 and "Aborted" in r.output
+    assert "--resume continues it" in r.output
+    assert not out.exists()  # nothing half-written where results belong
+    assert (partial_folder(out) / "checkpoint.pt").is_file()
+    monkeypatch.setattr(cli_reconstruct, "reconstruct", real)
+    r = CliRunner().invoke(main, [*args, "--out", str(out), "--resume"])
+    assert r.exit_code == 0, r.output
+    assert not partial_folder(out).exists()
+    got, want = _snapshots(out), _snapshots(ref)
+    assert len(got) == len(want) == 2
+    for a, b in zip(got, want, strict=True):
+        for k in a:
+            assert torch.equal(a[k], b[k]), k
+
+
+def test_resume_refuses_other_options_and_other_data(
+    scan_file: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "out"
+    args = ["reconstruct", str(scan_file), "--out", str(out), "--no-figures"]
+    assert CliRunner().invoke(main, [*args, *FAST]).exit_code == 0
     r = CliRunner().invoke(
-        main, ["reconstruct", str(scan_file), "--out", str(out), *FAST, "--no-figures"]
+        main, [*args, "--resume", "--steps", "20", "--particles", "512"]
     )
-    assert r.exit_code == 0
+    assert r.exit_code == 1
+    assert "--steps 20 (checkpoint: 6)" in r.output, r.output
+    assert "--particles" not in r.output.split("options:")[1].split(".")[0]
+    # other data: same shapes, other images
+    other = tmp_path / "other.h5"
+    ds = read_quad_scan(scan_file)
+    write_quad_scan(ds.with_step({"step": "test"}, images=ds.images.flip(-1)), other)
     r = CliRunner().invoke(
         main,
-        [
-            "reconstruct",
-            str(scan_file),
-            "--out",
-            str(out),
-            *FAST,
-            "--no-figures",
-            "--resume",
-        ],
+        ["reconstruct", str(other), "--out", str(out), "--no-figures", "--resume"],
     )
+    assert r.exit_code == 1 and "other training data" in r.output, r.output
+    assert (out / "summary.json").is_file()
+    # nothing to resume
+    r = CliRunner().invoke(main, [*args[:3], str(tmp_path / "new"), "--resume"])
+    assert r.exit_code == 1 and "no checkpoint.pt" in r.output
+
+
+def test_late_failure_with_force_keeps_the_old_result(
+    scan_file: Path, tmp_path: Path, monkeypatch
+) -> None:
+    out = tmp_path / "out"
+    args = ["reconstruct", str(scan_file), "--out", str(out), *FAST]
+    assert CliRunner().invoke(main, args).exit_code == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+
+    def broken(*a, **kw):
+        raise RuntimeError("figure failed")
+
+    monkeypatch.setattr(cli_reconstruct, "write_figures", broken)
+    r = CliRunner().invoke(main, [*args, "--seed", "1", "--force"])
+    assert r.exit_code != 0
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_force_no_figures_drops_the_old_figures(
+    scan_file: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "out"
+    args = ["reconstruct", str(scan_file), "--out", str(out), *FAST]
+    assert CliRunner().invoke(main, args).exit_code == 0
+    assert (out / "images.png").exists()
+    r = CliRunner().invoke(main, [*args, "--force", "--no-figures"])
     assert r.exit_code == 0, r.output
+    assert not list(out.glob("*.png"))
+
+
+def test_a_second_run_into_a_busy_folder_is_refused(
+    scan_file: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "out"
+    lock = tmp_path / ".out.lock"  # as a running process (this one) holds it
+    lock.write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
+    r = CliRunner().invoke(
+        main, ["reconstruct", str(scan_file), "--out", str(out), *FAST]
+    )
+    assert r.exit_code == 1 and "being written by another run" in r.output
+    assert not out.exists() and lock.exists()
 
 
 def _corrupt(path: Path, tmp: Path, how: str) -> Path:

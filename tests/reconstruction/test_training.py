@@ -124,3 +124,37 @@ def test_config_files_from_before_the_steps_rename_are_read() -> None:
     d = ReconstructionConfig(steps=6, snapshots=2).to_dict()
     d["epochs"] = d.pop("steps")
     assert ReconstructionConfig.from_dict(d).steps == 6
+
+
+def test_a_checked_selection_is_not_checked_again(small_scan) -> None:
+    from diffaccel.reconstruction import as_scans, training_selection
+
+    scans = as_scans(small_scan)
+    sel = training_selection(scans, "even")
+    assert training_selection(scans, sel) is sel
+    assert training_selection(scans, dict(sel)) == sel  # a plain dict is checked
+    with pytest.raises(ValueError, match="distinct integers"):
+        training_selection(scans, {"scan": [0, 0]})
+
+
+def test_transfer_maps_are_computed_once_per_run(small_scan, monkeypatch) -> None:
+    from diffaccel.reconstruction import ScreenForwardModel, evaluate
+
+    calls = []
+    real = ScreenForwardModel.transfer_maps
+
+    def counted(self, settings):
+        calls.append(settings.shape[0])
+        return real(self, settings)
+
+    monkeypatch.setattr(ScreenForwardModel, "transfer_maps", counted)
+    cfg = ReconstructionConfig(**{**FAST, "steps": 3, "snapshots": 1})
+    r = reconstruct(small_scan, cfg, train_indices=[0, 2, 4])
+    evaluate(r, small_scan)
+    # the initial fit and the unconstrained flags share one computation (the
+    # 4D training step builds its own linear maps, which this does not count)
+    assert calls == [3]
+    assert r.unconstrained_coordinates() == r.info["unconstrained_coordinates"]
+    # recomputed from the forward models (another tolerance bypasses the stored)
+    recomputed = r.unconstrained_coordinates(tolerance=1.0000001e-3)
+    assert recomputed == r.info["unconstrained_coordinates"]

@@ -8,13 +8,18 @@ from pathlib import Path
 
 import click
 
-from diffaccel.cli.reconstruct import prepare_out_dir, run_reconstruction
+from diffaccel.cli.output import output_folder
+from diffaccel.cli.reconstruct import OWNED, run_reconstruction
 from diffaccel.data import (
     atomic_write_text,
     make_synthetic_quad_scan,
     write_quad_scan,
 )
-from diffaccel.reconstruction import ReconstructionConfig
+from diffaccel.reconstruction import (
+    ReconstructionConfig,
+    as_scans,
+    training_selection,
+)
 
 __all__ = ["demo"]
 
@@ -73,37 +78,50 @@ def _report(summary: dict, dataset: Path, seconds: float) -> str:
     required=True,
     help="Output directory.",
 )
-@click.option("--force", is_flag=True, help="Overwrite a non-empty --out.")
+@click.option(
+    "--force", is_flag=True, help="Replace an earlier demo in --out (at the end)."
+)
 @click.option("--seed", type=int, default=0, show_default=True)
 def demo(out: Path, force: bool, seed: int) -> None:
     """Simulate a 6D quad scan and reconstruct it end to end (a few minutes on CPU)."""
     t0 = time.perf_counter()
-    prepare_out_dir(out, force, resume=False)
-    click.echo("simulating a 6D quad scan (preset 'correlated', chromatic tracking)...")
-    ds = make_synthetic_quad_scan(
-        "correlated",
-        n_particles=20_000,
-        screen_shape=(64, 64),
-        pixel_size=(0.5e-3, 0.5e-3),
-        k1_range=(-20.0, 20.0),
-        noise=0.05,
-        seed=seed,
-    )
-    path = out / "dataset.h5"
-    write_quad_scan(ds, path, overwrite=True)
-    click.echo(f"wrote {path}; reconstructing (6D, 300 steps)...")
-    # 6D tracking is chromatic (slower than the 4D linear maps): fewer, smaller
-    # steps keep the demo well under a minute on two quiet CPU cores.
-    # the demo's images are KDE renderings of one-pixel bandwidth: model that
-    # point spread (the 6D default of 0.5 pixel assumes sharper images)
-    config = ReconstructionConfig(
-        dims=6, seed=seed, steps=300, n_particles=4096, blur_pixels=1.0
-    )
-    summary = run_reconstruction(
-        path, out, config, "even", "cpu", resume=False, dataset=ds
-    )
-    seconds = time.perf_counter() - t0
+    with output_folder(
+        out, "demo", force=force, owned=(*OWNED, "dataset.h5", "report.md")
+    ) as folder:
+        click.echo(
+            "simulating a 6D quad scan (preset 'correlated', chromatic tracking)..."
+        )
+        ds = make_synthetic_quad_scan(
+            "correlated",
+            n_particles=20_000,
+            screen_shape=(64, 64),
+            pixel_size=(0.5e-3, 0.5e-3),
+            k1_range=(-20.0, 20.0),
+            noise=0.05,
+            seed=seed,
+        )
+        path = out / "dataset.h5"
+        write_quad_scan(ds, folder.path / path.name, overwrite=True)
+        click.echo(f"wrote {path.name}; reconstructing (6D, 300 steps)...")
+        # 6D tracking is chromatic (slower than the 4D linear maps): fewer, smaller
+        # steps keep the demo well under a minute on two quiet CPU cores.
+        # the demo's images are KDE renderings of one-pixel bandwidth: model that
+        # point spread (the 6D default of 0.5 pixel assumes sharper images)
+        config = ReconstructionConfig(
+            dims=6, seed=seed, steps=300, n_particles=4096, blur_pixels=1.0
+        )
+        scans = as_scans(ds)
+        summary = run_reconstruction(
+            scans,
+            path,
+            folder.path,
+            config,
+            training_selection(scans, "even"),
+            "cpu",
+            resume=False,
+        )
+        seconds = time.perf_counter() - t0
+        atomic_write_text(folder.path / "report.md", _report(summary, path, seconds))
     report = out / "report.md"
-    atomic_write_text(report, _report(summary, path, seconds))
     click.echo(json.dumps({"report": str(report), "seconds": round(seconds, 1)}))
     click.echo(f"report: {report}")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import csv
-import json
 import math
 import warnings
 from pathlib import Path
@@ -12,11 +11,11 @@ import click
 import torch
 from tqdm import tqdm
 
+from diffaccel.cli.output import output_folder, save_json, save_png
 from diffaccel.data import (
     DEFAULT_INPUT_COLUMN,
     DEFAULT_OUTPUT_COLUMN,
     atomic_write,
-    atomic_write_text,
     iter_magnet_csv,
     read_magnet_csv,
 )
@@ -105,7 +104,9 @@ def hysteresis() -> None:
     "(+- 1.01 max|input| for --initial-state demagnetized).",
 )
 @click.option("--no-figures", is_flag=True, help="Skip fit.png and density.png.")
-@click.option("--force", is_flag=True, help="Overwrite files of an earlier fit in OUT.")
+@click.option(
+    "--force", is_flag=True, help="Replace an earlier fit in OUT (at the end)."
+)
 def fit_command(
     data: Path,
     train_rows: int,
@@ -131,107 +132,104 @@ def fit_command(
             f"{train_rows} exceeds the {len(hist)} rows of {data}.",
             param_hint="--train-rows",
         )
-    targets = [out_dir / n for n in (SUMMARY_FILE, MODEL_FILE, CONFIG_FILE, *FIGURES)]
-    existing = [str(p) for p in targets if p.exists()]
-    if existing and not force:
-        raise click.ClickException(
-            f"{out_dir} already holds {existing}; pass --force to overwrite."
-        )
-    u, y = hist.input, hist.output
-    u_tr, y_tr = u[:train_rows], y[:train_rows]
-    try:
-        with tqdm(desc="fit", unit="eval", leave=False) as bar:
-
-            def progress(step: int, loss: float) -> None:
-                bar.update(1)
-                bar.set_postfix(loss=f"{loss:.3g}", refresh=False)
-
-            fit = fit_magnet(
-                u_tr,
-                y_tr,
-                mesh_size=mesh_size,
-                symmetric=symmetric,
-                initial_state=initial_state,
-                input_range=input_range,
-                steps=steps,
-                smoothness=smoothness,
-                callback=progress,
-            )
-        model = fit.model
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", InputRangeWarning)
-            with torch.no_grad():
-                pred = model(u)
-                std = fit.band.std(model, u)
-    except ValueError as err:
-        raise click.ClickException(str(err)) from err
-    notes = [str(w.message) for w in caught if w.category is InputRangeWarning]
-    span = float(y_tr.max() - y_tr.min())
-    n_te = len(hist) - train_rows
-    resid = pred - y
-    train_rmse = rms(resid[:train_rows])
-    test_rmse = rms(resid[train_rows:]) if n_te else None
-    basis = torch.stack([torch.ones_like(u), u], dim=1)
-    coef = torch.linalg.lstsq(basis[:train_rows], y_tr[:, None]).solution
-    line_rmse = rms((basis @ coef).squeeze(1)[train_rows:] - y[train_rows:])
-    inside = (resid[train_rows:].abs() <= 2.0 * std[train_rows:]).double()
-
-    def pct(v: float | None) -> float | None:
-        return None if v is None else 100.0 * v / span
-
-    summary = {
-        "data": str(data),
-        "input_column": input_col,
-        "output_column": output_col,
-        "rows": len(hist),
-        "train_rows": train_rows,
-        "test_rows": n_te,
-        "output_range": span,
-        "output_range_rows": "training",
-        "train_rmse": train_rmse,
-        "train_rmse_percent": pct(train_rmse),
-        "test_rmse": test_rmse,
-        "test_rmse_percent": pct(test_rmse),
-        "straight_line_test_rmse": line_rmse if n_te else None,
-        "test_inside_2std": float(inside.mean()) if n_te else None,
-        "test_mean_std": float(std[train_rows:].mean()) if n_te else None,
-        "fit_seconds": fit.seconds,
-        "steps": fit.result.steps,
-        "mesh_size": mesh_size,
-        "n_hysterons": int(model.alpha.numel()),
-        "symmetric": fit.symmetric,
-        "band_calibration": fit.calibration,
-        "band_directions": int(fit.band.directions.shape[0]),
-        "validation": fit.validation,
-        "smoothness": smoothness,
-        "initial_state": initial_state,
-        "input_range": list(model.input_range),
-        "notes": notes,
-    }
-    save_fit(
+    with output_folder(
         out_dir,
-        model,
-        fit.band,
-        extra={"input_column": input_col, "output_column": output_col},
-    )
-    if not no_figures:
-        fig = plot_preisach_fit(
+        "hysteresis fit",
+        force=force,
+        owned=(SUMMARY_FILE, MODEL_FILE, CONFIG_FILE, *FIGURES),
+        inputs=[data],
+    ) as folder:
+        u, y = hist.input, hist.output
+        u_tr, y_tr = u[:train_rows], y[:train_rows]
+        try:
+            with tqdm(desc="fit", unit="eval", leave=False) as bar:
+
+                def progress(step: int, loss: float) -> None:
+                    bar.update(1)
+                    bar.set_postfix(loss=f"{loss:.3g}", refresh=False)
+
+                fit = fit_magnet(
+                    u_tr,
+                    y_tr,
+                    mesh_size=mesh_size,
+                    symmetric=symmetric,
+                    initial_state=initial_state,
+                    input_range=input_range,
+                    steps=steps,
+                    smoothness=smoothness,
+                    callback=progress,
+                )
+            model = fit.model
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", InputRangeWarning)
+                with torch.no_grad():
+                    pred = model(u)
+                    std = fit.band.std(model, u)
+        except ValueError as err:
+            raise click.ClickException(str(err)) from err
+        notes = [str(w.message) for w in caught if w.category is InputRangeWarning]
+        span = float(y_tr.max() - y_tr.min())
+        n_te = len(hist) - train_rows
+        resid = pred - y
+        train_rmse = rms(resid[:train_rows])
+        test_rmse = rms(resid[train_rows:]) if n_te else None
+        basis = torch.stack([torch.ones_like(u), u], dim=1)
+        coef = torch.linalg.lstsq(basis[:train_rows], y_tr[:, None]).solution
+        line_rmse = rms((basis @ coef).squeeze(1)[train_rows:] - y[train_rows:])
+        inside = (resid[train_rows:].abs() <= 2.0 * std[train_rows:]).double()
+
+        def pct(v: float | None) -> float | None:
+            return None if v is None else 100.0 * v / span
+
+        summary = {
+            "data": str(data),
+            "input_column": input_col,
+            "output_column": output_col,
+            "rows": len(hist),
+            "train_rows": train_rows,
+            "test_rows": n_te,
+            "output_range": span,
+            "output_range_rows": "training",
+            "train_rmse": train_rmse,
+            "train_rmse_percent": pct(train_rmse),
+            "test_rmse": test_rmse,
+            "test_rmse_percent": pct(test_rmse),
+            "straight_line_test_rmse": line_rmse if n_te else None,
+            "test_inside_2std": float(inside.mean()) if n_te else None,
+            "test_mean_std": float(std[train_rows:].mean()) if n_te else None,
+            "fit_seconds": fit.seconds,
+            "steps": fit.result.steps,
+            "mesh_size": mesh_size,
+            "n_hysterons": int(model.alpha.numel()),
+            "symmetric": fit.symmetric,
+            "band_calibration": fit.calibration,
+            "band_directions": int(fit.band.directions.shape[0]),
+            "validation": fit.validation,
+            "smoothness": smoothness,
+            "initial_state": initial_state,
+            "input_range": list(model.input_range),
+            "notes": notes,
+        }
+        save_fit(
+            folder.path,
             model,
-            u,
-            y,
-            n_train=train_rows,
-            std=std,
-            input_label=input_col,
-            output_label=output_col,
+            fit.band,
+            extra={"input_column": input_col, "output_column": output_col},
         )
-        atomic_write(
-            out_dir / "fit.png", lambda p: fig.savefig(p, format="png", dpi=120)
-        )
-        fig = plot_preisach_density(model, input_label=input_col)
-        atomic_write(
-            out_dir / "density.png", lambda p: fig.savefig(p, format="png", dpi=120)
-        )
-    atomic_write_text(out_dir / SUMMARY_FILE, json.dumps(summary, indent=2) + "\n")
+        if not no_figures:
+            fig = plot_preisach_fit(
+                model,
+                u,
+                y,
+                n_train=train_rows,
+                std=std,
+                input_label=input_col,
+                output_label=output_col,
+            )
+            save_png(fig, folder.path / "fit.png")
+            fig = plot_preisach_density(model, input_label=input_col)
+            save_png(fig, folder.path / "density.png")
+        save_json(summary, folder.path / SUMMARY_FILE)
     for note in notes:
         click.echo(f"note: {note}", err=True)
     test_txt = (

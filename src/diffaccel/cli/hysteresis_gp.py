@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 import warnings
 from pathlib import Path
@@ -11,7 +10,8 @@ import click
 import torch
 from tqdm import tqdm
 
-from diffaccel.data import atomic_write, atomic_write_text, read_magnet_csv
+from diffaccel.cli.output import output_folder, save_json, save_png
+from diffaccel.data import read_magnet_csv
 from diffaccel.hysteresis import (
     HysteresisGP,
     PreisachMesh,
@@ -81,7 +81,9 @@ RANGE_MARGIN = 0.01
     help="Magnet state before the first row.",
 )
 @click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--force", is_flag=True, help="Overwrite earlier results in OUT.")
+@click.option(
+    "--force", is_flag=True, help="Replace an earlier result in OUT (at the end)."
+)
 def gp_fit(
     data: Path,
     x_col: str,
@@ -102,12 +104,6 @@ def gp_fit(
     summary JSON (noise, fit quality, the plain-GP noise for comparison) and a
     figure of the fit into OUT.
     """
-    targets = [out_dir / SUMMARY_FILE, out_dir / FIGURE_FILE]
-    existing = [str(p) for p in targets if p.exists()]
-    if existing and not force:
-        raise click.ClickException(
-            f"{', '.join(existing)} already exist; pass --force to overwrite."
-        )
     try:
         hist = read_magnet_csv(data, input_column=x_col, output_column=y_col)
         cols = [hist.input]
@@ -128,48 +124,58 @@ def gp_fit(
     except ValueError as err:  # FormatError is a ValueError
         raise click.ClickException(str(err)) from err
 
-    with (
-        warnings.catch_warnings(),
-        tqdm(total=restarts, desc="H-GP restarts", unit="fit", disable=None) as bar,
-    ):
-        warnings.filterwarnings("ignore", message=".*not p.d.*")
+    with output_folder(
+        out_dir,
+        "hysteresis gp-fit",
+        force=force,
+        owned=(SUMMARY_FILE, FIGURE_FILE),
+        inputs=[data],
+    ) as folder:
+        with (
+            warnings.catch_warnings(),
+            tqdm(total=restarts, desc="H-GP restarts", unit="fit", disable=None) as bar,
+        ):
+            warnings.filterwarnings("ignore", message=".*not p.d.*")
 
-        def progress(restart: int, mll: float) -> None:
-            bar.update(1)
-            bar.set_postfix(mll=f"{mll:.3f}")
+            def progress(restart: int, mll: float) -> None:
+                bar.update(1)
+                bar.set_postfix(mll=f"{mll:.3f}")
 
-        res = fit_hysteresis_gp(
-            model, restarts=restarts, max_iter=max_iter, seed=seed, callback=progress
-        )
+            res = fit_hysteresis_gp(
+                model,
+                restarts=restarts,
+                max_iter=max_iter,
+                seed=seed,
+                callback=progress,
+            )
 
-    with torch.no_grad():
-        post = model.posterior_on_history()
-        mean = post.mean.squeeze(-1)
-        sigma = post.variance.squeeze(-1).clamp_min(0).sqrt()
-    plain = HysteresisGP(X, Y, hysteresis={})
-    plain_fit = fit_hysteresis_gp(plain, restarts=1, max_iter=max_iter, seed=seed)
-    summary = {
-        "data": str(data),
-        "x": x_col,
-        "y": y_col,
-        "plain_inputs": list(plain_cols),
-        "n_points": int(X.shape[0]),
-        "n_hysterons": int(prior.alpha.numel()),
-        "input_range": list(input_range),
-        "initial_state": initial_state,
-        "noise_sigma": res.noise_sigma,
-        "mean_predictive_sigma": float(sigma.mean()),
-        "rmse_vs_data": float((mean - Y.squeeze(-1)).pow(2).mean().sqrt()),
-        "mll_per_point": res.mll,
-        "restart_mlls": list(res.restart_mlls),
-        "fit_s": res.fit_s,
-        "plain_gp_noise_sigma": plain_fit.noise_sigma,
-        "plain_gp_mll_per_point": plain_fit.mll,
-    }
-    out_dir.mkdir(parents=True, exist_ok=True)
-    fig = plot_hgp_history(model, column=0, xlabel=x_col, ylabel=y_col)
-    atomic_write(out_dir / FIGURE_FILE, lambda p: fig.savefig(p, format="png", dpi=120))
-    atomic_write_text(out_dir / SUMMARY_FILE, json.dumps(summary, indent=2) + "\n")
+        with torch.no_grad():
+            post = model.posterior_on_history()
+            mean = post.mean.squeeze(-1)
+            sigma = post.variance.squeeze(-1).clamp_min(0).sqrt()
+        plain = HysteresisGP(X, Y, hysteresis={})
+        plain_fit = fit_hysteresis_gp(plain, restarts=1, max_iter=max_iter, seed=seed)
+        summary = {
+            "data": str(data),
+            "x": x_col,
+            "y": y_col,
+            "plain_inputs": list(plain_cols),
+            "n_points": int(X.shape[0]),
+            "n_hysterons": int(prior.alpha.numel()),
+            "input_range": list(input_range),
+            "initial_state": initial_state,
+            "noise_sigma": res.noise_sigma,
+            "mean_predictive_sigma": float(sigma.mean()),
+            "rmse_vs_data": float((mean - Y.squeeze(-1)).pow(2).mean().sqrt()),
+            "mll_per_point": res.mll,
+            "restart_mlls": list(res.restart_mlls),
+            "fit_s": res.fit_s,
+            "plain_gp_noise_sigma": plain_fit.noise_sigma,
+            "plain_gp_mll_per_point": plain_fit.mll,
+        }
+        fig = plot_hgp_history(model, column=0, xlabel=x_col, ylabel=y_col)
+        save_png(fig, folder.path / FIGURE_FILE)
+        save_json(summary, folder.path / SUMMARY_FILE)
     click.echo(
         f"H-GP noise sigma {res.noise_sigma:.4g} "
         f"(plain GP {plain_fit.noise_sigma:.4g}), "

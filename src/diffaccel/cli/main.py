@@ -83,6 +83,27 @@ class _LazyGroup(click.Group):
             self.commands[cmd_name] = load_command(cmd_name)
         return self.commands[cmd_name]
 
+    def invoke(self, ctx: click.Context) -> object:
+        """Run the command; an unforeseen exception becomes one line (``-vv``: raise).
+
+        Commands report the errors they expect themselves, naming the file, field
+        and problem; this is the net below them, so that a user never sees a
+        traceback unless asking for one.
+        """
+        try:
+            return super().invoke(ctx)
+        except (click.ClickException, click.exceptions.Exit, click.Abort):
+            raise
+        except Exception as err:
+            if ctx.params.get("verbose", 0) >= 2:
+                raise
+            first = str(err).strip().splitlines()[0] if str(err).strip() else ""
+            raise click.ClickException(
+                f"unexpected {type(err).__name__}: {first} (this is a bug in "
+                "diffaccel; please report it with the command line; -vv shows the "
+                "traceback)"
+            ) from err
+
     def format_commands(
         self, ctx: click.Context, formatter: click.HelpFormatter
     ) -> None:

@@ -2,24 +2,26 @@
 
 from __future__ import annotations
 
-import json
 import os
 import time
+from contextlib import nullcontext
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import click
 import numpy as np
 import torch
 import torch.distributed as tdist
+from click.core import ParameterSource
 from tqdm import tqdm
 
+from diffaccel.cli.output import output_folder, save_json, save_png
 from diffaccel.data import (
     FormatError,
     MultiScanDataset,
-    QuadScanDataset,
     atomic_write,
-    atomic_write_text,
+    partial_folder,
     read_scans,
     write_openpmd_particles,
     write_scans,
@@ -36,6 +38,7 @@ from diffaccel.reconstruction import (
     ScreenForwardModel,
     StepInfo,
     as_scans,
+    check_on_screen,
     clean_json,
     evaluate,
     load,
@@ -87,25 +90,100 @@ def write_figures(
     paths = []
     for name, fig in figs.items():
         path = out / name
-        atomic_write(path, lambda p, fig=fig: fig.savefig(p, format="png", dpi=110))
-        paths.append(path)
+        paths.append(save_png(fig, path, dpi=110))
     return paths
 
 
-def prepare_out_dir(out: Path, force: bool, resume: bool) -> None:
-    """Refuse a non-empty ``out`` unless ``force`` or ``resume``."""
-    if out.exists() and not out.is_dir():
-        raise click.ClickException(f"--out {out} exists and is not a directory")
-    if out.exists() and any(out.iterdir()) and not (force or resume):
-        raise click.ClickException(
-            f"--out {out} is not empty; pass --force to overwrite or --resume to "
-            "continue an interrupted run"
+#: Files a reconstruction writes (a folder of only these is an earlier result).
+OWNED = ("ensemble.pt", "summary.json", "particles.h5", CHECKPOINT, "*.png")
+#: Parameters of ``reconstruct`` that set the config, by their flags.
+PARAMETER_FLAGS = {
+    "dims": "--dims",
+    "particles": "--particles",
+    "steps": "--steps",
+    "snapshots": "--snapshots",
+    "seed": "--seed",
+    "image_loss": "--image-loss",
+    "blur": "--blur",
+}
+#: Config fields set by ``reconstruct`` options, and those options.
+CONFIG_OPTIONS = {
+    "dims": "--dims",
+    "n_particles": "--particles",
+    "steps": "--steps",
+    "snapshots": "--snapshots",
+    "seed": "--seed",
+    "image_loss": "--image-loss",
+    "blur_pixels": "--blur",
+}
+
+
+def check_device(device: str) -> torch.device:
+    """``--device`` as a torch device that exists here (one-line error otherwise)."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, ValueError) as err:
+        raise click.BadParameter(
+            f"{device!r} is not a device (cpu, cuda, cuda:1, mps...)",
+            param_hint="--device",
+        ) from err
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise click.BadParameter(
+                f"{device}: CUDA is not available on this machine (torch "
+                f"{torch.__version__}); use --device cpu",
+                param_hint="--device",
+            )
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise click.BadParameter(
+                f"{device}: this machine has {torch.cuda.device_count()} CUDA "
+                "device(s)",
+                param_hint="--device",
+            )
+    elif dev.type == "mps" and not torch.backends.mps.is_available():
+        raise click.BadParameter(
+            f"{device}: MPS is not available on this machine", param_hint="--device"
         )
-    out.mkdir(parents=True, exist_ok=True)
-    if force and not resume:
-        ck = out / CHECKPOINT
-        if ck.exists():
-            ck.unlink()
+    elif dev.type not in ("cpu", "cuda", "mps"):
+        raise click.BadParameter(
+            f"{device}: unsupported device type {dev.type!r}", param_hint="--device"
+        )
+    return dev
+
+
+def read_dataset(path: Path) -> MultiScanDataset:
+    """The scans of a quad-scan file, or a one-line click error naming the problem."""
+    try:
+        return as_scans(read_scans(path))
+    except (FormatError, OSError) as err:
+        raise click.ClickException(f"cannot read {path}: {err}") from err
+
+
+def resume_config(
+    checkpoint: Path, config: ReconstructionConfig, given: set[str]
+) -> ReconstructionConfig:
+    """The config to resume with: the checkpoint's, checked against the options given.
+
+    Options the user gave that differ from the checkpoint's are refused (naming
+    both values); options not given are taken from the checkpoint.
+    """
+    try:
+        stored = checkpoint_config(checkpoint)
+    except ValueError as err:
+        raise click.ClickException(f"cannot resume: {err}") from err
+    clash = [
+        f"{flag} {getattr(config, key)} (checkpoint: {getattr(stored, key)})"
+        for key, flag in CONFIG_OPTIONS.items()
+        if flag in given and getattr(config, key) != getattr(stored, key)
+    ]
+    if clash:
+        raise click.ClickException(
+            "--resume continues the checkpoint's run, which used other options: "
+            + "; ".join(clash)
+            + ". Drop these options (or give the checkpoint's values) to resume, or "
+            "use --force without --resume to start a new run."
+        )
+    return stored
 
 
 def _init_distributed(device: str) -> str:
@@ -129,39 +207,27 @@ def _init_distributed(device: str) -> str:
 
 
 def run_reconstruction(
+    ds: MultiScanDataset,
     dataset_path: Path,
-    out: Path,
+    folder: Path,
     config: ReconstructionConfig,
-    train_indices: str,
-    device: str,
+    selection: dict[str, list[int]],
+    device: torch.device | str,
     resume: bool,
     figures: bool = True,
-    dataset: QuadScanDataset | MultiScanDataset | None = None,
     distributed: bool = False,
 ) -> dict[str, Any]:
     """Reconstruct, then write ensemble, summary.json, particles and figures.
 
+    Everything is written into ``folder`` (the staging folder of an
+    :func:`~diffaccel.cli.output.output_folder`), including the checkpoint.
     With ``distributed`` (an initialised ``torch.distributed`` group) every
     process trains its share of the particles and only process 0 writes; the
     others return an empty dict.
     """
     writer = not distributed or tdist.get_rank() == 0
     t0 = time.perf_counter()
-    try:
-        ds = dataset if dataset is not None else read_scans(dataset_path)
-    except (FormatError, OSError) as err:
-        raise click.ClickException(f"cannot read {dataset_path}: {err}") from err
-    ds = as_scans(ds)
-    try:
-        selection = training_selection(ds, train_indices)
-    except ValueError as err:
-        raise click.BadParameter(str(err), param_hint="--train-indices") from err
-    ck = out / CHECKPOINT
-    if resume and ck.exists():
-        try:
-            config = checkpoint_config(ck)
-        except Exception as err:
-            raise click.ClickException(f"cannot resume from {ck}: {err}") from err
+    ck = folder / CHECKPOINT
     bar = tqdm(
         total=config.steps,
         desc="reconstruct",
@@ -186,7 +252,7 @@ def run_reconstruction(
             device=device,
             distributed=distributed,
         )
-    except ValueError as err:
+    except (ValueError, FloatingPointError) as err:
         raise click.ClickException(str(err)) from err
     finally:
         bar.close()
@@ -194,21 +260,25 @@ def run_reconstruction(
         return {}
     t_train = time.perf_counter() - t0
     result.info["dataset"] = str(dataset_path)
-    result.save(out, overwrite=True)
+    result.save(folder, overwrite=True)
     predicted = predict_dataset(result, ds)
     summary = evaluate(result, ds, train_indices=selection, predicted=predicted)
     summary["dataset"] = str(dataset_path)
     parts = write_openpmd_particles(
-        out / "particles.h5", result.sample(100_000), ds.p0c, ds.species, overwrite=True
+        folder / "particles.h5",
+        result.sample(100_000),
+        ds.p0c,
+        ds.species,
+        overwrite=True,
     )
     summary["particles_file"] = parts.name
     if figures:
         summary["figures"] = [
-            p.name for p in write_figures(result, ds, summary, out, predicted)
+            p.name for p in write_figures(result, ds, summary, folder, predicted)
         ]
     summary["timings_s"]["total_wall"] = time.perf_counter() - t0
     summary["timings_s"]["reconstruct_wall"] = t_train
-    atomic_write_text(out / "summary.json", json.dumps(clean_json(summary), indent=2))
+    save_json(clean_json(summary), folder / "summary.json")
     return summary
 
 
@@ -272,12 +342,19 @@ def run_reconstruction(
     "--blur",
     type=click.FloatRange(min=0),
     default=None,
-    help="Point-spread rms of the measured images [pixels] [default: 1.0 for "
-    "--dims 4; 0.29 = sqrt(1/12), histograms without point spread, for --dims 6].",
+    help="Point-spread rms of simulated images [pixels] [default: 1.0 for "
+    "--dims 4, 0.5 for --dims 6].",
 )
 @click.option("--no-figures", is_flag=True, help="Skip the PNG figures.")
-@click.option("--force", is_flag=True, help="Overwrite a non-empty --out.")
-@click.option("--resume", is_flag=True, help="Continue from --out/checkpoint.pt.")
+@click.option(
+    "--force", is_flag=True, help="Replace an earlier result in --out (at the end)."
+)
+@click.option(
+    "--resume",
+    is_flag=True,
+    help="Continue the interrupted run into --out from its checkpoint (same data; "
+    "options not given are the checkpoint's).",
+)
 @click.option(
     "--distributed",
     is_flag=True,
@@ -302,13 +379,20 @@ def reconstruct_command(
     resume: bool,
     distributed: bool,
 ) -> None:
-    """Reconstruct a beam's phase space from the quad-scan file DATASET."""
-    if distributed:
-        device = _init_distributed(device)
-    if not distributed or tdist.get_rank() == 0:
-        prepare_out_dir(out, force, resume)
-    if distributed:
-        tdist.barrier()  # --out is ready before any process reads a checkpoint
+    """Reconstruct a beam's phase space from the quad-scan file DATASET.
+
+    The results appear in OUT all together at the end (written into a
+    staging folder ``.OUT.partial`` beside it first); an interrupted run keeps
+    its checkpoint there and ``--resume`` continues it.
+    """
+    ctx = click.get_current_context()
+    given = {
+        flag
+        for name, flag in PARAMETER_FLAGS.items()
+        if ctx.get_parameter_source(name) in (ParameterSource.COMMANDLINE,)
+    }
+    dev = _init_distributed(device) if distributed else check_device(device)
+    writer = not distributed or tdist.get_rank() == 0
     try:
         config = ReconstructionConfig(
             dims=int(dims),
@@ -321,16 +405,59 @@ def reconstruct_command(
         )
     except ValueError as err:
         raise click.ClickException(str(err)) from err
-    summary = run_reconstruction(
-        dataset,
-        out,
-        config,
-        train_indices,
-        device,
-        resume,
-        figures=not no_figures,
-        distributed=distributed,
-    )
+    ds = read_dataset(dataset)
+    try:
+        selection = training_selection(ds, train_indices)
+    except ValueError as err:
+        raise click.BadParameter(str(err), param_hint="--train-indices") from err
+    if resume:
+        found = [
+            d / CHECKPOINT
+            for d in (partial_folder(out), out)
+            if (d / CHECKPOINT).is_file()
+        ]
+        if not found:
+            raise click.ClickException(
+                f"--resume: no {CHECKPOINT} in {out} or {partial_folder(out)} (an "
+                "interrupted run keeps it there); run without --resume."
+            )
+        config = resume_config(found[0], config, given)
+        click.echo(f"resuming from {found[0]} ({config})", err=True)
+    try:
+        if writer:
+            target = output_folder(
+                out,
+                "reconstruct",
+                force=force,
+                resume=resume,
+                keep_partial=True,
+                owned=OWNED,
+                inputs=[dataset],
+            )
+        else:  # process 0 owns the folder; the others read its checkpoint
+            target = nullcontext(SimpleNamespace(path=partial_folder(out)))
+        with target as folder:
+            if distributed:
+                tdist.barrier()  # the staging folder exists before any reads it
+            summary = run_reconstruction(
+                ds,
+                dataset,
+                folder.path,
+                config,
+                selection,
+                dev,
+                resume,
+                figures=not no_figures,
+                distributed=distributed,
+            )
+    except (KeyboardInterrupt, click.ClickException):
+        if (partial_folder(out) / CHECKPOINT).is_file():
+            click.echo(
+                f"note: the run's checkpoint is kept in {partial_folder(out)}; "
+                f"--resume continues it ({out} is unchanged)",
+                err=True,
+            )
+        raise
     if distributed:
         tdist.destroy_process_group()
     if not summary:  # a process other than 0 of a distributed run
@@ -347,6 +474,39 @@ def reconstruct_command(
             "not constrained by the scan: "
             + ", ".join(summary["unconstrained_coordinates"])
         )
+
+
+def parse_settings(text: str, names: list[str]) -> torch.Tensor:
+    """``--settings`` text as a ``(K, P)`` float64 tensor for scanned ``names``.
+
+    One parameter: ``"-3,0,2.5"`` (or one row per ``;``); several: rows
+    separated by ``;``, the values of a row by ``:`` (``"1:2;3:4"``).
+
+    Raises:
+        ValueError: naming the value that is not a number, a row of the wrong
+            length, or an empty list.
+    """
+    rows = [r for r in text.replace(" ", "").split(";") if r]
+    if len(names) == 1 and len(rows) == 1:
+        rows = [v for v in rows[0].split(",") if v]
+    if not rows:
+        raise ValueError(f"--settings {text!r} holds no value; e.g. '-3,0,2.5'.")
+    out = []
+    for i, row in enumerate(rows):
+        cells = row.split(":")
+        if len(cells) != len(names):
+            raise ValueError(
+                f"--settings row {i + 1} {row!r} has {len(cells)} value(s); "
+                f"expected {len(names)} ({':'.join(names)}), rows separated by ';'."
+            )
+        try:
+            out.append([float(c) for c in cells])
+        except ValueError:
+            raise ValueError(
+                f"--settings row {i + 1} {row!r}: not a number; expected e.g. "
+                f"'-3,0,2.5' or '1:2;3:4'."
+            ) from None
+    return torch.tensor(out, dtype=torch.float64)
 
 
 @click.command("predict")
@@ -397,6 +557,10 @@ def predict(
     """Ensemble-mean screen images of a reconstruction (RESULT_DIR) for new settings."""
     if out.exists() and not force:
         raise click.ClickException(f"{out} exists; pass --force to overwrite it")
+    if dataset_path is not None and out.resolve() == dataset_path.resolve():
+        raise click.ClickException(
+            f"--out {out} is the --dataset file; write the predictions elsewhere."
+        )
     if (dataset_path is None) == (settings_text is None):
         raise click.ClickException("give exactly one of --dataset or --settings")
     suffix = out.suffix.lower()
@@ -416,17 +580,11 @@ def predict(
             predicted = predict_dataset(result, other, n_particles=particles, seed=seed)
         else:
             fwd = result.forward
-            rows = [r for r in settings_text.replace(" ", "").split(";") if r]
-            if len(fwd.names) == 1 and len(rows) == 1:
-                vals = [[float(v)] for v in rows[0].split(",") if v]
-            else:
-                vals = [[float(v) for v in r.split(":")] for r in rows]
-            if not vals:
-                raise ValueError(f"--settings {settings_text!r} holds no value")
-            settings = torch.tensor(vals, dtype=torch.float64)
+            settings = parse_settings(settings_text, fwd.names)
             images = result.predict_images(
                 settings, forward=fwd, n_particles=particles, seed=seed
             )
+            check_on_screen(images, settings)
     except (FormatError, ValueError, FileNotFoundError, OSError) as err:
         raise click.ClickException(str(err)) from err
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -438,6 +596,10 @@ def predict(
                     ".h5 file (--out PRED.h5)"
                 )
             images = next(iter(predicted.values()))
+            try:
+                check_on_screen(images, other[other.names[0]].settings)
+            except ValueError as err:
+                raise click.ClickException(str(err)) from err
         array = images.numpy().astype(np.float32)
 
         def _save(p: Path) -> None:

@@ -134,6 +134,10 @@ def synthetic(
     force: bool,
 ) -> None:
     """Simulate a quadrupole scan of a known beam and write it to OUT (HDF5)."""
+    if particle_file is not None and out.resolve() == particle_file.resolve():
+        raise click.ClickException(
+            f"OUT {out} is the --particle-file; write the scan elsewhere."
+        )
     if out.exists() and not force:
         raise click.ClickException(f"{out} exists; pass --force to overwrite it")
     if layout == "awa6d":

@@ -35,6 +35,7 @@ from diffaccel.data.quad_scan import (
 from diffaccel.data.result_folder import (
     ResultFolder,
     ResultFolderError,
+    partial_folder,
     result_folder,
 )
 from diffaccel.data.scans import (
@@ -79,6 +80,7 @@ __all__ = [
     "median_filter",
     "normalize",
     "parse_selection",
+    "partial_folder",
     "pool",
     "read_magnet_csv",
     "read_openpmd_particles",

@@ -189,6 +189,11 @@ def read_magnet_csv(
         raise FormatError(
             f"{path_s}: no input column {input_column!r}; columns are {header}."
         )
+    if output_column == input_column:
+        raise FormatError(
+            f"{path_s}: input and output are the same column {input_column!r}; "
+            "name the measured output column."
+        )
     u = _parse_column(data, header.index(input_column), input_column, path_s)
     y = None
     if output_column in header:

@@ -34,6 +34,7 @@ __all__ = [
     "PARAMETER_LIMITS",
     "PARAMETER_UNITS",
     "QuadScanDataset",
+    "check_setting_limits",
     "read_quad_scan",
     "write_quad_scan",
 ]
@@ -424,7 +425,16 @@ def _validate_settings_names(
             )
 
 
-def _check_setting_limits(names: list[str], settings: Tensor) -> None:
+def check_setting_limits(names: Sequence[str], settings: Tensor) -> None:
+    """Refuse settings beyond :data:`PARAMETER_LIMITS` (one line naming the value).
+
+    Args:
+        names: Scanned ``"ELEMENT.parameter"`` names, one per column.
+        settings: Settings ``(K, P)``.
+
+    Raises:
+        FormatError: naming the parameter, the value and the setting index.
+    """
     for p, name in enumerate(names):
         limit = PARAMETER_LIMITS.get(name.partition(".")[2])
         if limit is None or settings.shape[0] == 0:
@@ -493,6 +503,13 @@ def _validate(ds: QuadScanDataset) -> None:
             f"images: image of setting {k} (shot {s}) is all zero; "
             f"{int(empty.sum())} all-zero image(s) in total"
         )
+    sums = images.sum(dim=(-2, -1), dtype=torch.float64)
+    if bool((sums <= 0).any()):
+        k, s = (int(v) for v in torch.nonzero(sums <= 0)[0])
+        raise FormatError(
+            f"images: image of setting {k} (shot {s}) sums to {float(sums[k, s]):g}; "
+            "expected a positive total intensity (over-subtracted background?)"
+        )
     if not all(0 < v <= MAX_PIXEL_SIZE for v in ds.pixel_size):
         raise FormatError(
             f"screen.pixel_size: expected (x, y) > 0 and <= {MAX_PIXEL_SIZE:g} m; "
@@ -508,7 +525,7 @@ def _validate(ds: QuadScanDataset) -> None:
     _validate_settings_names(
         ds.setting_names, ds.setting_units, elements, int(settings.shape[1])
     )
-    _check_setting_limits(ds.setting_names, settings)
+    check_setting_limits(ds.setting_names, settings)
     gt = ds.ground_truth
     if gt is not None:
         if gt.ndim != 2 or gt.shape[-1] != 6 or gt.shape[0] < 1:

@@ -35,7 +35,13 @@ from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["MARKER", "ResultFolder", "ResultFolderError", "result_folder"]
+__all__ = [
+    "MARKER",
+    "ResultFolder",
+    "ResultFolderError",
+    "partial_folder",
+    "result_folder",
+]
 
 #: Marker file written into every result folder (JSON: command, time).
 MARKER = ".diffaccel-result"
@@ -66,6 +72,11 @@ class ResultFolder:
 
 def _sibling(out: Path, tag: str) -> Path:
     return out.parent / f".{out.name}.{tag}"
+
+
+def partial_folder(out: str | os.PathLike) -> Path:
+    """The staging folder of a run into ``out`` (kept after a failed run if asked)."""
+    return _sibling(Path(out), "partial")
 
 
 def _pid_alive(pid: int) -> bool:
@@ -196,7 +207,7 @@ def result_folder(
             )
     lock = _sibling(out, "lock")
     _take_lock(lock, out)
-    staging = _sibling(out, "partial")
+    staging = partial_folder(out)
     try:
         has_result = out.exists() and any(out.iterdir())
         if has_result:

@@ -10,6 +10,7 @@ from matplotlib.figure import Figure
 from torch import Tensor
 
 from diffaccel.hysteresis import HysteresisGP
+from diffaccel.plotting.text import literal, no_usetex
 
 __all__ = ["plot_best_so_far", "plot_gp_vs_hgp", "plot_hgp_history"]
 
@@ -20,6 +21,7 @@ def _np(x: Tensor | np.ndarray) -> np.ndarray:
     return np.asarray(x, dtype=float)
 
 
+@no_usetex
 def plot_gp_vs_hgp(
     current: Tensor,
     y: Tensor,
@@ -65,8 +67,8 @@ def plot_gp_vs_hgp(
     ax_gp.plot(u[grid], gm[grid], "C0-", label="GP mean")
     ax_gp.plot(u, yy, "k.", ms=3, label="data")
     ax_gp.set_title("plain GP on current")
-    ax_gp.set_xlabel(xlabel)
-    ax_gp.set_ylabel(ylabel)
+    ax_gp.set_xlabel(literal(xlabel))
+    ax_gp.set_ylabel(literal(ylabel))
     ax_gp.legend(loc="best", fontsize=8)
     for k in np.unique(cyc):
         sel = cyc == k
@@ -83,11 +85,12 @@ def plot_gp_vs_hgp(
         )
     ax_h.plot(u, yy, "k.", ms=2, alpha=0.5)
     ax_h.set_title("H-GP (±2σ), coloured by cycle")
-    ax_h.set_xlabel(xlabel)
+    ax_h.set_xlabel(literal(xlabel))
     ax_h.legend(loc="best", fontsize=8)
     return fig
 
 
+@no_usetex
 def plot_best_so_far(
     curves: Mapping[str, Tensor | np.ndarray],
     higher_is_better: bool,
@@ -116,9 +119,9 @@ def plot_best_so_far(
         steps = np.arange(1, arr.shape[1] + 1)
         q25, med, q75 = np.quantile(arr, [0.25, 0.5, 0.75], axis=0)
         ax.fill_between(steps, q25, q75, color=f"C{i}", alpha=0.25)
-        ax.plot(steps, med, color=f"C{i}", label=f"{name} (median, IQR)")
+        ax.plot(steps, med, color=f"C{i}", label=f"{literal(name)} (median, IQR)")
     ax.set_xlabel("step")
-    ax.set_ylabel(ylabel)
+    ax.set_ylabel(literal(ylabel))
     if log_y:
         ax.set_yscale("log")
     ax.set_title("higher is better" if higher_is_better else "lower is better")
@@ -126,6 +129,7 @@ def plot_best_so_far(
     return fig
 
 
+@no_usetex
 def plot_hgp_history(
     model: HysteresisGP, column: int = 0, xlabel: str = "x", ylabel: str = "y"
 ) -> Figure:
@@ -156,12 +160,12 @@ def plot_hgp_history(
     ax_t.plot(steps, mean, "C0-", label="H-GP mean ±2σ")
     ax_t.plot(steps, y, "k.", ms=3, label="data")
     ax_t.set_xlabel("step")
-    ax_t.set_ylabel(ylabel)
+    ax_t.set_ylabel(literal(ylabel))
     ax_t.legend(loc="best", fontsize=8)
     sc = ax_x.scatter(x, y, c=steps, s=10, cmap="viridis", label="data")
     ax_x.plot(x, mean, "-", color="0.4", lw=0.6, label="H-GP mean (in order)")
-    ax_x.set_xlabel(xlabel)
-    ax_x.set_ylabel(ylabel)
+    ax_x.set_xlabel(literal(xlabel))
+    ax_x.set_ylabel(literal(ylabel))
     ax_x.legend(loc="best", fontsize=8)
     fig.colorbar(sc, ax=ax_x, label="step")
     return fig

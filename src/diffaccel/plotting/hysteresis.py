@@ -9,6 +9,7 @@ from matplotlib.tri import Triangulation
 from torch import Tensor
 
 from diffaccel.hysteresis import PreisachModel
+from diffaccel.plotting.text import literal, no_usetex
 
 __all__ = ["plot_preisach_density", "plot_preisach_fit"]
 
@@ -17,6 +18,7 @@ def _np(x: Tensor) -> np.ndarray:
     return x.detach().cpu().double().numpy()
 
 
+@no_usetex
 def plot_preisach_density(
     model: PreisachModel, input_label: str = "current [A]"
 ) -> Figure:
@@ -48,8 +50,8 @@ def plot_preisach_density(
     ax.set_xlim(lo, hi)
     ax.set_ylim(lo, hi)
     ax.set_aspect("equal")
-    ax.set_xlabel(f"beta: down threshold, {input_label}")
-    ax.set_ylabel(f"alpha: up threshold, {input_label}")
+    ax.set_xlabel(f"beta: down threshold, {literal(input_label)}")
+    ax.set_ylabel(f"alpha: up threshold, {literal(input_label)}")
     kind = "symmetric " if model.symmetric else ""
     ax.set_title(f"Preisach density, {kind}({alpha.size} hysterons)")
     if model.symmetric:  # the mirror line alpha + beta = lo + hi
@@ -58,6 +60,7 @@ def plot_preisach_density(
     return fig
 
 
+@no_usetex
 def plot_preisach_fit(
     model: PreisachModel,
     current: Tensor,
@@ -128,8 +131,8 @@ def plot_preisach_fit(
             u[n - 1 :], pl[n - 1 :], "-", lw=1, color="C1", alpha=0.7,
             label="model (prediction)",
         )  # fmt: skip
-    ax_loop.set_xlabel(input_label)
-    ax_loop.set_ylabel(f"{output_label} - ({coef[0]:.4g} x + {coef[1]:.3g})")
+    ax_loop.set_xlabel(literal(input_label))
+    ax_loop.set_ylabel(f"{literal(output_label)} - ({coef[0]:.4g} x + {coef[1]:.3g})")
     ax_loop.legend(fontsize=8)
     ax_loop.set_title("Hysteresis loops (best straight line subtracted)")
     ax_res.axhline(0.0, color="k", lw=0.6)

@@ -9,6 +9,7 @@ import torch
 from matplotlib.figure import Figure
 from torch import Tensor
 
+from diffaccel.plotting.text import literal, no_usetex
 from diffaccel.reconstruction import Reconstruction
 
 __all__ = [
@@ -19,13 +20,13 @@ __all__ = [
 ]
 
 _LABELS = ("x [mm]", "px [mrad]", "y [mm]", "py [mrad]", "z [mm]", "pz [1e-3]")
-_NAMES = ("x", "px", "y", "py", "z", "pz")
 
 
 def _coords_to_plot(dims: int, truth: Tensor | None) -> list[int]:
     return list(range(dims))
 
 
+@no_usetex
 def plot_corner(
     reconstruction: Reconstruction,
     truth: Tensor | None = None,
@@ -134,6 +135,7 @@ def plot_corner(
     return fig
 
 
+@no_usetex
 def plot_image_comparison(
     measured: Tensor,
     predicted: Tensor,
@@ -218,14 +220,15 @@ def plot_image_comparison(
             if sd is not None:
                 column[3].set_ylabel("pred spread")
     fig.suptitle(
-        (f"{title}: " if title else "")
-        + f"Screen images per setting {setting_name} (colour scale per column; "
-        f"difference scale +-{dmax:.2g})"
+        (f"{literal(title)}: " if title else "")
+        + f"Screen images per setting {literal(setting_name)} (colour scale per "
+        f"column; difference scale +-{dmax:.2g})"
     )
     fig.tight_layout()
     return fig
 
 
+@no_usetex
 def plot_training_curves(reconstruction: Reconstruction) -> Figure:
     """Loss, image mismatch, learning rate and penalty vs step, snapshots marked.
 
@@ -275,6 +278,7 @@ def plot_training_curves(reconstruction: Reconstruction) -> Figure:
     return fig
 
 
+@no_usetex
 def plot_rms_evolution(
     reconstruction: Reconstruction, truth: Tensor | None = None
 ) -> Figure:

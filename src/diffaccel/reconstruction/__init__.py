@@ -8,6 +8,7 @@ Example:
 
 from diffaccel.reconstruction.ensemble import Reconstruction, load
 from diffaccel.reconstruction.evaluation import (
+    check_on_screen,
     clean_json,
     evaluate,
     predict_dataset,
@@ -54,6 +55,7 @@ __all__ = [
     "TrainingState",
     "as_scans",
     "beam_moments",
+    "check_on_screen",
     "clean_json",
     "cyclic_cosine_lr",
     "evaluate",

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -15,7 +14,7 @@ from diffaccel.data import atomic_write
 from diffaccel.reconstruction.forward import ScreenForwardModel
 from diffaccel.reconstruction.generator import BeamGenerator
 from diffaccel.reconstruction.metrics import COORDINATES, beam_moments
-from diffaccel.reconstruction.training import ReconstructionConfig
+from diffaccel.reconstruction.training import ReconstructionConfig, load_tensors
 from diffaccel.reconstruction.uncertainty import MomentUncertainty
 
 ENSEMBLE_FILE = "ensemble.pt"
@@ -25,20 +24,27 @@ _READ_VERSIONS = (1, 2)
 #: Scan name of a version-1 ensemble's forward model (as ``data.SINGLE_SCAN_NAME``).
 _SINGLE_SCAN = "scan"
 
-#: Scalar moments reported by :meth:`Reconstruction.moments`.
-SCALAR_MOMENTS = (
-    "emit_x",
-    "emit_y",
-    "emit_z",
-    "emit_4d",
-    "emit_6d",
-    "norm_emit_x",
-    "norm_emit_y",
-    "beta_x",
-    "beta_y",
-    "alpha_x",
-    "alpha_y",
-)
+
+def unconstrained_coordinates(
+    maps: list[Tensor], dims: int, tolerance: float = 1e-3
+) -> list[str]:
+    """Coordinates that the affine maps ``(K_s, 7, 7)`` of the scans do not see.
+
+    See :meth:`Reconstruction.unconstrained_coordinates`.
+    """
+    if not maps:
+        return []
+    rows = torch.stack(
+        [r[:, [0, 2], :6].abs().amax(dim=(0, 1)) for r in maps]  # (6,) per scan
+    ).amax(0)
+    pos_ref = float(rows[[0, 2]].max())
+    mom_ref = float(rows[[1, 3]].max())
+    ref = (pos_ref, mom_ref, pos_ref, mom_ref, pos_ref, mom_ref)
+    return [
+        c
+        for i, c in enumerate(COORDINATES)
+        if not (dims == 4 and i >= 4) and float(rows[i]) < tolerance * ref[i]
+    ]
 
 
 class Reconstruction:
@@ -302,31 +308,20 @@ class Reconstruction:
         through weak chromatic or no effects at all: its reconstruction is set by
         the prior and the ensemble spread understates its uncertainty.
         """
+        stored = self.info.get("unconstrained_coordinates")
+        if tolerance == 1e-3 and isinstance(stored, list):
+            return list(stored)  # computed by reconstruct() from its maps
         per_scan = self.info.get("scans")
         if not isinstance(per_scan, dict):
             per_scan = {self.scan_names[0]: self.info}
-        rows_list = []
+        maps = []
         for name, fwd in self.forwards.items():
             sets = torch.as_tensor(
                 per_scan.get(name, {}).get("train_settings", []), dtype=torch.float64
             )
-            if sets.numel() == 0:
-                continue
-            r = fwd.transfer_maps(sets)[:, :6, :6]
-            rows_list.append(r[:, [0, 2], :].abs().amax(dim=(0, 1)))  # (6,)
-        if not rows_list:
-            return []
-        rows = torch.stack(rows_list).amax(0)
-        flags = []
-        pos_ref = float(rows[[0, 2]].max())
-        mom_ref = float(rows[[1, 3]].max())
-        ref = {0: pos_ref, 1: mom_ref, 2: pos_ref, 3: mom_ref, 4: pos_ref, 5: mom_ref}
-        for i, c in enumerate(COORDINATES):
-            if self.config.dims == 4 and i >= 4:
-                continue
-            if float(rows[i]) < tolerance * ref[i]:
-                flags.append(c)
-        return flags
+            if sets.numel():
+                maps.append(fwd.transfer_maps(sets))
+        return unconstrained_coordinates(maps, self.config.dims, tolerance)
 
     def save(self, directory: str | os.PathLike, *, overwrite: bool = False) -> Path:
         """Write the ensemble to ``directory/ensemble.pt`` atomically.
@@ -367,30 +362,32 @@ def load(directory: str | os.PathLike) -> Reconstruction:
     path = p if p.is_file() else p / ENSEMBLE_FILE
     if not path.exists():
         raise FileNotFoundError(f"no {ENSEMBLE_FILE} in {p}")
-    try:
-        d = torch.load(path, weights_only=True, map_location="cpu")
-    except Exception as exc:
-        raise ValueError(f"cannot read {path}: {exc}") from exc
+    d = load_tensors(path, "ensemble")
     if not isinstance(d, dict) or d.get("ensemble_version") not in _READ_VERSIONS:
         raise ValueError(
             f"{path} is not a diffaccel ensemble (versions {_READ_VERSIONS})."
         )
-    if d["ensemble_version"] == 1:
+    try:
+        if d["ensemble_version"] == 1:
+            specs = {_SINGLE_SCAN: json.loads(d["forward"])}
+        else:
+            specs = json.loads(d["forwards"])
         forwards = {
-            _SINGLE_SCAN: ScreenForwardModel.from_spec(json.loads(d["forward"]))
+            name: ScreenForwardModel.from_spec(spec) for name, spec in specs.items()
         }
-    else:
-        forwards = {
-            name: ScreenForwardModel.from_spec(spec)
-            for name, spec in json.loads(d["forwards"]).items()
-        }
-    return Reconstruction(
-        config=ReconstructionConfig.from_dict(d["config"]),
-        snapshots=list(d["snapshots"]),
-        forward=forwards,
-        history=json.loads(d["history"]),
-        info=json.loads(d["info"]),
-    )
+        return Reconstruction(
+            config=ReconstructionConfig.from_dict(d["config"]),
+            snapshots=list(d["snapshots"]),
+            forward=forwards,
+            history=json.loads(d["history"]),
+            info=json.loads(d["info"]),
+        )
+    except (KeyError, TypeError, ValueError, AttributeError, RuntimeError) as exc:
+        # missing entries, wrong types, state dicts that do not fit the config
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        raise ValueError(
+            f"{path} is a damaged diffaccel ensemble ({type(exc).__name__}: {first})."
+        ) from exc
 
 
 def _unit_sum(images: Tensor) -> Tensor:
@@ -426,7 +423,3 @@ def _recolour(particles: Tensor, dims: int, mu: Tensor, cov: Tensor) -> Tensor:
     out = x.expand(mu.shape[0], -1, -1).clone()
     out[..., :d] = xc @ t.transpose(-1, -2) + mu[:, None, :d]
     return out.to(particles.dtype)
-
-
-def _finite(x: float) -> float | None:
-    return x if math.isfinite(x) else None

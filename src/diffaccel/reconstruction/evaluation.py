@@ -28,7 +28,13 @@ from diffaccel.reconstruction.metrics import (
 )
 from diffaccel.reconstruction.pipeline import as_scans
 
-__all__ = ["clean_json", "evaluate", "predict_dataset", "predicted_dataset"]
+__all__ = [
+    "check_on_screen",
+    "clean_json",
+    "evaluate",
+    "predict_dataset",
+    "predicted_dataset",
+]
 
 UNCONSTRAINED_NOTE = (
     "coordinates the scans do not see to first order (their column of the "
@@ -219,6 +225,32 @@ def evaluate(
     return clean_json(summary)
 
 
+def check_on_screen(images: Tensor, settings: Tensor, *, scan: str = "") -> Tensor:
+    """Sums of predicted images; raises if a prediction has nothing on the screen.
+
+    Args:
+        images: Predicted images ``(K, H, W)``.
+        settings: Their settings ``(K, P)`` (named in the error).
+        scan: Scan name for the error message.
+
+    Returns:
+        The image sums ``(K,)``.
+
+    Raises:
+        ValueError: naming the setting if an image is all zero (no particle
+            reached the screen): such a prediction is not an image of the beam.
+    """
+    sums = images.sum((-2, -1))
+    if bool((sums <= 0).any()):
+        bad = int(torch.nonzero(sums <= 0)[0])
+        where = f"scan {scan!r}: " if scan else ""
+        raise ValueError(
+            f"{where}no predicted particle reaches the screen at setting {bad} "
+            f"({settings[bad].tolist()})."
+        )
+    return sums
+
+
 def predicted_dataset(
     dataset: QuadScanDataset | MultiScanDataset,
     predicted: Mapping[str, Tensor],
@@ -252,13 +284,7 @@ def predicted_dataset(
                 f"scan {name!r}: predicted images {tuple(images.shape)} do not match "
                 f"the scan's (K, H, W) = {(k, h, w)}."
             )
-        sums = images.sum((-2, -1))
-        if bool((sums <= 0).any()):
-            bad = int(torch.nonzero(sums <= 0)[0])
-            raise ValueError(
-                f"scan {name!r}: no predicted particle reaches the screen at setting "
-                f"{bad} ({scan.settings[bad].tolist()})."
-            )
+        sums = check_on_screen(images, scan.settings, scan=name)
         out[name] = scan.with_step(step, images=(images / sums[:, None, None])[:, None])
     metadata = copy.deepcopy(scans.metadata)  # a version-2 file keeps this one
     metadata.setdefault("preprocessing", []).append(dict(step))

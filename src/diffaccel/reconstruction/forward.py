@@ -9,10 +9,14 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from diffaccel.data.quad_scan import check_setting_limits
 from diffaccel.dynamics.beamline import Beamline
 from diffaccel.dynamics.elements.screen import Screen
 from diffaccel.dynamics.images import cic_image, gaussian_blur
 from diffaccel.dynamics.species import Species
+
+#: Largest point-spread rms [pixels]: beyond it every image is flat.
+MAX_BLUR_PIXELS = 100.0
 
 
 class ScreenForwardModel:
@@ -62,8 +66,11 @@ class ScreenForwardModel:
         if not (isinstance(p0c, int | float) and math.isfinite(p0c) and p0c > 0):
             raise ValueError(f"p0c must be a finite number > 0 eV; got {p0c!r}.")
         self._species = Species.from_name(species)  # raises ValueError if unknown
-        if not blur_pixels >= 0:
-            raise ValueError(f"blur_pixels must be >= 0; got {blur_pixels}.")
+        if not 0 <= blur_pixels <= MAX_BLUR_PIXELS:
+            raise ValueError(
+                f"blur_pixels must be in [0, {MAX_BLUR_PIXELS:g}] pixels; got "
+                f"{blur_pixels}."
+            )
         self.names = list(names)
         for n in self.names:
             beamline._split_name(n)  # raises ValueError naming the problem
@@ -119,7 +126,8 @@ class ScreenForwardModel:
         """Validate settings ``(K, P)`` and return them as float64.
 
         Raises:
-            ValueError: for a wrong shape or non-finite values.
+            ValueError: for a wrong shape, non-finite values or values beyond
+                :data:`~diffaccel.data.quad_scan.PARAMETER_LIMITS`.
         """
         s = torch.as_tensor(settings, dtype=torch.float64)
         if s.ndim == 1 and len(self.names) == 1:
@@ -131,6 +139,7 @@ class ScreenForwardModel:
             )
         if not torch.isfinite(s).all():
             raise ValueError("settings contain NaN or infinite values.")
+        check_setting_limits(self.names, s)
         return s
 
     def track_to_screen(self, particles: Tensor, settings: Tensor) -> Tensor:

@@ -7,9 +7,6 @@ import math
 import torch
 from torch import Tensor, nn
 
-#: Indices of the transverse coordinates (x, px, y, py) in Bmad order.
-TRANSVERSE = (0, 1, 2, 3)
-
 
 class BeamGenerator(nn.Module):
     """Generative model of a beam's phase-space distribution.

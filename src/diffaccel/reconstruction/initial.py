@@ -97,6 +97,7 @@ def fit_gaussian(
     forward: ScreenForwardModel | Sequence[ScreenForwardModel],
     images: Tensor | Sequence[Tensor],
     settings: Tensor | Sequence[Tensor],
+    maps: Sequence[Tensor] | None = None,
 ) -> GaussianGuess:
     """Fit the centroid and covariance of a beam to image moments of one or more scans.
 
@@ -114,6 +115,9 @@ def fit_gaussian(
         forward: Forward model of each scan (or one model).
         images: Sum-normalised images of each scan.
         settings: Settings of those images, one tensor per scan.
+        maps: Affine maps ``(K_s, 7, 7)`` of each scan from
+            :meth:`ScreenForwardModel.transfer_maps` when the caller has them
+            already; computed here otherwise.
 
     Shapes:
         Scan ``s``: ``images (K_s, H_s, W_s)``, ``settings (K_s, P_s)``.
@@ -126,7 +130,10 @@ def fit_gaussian(
     setting_list = list(settings) if isinstance(settings, list | tuple) else [settings]
     rx_all, ry_all, mx_all, my_all, vxx_all, vyy_all, vxy_all = ([] for _ in range(7))
     floors, drift = [], 0.0
-    for fwd, imgs, sets in zip(forwards, image_list, setting_list, strict=True):
+    map_list = list(maps) if maps is not None else [None] * len(forwards)
+    for fwd, imgs, sets, r in zip(
+        forwards, image_list, setting_list, map_list, strict=True
+    ):
         img = imgs.detach().to("cpu", torch.float64)
         img = img / img.sum((-2, -1), keepdim=True).clamp_min(1e-300)
         xs, ys = (a.to("cpu", torch.float64) for a in fwd.pixel_axes())
@@ -140,7 +147,9 @@ def fit_gaussian(
         dx = xs[None, None, :] - mx[:, None, None]
         dy = ys[None, :, None] - my[:, None, None]
         vxy_all.append((img * dx * dy).sum((-2, -1)))
-        r = fwd.transfer_maps(sets).to("cpu", torch.float64)  # (K, 7, 7) affine
+        if r is None:
+            r = fwd.transfer_maps(sets)
+        r = r.to("cpu", torch.float64)  # (K, 7, 7) affine
         # centroids less the orbit offsets of misaligned elements
         mx_all.append(mx - r[:, 0, 6])
         my_all.append(my - r[:, 2, 6])

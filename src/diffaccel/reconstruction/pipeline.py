@@ -11,7 +11,10 @@ import torch
 
 from diffaccel.data.quad_scan import QuadScanDataset
 from diffaccel.data.scans import MultiScanDataset, parse_selection
-from diffaccel.reconstruction.ensemble import Reconstruction
+from diffaccel.reconstruction.ensemble import (
+    Reconstruction,
+    unconstrained_coordinates,
+)
 from diffaccel.reconstruction.forward import ScreenForwardModel
 from diffaccel.reconstruction.initial import fit_gaussian
 from diffaccel.reconstruction.metrics import beam_moments
@@ -38,9 +41,22 @@ def as_scans(dataset: QuadScanDataset | MultiScanDataset) -> MultiScanDataset:
     )
 
 
+class TrainingSelection(dict[str, list[int]]):
+    """Checked training settings ``{scan name: indices}`` of one dataset.
+
+    Returned by :func:`training_selection`; passing it back (e.g. from the CLI,
+    which checks its options before the run starts) skips a second check.
+    """
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The scan names, in the dataset's order."""
+        return tuple(self)
+
+
 def training_selection(
     dataset: MultiScanDataset, train_indices: TrainIndices
-) -> dict[str, list[int]]:
+) -> TrainingSelection:
     """Training settings per scan, checked, from any accepted form.
 
     Args:
@@ -50,16 +66,22 @@ def training_selection(
             to every scan); or ``{scan: indices}`` (scans not named: none).
 
     Returns:
-        ``{scan name: indices}`` for every scan, at least one index in total.
+        ``{scan name: indices}`` (a :class:`TrainingSelection`) for every scan, at
+        least one index in total.
 
     Raises:
         ValueError: naming the scan for an index out of range, a repeated
             index, an unknown scan, or an empty selection.
     """
+    if isinstance(train_indices, TrainingSelection) and train_indices.names == tuple(
+        dataset.names
+    ):
+        return train_indices  # checked already (the CLI checks before its run)
     if train_indices is None:
-        return {name: list(range(scan.n_settings)) for name, scan in dataset}
+        sel = {name: list(range(scan.n_settings)) for name, scan in dataset}
+        return TrainingSelection(sel)
     if isinstance(train_indices, str):
-        return parse_selection(train_indices, dataset)
+        return TrainingSelection(parse_selection(train_indices, dataset))
     if isinstance(train_indices, Mapping):
         unknown = sorted(set(train_indices) - set(dataset.names))
         if unknown:
@@ -81,18 +103,7 @@ def training_selection(
         out[name] = idx
     if not any(out.values()):
         raise ValueError("train_indices select no setting in any scan.")
-    return out
-
-
-def _check_images(images: torch.Tensor, scan: str) -> None:
-    if not torch.isfinite(images).all():
-        raise ValueError(f"scan {scan!r}: measured images contain NaN or inf.")
-    sums = images.sum((-2, -1))
-    if (sums <= 0).any():
-        bad = torch.nonzero(sums <= 0).flatten().tolist()
-        raise ValueError(
-            f"scan {scan!r}: measured images {bad} are all zero (or negative)."
-        )
+    return TrainingSelection(out)
 
 
 def reconstruct(
@@ -141,9 +152,9 @@ def reconstruct(
         ["uncertainty"]`` the moment-space posterior.
 
     Raises:
-        ValueError: for NaN or all-zero images, bad indices, or a checkpoint
-            written with a different config (naming the scan where one is
-            concerned).
+        ValueError: for bad indices, or a checkpoint written with a different
+            config or for other data (naming the scan where one is concerned).
+            Images are checked by the dataset (finite, positive sums).
     """
     config = config or ReconstructionConfig()
     scans = as_scans(dataset)
@@ -152,8 +163,7 @@ def reconstruct(
     measured, settings, forwards = [], [], {}
     for name in used:
         scan = scans[name]
-        images = scan.mean_images()
-        _check_images(images, name)
+        images = scan.mean_images()  # finite, positive sums: checked by the dataset
         measured.append(images[selection[name]])
         settings.append(scan.settings[selection[name]])
     if resume and checkpoint is not None and Path(checkpoint).exists():
@@ -168,7 +178,12 @@ def reconstruct(
         forwards[name] = ScreenForwardModel.from_dataset(
             scans[name], blur_pixels=config.blur_pixels
         )
-    guess = fit_gaussian(list(forwards.values()), measured, settings)
+    # the affine maps of every training setting, once for the initial fit and
+    # the unconstrained-coordinate flags (4D training computes its own)
+    maps = [
+        fwd.transfer_maps(s) for fwd, s in zip(forwards.values(), settings, strict=True)
+    ]
+    guess = fit_gaussian(list(forwards.values()), measured, settings, maps=maps)
     t1 = time.perf_counter()
     state = train_generator(
         list(forwards.values()),
@@ -198,6 +213,7 @@ def reconstruct(
         "initial_guess_cov": guess.cov.tolist(),
         "timings_s": {"initial_fit": t1 - t0, "training": state.elapsed_s},
         "device": str(device),
+        "unconstrained_coordinates": unconstrained_coordinates(maps, config.dims),
     }
     if len(scans) == 1:
         info.update(per_scan[used[0]])

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import math
 import os
@@ -17,7 +19,11 @@ from torch import Tensor
 
 from diffaccel.data import atomic_write
 from diffaccel.dynamics.images import gaussian_blur
-from diffaccel.reconstruction.forward import LinearScreenImages, ScreenForwardModel
+from diffaccel.reconstruction.forward import (
+    MAX_BLUR_PIXELS,
+    LinearScreenImages,
+    ScreenForwardModel,
+)
 from diffaccel.reconstruction.generator import BeamGenerator, FlatGenerator
 from diffaccel.reconstruction.initial import GaussianGuess
 from diffaccel.reconstruction.losses import (
@@ -244,10 +250,12 @@ class ReconstructionConfig:
             raise ValueError(
                 f"image_loss must be 'l1', 'l2' or 'kl'; got {self.image_loss!r}."
             )
-        if not self.loss_smoothing >= 0 or not self.blur_pixels >= 0:
+        if not self.loss_smoothing >= 0:
+            raise ValueError(f"loss_smoothing must be >= 0; got {self.loss_smoothing}.")
+        if not 0 <= self.blur_pixels <= MAX_BLUR_PIXELS:
             raise ValueError(
-                f"blur_pixels and loss_smoothing must be >= 0; got "
-                f"{self.blur_pixels}, {self.loss_smoothing}."
+                f"blur_pixels must be in [0, {MAX_BLUR_PIXELS:g}] pixels; got "
+                f"{self.blur_pixels}."
             )
         if not self.lr_max > 0 or not self.lr_min >= 0:
             raise ValueError("learning rates must be positive.")
@@ -302,6 +310,27 @@ class TrainingState:
     snapshots: list[dict] = field(default_factory=list)
     history: dict[str, list] = field(default_factory=dict)
     elapsed_s: float = 0.0
+    fingerprint: str = ""
+
+
+def data_fingerprint(
+    forwards: Sequence[ScreenForwardModel],
+    measured: Sequence[Tensor],
+    settings: Sequence[Tensor],
+) -> str:
+    """SHA-256 of the training data: forward models, images and settings.
+
+    Stored in checkpoints so that a resume refuses other data (another file, other
+    training settings, another screen calibration).
+    """
+    h = hashlib.sha256()
+    for fwd, meas, sets in zip(forwards, measured, settings, strict=True):
+        h.update(json.dumps(fwd.to_spec(), sort_keys=True, default=str).encode())
+        for t in (meas, sets):
+            t = t.detach().to("cpu").contiguous()
+            h.update(f"{t.dtype}{tuple(t.shape)}".encode())
+            h.update(t.numpy().tobytes())
+    return h.hexdigest()
 
 
 def _cpu_state(state: dict) -> dict:
@@ -445,6 +474,7 @@ def train_generator(
             f"need one forward model, image stack and settings tensor per scan; got "
             f"{len(forwards)}, {len(measured_list)} and {len(settings_list)}."
         )
+    fingerprint = data_fingerprint(forwards, measured_list, settings_list)
     device = torch.device(device) if device is not None else measured_list[0].device
     measured_list = [m.to(device=device, dtype=torch.float32) for m in measured_list]
     settings_list = [s.to(device=device) for s in settings_list]
@@ -478,10 +508,16 @@ def train_generator(
     norm = scale.to(device=device, dtype=torch.float64)
     prior_std = prior.to(device=device, dtype=torch.float64)
     prior_mean = offset.to(device=device, dtype=torch.float64)
-    state = TrainingState(history=_new_history())
+    state = TrainingState(history=_new_history(), fingerprint=fingerprint)
     ckpt = Path(checkpoint) if checkpoint is not None else None
     if resume and ckpt is not None and ckpt.exists():
         state = load_checkpoint(ckpt)
+        if state.fingerprint != fingerprint:
+            raise ValueError(
+                f"checkpoint {ckpt} was written for other training data (another "
+                "file, other training settings or another screen calibration); "
+                "resume with the same data, or start a new run."
+            )
         model.load_state_dict(state.model)  # copies into net.flat
         opt.load_state_dict(state.optimizer)
         gen_rng.set_state(state.rng)
@@ -620,34 +656,69 @@ def save_checkpoint(
         "snapshots": state.snapshots,
         "history": state.history,
         "elapsed_s": state.elapsed_s,
+        "fingerprint": state.fingerprint,
     }
     atomic_write(path, lambda p: torch.save(payload, p))
+
+
+def load_tensors(path: str | os.PathLike, what: str) -> object:
+    """``torch.load(path, weights_only=True)`` with a one-line error.
+
+    Raises:
+        ValueError: ``cannot read {what} {path}: ...`` for a corrupt, empty or
+            foreign file (torch raises several types, with multi-line messages).
+    """
+    try:
+        return torch.load(Path(path), weights_only=True, map_location="cpu")
+    except Exception as exc:  # corrupt or foreign file
+        text = str(exc).strip()
+        first = text.splitlines()[0] if text else "empty or truncated file"
+        raise ValueError(
+            f"cannot read {what} {path}: {type(exc).__name__}: {first}"
+        ) from exc
+
+
+def _read_checkpoint(path: str | os.PathLike) -> dict:
+    d = load_tensors(path, "checkpoint")
+    if not isinstance(d, dict) or d.get("checkpoint_version") != CHECKPOINT_VERSION:
+        raise ValueError(f"{path} is not a diffaccel reconstruction checkpoint.")
+    return d
 
 
 def load_checkpoint(path: str | os.PathLike) -> TrainingState:
     """Read a checkpoint written by :func:`save_checkpoint` (``weights_only``).
 
     Raises:
-        ValueError: if the file is not a diffaccel training checkpoint.
+        ValueError: if the file is not a complete diffaccel training checkpoint.
     """
+    d = _read_checkpoint(path)
     try:
-        d = torch.load(Path(path), weights_only=True, map_location="cpu")
-    except Exception as exc:  # corrupt or foreign file
-        raise ValueError(f"cannot read checkpoint {path}: {exc}") from exc
-    if not isinstance(d, dict) or d.get("checkpoint_version") != CHECKPOINT_VERSION:
-        raise ValueError(f"{path} is not a diffaccel reconstruction checkpoint.")
-    return TrainingState(
-        step=int(d["step"]),
-        model=d["model"],
-        optimizer=d["optimizer"],
-        rng=d["rng"],
-        snapshots=list(d["snapshots"]),
-        history={k: list(v) for k, v in d["history"].items()},
-        elapsed_s=float(d["elapsed_s"]),
-    )
+        return TrainingState(
+            step=int(d["step"]),
+            model=dict(d["model"]),
+            optimizer=dict(d["optimizer"]),
+            rng=d["rng"],
+            snapshots=list(d["snapshots"]),
+            history={k: list(v) for k, v in d["history"].items()},
+            elapsed_s=float(d["elapsed_s"]),
+            fingerprint=str(d.get("fingerprint", "")),
+        )
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise ValueError(
+            f"{path} is a damaged checkpoint ({type(exc).__name__}: {exc})."
+        ) from exc
 
 
 def checkpoint_config(path: str | os.PathLike) -> ReconstructionConfig:
-    """The :class:`ReconstructionConfig` stored in a checkpoint."""
-    d = torch.load(Path(path), weights_only=True, map_location="cpu")
-    return ReconstructionConfig.from_dict(d["config"])
+    """The :class:`ReconstructionConfig` stored in a checkpoint.
+
+    Raises:
+        ValueError: if the file is not a checkpoint or its config is damaged.
+    """
+    d = _read_checkpoint(path)
+    try:
+        return ReconstructionConfig.from_dict(d["config"])
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise ValueError(
+            f"{path}: damaged config ({type(exc).__name__}: {exc})."
+        ) from exc

@@ -74,15 +74,6 @@ class Screen(Element):
             "center": self.center,
         }
 
-    def with_geometry(
-        self,
-        shape: Sequence[int],
-        pixel_size: Sequence[float] | float,
-        center: Sequence[float] = (0.0, 0.0),
-    ) -> Screen:
-        """A copy of this screen with a new calibration."""
-        return Screen(self.name, shape=shape, pixel_size=pixel_size, center=center)
-
     def track(
         self, particles: Tensor, p0c: Tensor | float, species: Species = ELECTRON
     ) -> Tensor:

@@ -1,4 +1,12 @@
-"""Acceptance runs on the shared reference data (slow: deselected by default)."""
+"""Acceptance runs on the shared reference data, against the numbers the README claims.
+
+The GPSR 4D case (one default reconstruction, ~2.5 s on two quiet cores) runs in
+``make test``; the measured AWA scan is marked slow. README (benchmarks table):
+rms sizes within 1.8 %, emittances within 3.3 %, held-out relative L1 0.079 (seeds
+0-2: 0.079-0.087, ``ReconstructionConfig``). The bounds below add the sampling
+error of the 100 000-particle sample the errors are measured on (rms: sqrt(1/2N)
+= 0.2 %; emittance ~0.4 %) and nothing else.
+"""
 
 from __future__ import annotations
 
@@ -19,8 +27,6 @@ DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "phase_s
 GPSR = DATA / "gpsr_4d_synthetic.h5"
 AWA = DATA / "awa_quad_scan_train.h5"
 
-pytestmark = pytest.mark.slow
-
 
 @pytest.fixture(scope="module")
 def gpsr_errors() -> dict[str, float]:
@@ -28,19 +34,28 @@ def gpsr_errors() -> dict[str, float]:
         pytest.skip("shared reference data not present")
     ds = read_quad_scan(GPSR)
     r = reconstruct(ds, ReconstructionConfig(), train_indices=range(0, 20, 2))
-    return moment_errors(r.sample(100_000), ds.ground_truth)
+    errors = moment_errors(r.sample(100_000), ds.ground_truth)
+    pred = r.predict_images(ds.settings[1::2])
+    errors["held_out_l1"] = image_errors(pred, ds.mean_images()[1::2])["relative_l1"]
+    return errors
 
 
 @pytest.mark.parametrize("key", ["rms_x", "rms_px", "rms_y", "rms_py"])
-def test_gpsr_4d_rms_sizes_within_3_percent(gpsr_errors, key: str) -> None:
-    assert abs(gpsr_errors[key]) < 0.03, gpsr_errors[key]
+def test_gpsr_4d_rms_sizes_as_claimed(gpsr_errors, key: str) -> None:
+    assert abs(gpsr_errors[key]) < 0.018 + 0.002, gpsr_errors[key]
 
 
 @pytest.mark.parametrize("key", ["emit_x", "emit_y"])
-def test_gpsr_4d_emittances_within_5_percent(gpsr_errors, key: str) -> None:
-    assert abs(gpsr_errors[key]) < 0.05, gpsr_errors[key]
+def test_gpsr_4d_emittances_as_claimed(gpsr_errors, key: str) -> None:
+    assert abs(gpsr_errors[key]) < 0.033 + 0.004, gpsr_errors[key]
 
 
+def test_gpsr_4d_held_out_images_as_claimed(gpsr_errors) -> None:
+    # README 0.079 (seed 0); 0.087 is the worst of seeds 0-2; gpsr 0.2.0 gets 0.117
+    assert gpsr_errors["held_out_l1"] < 0.087, gpsr_errors["held_out_l1"]
+
+
+@pytest.mark.slow
 @pytest.mark.skipif(not AWA.exists(), reason="shared reference data not present")
 def test_awa_measured_scan_predicts_its_images() -> None:
     ds = read_quad_scan(AWA)
