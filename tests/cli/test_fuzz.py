@@ -316,7 +316,7 @@ PREDICT_SETTINGS = {
     "two_values_one_parameter": "1:2",
     "nan": "nan",
     "absurd": "1e300",
-    "off_screen": "1e3",  # k1 = 1000 1/m^2: every particle misses the screen
+    "huge_focusing": "1e4",  # k1 = 1e4 1/m^2 (f = 1 mm): positions overflow
 }
 
 
