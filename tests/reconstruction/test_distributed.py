@@ -42,7 +42,10 @@ def test_two_gloo_processes_equal_one(small_scan, tmp_path: Path, dims: int) -> 
     write_quad_scan(small_scan, tmp_path / "scan.h5")
     mp.spawn(_worker, args=(2, str(tmp_path), dims), nprocs=2, join=True)
     ranks = [torch.load(tmp_path / f"rank{r}.pt") for r in (0, 1)]
-    assert ranks[0]["loss"] == ranks[1]["loss"]  # every process: the same loss
+    # every process computes the whole-beam loss; gloo may sum the all-reduced
+    # float32 images in another order on each rank, so allow rounding (1 ulp
+    # of float32 ~ 6e-8 relative) but nothing more
+    assert ranks[0]["loss"] == pytest.approx(ranks[1]["loss"], rel=1e-6)
     single = reconstruct(
         read_quad_scan(tmp_path / "scan.h5"), ReconstructionConfig(dims=dims, **CFG)
     )
