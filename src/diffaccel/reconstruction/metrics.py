@@ -45,29 +45,7 @@ def beam_moments(particles: Tensor) -> dict[str, Tensor]:
     mu = x.mean(0)
     xc = x - mu
     cov = xc.T @ xc / (x.shape[0] - 1)
-    rms = cov.diagonal().clamp_min(0).sqrt()
-    corr = cov / (rms[:, None] * rms[None, :]).clamp_min(1e-300)
-
-    def det_sqrt(idx: list[int]) -> Tensor:
-        sub = cov[idx][:, idx]
-        return torch.linalg.det(sub).clamp_min(0).sqrt()
-
-    out = {
-        "centroid": mu,
-        "rms": rms,
-        "cov": cov,
-        "corr": corr,
-        "emit_x": det_sqrt([0, 1]),
-        "emit_y": det_sqrt([2, 3]),
-        "emit_z": det_sqrt([4, 5]),
-        "emit_4d": det_sqrt([0, 1, 2, 3]),
-        "emit_6d": det_sqrt([0, 1, 2, 3, 4, 5]),
-    }
-    for p, i in (("x", 0), ("y", 2)):
-        eps = out[f"emit_{p}"].clamp_min(1e-300)
-        out[f"beta_{p}"] = cov[i, i] / eps
-        out[f"alpha_{p}"] = -cov[i, i + 1] / eps
-    return out
+    return covariance_moments(mu, cov)
 
 
 def moment_errors(reconstructed: Tensor, truth: Tensor) -> dict[str, float]:
@@ -206,3 +184,39 @@ def image_errors(predicted: Tensor, measured: Tensor) -> dict[str, float]:
         "relative_l1": float(rel.mean()),
         "relative_l1_per_setting": rel.tolist(),
     }
+
+
+def covariance_moments(mu: Tensor, cov: Tensor) -> dict[str, Tensor]:
+    """Beam moments of centroids and covariances, batched (as ``beam_moments``).
+
+    Each moment is computed from its own sub-block; negative variances and
+    determinants (possible for posterior draws) are clamped at 0.
+
+    Shapes:
+        ``mu (*B, 6)``, ``cov (*B, 6, 6)`` -> ``centroid``, ``rms (*B, 6)``,
+        ``cov``, ``corr (*B, 6, 6)`` and scalars ``(*B,)``.
+    """
+    var = cov.diagonal(dim1=-2, dim2=-1)
+    rms = var.clamp_min(0).sqrt()
+    corr = cov / (rms[..., :, None] * rms[..., None, :]).clamp_min(1e-300)
+
+    def det_sqrt(idx: list[int]) -> Tensor:
+        sub = cov[..., idx, :][..., :, idx]
+        return torch.linalg.det(sub).clamp_min(0).sqrt()
+
+    out = {
+        "centroid": mu,
+        "rms": rms,
+        "cov": cov,
+        "corr": corr,
+        "emit_x": det_sqrt([0, 1]),
+        "emit_y": det_sqrt([2, 3]),
+        "emit_z": det_sqrt([4, 5]),
+        "emit_4d": det_sqrt([0, 1, 2, 3]),
+        "emit_6d": det_sqrt([0, 1, 2, 3, 4, 5]),
+    }
+    for name, i in (("x", 0), ("y", 2)):
+        eps = out[f"emit_{name}"].clamp_min(1e-300)
+        out[f"beta_{name}"] = cov[..., i, i] / eps
+        out[f"alpha_{name}"] = -cov[..., i, i + 1] / eps
+    return out
