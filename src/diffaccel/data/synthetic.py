@@ -335,37 +335,29 @@ def make_synthetic_quad_scan(
 #: Bmad convention) and either a drift to screen DYG1 ("dipole_off") or a
 #: 20 degree spectrometer dipole to screen DYG2 ("dipole_on"). Geometry as in
 #: the beamline attributes of the shared ``sixd_synthetic_*.h5`` files.
+_AWA6D_UPSTREAM: tuple[dict, ...] = (
+    {"type": "Quadrupole", "name": "SCAN_QUAD", "length": 0.11, "k1": 0.0},
+    {"type": "Drift", "name": "D1", "length": 0.730702},
+    {
+        "type": "TransverseDeflectingCavity",
+        "name": "SCAN_TDC",
+        "length": 0.01,
+        "voltage": 0.0,
+        "frequency": 1.3e9,
+        "phase": 0.0,
+        "tilt": math.pi / 2,
+    },
+    {"type": "Drift", "name": "D2", "length": 0.475798},
+)
 AWA6D_BEAMLINES: dict[str, list[dict]] = {
     "dipole_off": [
-        {"type": "Quadrupole", "name": "SCAN_QUAD", "length": 0.11, "k1": 0.0},
-        {"type": "Drift", "name": "D1", "length": 0.730702},
-        {
-            "type": "TransverseDeflectingCavity",
-            "name": "SCAN_TDC",
-            "length": 0.01,
-            "voltage": 0.0,
-            "frequency": 1.3e9,
-            "phase": 0.0,
-            "tilt": math.pi / 2,
-        },
-        {"type": "Drift", "name": "D2", "length": 0.475798},
+        *(dict(e) for e in _AWA6D_UPSTREAM),
         {"type": "Drift", "name": "SCAN_DIPOLE_OFF", "length": 0.3018},
         {"type": "Drift", "name": "D3", "length": 0.7381},
         {"type": "Screen", "name": "DYG1"},
     ],
     "dipole_on": [
-        {"type": "Quadrupole", "name": "SCAN_QUAD", "length": 0.11, "k1": 0.0},
-        {"type": "Drift", "name": "D1", "length": 0.730702},
-        {
-            "type": "TransverseDeflectingCavity",
-            "name": "SCAN_TDC",
-            "length": 0.01,
-            "voltage": 0.0,
-            "frequency": 1.3e9,
-            "phase": 0.0,
-            "tilt": math.pi / 2,
-        },
-        {"type": "Drift", "name": "D2", "length": 0.475798},
+        *(dict(e) for e in _AWA6D_UPSTREAM),
         {
             "type": "Dipole",
             "name": "SCAN_DIPOLE",
