@@ -233,6 +233,27 @@ def roll_matrix(tilt: Tensor) -> Tensor:
     return rot
 
 
+def lab_frame_map(
+    r: Tensor, tilt: Tensor, dx: Tensor | None = None, dy: Tensor | None = None
+) -> Tensor:
+    """An element-frame affine map ``r (*K, 7, 7)`` seen from the lab frame.
+
+    ``roll(tilt)^T r roll(tilt)``, then shifted by the offsets ``(dx, dy)`` [m]
+    of the element (if given): the map of :func:`to_element_frame`, ``r`` and
+    :func:`to_lab_frame` in turn.
+    """
+    rot = roll_matrix(tilt)
+    out = rot.transpose(-1, -2) @ r @ rot
+    if dx is None and dy is None:
+        return out
+    shift = affine_identity(out.shape[:-2], out)
+    if dx is not None:
+        shift[..., 0, 6] = dx
+    if dy is not None:
+        shift[..., 2, 6] = dy
+    return shift @ out
+
+
 def affine_identity(shape: Sequence[int], like: Tensor) -> Tensor:
     """A fresh identity affine map ``(*shape, 7, 7)`` in the dtype of ``like``."""
     eye = torch.eye(7, dtype=like.dtype, device=like.device)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from diffaccel.dynamics._validate import as_p0c, check_nonnegative
 from diffaccel.dynamics.elements._kernels import (
     affine_identity,
     exact_drift,
@@ -53,17 +52,10 @@ class Drift(Element):
     """
 
     param_names = ("length",)
+    nonnegative_params = (("length", "m"),)
 
     def __init__(self, name: str, length: Tensor | float = 0.0) -> None:
-        super().__init__(name)
-        self._set_param("length", length)
-        check_nonnegative("length [m]", self.length, f"Drift {name!r}")
-
-    def track(
-        self, particles: Tensor, p0c: Tensor | float, species: Species = ELECTRON
-    ) -> Tensor:
-        """Track particles ``(*K, N, 6)`` through the drift (see class docstring)."""
-        return self._track_via_columns(particles, p0c, species)
+        super().__init__(name, length=length)
 
     def track_columns(self, coords: Coords, p0c: Tensor, species: Species) -> Coords:
         """Unchecked column tracking (see :meth:`Element.track_columns`)."""
@@ -75,8 +67,7 @@ class Drift(Element):
 
     def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
         """Affine map about the reference orbit, shape ``(*K, 7, 7)``."""
-        length = self.length
-        return drift_matrix(length, as_p0c(p0c, length), species)
+        return drift_matrix(*self._map_params(p0c, "length"), species)
 
     def linear_map_is_exact(self, monochromatic: bool) -> bool:
         """Exact for ``pz = 0`` beams (or zero length); chromatic otherwise."""

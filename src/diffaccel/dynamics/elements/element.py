@@ -2,13 +2,24 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import torch
 from torch import Tensor, nn
 
-from diffaccel.dynamics._validate import as_p0c, check_finite, check_particles
-from diffaccel.dynamics.elements._kernels import stack_columns
+from diffaccel.dynamics._validate import (
+    as_p0c,
+    check_finite,
+    check_nonnegative,
+    check_particles,
+)
+from diffaccel.dynamics.elements._kernels import (
+    is_zero,
+    stack_columns,
+    to_element_frame,
+    to_lab_frame,
+)
 from diffaccel.dynamics.species import ELECTRON, Species
 
 __all__ = ["Coords", "Element", "bcast"]
@@ -30,9 +41,9 @@ def bcast(value: Tensor, like: Tensor) -> Tensor:
 class Element(nn.Module):
     """A beamline element: tracks Bmad coordinates ``(x, px, y, py, z, pz)``.
 
-    Subclasses must implement :meth:`track`; :meth:`transfer_map` (the affine
-    first-order map about the reference orbit) and :meth:`linear_map_is_exact`
-    are optional.
+    Subclasses must implement :meth:`track` or :meth:`track_columns`;
+    :meth:`transfer_map` (the affine first-order map about the reference orbit)
+    and :meth:`linear_map_is_exact` are optional.
 
     Affine maps are ``(*K, 7, 7)`` matrices ``A`` acting on ``(u, 1)``: the
     linear part ``A[..., :6, :6]`` (the Jacobian) and the offset
@@ -48,6 +59,8 @@ class Element(nn.Module):
 
     Args:
         name: Element name, unique inside a ``Beamline``.
+        **params: Numeric attributes by name (see :meth:`_set_param`); those in
+            ``nonnegative_params`` must be >= 0.
 
     Shapes:
         ``track``: ``(*K, N, 6) -> (*K, N, 6)``; ``transfer_map``: ``(*K, 7, 7)``.
@@ -57,12 +70,23 @@ class Element(nn.Module):
     param_names: ClassVar[tuple[str, ...]] = ()
     #: Parameters left out of :meth:`to_spec` while they are a scalar zero.
     optional_params: ClassVar[tuple[str, ...]] = ()
+    #: ``(name, unit)`` of parameters that must be >= 0 (checked on construction).
+    nonnegative_params: ClassVar[tuple[tuple[str, str], ...]] = ()
 
-    def __init__(self, name: str) -> None:
+    def __init__(self, name: str, **params: Tensor | float) -> None:
         super().__init__()
         if not isinstance(name, str) or not name:
             raise ValueError(f"Element name must be a non-empty string; got {name!r}.")
         self.name = name
+        for key, value in params.items():
+            self._set_param(key, value)
+        for key, unit in self.nonnegative_params:
+            check_nonnegative(f"{key} [{unit}]", getattr(self, key), self.owner)
+
+    @property
+    def owner(self) -> str:
+        """``"<Type> '<name>'"``, the prefix of this element's error messages."""
+        return f"{type(self).__name__} {self.name!r}"
 
     def _set_param(self, key: str, value: Tensor | float) -> None:
         """Store ``value`` as parameter (if ``nn.Parameter``) or buffer ``key``."""
@@ -77,7 +101,7 @@ class Element(nn.Module):
                 else torch.as_tensor(value, dtype=torch.float64)
             )
             self.register_buffer(key, t)
-        check_finite(key, getattr(self, key), f"{type(self).__name__} {self.name!r}")
+        check_finite(key, getattr(self, key), self.owner)
 
     def params(self) -> dict[str, Tensor]:
         """The numeric attributes by name (the tensors themselves, not copies)."""
@@ -122,8 +146,19 @@ class Element(nn.Module):
 
         Returns:
             Coordinates at the exit, shape ``(*K, N, 6)``.
+
+        The default validates the particles and runs :meth:`track_columns` when
+        a subclass implements it (the built-in elements; see each class's
+        docstring for its map).
         """
-        raise NotImplementedError(f"{type(self).__name__} does not implement track.")
+        if type(self).track_columns is Element.track_columns:
+            raise NotImplementedError(
+                f"{type(self).__name__} does not implement track."
+            )
+        check_particles(particles)
+        p0c = as_p0c(p0c, particles)
+        coords = self.track_columns(tuple(particles.unbind(-1)), p0c, species)
+        return stack_columns(coords)
 
     def track_columns(self, coords: Coords, p0c: Tensor, species: Species) -> Coords:
         """Unchecked tracking of coordinate columns (used by ``Beamline``).
@@ -138,14 +173,38 @@ class Element(nn.Module):
         out = self.track(particles, p0c, species)
         return tuple(out.unbind(-1))  # type: ignore[return-value]
 
-    def _track_via_columns(
-        self, particles: Tensor, p0c: Tensor | float, species: Species
-    ) -> Tensor:
-        """Validate, then run :meth:`track_columns` and stack the result."""
-        check_particles(particles)
-        p0c = as_p0c(p0c, particles)
-        coords = self.track_columns(tuple(particles.unbind(-1)), p0c, species)
-        return stack_columns(coords)
+    def _in_element_frame(
+        self, coords: Coords, body: Callable[[Coords], Coords]
+    ) -> Coords:
+        """Apply ``body`` to the columns in the element's own frame.
+
+        The frame is set by the attributes ``dx``, ``dy`` (offsets [m]) and
+        ``tilt`` (roll [rad]) an element has (absent ones count as 0): lab ->
+        element frame, ``body``, element -> lab frame. Without offsets and roll
+        ``body`` sees the lab columns unchanged.
+        """
+        names = [n for n in ("dx", "dy", "tilt") if n in self.param_names]
+        if all(is_zero(getattr(self, n)) for n in names):
+            return body(coords)
+        x, px, y, py, z, pz = coords
+        zero = x.new_zeros(())
+        frame = tuple(
+            bcast(getattr(self, n), x) if n in names else zero
+            for n in ("dx", "dy", "tilt")
+        )
+        x, px, y, py = to_element_frame(x, px, y, py, *frame)
+        x, px, y, py, z, pz = body((x, px, y, py, z, pz))
+        x, px, y, py = to_lab_frame(x, px, y, py, *frame)
+        return x, px, y, py, z, pz
+
+    def _map_params(self, p0c: Tensor | float, *names: str) -> tuple[Tensor, ...]:
+        """The named attributes and ``p0c`` (last), broadcast to ``(*K,)``.
+
+        All in the dtype and device of ``length`` (float64 for Python numbers);
+        ``p0c`` is checked to be finite and > 0 eV.
+        """
+        p0c = as_p0c(p0c, self.length)
+        return torch.broadcast_tensors(*(getattr(self, n).to(p0c) for n in names), p0c)
 
     def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
         """Affine first-order map about the reference orbit, ``(*K, 7, 7)``.

@@ -71,12 +71,6 @@ class LinearMap(Element):
         """Batch shape ``K`` of the matrix (and length)."""
         return torch.broadcast_shapes(self.matrix.shape[:-2], self.length.shape)
 
-    def track(
-        self, particles: Tensor, p0c: Tensor | float, species: Species = ELECTRON
-    ) -> Tensor:
-        """Apply the affine map to particles ``(*K, N, 6)``."""
-        return self._track_via_columns(particles, p0c, species)
-
     def track_columns(self, coords: Coords, p0c: Tensor, species: Species) -> Coords:
         """Unchecked column tracking (see :meth:`Element.track_columns`)."""
         # coordinates as rows (..., 6, N): the product gives contiguous columns

@@ -5,16 +5,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from diffaccel.dynamics._validate import as_p0c, check_nonnegative
 from diffaccel.dynamics.elements._kernels import (
     affine_identity,
     focusing_functions,
     is_zero,
+    lab_frame_map,
     quad_body,
-    roll_matrix,
     sinc_derivative,
-    to_element_frame,
-    to_lab_frame,
 )
 from diffaccel.dynamics.elements.element import Coords, Element, bcast
 from diffaccel.dynamics.species import ELECTRON, Species
@@ -58,6 +55,7 @@ class Quadrupole(Element):
 
     param_names = ("length", "k1", "tilt", "dx", "dy")
     optional_params = ("tilt", "dx", "dy")
+    nonnegative_params = (("length", "m"),)
 
     def __init__(
         self,
@@ -68,37 +66,19 @@ class Quadrupole(Element):
         dx: Tensor | float = 0.0,
         dy: Tensor | float = 0.0,
     ) -> None:
-        super().__init__(name)
-        for key, value in (
-            ("length", length),
-            ("k1", k1),
-            ("tilt", tilt),
-            ("dx", dx),
-            ("dy", dy),
-        ):
-            self._set_param(key, value)
-        check_nonnegative("length [m]", self.length, f"Quadrupole {name!r}")
-
-    def track(
-        self, particles: Tensor, p0c: Tensor | float, species: Species = ELECTRON
-    ) -> Tensor:
-        """Track particles ``(*K, N, 6)`` through the quadrupole (see class docs)."""
-        return self._track_via_columns(particles, p0c, species)
+        super().__init__(name, length=length, k1=k1, tilt=tilt, dx=dx, dy=dy)
 
     def track_columns(self, coords: Coords, p0c: Tensor, species: Species) -> Coords:
         """Unchecked column tracking (see :meth:`Element.track_columns`)."""
-        x, px, y, py, z, pz = coords
+        x = coords[0]
         length = bcast(self.length, x)
         k1 = bcast(self.k1, x)
         mu2 = (species.mass_ev / p0c).square().unsqueeze(-1)
-        rolled = not (is_zero(self.tilt) and is_zero(self.dx) and is_zero(self.dy))
-        if rolled:
-            frame = (bcast(self.dx, x), bcast(self.dy, x), bcast(self.tilt, x))
-            x, px, y, py = to_element_frame(x, px, y, py, *frame)
-        x, px, y, py, z = quad_body((x, px, y, py, z, pz), k1, length, mu2)
-        if rolled:
-            x, px, y, py = to_lab_frame(x, px, y, py, *frame)
-        return x, px, y, py, z, pz
+
+        def body(c: Coords) -> Coords:
+            return (*quad_body(c, k1, length, mu2), c[5])
+
+        return self._in_element_frame(coords, body)
 
     def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
         """Affine first-order map about the reference orbit, shape ``(*K, 7, 7)``.
@@ -110,15 +90,7 @@ class Quadrupole(Element):
         dispersion of the off-axis orbit (``dC/dpz x0`` etc.), the ``z`` row the
         gradient of the path-length term.
         """
-        p0c = as_p0c(p0c, self.length)
-        length, k1, tilt, dx, dy, p0c = torch.broadcast_tensors(
-            self.length.to(p0c),
-            self.k1.to(p0c),
-            self.tilt.to(p0c),
-            self.dx.to(p0c),
-            self.dy.to(p0c),
-            p0c,
-        )
+        length, k1, tilt, dx, dy, p0c = self._map_params(p0c, *self.param_names)
         mu2 = (species.mass_ev / p0c).square()
         u = k1 * length.square()
         c_x, s_x, c_y, s_y = focusing_functions(u)
@@ -166,11 +138,7 @@ class Quadrupole(Element):
         r[..., 4, 5] = length * mu2 / (1.0 + mu2) - 0.5 * (di_x + di_y)
         r[..., 0, 6], r[..., 1, 6], r[..., 2, 6] = xe, pxe, ye
         r[..., 3, 6], r[..., 4, 6] = pye, ze
-        rot = roll_matrix(tilt)
-        out = rot.transpose(-1, -2) @ r @ rot
-        shift = affine_identity(length.shape, length)
-        shift[..., 0, 6], shift[..., 2, 6] = dx, dy
-        return shift @ out
+        return lab_frame_map(r, tilt, dx, dy)
 
     def linear_map_is_exact(self, monochromatic: bool) -> bool:
         """Exact for ``pz = 0`` beams, offsets included (chromatic otherwise)."""

@@ -4,18 +4,14 @@ from __future__ import annotations
 
 import math
 
-import torch
 from torch import Tensor
 
-from diffaccel.dynamics._validate import as_p0c, check_nonnegative
 from diffaccel.dynamics.constants import SPEED_OF_LIGHT
 from diffaccel.dynamics.elements._kernels import (
     affine_identity,
     exact_drift,
     is_zero,
-    roll_matrix,
-    to_element_frame,
-    to_lab_frame,
+    lab_frame_map,
 )
 from diffaccel.dynamics.elements.drift import drift_matrix
 from diffaccel.dynamics.elements.element import Coords, Element, bcast
@@ -62,6 +58,7 @@ class TransverseDeflectingCavity(Element):
 
     param_names = ("length", "voltage", "frequency", "phase", "tilt")
     optional_params = ("tilt",)
+    nonnegative_params = (("length", "m"), ("frequency", "Hz"))
 
     def __init__(
         self,
@@ -72,60 +69,35 @@ class TransverseDeflectingCavity(Element):
         phase: Tensor | float = 0.0,
         tilt: Tensor | float = 0.0,
     ) -> None:
-        super().__init__(name)
-        for key, value in (
-            ("length", length),
-            ("voltage", voltage),
-            ("frequency", frequency),
-            ("phase", phase),
-            ("tilt", tilt),
-        ):
-            self._set_param(key, value)
-        owner = f"TransverseDeflectingCavity {name!r}"
-        check_nonnegative("length [m]", self.length, owner)
-        check_nonnegative("frequency [Hz]", self.frequency, owner)
+        super().__init__(
+            name,
+            length=length,
+            voltage=voltage,
+            frequency=frequency,
+            phase=phase,
+            tilt=tilt,
+        )
 
-    def _strength(self, p0c: Tensor, species: Species) -> tuple[Tensor, Tensor]:
+    @staticmethod
+    def _strength(
+        voltage: Tensor, frequency: Tensor, p0c: Tensor, species: Species
+    ) -> tuple[Tensor, Tensor]:
         """``a = -q V / p0c`` and ``k = 2 pi f / c`` [1/m]."""
-        a = -species.charge * self.voltage.to(p0c) / p0c
-        k = 2 * math.pi * self.frequency.to(p0c) / SPEED_OF_LIGHT
+        a = -species.charge * voltage.to(p0c) / p0c
+        k = 2 * math.pi * frequency.to(p0c) / SPEED_OF_LIGHT
         return a, k
-
-    def track(
-        self, particles: Tensor, p0c: Tensor | float, species: Species = ELECTRON
-    ) -> Tensor:
-        """Track particles ``(*K, N, 6)`` through the cavity (see class docstring)."""
-        return self._track_via_columns(particles, p0c, species)
 
     def track_columns(self, coords: Coords, p0c: Tensor, species: Species) -> Coords:
         """Unchecked column tracking (see :meth:`Element.track_columns`)."""
-        x, px, y, py, z, pz = coords
-        a, k = self._strength(p0c, species)
+        like = coords[0]
+        a, k = self._strength(self.voltage, self.frequency, p0c, species)
         a, k = a.unsqueeze(-1), k.unsqueeze(-1)
-        half = bcast(self.length, x) / 2
-        phase = bcast(self.phase, x)
+        half = bcast(self.length, like) / 2
+        phase = bcast(self.phase, like)
         mu2 = (species.mass_ev / p0c).square().unsqueeze(-1)
-        rolled = not is_zero(self.tilt)
-        if rolled:
-            zero = x.new_zeros(())
-            frame = (zero, zero, bcast(self.tilt, x))
-            x, px, y, py = to_element_frame(x, px, y, py, *frame)
-        x, y, z = exact_drift(x, px, y, py, z, pz, half, mu2)
-        p = 1.0 + pz
-        energy = (p.square() + mu2).sqrt()  # E / p0c
-        beta = p / energy
-        rf = phase + k * z / beta
-        px = px + a * rf.sin()
-        d_energy = a * k * x * rf.cos()
-        energy_new = energy + d_energy
-        p_new = (energy_new.square() - mu2).sqrt()
-        # p_new - p without cancellation: (E_new^2 - E^2) / (p_new + p)
-        pz = pz + d_energy * (energy_new + energy) / (p_new + p)
-        z = z * (p_new / energy_new) / beta
-        x, y, z = exact_drift(x, px, y, py, z, pz, half, mu2)
-        if rolled:
-            x, px, y, py = to_lab_frame(x, px, y, py, *frame)
-        return x, px, y, py, z, pz
+        return self._in_element_frame(
+            coords, lambda c: _kick_between_drifts(c, a, k, phase, half, mu2)
+        )
 
     def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
         """Affine map about the reference orbit, shape ``(*K, 7, 7)``.
@@ -136,11 +108,10 @@ class TransverseDeflectingCavity(Element):
         when ``sin(phase) = 0``. Never exact for images when the voltage is
         non-zero (see :meth:`linear_map_is_exact`).
         """
-        p0c = as_p0c(p0c, self.length)
-        a, k = self._strength(p0c, species)
-        length, phase, tilt, a, k, p0c = torch.broadcast_tensors(
-            self.length.to(a), self.phase.to(a), self.tilt.to(a), a, k, p0c
+        length, voltage, frequency, phase, tilt, p0c = self._map_params(
+            p0c, *self.param_names
         )
+        a, k = self._strength(voltage, frequency, p0c, species)
         mu2 = (species.mass_ev / p0c).square()
         beta0 = (1.0 + mu2).rsqrt()
         d = drift_matrix(length / 2, p0c, species)
@@ -149,9 +120,29 @@ class TransverseDeflectingCavity(Element):
         kick[..., 1, 4] = slope
         kick[..., 5, 0] = slope
         kick[..., 1, 6] = a * phase.sin()
-        rot = roll_matrix(tilt)
-        return rot.transpose(-1, -2) @ d @ kick @ d @ rot
+        return lab_frame_map(d @ kick @ d, tilt)
 
     def linear_map_is_exact(self, monochromatic: bool) -> bool:
         """Only when switched off (``sin(k z)`` and the energy kick are nonlinear)."""
         return is_zero(self.voltage) and (monochromatic or is_zero(self.length))
+
+
+def _kick_between_drifts(
+    coords: Coords, a: Tensor, k: Tensor, phase: Tensor, half: Tensor, mu2: Tensor
+) -> Coords:
+    """Cavity-frame body: drift ``half``, thin RF kick, drift ``half``."""
+    x, px, y, py, z, pz = coords
+    x, y, z = exact_drift(x, px, y, py, z, pz, half, mu2)
+    p = 1.0 + pz
+    energy = (p.square() + mu2).sqrt()  # E / p0c
+    beta = p / energy
+    rf = phase + k * z / beta
+    px = px + a * rf.sin()
+    d_energy = a * k * x * rf.cos()
+    energy_new = energy + d_energy
+    p_new = (energy_new.square() - mu2).sqrt()
+    # p_new - p without cancellation: (E_new^2 - E^2) / (p_new + p)
+    pz = pz + d_energy * (energy_new + energy) / (p_new + p)
+    z = z * (p_new / energy_new) / beta
+    x, y, z = exact_drift(x, px, y, py, z, pz, half, mu2)
+    return x, px, y, py, z, pz
