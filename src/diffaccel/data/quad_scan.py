@@ -787,20 +787,45 @@ def read_quad_scan(path: str | os.PathLike) -> QuadScanDataset:
         FormatError: naming the file and the attribute or dataset that is
             missing or invalid, or a version-2 file with several scans.
     """
+    _, scans, _ = read_file_scans(path, one=True)
+    return next(iter(scans.values()))
+
+
+def read_file_scans(
+    path: str | os.PathLike, *, one: bool = False, single_name: str = ""
+) -> tuple[int, dict[str, QuadScanDataset], dict]:
+    """The scans of a quad-scan file of any version (the readers' common part).
+
+    Args:
+        path: File to read.
+        one: Refuse a version-2 file with more than one scan.
+        single_name: Name given to the one scan of a version-1 file.
+
+    Returns:
+        ``(format_version, {name: scan} in file order, root metadata)``.
+
+    Raises:
+        FileNotFoundError: if ``path`` does not exist.
+        FormatError: ``"PATH: field: problem"``.
+    """
     path = Path(path)
     with open_quad_scan(path) as h5:
         try:
             version = _read_version(h5)
             root = _read_root(h5)
             if version == 1:
-                return _read_scan(h5, "/", root)
+                return version, {single_name: _read_scan(h5, "/", root)}, root.metadata
             names = scan_names(h5)
-            if len(names) != 1:
+            if one and len(names) != 1:
                 raise FormatError(
                     f"/scans: holds {len(names)} scans ({names}); read the file "
                     "with diffaccel.data.read_scans"
                 )
-            return _read_scan(h5["scans"][names[0]], f"/scans/{names[0]}/", root)
+            scans = {
+                name: _read_scan(h5["scans"][name], f"/scans/{name}/", root)
+                for name in names
+            }
+            return version, scans, root.metadata
         except FormatError as err:
             raise FormatError(f"{path}: {err}") from err
 

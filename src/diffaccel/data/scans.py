@@ -27,12 +27,8 @@ from diffaccel.data.atomic import atomic_write
 from diffaccel.data.errors import FormatError
 from diffaccel.data.quad_scan import (
     QuadScanDataset,
-    _read_root,
-    _read_scan,
-    _read_version,
     _validate,
-    open_quad_scan,
-    scan_names,
+    read_file_scans,
     write_root,
     write_scan,
 )
@@ -74,17 +70,9 @@ class MultiScanDataset:
             scans that disagree on ``p0c``, ``species`` or ``ground_truth``.
 
     Example:
-        >>> import torch
-        >>> from diffaccel.data import QuadScanDataset
-        >>> spec = [{"type": "Quadrupole", "name": "Q1", "length": 0.1, "k1": 0.0},
-        ...         {"type": "Drift", "name": "D1", "length": 1.0},
-        ...         {"type": "Screen", "name": "S1"}]
-        >>> one = QuadScanDataset(
-        ...     images=torch.rand(3, 1, 8, 8),
-        ...     settings=torch.tensor([[-1.0], [0.0], [1.0]]),
-        ...     setting_names=["Q1.k1"], setting_units=["1/m^2"], p0c=43e6,
-        ...     species="electron", beamline_spec=spec, pixel_size=(1e-3, 1e-3),
-        ...     center=(0.0, 0.0))
+        >>> from diffaccel.data import make_synthetic_quad_scan
+        >>> one = make_synthetic_quad_scan(
+        ...     "gaussian", n_particles=100, n_settings=3, screen_shape=(8, 8))
         >>> ms = MultiScanDataset({"a": one, "b": one.subset([0, 1])})
         >>> ms.names, ms.n_images
         (['a', 'b'], 5)
@@ -287,21 +275,11 @@ def read_scans(path: str | os.PathLike) -> MultiScanDataset:
         FormatError: naming the file, the scan and the field that is missing or
             invalid.
     """
-    path = Path(path)
-    with open_quad_scan(path) as h5:
-        try:
-            version = _read_version(h5)
-            root = _read_root(h5)
-            if version == 1:
-                scans = {SINGLE_SCAN_NAME: _read_scan(h5, "/", root)}
-            else:
-                scans = {
-                    name: _read_scan(h5["scans"][name], f"/scans/{name}/", root)
-                    for name in scan_names(h5)
-                }
-            return MultiScanDataset(scans, version, root.metadata)
-        except FormatError as err:
-            raise FormatError(f"{path}: {err}") from err
+    version, scans, metadata = read_file_scans(path, single_name=SINGLE_SCAN_NAME)
+    try:
+        return MultiScanDataset(scans, version, metadata)
+    except FormatError as err:
+        raise FormatError(f"{path}: {err}") from err
 
 
 def write_scans(

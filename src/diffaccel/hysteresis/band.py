@@ -30,7 +30,6 @@ import torch
 from torch import Tensor, nn
 
 from diffaccel.hysteresis.preisach import PreisachModel
-from diffaccel.hysteresis.states import exact_states
 
 __all__ = ["LENGTH_SCALES", "LaplaceBand", "laplace_band"]
 
@@ -127,13 +126,7 @@ class LaplaceBand(nn.Module):
             One standard deviation including measurement noise, shape ``(T,)``.
         """
         un = model.normalize_input(u)
-        s = exact_states(
-            un.clamp(0.0, 1.0),
-            model.alpha,
-            model.beta,
-            model.initial_states(initial_state),
-            model._layout,
-        )
+        s = model._normalized_states(un, initial_state)
         affine, w = self.hysteron_weights(model)
         sums = w @ s.transpose(0, 1)
         return model.output_scale * self.std_from_sums(affine, un, sums)
@@ -141,13 +134,7 @@ class LaplaceBand(nn.Module):
 
 def _features(model: PreisachModel, un: Tensor, initial_state) -> Tensor:
     """Rows ``f_t = (1, u_n, mean-density state, a_i s_i / sum(a))``, ``(T, M + 3)``."""
-    s = exact_states(
-        un.clamp(0.0, 1.0),
-        model.alpha,
-        model.beta,
-        model.initial_states(initial_state),
-        model._layout,
-    )
+    s = model._normalized_states(un, initial_state)
     a = model.area / model.area.sum()
     phi = s * a
     if model.symmetric:

@@ -671,13 +671,11 @@ class HysteresisGP(Model):
         """A new model whose history continues with ``X`` and measurements ``Y``.
 
         The hyperparameters and densities are copied, not refitted; call
-        :func:`fit_hysteresis_gp` on the result to refit.
+        :func:`fit_hysteresis_gp` on the result to refit. BoTorch's spelling of
+        :meth:`extended` (``noise`` is its ``Yvar``).
 
         Args:
-            X: Settings applied after the history, in order, shape ``(n', d)``.
-            Y: Responses measured after each, shape ``(n', 1)``.
-            noise: Their noise variances ``(n', 1)``; required exactly when the
-                model was built with ``train_Yvar``.
+            X, Y, noise: As ``X``, ``Y``, ``Yvar`` of :meth:`extended`.
             **kwargs: Not supported; must be empty.
 
         Returns:

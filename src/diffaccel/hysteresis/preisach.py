@@ -348,7 +348,13 @@ class PreisachModel(nn.Module):
         Returns:
             States in ``[-1, 1]``, shape ``(*B, T, M)``.
         """
-        un = self.normalize_input(u).clamp(0.0, 1.0)  # saturation beyond the range
+        return self._normalized_states(self.normalize_input(u), initial_state, smooth)
+
+    def _normalized_states(
+        self, un: Tensor, initial_state: str | Tensor | None, smooth: bool = False
+    ) -> Tensor:
+        """:meth:`states` of already checked, normalised inputs ``(*B, T)``."""
+        un = un.clamp(0.0, 1.0)  # saturation beyond the range
         s0 = self.initial_states(initial_state)
         if smooth:
             width = self.smoothing / (self.input_range[1] - self.input_range[0])
@@ -383,14 +389,11 @@ class PreisachModel(nn.Module):
         self, un: Tensor, initial_state: str | Tensor | None, smooth: bool
     ) -> Tensor:
         """:meth:`magnetization` of already checked, normalised inputs."""
-        un = un.clamp(0.0, 1.0)  # saturation beyond the range
         w = self.weights
-        s0 = self.initial_states(initial_state)
         if smooth:
-            width = self.smoothing / (self.input_range[1] - self.input_range[0])
-            start = self._start(initial_state)
-            s = smooth_states(un, self.alpha, self.beta, s0, width, start)
-            return (s @ w) / w.sum()
+            return (self._normalized_states(un, initial_state, True) @ w) / w.sum()
+        s0 = self.initial_states(initial_state)
+        un = un.clamp(0.0, 1.0)  # saturation beyond the range
         return exact_magnetization(un, self._layout, w, s0) / w.sum()
 
     def forward(
