@@ -44,7 +44,7 @@ def _with_images(ds: QuadScanDataset, images: torch.Tensor) -> QuadScanDataset:
 
 def _physical_centroid(ds: QuadScanDataset) -> torch.Tensor:
     """(K, S, 2) centroid (y, x) [m] from pixel centres."""
-    ys, xs = ds.pixel_centers()
+    xs, ys = ds.pixel_centers()
     img = ds.images.double()
     total = img.sum((-2, -1))
     y = (img.sum(-1) * ys).sum(-1) / total

@@ -315,7 +315,7 @@ def test_mean_images_sum_normalised(dataset) -> None:
 
 
 def test_pixel_centers_follow_format_convention(dataset) -> None:
-    ys, xs = dataset.pixel_centers()
+    xs, ys = dataset.pixel_centers()
     assert ys.shape == (16,) and xs.shape == (20,)
     # y_i = cy + (i - (H-1)/2) * py ; x_j = cx + (j - (W-1)/2) * px
     assert ys[0].item() == pytest.approx(-2e-4 - 7.5 * 2e-3, rel=1e-12)
@@ -367,7 +367,7 @@ def test_beamline_has_screen_geometry(dataset) -> None:
 
 def test_beamline_pixel_convention_matches_screen(dataset) -> None:
     """A particle at a pixel centre lights that pixel in the dynamics screen."""
-    ys, xs = dataset.pixel_centers()
+    xs, ys = dataset.pixel_centers()
     particle = torch.zeros(1, 6, dtype=torch.float64)
     particle[0, 0], particle[0, 2] = xs[7], ys[3]
     img = dataset.beamline()["SCREEN"].image(particle, method="cic")
@@ -391,3 +391,12 @@ def test_unknown_element_type(dataset) -> None:
     spec = [{"type": "Wiggler", "name": "W1"}, *dataset.beamline_spec]
     with pytest.raises(FormatError, match=r"beamline: .*unknown element type"):
         QuadScanDataset(**{**_fields(dataset), "beamline_spec": spec})
+
+
+def test_pixel_centers_are_the_screens(dataset) -> None:
+    # one helper, one (x, y) order: the dataset's centres are its screen's
+    xs, ys = dataset.pixel_centers()
+    sx, sy = dataset.beamline().elements[-1].pixel_centers(dtype=torch.float64)
+    assert torch.equal(xs, sx) and torch.equal(ys, sy)
+    assert xs.shape == (dataset.screen_shape[1],)
+    assert ys.shape == (dataset.screen_shape[0],)

@@ -21,7 +21,7 @@ SMALL = {"n_settings": 6, "screen_shape": (32, 32), "pixel_size": (2e-3, 2e-3)}
 def _image_moments(ds) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-setting rms (x, y) [m] of the shot-averaged images."""
     img = ds.mean_images().double()
-    ys, xs = ds.pixel_centers()
+    xs, ys = ds.pixel_centers()
     px, py = img.sum(-2), img.sum(-1)
     mx, my = (px * xs).sum(-1), (py * ys).sum(-1)
     sx = ((px * (xs - mx[:, None]) ** 2).sum(-1)).sqrt()
@@ -207,7 +207,7 @@ def test_gpsr_size_screen(method: str) -> None:
     assert ds.metadata["synthetic"]["image_method"] == method
     # centred beam: image centroid within a tenth of a pixel of the screen centre
     img = ds.mean_images().double()
-    ys, xs = ds.pixel_centers()
+    xs, ys = ds.pixel_centers()
     assert (img.sum(-2) * xs).sum(-1).abs().max() < 1e-4
     assert (img.sum(-1) * ys).sum(-1).abs().max() < 1e-4
 
@@ -232,7 +232,7 @@ def test_awa6d_layout_two_scans_settings_grid() -> None:
     # times the unstreaked spot at k1 = 0; allow a factor 2 to be safe
     scan = ms["dipole_off"]
     img = scan.mean_images().double()
-    ys, xs = scan.pixel_centers()
+    xs, ys = scan.pixel_centers()
 
     def spread(i: int) -> float:
         p = img[i]

@@ -40,7 +40,7 @@ def test_linear_maps_reproduce_tracking_for_pz_zero(gaussian_beam) -> None:
 
 
 def _centroid(images: torch.Tensor, fwd: ScreenForwardModel) -> torch.Tensor:
-    xs, ys = fwd.pixel_axes()
+    xs, ys = fwd.screen.pixel_centers(dtype=torch.float64)
     img = images.double() / images.double().sum((-2, -1), keepdim=True)
     return torch.stack([(img.sum(-2) * xs).sum(-1), (img.sum(-1) * ys).sum(-1)], -1)
 
@@ -125,7 +125,7 @@ def test_blur_adds_the_point_spread_variance(gaussian_beam) -> None:
     x = gaussian_beam.float()
     fwd = _model(blur=2.0)
     img = fwd.images(x, K1[1:2])[0].double()
-    xs, _ = fwd.pixel_axes()
+    xs, _ = fwd.screen.pixel_centers(dtype=torch.float64)
     px = img.sum(0) / img.sum()
     var = (px * xs**2).sum() - (px * xs).sum() ** 2
     beam = fwd.track_to_screen(gaussian_beam, K1[1:2])[0, :, 0].var()

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import click
 import torch
@@ -114,142 +116,117 @@ __all__ = ["synthetic"]
 )
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--force", is_flag=True, help="Overwrite OUT if it exists.")
-def synthetic(
-    out: Path,
-    layout: str,
-    preset: str,
-    particle_file: Path | None,
-    n_particles: int,
-    n_settings: int | None,
-    k1_min: float | None,
-    k1_max: float | None,
-    shape: tuple[int, int] | None,
-    pixel_size: float | None,
-    p0c: float | None,
-    image_method: str | None,
-    noise: float,
-    noise_model: str,
-    shots: int,
-    seed: int,
-    force: bool,
-) -> None:
+def synthetic(out: Path, force: bool, **options: Any) -> None:
     """Simulate a quadrupole scan of a known beam and write it to OUT (HDF5)."""
-    if particle_file is not None and out.resolve() == particle_file.resolve():
+    opts = _Options(**options)
+    if opts.particle_file is not None and out.resolve() == opts.particle_file.resolve():
         raise click.ClickException(
             f"OUT {out} is the --particle-file; write the scan elsewhere."
         )
     if out.exists() and not force:
         raise click.ClickException(f"{out} exists; pass --force to overwrite it")
-    if layout == "awa6d":
-        _awa6d(
-            out,
-            preset,
-            particle_file,
-            n_particles,
-            n_settings,
-            k1_min,
-            k1_max,
-            shape,
-            pixel_size,
-            p0c,
-            image_method or "cic",
-            noise,
-            noise_model,
-            shots,
-            seed,
-            force,
-        )
-        return
-    n_settings = 20 if n_settings is None else n_settings
-    k1_min = -25.0 if k1_min is None else k1_min
-    k1_max = 15.0 if k1_max is None else k1_max
-    shape = (64, 64) if shape is None else shape
-    pixel_size = 1e-3 if pixel_size is None else pixel_size
-    image_method = image_method or "kde"
+    beam = (
+        f"preset {opts.preset}"
+        if opts.particle_file is None
+        else f"beam {opts.particle_file}"
+    )
+    build = _awa6d if opts.layout == "awa6d" else _quad
     try:
-        ds = make_synthetic_quad_scan(
-            preset,  # type: ignore[arg-type]
-            particle_file=particle_file,
-            n_particles=n_particles,
-            p0c=p0c,
-            n_settings=n_settings,
-            k1_range=(k1_min, k1_max),
-            screen_shape=shape,
-            pixel_size=(pixel_size, pixel_size),
-            image_method=image_method,  # type: ignore[arg-type]
-            noise=noise,
-            noise_model=noise_model,  # type: ignore[arg-type]
-            shots=shots,
-            seed=seed,
-        )
-        write_quad_scan(ds, out, overwrite=force)
+        click.echo(build(opts, out, force, beam))
     except (FormatError, ValueError, FileExistsError) as err:
         raise click.ClickException(str(err)) from err
-    beam = f"preset {preset}" if particle_file is None else f"beam {particle_file}"
+
+
+@dataclass(frozen=True)
+class _Options:
+    """The command's options besides OUT and --force (None: the layout's default)."""
+
+    layout: str
+    preset: str
+    particle_file: Path | None
+    n_particles: int
+    n_settings: int | None
+    k1_min: float | None
+    k1_max: float | None
+    shape: tuple[int, int] | None
+    pixel_size: float | None
+    p0c: float | None
+    image_method: str | None
+    noise: float
+    noise_model: str
+    shots: int
+    seed: int
+
+
+def _quad(opts: _Options, out: Path, force: bool, beam: str) -> str:
+    """``--layout quad``: one scan (format version 1); returns the report line."""
+    lo = -25.0 if opts.k1_min is None else opts.k1_min
+    hi = 15.0 if opts.k1_max is None else opts.k1_max
+    pixel_size = 1e-3 if opts.pixel_size is None else opts.pixel_size
+    image_method = opts.image_method or "kde"
+    ds = make_synthetic_quad_scan(
+        opts.preset,  # type: ignore[arg-type]
+        particle_file=opts.particle_file,
+        n_particles=opts.n_particles,
+        p0c=opts.p0c,
+        n_settings=20 if opts.n_settings is None else opts.n_settings,
+        k1_range=(lo, hi),
+        screen_shape=(64, 64) if opts.shape is None else opts.shape,
+        pixel_size=(pixel_size, pixel_size),
+        image_method=image_method,  # type: ignore[arg-type]
+        noise=opts.noise,
+        noise_model=opts.noise_model,  # type: ignore[arg-type]
+        shots=opts.shots,
+        seed=opts.seed,
+    )
+    write_quad_scan(ds, out, overwrite=force)
     k, s, h, w = ds.shape
-    click.echo(
-        f"wrote {out}: {k} settings (k1 {k1_min:g} .. {k1_max:g} 1/m^2) x {s} shot(s) "
+    return (
+        f"wrote {out}: {k} settings (k1 {lo:g} .. {hi:g} 1/m^2) x {s} shot(s) "
         f"of {h}x{w} px at {pixel_size * 1e3:g} mm, {beam}, "
         f"{ds.ground_truth.shape[0]} particles, p0c {ds.p0c / 1e6:g} MeV, "
-        f"{image_method} images, noise {noise:g} ({noise_model}), seed {seed}"
+        f"{image_method} images, noise {opts.noise:g} ({opts.noise_model}), "
+        f"seed {opts.seed}"
     )
 
 
-def _awa6d(
-    out: Path,
-    preset: str,
-    particle_file: Path | None,
-    n_particles: int,
-    n_settings: int | None,
-    k1_min: float | None,
-    k1_max: float | None,
-    shape: tuple[int, int] | None,
-    pixel_size: float | None,
-    p0c: float | None,
-    image_method: str,
-    noise: float,
-    noise_model: str,
-    shots: int,
-    seed: int,
-    force: bool,
-) -> None:
-    """``synthetic --layout awa6d``: two scans of the AWA 6D layout (version 2)."""
-    if pixel_size is not None:
+def _awa6d(opts: _Options, out: Path, force: bool, beam: str) -> str:
+    """``--layout awa6d``: two scans of the AWA 6D layout (version 2)."""
+    if opts.pixel_size is not None:
         raise click.BadParameter(
             "the awa6d layout uses the DYG1/DYG2 calibration; scale it with --shape",
             param_hint="--pixel-size",
         )
-    k = 9 if n_settings is None else n_settings
-    lo = -12.0 if k1_min is None else k1_min
-    hi = 12.0 if k1_max is None else k1_max
-    try:
-        particles = None
-        if particle_file is not None:
-            particles, file_p0c, _ = read_openpmd_particles(particle_file)
-            p0c = file_p0c if p0c is None else p0c
-        ms = make_synthetic_awa6d(
-            preset,  # type: ignore[arg-type]
-            particles=particles,
-            n_particles=n_particles,
-            p0c=43.36e6 if p0c is None else p0c,
-            k1_values=torch.linspace(lo, hi, k, dtype=torch.float64),
-            screen_shape=(96, 96) if shape is None else shape,
-            image_method=image_method,  # type: ignore[arg-type]
-            noise=noise,
-            noise_model=noise_model,  # type: ignore[arg-type]
-            shots=shots,
-            seed=seed,
-        )
-        write_scans(ms, out, overwrite=force)
-    except (FormatError, ValueError, FileExistsError) as err:
-        raise click.ClickException(str(err)) from err
+    k = 9 if opts.n_settings is None else opts.n_settings
+    lo = -12.0 if opts.k1_min is None else opts.k1_min
+    hi = 12.0 if opts.k1_max is None else opts.k1_max
+    image_method = opts.image_method or "cic"
+    p0c = opts.p0c
+    particles = None
+    if opts.particle_file is not None:
+        particles, file_p0c, _ = read_openpmd_particles(opts.particle_file)
+        p0c = file_p0c if p0c is None else p0c
+    ms = make_synthetic_awa6d(
+        opts.preset,  # type: ignore[arg-type]
+        particles=particles,
+        n_particles=opts.n_particles,
+        p0c=43.36e6 if p0c is None else p0c,
+        k1_values=torch.linspace(lo, hi, k, dtype=torch.float64),
+        screen_shape=(96, 96) if opts.shape is None else opts.shape,
+        image_method=image_method,  # type: ignore[arg-type]
+        noise=opts.noise,
+        noise_model=opts.noise_model,  # type: ignore[arg-type]
+        shots=opts.shots,
+        seed=opts.seed,
+    )
+    write_scans(ms, out, overwrite=force)
     sizes = ", ".join(
         f"{name} {s.n_settings}x{s.n_shots} of {s.screen_shape[0]}x{s.screen_shape[1]}"
         for name, s in ms
     )
-    beam = f"preset {preset}" if particle_file is None else f"beam {particle_file}"
-    click.echo(
+    return (
         f"wrote {out} (format version 2, AWA 6D layout): scans {sizes}; k1 {lo:g} "
-        f".. {hi:g} 1/m^2 x TDC {{0, 4 MV}}; {beam}, {ms.ground_truth.shape[0]} "
-        f"particles, {image_method} images, noise {noise:g}, seed {seed}"
+        f".. {hi:g} 1/m^2 x TDC {{0, 4 MV}}; {beam}, "
+        f"{ms.ground_truth.shape[0]} particles, {image_method} images, noise "
+        f"{opts.noise:g}, seed {opts.seed}"
     )

@@ -24,7 +24,7 @@ from torch import Tensor
 
 from diffaccel.data.atomic import atomic_write
 from diffaccel.data.errors import FormatError
-from diffaccel.dynamics import ELEMENT_TYPES, Beamline, Species
+from diffaccel.dynamics import ELEMENT_TYPES, Beamline, Species, pixel_centers
 from diffaccel.dynamics.coordinates import cheetah_to_bmad
 
 __all__ = [
@@ -214,21 +214,19 @@ class QuadScanDataset:
         return mean / total.clamp_min(torch.finfo(mean.dtype).tiny)
 
     def pixel_centers(self) -> tuple[Tensor, Tensor]:
-        """Screen coordinates of the pixel centres.
+        """Screen coordinates of the pixel centres (the screen's, see ``Screen``).
 
         Returns:
-            ``(ys, xs)``: float64 tensors of shapes (H,) and (W,) [m], ascending
-            with the row and column index.
+            ``(xs, ys)``: float64 tensors of shapes (W,) and (H,) [m], ascending
+            with the column and row index, on the images' device.
         """
-        h, w = self.screen_shape
-        dev = self.images.device
-        ys = self.center[1] + (
-            torch.arange(h, dtype=torch.float64, device=dev) - (h - 1) / 2
-        ) * float(self.pixel_size[1])
-        xs = self.center[0] + (
-            torch.arange(w, dtype=torch.float64, device=dev) - (w - 1) / 2
-        ) * float(self.pixel_size[0])
-        return ys, xs
+        return pixel_centers(
+            self.screen_shape,
+            self.pixel_size,
+            self.center,
+            dtype=torch.float64,
+            device=self.images.device,
+        )
 
     def beamline(self) -> Beamline:
         """The beamline with the screen geometry of this dataset.

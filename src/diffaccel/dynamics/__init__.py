@@ -6,6 +6,7 @@ Coordinates are Bmad's ``(x, px, y, py, z, pz)`` about a reference momentum
 
 from __future__ import annotations
 
+from diffaccel.dynamics import elements
 from diffaccel.dynamics.beamline import ELEMENT_TYPES, Beamline
 from diffaccel.dynamics.constants import (
     ELECTRON_MASS_EV,
@@ -21,15 +22,7 @@ from diffaccel.dynamics.coordinates import (
     openpmd_to_bmad,
     p0c_to_energy,
 )
-from diffaccel.dynamics.elements import (
-    Dipole,
-    Drift,
-    Element,
-    LinearMap,
-    Quadrupole,
-    Screen,
-    TransverseDeflectingCavity,
-)
+from diffaccel.dynamics.elements import *  # noqa: F403 (its __all__, below)
 from diffaccel.dynamics.images import cic_image, gaussian_blur, kde_image, pixel_centers
 from diffaccel.dynamics.species import ELECTRON, POSITRON, PROTON, Species
 from diffaccel.dynamics.statistics import (
@@ -54,14 +47,7 @@ __all__ = [
     "PROTON_MASS_EV",
     "SPEED_OF_LIGHT",
     "Beamline",
-    "Dipole",
-    "Drift",
-    "Element",
-    "LinearMap",
-    "Quadrupole",
-    "Screen",
     "Species",
-    "TransverseDeflectingCavity",
     "Twiss",
     "bmad_to_cheetah",
     "bmad_to_openpmd",
@@ -81,4 +67,5 @@ __all__ = [
     "pixel_centers",
     "rms_sizes",
     "twiss",
+    *elements.__all__,
 ]

@@ -192,15 +192,6 @@ class ScreenForwardModel:
             self._blur(),
         )
 
-    def pixel_axes(self) -> tuple[Tensor, Tensor]:
-        """Pixel-centre coordinates ``(xs (W,), ys (H,))`` [m], float64."""
-        h, w = self.screen.shape
-        psx, psy = self.screen.pixel_size
-        cx, cy = self.screen.center
-        xs = cx + (torch.arange(w, dtype=torch.float64) - (w - 1) / 2) * psx
-        ys = cy + (torch.arange(h, dtype=torch.float64) - (h - 1) / 2) * psy
-        return xs, ys
-
     def _blur(self) -> tuple[float, float] | None:
         """Rms of the Gaussian applied after CIC ``(x, y)`` [m], or None."""
         extra = self.blur_pixels**2 - 1.0 / 6.0
@@ -216,7 +207,7 @@ class ScreenForwardModel:
 
     def extent_mm(self) -> tuple[float, float, float, float]:
         """Screen extent ``(x_min, x_max, y_min, y_max)`` [mm] for ``imshow``."""
-        xs, ys = self.pixel_axes()
+        xs, ys = self.screen.pixel_centers(dtype=torch.float64)
         psx, psy = self.screen.pixel_size
         return (
             1e3 * (float(xs[0]) - psx / 2),

@@ -136,7 +136,7 @@ def fit_gaussian(
     ):
         img = imgs.detach().to("cpu", torch.float64)
         img = img / img.sum((-2, -1), keepdim=True).clamp_min(1e-300)
-        xs, ys = (a.to("cpu", torch.float64) for a in fwd.pixel_axes())
+        xs, ys = fwd.screen.pixel_centers(dtype=torch.float64)
         px = img.sum(-2)  # (K, W)
         py = img.sum(-1)  # (K, H)
         mx = (px * xs).sum(-1)

@@ -262,7 +262,7 @@ def attach_uncertainty(
         pred.append(
             result.predict_images(sets, scan=name, n_particles=n_particles, seed=seed)
         )
-        axes.append(fwd.pixel_axes())
+        axes.append(fwd.screen.pixel_centers(dtype=torch.float64))
     m = beam_moments(result.sample(max(n_particles, 50_000), seed=seed))
     unc = analyse_moments(
         maps,

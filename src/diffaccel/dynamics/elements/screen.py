@@ -5,11 +5,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+import torch
 from torch import Tensor
 
 from diffaccel.dynamics._validate import check_particles
 from diffaccel.dynamics.elements.element import Coords, Element
-from diffaccel.dynamics.images import _geometry, cic_image, kde_image
+from diffaccel.dynamics.images import _geometry, cic_image, kde_image, pixel_centers
 from diffaccel.dynamics.species import ELECTRON, Species
 
 __all__ = ["Screen"]
@@ -89,6 +90,36 @@ class Screen(Element):
         """Always: a screen does not act on the beam."""
         return True
 
+    def pixel_centers(
+        self,
+        *,
+        dtype: torch.dtype | None = None,
+        device: torch.device | str | None = None,
+    ) -> tuple[Tensor, Tensor]:
+        """Pixel-centre coordinates ``(xs, ys)`` [m], shapes ``(W,)`` and ``(H,)``.
+
+        ``xs[j]`` is the x of image column ``j``, ``ys[i]`` the y of row ``i``
+        (see the class docstring); the one place the project computes them.
+
+        Raises:
+            ValueError: if the screen has no geometry.
+
+        Example:
+            >>> Screen("S", shape=(3, 2), pixel_size=(1.0, 2.0)).pixel_centers()
+            (tensor([-0.5000,  0.5000]), tensor([-2.,  0.,  2.]))
+        """
+        self._check_geometry()
+        return pixel_centers(
+            self.shape, self.pixel_size, self.center, dtype=dtype, device=device
+        )
+
+    def _check_geometry(self) -> None:
+        if self.shape is None or self.pixel_size is None:
+            raise ValueError(
+                f"Screen {self.name!r} has no geometry; build it with shape and "
+                "pixel_size, or use Beamline.with_screen(...)."
+            )
+
     def image(
         self,
         particles: Tensor,
@@ -129,11 +160,7 @@ class Screen(Element):
         weights: Tensor | None = None,
     ) -> Tensor:
         """Image from positions ``x, y`` [m] shaped ``(*K, N)``; see :meth:`image`."""
-        if self.shape is None or self.pixel_size is None:
-            raise ValueError(
-                f"Screen {self.name!r} has no geometry; build it with shape and "
-                "pixel_size, or use Beamline.with_screen(...)."
-            )
+        self._check_geometry()
         if method == "cic":
             if bandwidth is not None:
                 raise ValueError("bandwidth applies to method='kde' only.")
