@@ -138,23 +138,26 @@ def test_a_checked_selection_is_not_checked_again(small_scan) -> None:
 
 
 def test_transfer_maps_are_computed_once_per_run(small_scan, monkeypatch) -> None:
-    from diffaccel.reconstruction import ScreenForwardModel, evaluate
+    from diffaccel.dynamics import Beamline
+    from diffaccel.reconstruction import evaluate
 
     calls = []
-    real = ScreenForwardModel.transfer_maps
+    real = Beamline.transfer_map
 
-    def counted(self, settings):
-        calls.append(settings.shape[0])
-        return real(self, settings)
+    def counted(self, *args, **kwargs):
+        out = real(self, *args, **kwargs)
+        calls.append(out.shape[0])
+        return out
 
-    monkeypatch.setattr(ScreenForwardModel, "transfer_maps", counted)
+    # every map is a Beamline.transfer_map: the initial fit, the unconstrained
+    # flags, the 4D training step (linear maps) and the uncertainty analysis
+    monkeypatch.setattr(Beamline, "transfer_map", counted)
     cfg = ReconstructionConfig(**{**FAST, "steps": 3, "snapshots": 1})
-    # (the moment-space uncertainty analysis builds its own maps: not counted)
-    r = reconstruct(small_scan, cfg, train_indices=[0, 2, 4], uncertainty=False)
+    assert cfg.dims == 4  # the linear-map training path
+    r = reconstruct(small_scan, cfg, train_indices=[0, 2, 4], uncertainty=True)
+    assert "uncertainty" in r.info
     evaluate(r, small_scan)
-    # the initial fit and the unconstrained flags share one computation (the
-    # 4D training step builds its own linear maps, which this does not count)
-    assert calls == [3]
+    assert calls == [3]  # one computation for the 3 training settings
     assert r.unconstrained_coordinates() == r.info["unconstrained_coordinates"]
     # recomputed from the forward models (another tolerance bypasses the stored)
     recomputed = r.unconstrained_coordinates(tolerance=1.0000001e-3)

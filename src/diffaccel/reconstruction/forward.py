@@ -229,12 +229,20 @@ class ScreenForwardModel:
         """
         return self._scanned(settings).transfer_map(self.p0c, self._species)
 
-    def linear_maps(self, settings: Tensor, *, monochromatic: bool) -> Tensor | None:
+    def linear_maps(
+        self,
+        settings: Tensor,
+        *,
+        monochromatic: bool,
+        maps: Tensor | None = None,
+    ) -> Tensor | None:
         """:meth:`transfer_maps` if they reproduce the tracking, else None.
 
         Args:
             settings: Scan settings ``(K, P)``.
             monochromatic: True if every particle has ``pz = 0`` (a 4D beam).
+            maps: ``transfer_maps(settings)`` when the caller already has them
+                (returned as they are rather than computed again).
 
         Returns:
             ``(K, 7, 7)`` float64 (CPU) when every element of the scanned
@@ -245,7 +253,7 @@ class ScreenForwardModel:
         line = self._scanned(settings)
         if not line.linear_map_is_exact(monochromatic):
             return None
-        return line.transfer_map(self.p0c, self._species)
+        return line.transfer_map(self.p0c, self._species) if maps is None else maps
 
     def _scanned(self, settings: Tensor) -> Beamline:
         """A float64 CPU copy of the beamline with the settings applied."""

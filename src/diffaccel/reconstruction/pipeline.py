@@ -178,8 +178,8 @@ def reconstruct(
         forwards[name] = ScreenForwardModel.from_dataset(
             scans[name], blur_pixels=config.blur_pixels
         )
-    # the affine maps of every training setting, once for the initial fit and
-    # the unconstrained-coordinate flags (4D training computes its own)
+    # the affine maps of every training setting, once per run: the initial fit,
+    # the 4D training step, the unconstrained flags and the uncertainty analysis
     maps = [
         fwd.transfer_maps(s) for fwd, s in zip(forwards.values(), settings, strict=True)
     ]
@@ -196,6 +196,7 @@ def reconstruct(
         callback=callback,
         device=device,
         distributed=distributed,
+        maps=maps,
     )
     for fwd in forwards.values():
         fwd.to("cpu")
@@ -224,6 +225,7 @@ def reconstruct(
             result,
             dict(zip(used, measured, strict=True)),
             dict(zip(used, settings, strict=True)),
+            maps=dict(zip(used, maps, strict=True)),
         )
         result.info["timings_s"]["uncertainty"] = time.perf_counter() - t2
     return result
@@ -236,6 +238,7 @@ def attach_uncertainty(
     *,
     n_particles: int = 20_000,
     seed: int = 0,
+    maps: Mapping[str, torch.Tensor] | None = None,
     **options: float | bool,
 ) -> Reconstruction:
     """Store the moment-space posterior of a reconstruction in ``info``.
@@ -252,12 +255,15 @@ def attach_uncertainty(
         settings: Their settings per scan ``(K_s, P_s)``.
         n_particles: Particles per member for the predicted images.
         seed: Sampling seed.
+        maps: Each scan's ``transfer_maps(settings)`` ``(K_s, 7, 7)`` when the
+            caller has them (computed here otherwise).
     """
-    maps, meas, pred, axes = [], [], [], []
+    jacobians, meas, pred, axes = [], [], [], []
     for name, images in measured.items():
         fwd = result.forwards[name]
         sets = settings[name]
-        maps.append(fwd.transfer_maps(sets)[..., :6, :6])
+        r = fwd.transfer_maps(sets) if maps is None else maps[name]
+        jacobians.append(r[..., :6, :6])
         meas.append(images.detach().cpu())
         pred.append(
             result.predict_images(sets, scan=name, n_particles=n_particles, seed=seed)
@@ -265,7 +271,7 @@ def attach_uncertainty(
         axes.append(fwd.screen.pixel_centers(dtype=torch.float64))
     m = beam_moments(result.sample(max(n_particles, 50_000), seed=seed))
     unc = analyse_moments(
-        maps,
+        jacobians,
         meas,
         pred,
         axes,

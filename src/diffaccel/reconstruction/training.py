@@ -408,6 +408,7 @@ def train_generator(
     callback: Callable[[StepInfo], None] | None = None,
     device: str | torch.device | None = None,
     distributed: bool = False,
+    maps: Sequence[Tensor] | None = None,
 ) -> TrainingState:
     """Fit a :class:`BeamGenerator` to screen images and collect snapshot members.
 
@@ -454,6 +455,8 @@ def train_generator(
             quasi-random samples the shares are blocks of the single-process
             sample: the result equals a single-process run up to the rounding
             of the sums. Only process 0 writes checkpoints.
+        maps: Each scan's :meth:`ScreenForwardModel.transfer_maps` of its
+            settings when the caller has computed them (not computed again).
 
     Shapes:
         Scan ``s``: ``measured (K_s, H_s, W_s)``, ``settings (K_s, P_s)``.
@@ -526,8 +529,9 @@ def train_generator(
     # dims = 4: pz = 0 exactly, so affine maps reproduce the tracking where the
     # beamline allows it (no cavity on, no bend); otherwise (and in 6D) track
     imagers: list[Callable[[Tensor], Tensor]] = []
-    for f, s in zip(forwards, settings_list, strict=True):
-        lin = f.linear_maps(s, monochromatic=True) if dims == 4 else None
+    map_list = [None] * len(forwards) if maps is None else list(maps)
+    for f, s, r in zip(forwards, settings_list, map_list, strict=True):
+        lin = f.linear_maps(s, monochromatic=True, maps=r) if dims == 4 else None
         if lin is not None:
             imagers.append(
                 LinearScreenImages(f, lin, net.n, dims, device=device, total=n)
