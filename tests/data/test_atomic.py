@@ -37,3 +37,15 @@ def test_file_mode_follows_umask_not_mkstemp(tmp_path: Path) -> None:
     finally:
         os.umask(old)
     assert dest.stat().st_mode & 0o777 == 0o644
+
+
+def test_atomic_write_json_is_standard_json(tmp_path) -> None:
+    import json
+    import math
+
+    from diffaccel.data import atomic_write_json
+
+    dest = atomic_write_json(tmp_path / "s.json", {"a": [1.0, math.nan], "b": math.inf})
+    text = dest.read_text(encoding="utf-8")
+    assert "NaN" not in text and "Infinity" not in text  # strict parsers accept it
+    assert json.loads(text) == {"a": [1.0, None], "b": None}

@@ -11,11 +11,12 @@ import click
 import torch
 from tqdm import tqdm
 
-from diffaccel.cli.output import output_folder, save_json, save_png
+from diffaccel.cli.output import output_folder, save_png
 from diffaccel.data import (
     DEFAULT_INPUT_COLUMN,
     DEFAULT_OUTPUT_COLUMN,
     atomic_write,
+    atomic_write_json,
     iter_magnet_csv,
     read_magnet_csv,
 )
@@ -229,7 +230,7 @@ def fit_command(
             save_png(fig, folder.path / "fit.png")
             fig = plot_preisach_density(model, input_label=input_col)
             save_png(fig, folder.path / "density.png")
-        save_json(summary, folder.path / SUMMARY_FILE)
+        atomic_write_json(folder.path / SUMMARY_FILE, summary)
     for note in notes:
         click.echo(f"note: {note}", err=True)
     test_txt = (

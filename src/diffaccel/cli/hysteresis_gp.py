@@ -10,8 +10,8 @@ import click
 import torch
 from tqdm import tqdm
 
-from diffaccel.cli.output import output_folder, save_json, save_png
-from diffaccel.data import read_magnet_csv
+from diffaccel.cli.output import output_folder, save_png
+from diffaccel.data import atomic_write_json, read_magnet_csv
 from diffaccel.hysteresis import (
     HysteresisGP,
     PreisachMesh,
@@ -175,7 +175,7 @@ def gp_fit(
         }
         fig = plot_hgp_history(model, column=0, xlabel=x_col, ylabel=y_col)
         save_png(fig, folder.path / FIGURE_FILE)
-        save_json(summary, folder.path / SUMMARY_FILE)
+        atomic_write_json(folder.path / SUMMARY_FILE, summary)
     click.echo(
         f"H-GP noise sigma {res.noise_sigma:.4g} "
         f"(plain GP {plain_fit.noise_sigma:.4g}), "

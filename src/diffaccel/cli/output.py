@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -14,11 +13,10 @@ from diffaccel.data import (
     ResultFolder,
     ResultFolderError,
     atomic_write,
-    atomic_write_text,
     result_folder,
 )
 
-__all__ = ["output_folder", "save_json", "save_png"]
+__all__ = ["output_folder", "save_png"]
 
 
 @contextmanager
@@ -59,8 +57,3 @@ def output_folder(
 def save_png(fig: Any, path: Path, dpi: int = 120) -> Path:
     """Write a matplotlib figure as PNG (atomically); returns ``path``."""
     return atomic_write(path, lambda p: fig.savefig(p, format="png", dpi=dpi))
-
-
-def save_json(obj: Any, path: Path) -> Path:
-    """Write ``obj`` as indented JSON (atomically); returns ``path``."""
-    return atomic_write_text(path, json.dumps(obj, indent=2) + "\n")

@@ -16,11 +16,12 @@ import torch.distributed as tdist
 from click.core import ParameterSource
 from tqdm import tqdm
 
-from diffaccel.cli.output import output_folder, save_json, save_png
+from diffaccel.cli.output import output_folder, save_png
 from diffaccel.data import (
     FormatError,
     MultiScanDataset,
     atomic_write,
+    atomic_write_json,
     partial_folder,
     read_scans,
     write_openpmd_particles,
@@ -39,7 +40,6 @@ from diffaccel.reconstruction import (
     StepInfo,
     as_scans,
     check_on_screen,
-    clean_json,
     evaluate,
     load,
     predict_dataset,
@@ -278,7 +278,7 @@ def run_reconstruction(
         ]
     summary["timings_s"]["total_wall"] = time.perf_counter() - t0
     summary["timings_s"]["reconstruct_wall"] = t_train
-    save_json(clean_json(summary), folder / "summary.json")
+    atomic_write_json(folder / "summary.json", summary)
     return summary
 
 

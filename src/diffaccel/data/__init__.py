@@ -5,7 +5,13 @@ naming the offending field. Coordinates in memory are always Bmad
 (x, px, y, py, z, pz); foreign conventions are converted at the file boundary.
 """
 
-from diffaccel.data.atomic import atomic_write, atomic_write_bytes, atomic_write_text
+from diffaccel.data.atomic import (
+    atomic_write,
+    atomic_write_bytes,
+    atomic_write_json,
+    atomic_write_text,
+    clean_json,
+)
 from diffaccel.data.errors import FormatError
 from diffaccel.data.magnet_csv import (
     DEFAULT_INPUT_COLUMN,
@@ -70,9 +76,11 @@ __all__ = [
     "ResultFolderError",
     "atomic_write",
     "atomic_write_bytes",
+    "atomic_write_json",
     "atomic_write_text",
     "average_shots",
     "center_centroids",
+    "clean_json",
     "crop_to_beam",
     "iter_magnet_csv",
     "make_synthetic_awa6d",

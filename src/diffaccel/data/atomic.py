@@ -8,12 +8,21 @@ the temporary file is removed and the destination is left as it was.
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
-__all__ = ["atomic_write", "atomic_write_bytes", "atomic_write_text"]
+__all__ = [
+    "atomic_write",
+    "atomic_write_bytes",
+    "atomic_write_json",
+    "atomic_write_text",
+    "clean_json",
+]
 
 
 def _default_mode() -> int:
@@ -76,3 +85,26 @@ def atomic_write_text(
     return atomic_write(
         path, lambda p: p.write_text(text, encoding="utf-8"), overwrite=overwrite
     )
+
+
+def clean_json(obj: Any) -> Any:
+    """``obj`` with NaN/inf floats replaced by None (standard JSON)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: clean_json(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [clean_json(v) for v in obj]
+    return obj
+
+
+def atomic_write_json(
+    path: str | os.PathLike, obj: Any, *, overwrite: bool = True
+) -> Path:
+    """Write ``obj`` as indented standard JSON, atomically; returns ``path``.
+
+    NaN and infinite floats are written as ``null`` (:func:`clean_json`); the
+    project's one JSON writer (summaries, model settings).
+    """
+    text = json.dumps(clean_json(obj), indent=2, allow_nan=False) + "\n"
+    return atomic_write_text(path, text, overwrite=overwrite)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import torch
 
-from diffaccel.data import atomic_write, atomic_write_text
+from diffaccel.data import atomic_write, atomic_write_json
 from diffaccel.hysteresis.band import LaplaceBand
 from diffaccel.hysteresis.preisach import PreisachModel
 
@@ -46,7 +46,7 @@ def save_fit(
             tensors[_BAND + k] = v.detach().cpu().clone()
     config = {**(extra or {}), **model.config(), "band": band is not None}
     atomic_write(fit_dir / MODEL_FILE, lambda p: torch.save(tensors, p))
-    atomic_write_text(fit_dir / CONFIG_FILE, json.dumps(config, indent=2) + "\n")
+    atomic_write_json(fit_dir / CONFIG_FILE, config)
 
 
 def load_fit(fit_dir: str | Path) -> tuple[PreisachModel, LaplaceBand | None, dict]:

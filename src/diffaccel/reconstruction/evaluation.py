@@ -9,13 +9,13 @@ and errors against a known ground truth.
 from __future__ import annotations
 
 import copy
-import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import torch
 from torch import Tensor
 
+from diffaccel.data.atomic import clean_json
 from diffaccel.data.quad_scan import QuadScanDataset
 from diffaccel.data.scans import MultiScanDataset
 from diffaccel.reconstruction.ensemble import Reconstruction
@@ -54,17 +54,6 @@ UNCERTAINTY_NOTE_ENSEMBLE_ONLY = (
     "no moment-space posterior); it describes optimisation scatter and "
     "under-covers the actual error"
 )
-
-
-def clean_json(obj: Any) -> Any:
-    """``obj`` with NaN/inf floats replaced by None (standard JSON)."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: clean_json(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [clean_json(v) for v in obj]
-    return obj
 
 
 def predict_dataset(
