@@ -390,3 +390,85 @@ def test_bad_train_indices_name_the_scan(
         ],
     )
     assert r.exit_code == 2 and message in r.output
+
+
+def _distributed_cli_worker(rank: int, port: int, args: list[str], log: str) -> None:
+    # what torchrun sets for each process
+    os.environ.update(
+        RANK=str(rank),
+        LOCAL_RANK=str(rank),
+        WORLD_SIZE="2",
+        MASTER_ADDR="127.0.0.1",
+        MASTER_PORT=str(port),
+    )
+    torch.set_num_threads(1)
+    r = CliRunner().invoke(main, args)
+    Path(f"{log}{rank}").write_text(f"{r.exit_code}\n{r.output}")
+
+
+@pytest.mark.parametrize("rank", [0, 1])
+def test_distributed_refusal_is_shared_with_every_process(
+    scan_file: Path, tmp_path: Path, monkeypatch, rank: int
+) -> None:
+    # in-process: process 0 broadcasts its refusal of --out, process 1 raises it
+    tdist = cli_reconstruct.tdist
+    sent: list = []
+
+    def broadcast(objects: list, src: int) -> None:
+        assert src == 0
+        if rank == 0:
+            sent.append(objects[0])
+        else:
+            objects[0] = "--out holds files that are not a diffaccel result"
+
+    monkeypatch.setattr(cli_reconstruct, "_init_distributed", lambda device: "cpu")
+    monkeypatch.setattr(tdist, "get_rank", lambda: rank)
+    monkeypatch.setattr(tdist, "broadcast_object_list", broadcast)
+    monkeypatch.setattr(tdist, "destroy_process_group", lambda: None)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "mine.txt").write_text("a user's file")
+    r = CliRunner().invoke(
+        main,
+        ["reconstruct", str(scan_file), "--out", str(out), *FAST, "--distributed"],
+    )
+    assert r.exit_code == 1, r.output
+    if rank == 0:
+        assert len(sent) == 1 and "mine.txt" in sent[0]
+    else:
+        assert "process 0 stopped: --out holds files" in r.output
+    assert (out / "mine.txt").read_text() == "a user's file"
+
+
+@pytest.mark.slow  # two spawned interpreters (~15 s under load)
+def test_distributed_run_stops_every_process_when_out_is_refused(
+    scan_file: Path, tmp_path: Path
+) -> None:
+    import torch.multiprocessing as mp
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "mine.txt").write_text("a user's file")  # not a result: refused
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    args = ["reconstruct", str(scan_file), "--out", str(out), *FAST, "--distributed"]
+    log = str(tmp_path / "rank")
+    ctx = mp.spawn(
+        _distributed_cli_worker, args=(port, args, log), nprocs=2, join=False
+    )
+    # before the fix rank 1 waited for rank 0 in a barrier forever
+    finished = False
+    for _ in range(120):
+        if ctx.join(timeout=1):
+            finished = True
+            break
+    if not finished:
+        for p in ctx.processes:
+            p.kill()
+    assert finished, "a process hung after process 0 refused --out"
+    codes = [Path(f"{log}{r}").read_text().split("\n", 1) for r in (0, 1)]
+    assert codes[0][0] == "1" and "mine.txt" in codes[0][1], codes[0]
+    assert codes[1][0] == "1" and "process 0 stopped" in codes[1][1], codes[1]
+    assert "mine.txt" in codes[1][1]  # the same reason, on one line
+    assert (out / "mine.txt").read_text() == "a user's file"

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import os
 import time
-from contextlib import nullcontext
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager, nullcontext
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -204,6 +205,35 @@ def _init_distributed(device: str) -> str:
         backend = "gloo"
     tdist.init_process_group(backend)
     return device
+
+
+@contextmanager
+def _shared_refusal(target: Any, distributed: bool) -> Iterator[Any]:
+    """Enter ``target``; in a distributed run every process learns the outcome.
+
+    Only process 0 opens the result folder. If it refuses (``--out`` exists
+    without ``--force``, locked, read-only) the others must not wait for it in
+    a collective forever: process 0 broadcasts its refusal (or ``None``) and
+    every process raises the same one-line error. The broadcast also orders the
+    staging folder's creation before the other processes read it.
+    """
+    refusal: click.ClickException | None = None
+    with ExitStack() as stack:
+        try:
+            folder = stack.enter_context(target)
+        except click.ClickException as err:
+            refusal = err
+        if distributed:
+            message = [None if refusal is None else refusal.format_message()]
+            tdist.broadcast_object_list(message, src=0)
+            if message[0] is not None and refusal is None:
+                tdist.destroy_process_group()
+                raise click.ClickException(f"process 0 stopped: {message[0]}")
+        if refusal is not None:
+            if distributed:
+                tdist.destroy_process_group()
+            raise refusal
+        yield folder
 
 
 def run_reconstruction(
@@ -436,9 +466,7 @@ def reconstruct_command(
             )
         else:  # process 0 owns the folder; the others read its checkpoint
             target = nullcontext(SimpleNamespace(path=partial_folder(out)))
-        with target as folder:
-            if distributed:
-                tdist.barrier()  # the staging folder exists before any reads it
+        with _shared_refusal(target, distributed) as folder:
             summary = run_reconstruction(
                 ds,
                 dataset,
