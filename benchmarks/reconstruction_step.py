@@ -1,23 +1,26 @@
 """One training step of the default 4D reconstruction: time, ATen ops, host syncs.
 
 Trains the default configuration on the even settings of the GPSR 4D benchmark
-(``../shared/data/phase_space/gpsr_4d_synthetic.h5``) for ``--steps`` steps and
-records steps ``--skip`` .. end with ``torch.profiler`` (scheduled through the
-training callback, so the recorded window is exactly whole steps, snapshot and
-progress bookkeeping included). Counts, per step on average:
+(``../shared/data/phase_space/gpsr_4d_synthetic.h5``) for ``--steps`` and for
+twice as many steps, under ``torch.profiler``; per-step figures are the
+differences divided by ``--steps`` (set-up, initial fit and the per-snapshot
+bookkeeping cancel; progress reads every ``report_every`` steps are included).
+Counts, per step on average:
 
-* ``aten_ops``: top-level ATen operators (``aten::*`` events with no ATen parent;
-  each is at least one kernel launch on a GPU);
-* ``aten_ops_all``: every ``aten::*`` event, nested ones included;
+* ``aten_ops_per_step``: every ``aten::*`` event, nested ones included (views,
+  implicit copies and casts inside an operator count too);
+* ``aten_ops_top_level_per_step``: top-level ATen operators (``aten::*`` events
+  with no ATen parent; each is at least one kernel launch on a GPU);
 * ``host_syncs``: ``aten::item`` / ``aten::_local_scalar_dense`` events (the
   ops that read a device value on the host, i.e. synchronise on CUDA).
 
-Issue 12 asks for at most 1 sync and 300 ops per step (top-level count). Counts
-are deterministic; the per-step time (median over the steps of a separate,
-unprofiled run) depends on the machine's load.
+Issue 12 asks for at most 1 sync and 300 ops per step; ``met`` applies the 300
+to the stricter count, ``aten_ops_per_step``. Counts are deterministic; the
+per-step time (the same difference of the median training times of
+``--repeats`` unprofiled runs) depends on the machine's load.
 
-Usage: ``python benchmarks/reconstruction_step.py [--steps 60] [--skip 20]
-[--particles 6144] [--device cpu] [--top 0]``
+Usage: ``python benchmarks/reconstruction_step.py [--steps 60] [--repeats 3]
+[--particles 6144] [--device cpu] [--threads 1] [--top 0]``
 """
 
 from __future__ import annotations
@@ -136,6 +139,10 @@ def main() -> None:
         "python": platform.python_version(),
         "git_commit": git_commit(),
     }
+    # met on the stricter count (every ATen event, nested ones included)
+    result["met"] = (
+        result["aten_ops_per_step"] <= 300 and result["host_syncs_per_step"] <= 1
+    )
     if args.top:
         ca = Counter(e.name for e in counts[long]["all"])
         ca.subtract(Counter(e.name for e in counts[short]["all"]))

@@ -13,9 +13,12 @@ from diffaccel.reconstruction.generator import (
     sobol_integers,
 )
 from diffaccel.reconstruction.losses import (
+    ImagePenalty,
     RelativeEntropy,
     gaussian_entropy,
     gaussian_prior_term,
+    image_penalty,
+    off_screen_allowance,
 )
 from diffaccel.reconstruction.training import FlatAdam
 
@@ -40,12 +43,28 @@ def test_relative_entropy_equals_entropy_minus_prior(radius: float | None) -> No
     ref = ref - gaussian_prior_term(xa - pm, ps)
     ref.backward()
     xb = x.clone().requires_grad_()
-    value, aux = RelativeEntropy(3000, SCALE, pm, ps, radius)(xb)
+    spec = RelativeEntropy(3000, SCALE, pm, ps, radius)
+    value, moments = spec(xb)
     value.backward()
     # same float64 algebra in another order: round-off ~1e-12 of O(1) values
     assert abs(float(value.detach() - ref.detach())) < 1e-9
     assert torch.allclose(xb.grad, xa.grad, rtol=1e-9, atol=1e-9 * xa.grad.abs().max())
-    assert torch.allclose(aux[1:], x.std(0), rtol=1e-12)
+    entropy, rms = spec.entropy_and_rms(
+        float(value.detach()), moments.reshape(-1).tolist()
+    )
+    h = gaussian_entropy(x, radius=radius, scale=SCALE)
+    assert abs(entropy - float(h)) < 1e-9
+    # rms from E[x^2] - E[x]^2: cancellation of the (small) means, float64
+    assert torch.allclose(torch.tensor(rms, dtype=torch.float64), x.std(0), rtol=1e-12)
+
+
+def test_relative_entropy_refuses_a_second_call_before_backward() -> None:
+    spec = RelativeEntropy(100, SCALE, torch.zeros(4), 3 * SCALE)
+    x = _beam_with_halo(100).requires_grad_()
+    first, _ = spec(x)
+    spec(x)  # overwrites the work buffers the first call's backward needs
+    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+        first.backward()
 
 
 def test_linear_screen_images_equal_images_linear(gpsr_like_forward) -> None:
@@ -121,3 +140,32 @@ def gpsr_like_forward():
     fwd = ScreenForwardModel(line, ["Q1.k1"], 1e8, blur_pixels=1.0)
     maps = fwd.transfer_maps(torch.linspace(-10, 10, 5)[:, None])
     return fwd, maps
+
+
+@pytest.mark.parametrize("kind", ["kl", "l1"])
+def test_image_penalty_equals_mean_of_image_penalty(kind: str) -> None:
+    g = torch.Generator().manual_seed(0)
+    meas = torch.rand(4, 24, 20, generator=g) ** 4
+    meas[:, :6] = 0.0  # measured zeros: the 1e-12 floor
+    meas[1, :, 0] += 0.02  # mass at the border: an off-screen allowance
+    meas = meas / meas.sum((-2, -1), keepdim=True)
+    allow = off_screen_allowance(meas)
+    # near the measurement (ratios m / s of order 1, so that every term of the
+    # gradient shows at the tolerance below)
+    sim = meas + torch.rand(4, 24, 20, generator=g) / 480
+    sim[:, :, :5] = 0.0  # simulated zeros: the clamp passes no gradient there
+    sim = sim / sim.sum((-2, -1), keepdim=True)
+    sim[0] *= 0.7  # 30 % off the screen: penalised
+    sim[2] *= 1e-7  # total below the 1e-6 floor of the normalisation
+    sa = sim.clone().requires_grad_()
+    ref = image_penalty(sa, meas, kind, allow).mean()
+    weights = torch.randn((), generator=g)
+    (ref * weights).backward()
+    sb = sim.clone().requires_grad_()
+    ours = ImagePenalty(meas, kind, allow, weight=1 / 4)(sb)
+    (ours * weights).backward()
+    # float32 sums in another order: ~1e-7 relative
+    assert abs(float(ours.detach() - ref.detach())) < 1e-6 * abs(float(ref))
+    # per image: the gradient of the 1e-7 image is ~1e7 times the others'
+    err = (sb.grad - sa.grad).abs().amax((-2, -1))
+    assert (err < 1e-5 * sa.grad.abs().amax((-2, -1))).all()

@@ -341,8 +341,14 @@ class LinearScreenImages:
         self.lo = torch.tensor([-1.0 - 3.0 / w, -1.0 - 3.0 / h], **kw)
         self.hi = torch.tensor([1.0 + 3.0 / w, 1.0 + 3.0 / h], **kw)
         weight = 1.0 / (n if total is None else total)
-        self.per_particle = torch.full((), weight, **kw).expand(k, 1, 1, n)
+        # per-step tensors in the shapes the kernels take, made once (issue 12
+        # counts every ATen op of a step, views and implicit copies included):
+        # the deposit weights contiguous (the sampler would copy an expanded
+        # tensor), the offsets expanded to all particles, the blur matrices
+        # expanded to all images
+        self.per_particle = torch.full((k, 1, 1, n), weight, **kw)
         self.template = torch.empty((), **kw).expand(k, 1, h, w)
+        self.offset_n = self.offset.expand(k, n, 2)
         self.shape = (k, h, w)
         self.n = n
         blur = forward._blur()
@@ -354,6 +360,10 @@ class LinearScreenImages:
             eye_w = torch.eye(w, dtype=torch.float64)[None]
             self.by = gaussian_blur(eye_h, (0.0, blur[1]), (psx, psy))[0].to(**kw)
             self.bx_t = gaussian_blur(eye_w, (blur[0], 0.0), (psx, psy))[0].to(**kw)
+            self.by_k = self.by.expand(k, h, h)
+            self.bx_t_k = self.bx_t.expand(k, w, w)
+            self.by_t_k = self.by.t().expand(k, h, h)
+            self.bx_k = self.bx_t.t().expand(k, w, w)
 
     def __call__(self, particles: Tensor) -> Tensor:
         return _LinearCIC.apply(particles, self)
@@ -363,13 +373,13 @@ class _LinearCIC(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x: Tensor, spec: LinearScreenImages) -> Tensor:  # type: ignore[override]
         k, h, w = spec.shape
-        grid = torch.baddbmm(spec.offset, x.expand(k, *x.shape), spec.g)
-        grid = torch.clamp_(grid, spec.lo, spec.hi).unsqueeze(1)  # (K, 1, N, 2)
+        grid = torch.baddbmm(spec.offset_n, x.expand(k, *x.shape), spec.g)
+        grid = torch.clamp_(grid, spec.lo, spec.hi).view(k, 1, spec.n, 2)
         image = _grid_sampler_backward(
             spec.per_particle, spec.template, grid, *_SAMPLER, [True, False]
         )[0].view(k, h, w)
         if spec.by is not None:
-            image = torch.matmul(torch.matmul(spec.by, image), spec.bx_t)
+            image = torch.bmm(torch.bmm(spec.by_k, image), spec.bx_t_k)
         ctx.save_for_backward(grid)
         ctx.spec = spec
         return image
@@ -380,10 +390,10 @@ class _LinearCIC(torch.autograd.Function):
         spec = ctx.spec
         k, h, w = spec.shape
         if spec.by is not None:  # adjoint of by @ image @ bx_t
-            grad = torch.matmul(spec.by.t(), torch.matmul(grad, spec.bx_t.t()))
+            grad = torch.bmm(torch.bmm(spec.by_t_k, grad), spec.bx_k)
         g = _grid_sampler_backward(
             spec.per_particle,
-            grad.reshape(k, 1, h, w),
+            grad.view(k, 1, h, w),
             grid,
             *_SAMPLER,
             [False, True],

@@ -283,7 +283,29 @@ class FlatGenerator:
         self.points = None
         if quasi_random:
             pts = sobol_integers(n, model.dims, device=p.device)
-            self.points = pts[index * self.n : (index + 1) * self.n].contiguous()
+            pts = pts[index * self.n : (index + 1) * self.n]
+            # 2 k + 1: then (2 k + 1) xor (2 shift) = 2 (k xor shift) + 1, and one
+            # multiplication by 2**-(SOBOL_BITS + 1) gives the cell centre
+            self.points = (2 * pts + 1).contiguous()
+            self._cells = torch.empty(
+                self.n, model.dims, dtype=p.dtype, device=p.device
+            )
+            self._cell = torch.tensor(
+                2.0 ** -(SOBOL_BITS + 1), dtype=p.dtype, device=p.device
+            )
+        # per-step views made once (each view is an ATen op; issue 12 counts
+        # them): the weights' transposes and the biases expanded to n rows
+        linears = [lay for lay in model.mlp if isinstance(lay, nn.Linear)]
+        self._linears = linears
+        self._weights_t = [_transposed(lay.weight) for lay in linears]
+        self._biases = [lay.bias.expand(self.n, lay.out_features) for lay in linears]
+        self._mix_t = _transposed(model.mix)
+        self._ones = torch.ones(self.n, dtype=p.dtype, device=p.device)
+        self._names = [
+            name[: -len(".weight")]
+            for name, _ in model.named_parameters()
+            if name.startswith("mlp.") and name.endswith(".weight")
+        ]
 
     def base(self, generator: torch.Generator | None) -> Tensor:
         """Fresh standard-normal base samples ``(n, dims)`` on the device."""
@@ -296,11 +318,29 @@ class FlatGenerator:
                 dtype=p.dtype,
                 device=p.device,
             )
-        return shifted_sobol_normals(self.points, generator).to(p.dtype)
+        # shifted_sobol_normals(points, generator) in fewer kernels: the same
+        # random shift, the same cell centres
+        shift = torch.randint(
+            0,
+            2**SOBOL_BITS,
+            (self.points.shape[-1],),
+            generator=generator,
+            device=self.points.device,
+        )
+        cells = torch.bitwise_xor(self.points, shift.mul_(2))
+        u = self._cells.copy_(cells).mul_(self._cell)
+        return torch.special.ndtri(u)
 
     def sample(self, generator: torch.Generator | None) -> Tensor:
         """Fresh particles ``(n, dims)``, differentiable with respect to ``flat``."""
         return _GeneratorFn.apply(self.flat, self.base(generator), self)
+
+
+def _transposed(t: Tensor) -> Tensor:
+    """The transpose of a 2-D tensor as one strided view (a single ATen op)."""
+    return t.as_strided(
+        (t.shape[1], t.shape[0]), (t.stride(1), t.stride(0)), t.storage_offset()
+    )
 
 
 class _GeneratorFn(torch.autograd.Function):
@@ -309,14 +349,13 @@ class _GeneratorFn(torch.autograd.Function):
     @staticmethod
     def forward(ctx, flat: Tensor, base: Tensor, net: FlatGenerator) -> Tensor:  # type: ignore[override]
         m = net.model
-        linears = [lay for lay in m.mlp if isinstance(lay, nn.Linear)]
+        wts, biases = net._weights_t, net._biases
         hidden = [base]
         h = base
-        for lin in linears[:-1]:
-            h = torch.addmm(lin.bias, h, lin.weight.t()).tanh_()
+        for i in range(len(wts) - 1):
+            h = torch.addmm(biases[i], h, wts[i]).tanh_()
             hidden.append(h)
-        last = linears[-1]
-        u = torch.addmm(torch.addmm(last.bias, h, last.weight.t()), base, m.mix.t())
+        u = torch.addmm(biases[-1], h, wts[-1]).addmm_(base, net._mix_t)
         factor = m.ref_scale * m.log_scale.exp()
         x = torch.addcmul(m.ref_scale * m.offset, u, factor)
         ctx.save_for_backward(u, factor, *hidden)
@@ -331,15 +370,21 @@ class _GeneratorFn(torch.autograd.Function):
         g = net._grads
         gu = gx * factor
         torch.sum(gu * u, 0, out=g["log_scale"])
-        torch.mul(gx.sum(0), m.ref_scale, out=g["offset"])
-        torch.mm(gu.t(), hidden[0], out=g["mix"])
-        names = [n[: -len(".weight")] for n in g if n.endswith(".weight")]
-        linears = [lay for lay in m.mlp if isinstance(lay, nn.Linear)]
-        ga = gu
+        gx_sum = gx.sum(0)
+        torch.mul(gx_sum, m.ref_scale, out=g["offset"])
+        gu_t = _transposed(gu)
+        torch.mm(gu_t, hidden[0], out=g["mix"])
+        names = net._names
+        linears = net._linears
+        ga, ga_t = gu, gu_t
         for i in range(len(linears) - 1, -1, -1):
-            torch.mm(ga.t(), hidden[i], out=g[names[i] + ".weight"])
-            torch.sum(ga, 0, out=g[names[i] + ".bias"])
+            torch.mm(ga_t, hidden[i], out=g[names[i] + ".weight"])
+            if i == len(linears) - 1:  # sum of gu = factor * sum of gx
+                torch.mul(gx_sum, factor, out=g[names[i] + ".bias"])
+            else:  # a column sum as a matrix-vector product: 2 ATen ops, not 3
+                torch.mv(ga_t, net._ones, out=g[names[i] + ".bias"])
             if i > 0:
                 gh = torch.mm(ga, linears[i].weight)
                 ga = torch.ops.aten.tanh_backward(gh, hidden[i])
+                ga_t = _transposed(ga)
         return net.grad, None, None

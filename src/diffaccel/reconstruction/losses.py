@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Literal
 
 import torch
@@ -238,6 +238,103 @@ def image_penalty(
     return image_distance(shape, measured, kind) + off.clamp_min(0.0)
 
 
+class ImagePenalty:
+    """Training form of ``weight * image_penalty(s, m, kind, allowance).sum()``.
+
+    The measured images, their clamp and the allowance are prepared once; with
+    ``kind = "kl"`` (the default of training) a call is a dozen whole-image
+    kernels with a hand-written gradient instead of the ~100 small autograd
+    operations of :func:`image_penalty` (issue 12: ATen ops per step). Other
+    kinds use :func:`image_penalty` itself.
+
+    Args:
+        measured: Sum-normalised measured images ``(K, H, W)``.
+        kind: Image distance, see :func:`image_distance`.
+        allowance: Off-screen fraction allowed per image ``(K,)``; 0 if None.
+        weight: Factor of the sum over images (e.g. 1 / number of images of
+            all scans, so that the penalties of all scans average).
+
+    Shapes:
+        ``__call__(simulated (K, H, W))`` -> ``()``.
+    """
+
+    def __init__(
+        self,
+        measured: Tensor,
+        kind: ImageLoss = "kl",
+        allowance: Tensor | None = None,
+        weight: float = 1.0,
+    ) -> None:
+        if kind not in ("l1", "l2", "kl"):
+            raise ValueError(f"image loss must be 'l1', 'l2' or 'kl'; got {kind!r}.")
+        self.kind = kind
+        self.measured = measured
+        self.allowance = allowance
+        self.weight = float(weight)
+        self.k = measured.shape[0]
+        allow = torch.zeros(self.k) if allowance is None else allowance
+        allow = allow.to(dtype=measured.dtype, device=measured.device)
+        self.one_minus_allowance = torch.sub(1.0, allow)  # (K,)
+        self.m = measured.clamp_min(1e-12)  # as image_distance's "kl"
+        kw = {"dtype": measured.dtype, "device": measured.device}
+        self.constants = {
+            name: torch.tensor(v, **kw)
+            for name, v in (
+                ("tiny", 1e-12),
+                ("min_total", 1e-6),
+                ("zero", 0.0),
+                ("one", 1.0),
+                ("weight", self.weight),
+            )
+        }
+
+    def __call__(self, simulated: Tensor) -> Tensor:
+        if simulated.shape != self.measured.shape:
+            raise ValueError(
+                f"simulated {tuple(simulated.shape)} and measured "
+                f"{tuple(self.measured.shape)} images differ in shape."
+            )
+        if self.kind != "kl":
+            d = image_penalty(simulated, self.measured, self.kind, self.allowance)
+            return d.sum() * self.weight
+        return _KLPenaltyFn.apply(simulated, self)
+
+
+class _KLPenaltyFn(torch.autograd.Function):
+    """``weight * sum_k [KL(m_k, s_k / T_k) + relu(1 - T_k - a_k)]``, clamps as in
+    :func:`image_penalty`, with its gradient written out: with ``t = max(T,
+    1e-6)``, ``s = max(sim / t, 1e-12)``, ``mask = sim / t >= 1e-12``,
+    ``d/dsim = weight * (-mask m / (s t) + [T >= 1e-6] sum(mask m) / t
+    - [1 - T - a >= 0])``."""
+
+    @staticmethod
+    def forward(ctx, sim: Tensor, spec: ImagePenalty) -> Tensor:  # type: ignore[override]
+        k = spec.k
+        total = sim.sum((-2, -1))  # (K,) fraction of the beam on the screen
+        t = total.clamp_min(1e-6).view(k, 1, 1)
+        s_raw = sim / t
+        q = torch.div(spec.m, s_raw.clamp_min(1e-12))  # m / s
+        kl = torch.mul(spec.m, q.log()).sum()
+        off = torch.sub(spec.one_minus_allowance, total)
+        value = torch.add(kl, off.clamp_min(0.0).sum()).mul_(spec.constants["weight"])
+        ctx.save_for_backward(total, t, s_raw, q, off)
+        ctx.spec = spec
+        return value
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:  # type: ignore[override]
+        total, t, s_raw, q, off = ctx.saved_tensors
+        spec = ctx.spec
+        k = spec.k
+        c = spec.constants  # 0-d tensors: comparisons with Python floats convert
+        q = torch.where(s_raw >= c["tiny"], q, c["zero"])  # where the clamp passes
+        mass = torch.mul(q, s_raw).sum((-2, -1))  # (K,): sum(mask m)
+        a = torch.where(total >= c["min_total"], mass, c["zero"]).div_(t.view(k))
+        a = a.sub_(torch.heaviside(off, c["one"]))  # the off-screen term's gradient
+        g = torch.addcdiv(a.view(k, 1, 1), q, t, value=-1.0)
+        return g.mul_(torch.mul(grad, c["weight"])), None
+
+
 def penalty_schedule(
     step: int, total_first_cycle: int, start: float, end: float
 ) -> float:
@@ -318,9 +415,11 @@ class RelativeEntropy:
             and gradients equal those of one process holding all particles.
 
     Shapes:
-        ``__call__(particles (N, D))`` -> ``(value (), aux (1 + D,))``: value is
-        ``H - C`` (float64, differentiable); aux holds ``H`` and the plain rms
-        widths of the particles (float64, not differentiable).
+        ``__call__(particles (N, D))`` -> ``(value (), moments (D + 1, D + 1))``:
+        value is ``H - C`` (float64, differentiable); moments is the plain
+        moment matrix ``M0`` of ``z1`` (float64, not differentiable; see
+        :meth:`entropy_and_rms`). The spec keeps work buffers: call ``backward``
+        of one call before the next call (autograd raises otherwise).
     """
 
     def __init__(
@@ -356,71 +455,141 @@ class RelativeEntropy:
         if radius is not None:
             self.first = -0.5 / radius**2 * (n - 1) / n
             self.later = -0.5 / radius**2 / (1 + radius**-2)
+            self.first_vec = torch.full((d + 1,), self.first, **f64)
+            self.later_vec = torch.full((d + 1,), self.later, **f64)
         self.var_factor = n / (n - 1)
         # plain covariance: N - 1 normalisation as in robust_covariance
         self.plain_shift = 0.5 * d * math.log(n / (n - 1))
+        self.q_half = 0.5 * q
+        self._q_half_list = self.q_half.reshape(-1).tolist()
+        self._scale_list = self.scale.tolist()
+        self.scale_col = self.scale[:, None]
+        self.inv_scale = 1.0 / self.scale
+        self._buffers(n)
+
+    def _buffers(self, n_local: int) -> None:
+        """Work buffers for calls with ``n_local`` particles (reused by every call)."""
+        d = self.dims
+        f64 = {"dtype": torch.float64, "device": self.scale.device}
+        self.n_local = n_local
+        self.zt = torch.ones(d + 1, n_local, **f64)  # z1^T; the last row stays 1
+        self.zt_x = self.zt[:d]
+        self.z = _transposed(self.zt)
+        # column-major buffers: what LAPACK writes, so no copies
+        self.y = _transposed(torch.empty(n_local, d + 1, **f64))
+        self.inv_l = _transposed(torch.empty(d + 1, d + 1, **f64))
+        self.y_rows = _transposed(self.y)  # (N, D + 1), contiguous
+        self.raw = torch.empty(d + 1, d + 1, **f64)
+        self.raw_total = self.raw.view(-1)[-1:]
+        self.inv = torch.empty(d + 1, d + 1, **f64)
+        self.inv_cols = self.inv[:, :d]
 
     def __call__(self, particles: Tensor) -> tuple[Tensor, Tensor]:
+        if particles.ndim != 2 or particles.shape[1] != self.dims:
+            raise ValueError(
+                f"particles must have shape (N, {self.dims}); got "
+                f"{tuple(particles.shape)}."
+            )
+        if particles.shape[0] != self.n_local:
+            self._buffers(particles.shape[0])
         return _RelativeEntropyFn.apply(particles, self)
+
+    def entropy_and_rms(
+        self, value: float, moments: Sequence[float]
+    ) -> tuple[float, list[float]]:
+        """``H`` and the plain rms widths from a call's value and moments.
+
+        Host-side bookkeeping for the training history (read every few steps,
+        in plain Python), so that a step computes neither: ``H = value + C``
+        with the prior cross-entropy ``C = 1/2 sum(q * M0)``, and the rms widths
+        from the first and second moments in ``M0`` (``N - 1`` normalisation).
+
+        Args:
+            value: ``H - C`` as returned by a call.
+            moments: The call's plain moment matrix ``M0``, flattened
+                (``(D + 1)^2`` numbers, row-major).
+        """
+        m = [float(v) for v in moments]
+        d = self.dims
+        cross = sum(q * v for q, v in zip(self._q_half_list, m, strict=True))
+        rms = []
+        for i in range(d):
+            mean = m[d * (d + 1) + i]
+            var = (m[i * (d + 2)] - mean * mean) * self.var_factor
+            rms.append(math.sqrt(max(var, 0.0)) * self._scale_list[i])
+        return value + cross, rms
+
+
+def _transposed(t: Tensor) -> Tensor:
+    """The transpose of a 2-D tensor as one strided view (a single ATen op)."""
+    return t.as_strided(
+        (t.shape[1], t.shape[0]), (t.stride(1), t.stride(0)), t.storage_offset()
+    )
 
 
 class _RelativeEntropyFn(torch.autograd.Function):
+    # Every tensor op below is counted by benchmarks/reconstruction_step.py
+    # (issue 12: <= 300 ATen ops per training step): the buffers of the spec
+    # are filled with out= / in-place ops and the transposes are single views.
     @staticmethod
     def forward(ctx, x: Tensor, spec: RelativeEntropy) -> tuple[Tensor, Tensor]:  # type: ignore[override]
-        n, d = x.shape
-        z1 = x.new_ones(n, d + 1, dtype=torch.float64)
-        torch.div(x, spec.scale, out=z1[:, :d])
-        z1t = z1.t()
-        m0 = torch.mm(z1t, z1)  # plain moments
+        zt, z = spec.zt, spec.z  # (D + 1, N) and its (N, D + 1) view
+        spec.zt_x.copy_(_transposed(x)).div_(spec.scale_col)
+        # plain moments M0 = z1^T z1 / n (beta = 0: the input is ignored)
+        m0 = torch.addmm(spec.eye, zt, z, beta=0.0, alpha=1.0 / spec.n)
         if spec.reduce is not None:
             spec.reduce(m0)
-        m0 = m0.div_(spec.n)
-        cross = 0.5 * torch.mul(spec.q, m0).sum()
+        cross = torch.mul(spec.q_half, m0).sum()
         if spec.radius is None:
             w = None
             m = m0
         else:
-            ref, factor = m0, spec.first
+            ref, factor = m0, spec.first_vec
             for _ in range(_REWEIGHT_ITERATIONS):
-                # (L^-1 z1)^2 summed = z1^T ref^-1 z1 (solve_triangular and
+                # ||L^-1 z1||^2 = z1^T ref^-1 z1 (solve_triangular and
                 # cholesky_ex never check for errors: no host synchronisation)
                 lower = torch.linalg.cholesky_ex(ref)[0]
-                inv_l = torch.linalg.solve_triangular(lower, spec.eye, upper=False)
-                d2 = torch.mm(z1, inv_l.t()).square_().sum(1)
-                w = d2.mul_(factor).exp_()
-                raw = torch.mm(torch.mul(z1t, w), z1)
+                y = torch.linalg.solve_triangular(lower, zt, upper=False, out=spec.y)
+                y.mul_(y)
+                # factor * d2 of every particle as one matrix-vector product
+                w = torch.mv(spec.y_rows, factor).exp_()  # (N,)
+                raw = torch.mm(torch.mul(zt, w), z, out=spec.raw)
                 if spec.reduce is not None:
                     spec.reduce(raw)
-                ref = raw / raw[d, d]  # raw[d, d]: the sum of the weights
-                factor = spec.later
-            w = w.div_(raw[d, d])
+                ref = raw / spec.raw_total  # raw[d, d]: the sum of the weights
+                factor = spec.later_vec
+            w = w.div_(spec.raw_total)
             m = ref
         chol = torch.linalg.cholesky_ex(m)[0]
-        entropy = chol.diagonal().log().sum()
+        # log det / 2 = trace(log L): the zeros above the diagonal turn to -inf,
+        # which the trace never reads (3 ATen ops instead of 6)
+        entropy = torch.log(chol).trace()
         if w is None:
             entropy = entropy + spec.plain_shift
-        inv_l = torch.linalg.solve_triangular(chol, spec.eye, upper=False)
-        inv = torch.mm(inv_l.t(), inv_l)
-        mean = m0[d, :d]
-        var = (m0.diagonal()[:d] - mean * mean).mul_(spec.var_factor)
-        rms = var.clamp_min_(0).sqrt_().mul_(spec.scale)
-        aux = torch.cat([entropy.reshape(1), rms])
-        ctx.mark_non_differentiable(aux)
-        ctx.save_for_backward(z1, inv, w)
+        inv_l = torch.linalg.solve_triangular(
+            chol, spec.eye, upper=False, out=spec.inv_l
+        )
+        torch.mm(_transposed(inv_l), inv_l, out=spec.inv)
+        ctx.mark_non_differentiable(m0)
+        ctx.set_materialize_grads(False)  # no zero gradient made for m0
+        # the buffers too: a second call before this backward changes their
+        # version, and autograd then raises instead of using the wrong values
+        ctx.save_for_backward(w, spec.zt, spec.inv)
         ctx.spec = spec
         ctx.in_dtype = x.dtype
-        return entropy - cross, aux
+        return entropy - cross, m0
 
     @staticmethod
     def backward(ctx, grad: Tensor, _aux: Tensor) -> tuple[Tensor | None, None]:  # type: ignore[override]
-        z1, inv, w = ctx.saved_tensors
+        w, _, _ = ctx.saved_tensors
         spec = ctx.spec
-        d = spec.dims
-        g = grad / spec.scale  # (D,): d(scaled)/dx and the incoming gradient
-        dh = torch.mm(z1, inv[:, :d])  # rows: Sigma^-1 (z_i - mu_w)
+        n, d = spec.n_local, spec.dims
+        # rows: w_i Sigma^-1 (z_i - mu_w) - q z1_i / n, times d(scaled)/dx
+        dh = torch.mm(spec.z, spec.inv_cols)
         if w is None:
             dh = dh.div_(spec.n)
         else:
-            dh = dh.mul_(w.unsqueeze(1))
-        gz = torch.addmm(dh, z1, spec.q_cols, alpha=-1.0)
-        return gz.mul_(g).to(ctx.in_dtype), None
+            dh = dh.mul_(w.view(n, 1))
+        gz = torch.addmm(dh, spec.z, spec.q_cols, alpha=-1.0)
+        out = torch.empty((n, d), dtype=ctx.in_dtype, device=gz.device)
+        return torch.mul(gz, torch.mul(spec.inv_scale, grad), out=out), None

@@ -28,9 +28,9 @@ from diffaccel.reconstruction.generator import BeamGenerator, FlatGenerator
 from diffaccel.reconstruction.initial import GaussianGuess
 from diffaccel.reconstruction.losses import (
     ImageLoss,
+    ImagePenalty,
     RelativeEntropy,
     cyclic_cosine_lr,
-    image_penalty,
     off_screen_allowance,
     penalty_schedule,
 )
@@ -66,6 +66,13 @@ class FlatAdam:
         self.steps = 0
         self.exp_avg = torch.zeros_like(param, memory_format=torch.preserve_format)
         self.exp_avg_sq = torch.zeros_like(param, memory_format=torch.preserve_format)
+        # factors as 0-d tensors of the parameter's dtype: a Python float is
+        # wrapped and cast at every call (one more ATen op each; same values,
+        # as the kernels compute in that dtype)
+        kw = {"dtype": param.dtype, "device": param.device}
+        self._beta2 = torch.tensor(betas[1], **kw)
+        self._eps = torch.tensor(eps, **kw)
+        self._bc2_sqrt = torch.zeros((), **kw)
 
     @torch.no_grad()
     def step(self, grad: Tensor, lr: float) -> None:
@@ -75,8 +82,9 @@ class FlatAdam:
         bc1 = 1 - b1**self.steps
         bc2 = 1 - b2**self.steps
         self.exp_avg.lerp_(grad, 1 - b1)
-        self.exp_avg_sq.mul_(b2).addcmul_(grad, grad, value=1 - b2)
-        denom = (self.exp_avg_sq.sqrt() / math.sqrt(bc2)).add_(self.eps)
+        self.exp_avg_sq.mul_(self._beta2).addcmul_(grad, grad, value=1 - b2)
+        denom = self.exp_avg_sq.sqrt().div_(self._bc2_sqrt.fill_(math.sqrt(bc2)))
+        denom.add_(self._eps)
         self.param.addcdiv_(self.exp_avg, denom, value=-lr / bc1)
 
     def state_dict(self) -> dict:
@@ -540,8 +548,13 @@ def train_generator(
             imagers.append(lambda x, f=f, s=s: f.images(_six_columns(x), s))
         else:  # images of a share, weighted by its fraction of the beam
             imagers.append(lambda x, f=f, s=s: f.images(_six_columns(x), s) * share)
-    allowances = [off_screen_allowance(m) for m in measured_list]
-    scans = list(zip(imagers, measured_list, allowances, strict=True))
+    # every image of every scan weighs the same: the penalties' mean
+    n_images = sum(m.shape[0] for m in measured_list)
+    penalties = [
+        ImagePenalty(m, config.image_loss, off_screen_allowance(m), 1.0 / n_images)
+        for m in measured_list
+    ]
+    scans = list(zip(imagers, penalties, strict=True))
     relative_entropy = RelativeEntropy(
         n,
         norm,
@@ -555,9 +568,19 @@ def train_generator(
     total = config.steps
     cyc = config.cycle_length
     hist = state.history
-    # per-step scalars stay on the device and are read every report_every
-    # steps (one host transfer), at snapshots, checkpoints and the end
-    record = torch.zeros(config.report_every, 9, dtype=torch.float64, device=device)
+    # per-step values stay on the device and are read every report_every
+    # steps (one host transfer), at snapshots, checkpoints and the end: the
+    # image penalty, H - C and the plain moments of the entropy (the host
+    # derives the loss, H and the rms widths from them)
+    record = torch.zeros(
+        config.report_every, 2 + (dims + 1) ** 2, dtype=torch.float64, device=device
+    )
+    slots = [  # views made once (issue 12 counts every ATen op of a step)
+        (r[0], r[1], r[2:].view(dims + 1, dims + 1)) for r in record.unbind(0)
+    ]
+    # backward seeds: lambda (set each step) for the penalty, -1 for H - C
+    seed_penalty = torch.zeros((), dtype=torch.float32, device=device)
+    seed_entropy = torch.full((), -1.0, dtype=torch.float64, device=device)
     pending: list[tuple[int, float, float]] = []  # (step, lr, penalty) unread
     t0 = time.perf_counter() - state.elapsed_s
     while state.step < total:
@@ -565,23 +588,27 @@ def train_generator(
         lr = cyclic_cosine_lr(step, cyc, config.lr_max, config.lr_min)
         lam = penalty_schedule(step, cyc, config.penalty_start, config.penalty_end)
         x = net.sample(gen_rng)  # (N, dims)
-        per_image = []
-        for imager, meas, allow in scans:
+        dist = None
+        for imager, penalty in scans:
             sim = imager(x)
             if distributed:
                 sim = _SumOverProcesses.apply(sim)
-            per_image.append(image_penalty(sim, meas, config.image_loss, allow))
-        dist = (per_image[0] if len(per_image) == 1 else torch.cat(per_image)).mean()
-        rel, aux = relative_entropy(x)  # H - C; (H, rms)
-        loss = torch.sub(dist, rel, alpha=1.0 / lam).mul_(lam)  # lam D - (H - C)
-        (grad,) = torch.autograd.grad(loss, [net.flat])
+            d = penalty(sim)  # this scan's share of the mean image penalty D
+            dist = d if dist is None else dist + d
+        rel, moments = relative_entropy(x)  # H - C; plain moments
+        # loss lam D - (H - C): its gradient, seeded on both terms
+        (grad,) = torch.autograd.grad(
+            [dist, rel],
+            [net.flat],
+            [seed_penalty.fill_(lam), seed_entropy],
+        )
         if distributed:  # each process holds its particles' part of the gradient
             tdist.all_reduce(grad)
         opt.step(grad, lr)
-        torch.cat(
-            [loss.detach().view(1), dist.detach().view(1), aux],
-            out=record[len(pending), : 3 + dims],
-        )
+        with torch.no_grad():
+            values = (dist, rel, moments)
+            for slot, value in zip(slots[len(pending)], values, strict=True):
+                slot.copy_(value)
         pending.append((step, lr, lam))
         state.step = step + 1
         cycle_end = state.step % cyc == 0
@@ -599,17 +626,20 @@ def train_generator(
             continue
         rows = record[: len(pending)].tolist()  # the host read
         for (s, lr_s, lam_s), row in zip(pending, rows, strict=True):
-            if not math.isfinite(row[0]):
+            dist_s, rel_s = row[0], row[1]
+            loss_s = (dist_s - rel_s / lam_s) * lam_s  # lam D - (H - C)
+            if not math.isfinite(loss_s):
                 raise FloatingPointError(
-                    f"loss became {row[0]} at step {s}; the beam may have left "
+                    f"loss became {loss_s} at step {s}; the beam may have left "
                     "the screen entirely. Check the screen calibration and settings."
                 )
-            hist["loss"].append(row[0])
-            hist["image_loss"].append(row[1])
-            hist["entropy"].append(row[2])
+            entropy, rms = relative_entropy.entropy_and_rms(rel_s, row[2:])
+            hist["loss"].append(loss_s)
+            hist["image_loss"].append(dist_s)
+            hist["entropy"].append(entropy)
             hist["lr"].append(lr_s)
             hist["penalty"].append(lam_s)
-            hist["rms"].append(row[3:])
+            hist["rms"].append(rms)
         pending.clear()
         if snap:
             state.snapshots.append(_cpu_state(model.state_dict()))
