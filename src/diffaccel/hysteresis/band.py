@@ -105,9 +105,12 @@ class LaplaceBand(nn.Module):
             un: Normalised inputs (unclipped), shape ``(T,)``.
             sums: ``sum_i W_ki s_i(t)``, shape ``(K, T)``.
         """
-        proj = affine[:, :1] + affine[:, 1:] * un.clamp(0.0, 1.0) + sums
-        var = proj.pow(2).sum(0) + self.noise_std.to(un) ** 2
-        return self.calibration.to(un) * var.sqrt()
+        # (T, K) layout; in the dtype of ``sums`` (float32 when streamed)
+        a = affine.to(sums.dtype)
+        u_c = un.clamp(0.0, 1.0).to(sums.dtype).unsqueeze(1)
+        proj = torch.addcmul(sums.T + a[:, 0], u_c, a[:, 1])
+        norm = torch.linalg.vector_norm(proj, dim=1).to(un.dtype)
+        return self.calibration.to(un) * (norm**2 + self.noise_std.to(un) ** 2).sqrt()
 
     def std(
         self,

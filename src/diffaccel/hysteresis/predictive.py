@@ -18,6 +18,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from diffaccel.hysteresis.band import LaplaceBand, laplace_band
@@ -29,7 +30,12 @@ from diffaccel.hysteresis.fit import (
 )
 from diffaccel.hysteresis.mesh import PreisachMesh
 from diffaccel.hysteresis.preisach import PreisachModel
-from diffaccel.hysteresis.states import exact_stream_step
+from diffaccel.hysteresis.states import (
+    stream_codes,
+    stream_final_state,
+    stream_sums,
+    stream_table,
+)
 
 __all__ = [
     "RANGE_MARGIN",
@@ -245,8 +251,9 @@ def predict_stream(
         state = model.initial_states(initial_state)
         if state.ndim != 1:
             raise ValueError("predict_stream needs one history: state shape (M,).")
+        layout = model._layout
         w = model.weights
-        weights = w / w.sum()
+        weights = (w / w.sum()).unsqueeze(0)
         affine = band_w = None
         if band is not None:
             affine, band_w = band.hysteron_weights(model)
@@ -254,14 +261,17 @@ def predict_stream(
             if chunk.numel() == 0:
                 continue
             un = model.normalize_input(chunk)
-            sums, extra, state = exact_stream_step(
-                un.clamp(0.0, 1.0), model._layout, weights, state, band_w
-            )
+            code = stream_codes(un.clamp(0.0, 1.0), layout)
+            sums = stream_sums(code, stream_table(layout, weights, state))
             y = model.offset + model.slope * un + model.scale * sums
             pred = model.output_loc + model.output_scale * y
             std = None
-            if extra is not None:
-                std = model.output_scale * band.std_from_sums(affine, un, extra)
+            if band is not None:
+                # float32 table lookups, one bag of R rows per step
+                tab = stream_table(layout, band_w, state).to(torch.float32)
+                bag = F.embedding_bag(code.T.contiguous(), tab, mode="sum")
+                std = model.output_scale * band.std_from_sums(affine, un, bag.T)
+            state = stream_final_state(code[:, -1], layout, state)
             yield pred, std
 
 

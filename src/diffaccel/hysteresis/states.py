@@ -44,6 +44,10 @@ __all__ = [
     "exact_magnetization",
     "exact_states",
     "smooth_states",
+    "stream_codes",
+    "stream_final_state",
+    "stream_sums",
+    "stream_table",
 ]
 
 
@@ -375,6 +379,106 @@ def _row_tables(
     return signed, never
 
 
+def stream_codes(u: Tensor, layout: RowLayout) -> Tensor:
+    """Situation of every mesh row at every step of one chunk, as table indices.
+
+    At every step each row of the mesh is in one of ``2 (U + 1)`` situations
+    (reached or not, and how many of its beta levels are up), so any weighted
+    sum of the states is a lookup per row in a table of
+    :func:`stream_table`, summed over rows. Row ``r``'s code is
+    ``r W + U + 1 + c`` (``W = 2 U + 3``) with ``c`` in ``[1, U + 1]`` once
+    its alpha was reached in the chunk (``U + 1 - c`` beta levels up: those
+    below the minimum since the last reach) and ``c`` in ``[-U - 1, -1]``
+    before (the ``-c - 1`` levels below the chunk's running minimum keep their
+    state, the others are down).
+
+    One ``cumsum`` and one ``cummax`` over ``(R, T)`` int32 keys (as in
+    :func:`_row_events`), no other table: the key
+    ``(segment - 1) (U + 2) + (U + 1 - rank)`` is negative until the row's
+    alpha is first reached, so its running maximum minus the segment offset
+    is ``c`` itself.
+
+    Args:
+        u: Normalised inputs [1] of one chunk, shape ``(T,)``, inside ``[0, 1]``.
+        layout: :class:`RowLayout` of the hysterons.
+
+    Returns:
+        Codes, shape ``(R, T)``, int32 (int64 for chunks beyond ~2^31 / U rows).
+    """
+    n_levels = layout.beta_levels.numel()
+    t = u.numel()
+    small = (t + 1) * (n_levels + 2) < 2**31 - 1
+    idx = torch.int32 if small else torch.int64
+    u = u.contiguous()
+    rank = torch.searchsorted(layout.beta_levels, u, side="left", out_int32=small)
+    inv = (n_levels + 1 - rank).to(idx)  # (T,) in [1, U + 1]
+    up = u.unsqueeze(0) >= layout.row_alpha.unsqueeze(1)  # (R, T)
+    seg = torch.cumsum(up, dim=1, dtype=idx).sub_(1)  # reaches so far, minus 1
+    key = torch.where(up, torch.ones((), dtype=idx), inv)
+    del up
+    key.add_(seg, alpha=n_levels + 2)
+    code = key.cummax(dim=1).values
+    del key
+    code.sub_(seg.clamp_(min=0), alpha=n_levels + 2)
+    width = 2 * n_levels + 3
+    base = torch.arange(code.shape[0], dtype=idx, device=u.device) * width
+    return code.add_((base + n_levels + 1).unsqueeze(1))
+
+
+def stream_table(layout: RowLayout, weights: Tensor, initial: Tensor) -> Tensor:
+    """Row sums of weighted states for every code of :func:`stream_codes`.
+
+    Args:
+        layout: :class:`RowLayout` of the hysterons.
+        weights: Weight vectors, shape ``(K, M)``.
+        initial: States before the chunk, shape ``(M,)``.
+
+    Returns:
+        ``table[code, k]``, shape ``(R (2 U + 3), K)``, dtype of ``weights``.
+    """
+    signed, never = _row_tables(layout, weights, initial)  # (K, R, U + 1) each
+    gap = signed.new_zeros(*signed.shape[:2], 1)
+    tab = torch.cat([never.flip(-1), gap, signed.flip(-1)], dim=2)  # (K, R, W)
+    return tab.reshape(weights.shape[0], -1).T.contiguous()
+
+
+def stream_final_state(last: Tensor, layout: RowLayout, initial: Tensor) -> Tensor:
+    """Hysteron states after a chunk from its last codes.
+
+    Args:
+        last: Codes of the chunk's last step, ``stream_codes(...)[:, -1]``,
+            shape ``(R,)``.
+        layout: :class:`RowLayout` of the hysterons.
+        initial: States before the chunk, shape ``(M,)``.
+
+    Returns:
+        States in ``[-1, 1]``, shape ``(M,)``, dtype of ``initial``.
+    """
+    n_levels = layout.beta_levels.numel()
+    width = 2 * n_levels + 3
+    rows = torch.arange(last.numel(), device=last.device)
+    c = (last - n_levels - 1 - width * rows)[layout.row]
+    q = layout.beta_rank
+    one = initial.new_ones(())
+    up_after = torch.where(q < n_levels + 1 - c, one, -one)  # reached
+    stays = torch.where(q < -c - 1, initial, -one)  # never reached
+    return torch.where(c > 0, up_after, stays)
+
+
+def stream_sums(code: Tensor, table: Tensor) -> Tensor:
+    """Sum over rows of ``table[code]`` for one weight vector.
+
+    Args:
+        code: Output of :func:`stream_codes`, shape ``(R, T)``.
+        table: Output of :func:`stream_table` with ``K = 1``, shape ``(R W, 1)``.
+
+    Returns:
+        Shape ``(T,)``, dtype of ``table`` (summed in it).
+    """
+    picked = table[:, 0].index_select(0, code.reshape(-1))
+    return picked.view(code.shape).sum(dim=0)
+
+
 def exact_stream_step(
     u: Tensor,
     layout: RowLayout,
@@ -384,13 +488,10 @@ def exact_stream_step(
 ) -> tuple[Tensor, Tensor | None, Tensor]:
     """Weighted sums of exact relay states along one chunk, and the state after it.
 
-    One pass over the chunk serves the model's weights, further weight vectors
-    (the directions of a predictive band) and the final state, so that a long
-    history can be streamed chunk by chunk in bounded memory: feed the returned
-    state as ``initial`` of the next chunk. At every step each row of the mesh
-    is in one of ``2 (U + 1)`` situations (reached or not, and how many of its
-    beta levels are up), so every sum is a lookup in a per-row table, summed
-    over rows.
+    One pass over the chunk (:func:`stream_codes`) serves the model's weights,
+    further weight vectors (the directions of a predictive band) and the final
+    state, so that a long history can be streamed chunk by chunk in bounded
+    memory: feed the returned state as ``initial`` of the next chunk.
 
     Args:
         u: Normalised inputs [1] of one chunk, shape ``(T,)``, inside ``[0, 1]``.
@@ -408,27 +509,12 @@ def exact_stream_step(
     Shapes:
         See Args/Returns.
     """
-    reached, window_rank, run_rank = _row_events(u.reshape(1, -1), layout)
-    reached, window_rank, run_rank = reached[0], window_rank[0], run_rank[0]
-    n_rows = window_rank.shape[0]
-    width = layout.below.shape[1]  # U + 1
-    base = (2 * width) * torch.arange(n_rows, device=u.device).unsqueeze(1)
-    code = torch.where(reached, window_rank, width + run_rank.unsqueeze(0)) + base
-    signed, never = _row_tables(layout, weights.unsqueeze(0), initial)
-    table = torch.cat([signed[0], never[0]], dim=1).reshape(-1)  # (R * 2 (U + 1),)
-    sums = table[code].sum(dim=0)
+    code = stream_codes(u, layout)
+    init = initial.to(weights.dtype)
+    sums = stream_sums(code, stream_table(layout, weights.unsqueeze(0), init))
     extra_sums = None
     if extra is not None:
-        signed, never = _row_tables(layout, extra, initial.to(extra.dtype))
-        tab = torch.cat([signed, never], dim=2).reshape(extra.shape[0], -1)
-        tab = tab.transpose(0, 1).to(torch.float32).contiguous()
-        bag = F.embedding_bag(code.transpose(0, 1).contiguous(), tab, mode="sum")
-        extra_sums = bag.transpose(0, 1).to(extra.dtype)
-    # states after the last step
-    init = initial.to(weights.dtype)
-    r, q = layout.row, layout.beta_rank
-    one = init.new_ones(())
-    up_after = torch.where(q < window_rank[r, -1], one, -one)
-    stays = torch.where(q < run_rank[-1], init, -one)
-    final = torch.where(reached[r, -1], up_after, stays)
-    return sums, extra_sums, final
+        tab = stream_table(layout, extra, initial.to(extra.dtype))
+        bag = F.embedding_bag(code.T.contiguous(), tab.to(torch.float32), mode="sum")
+        extra_sums = bag.T.to(extra.dtype)
+    return sums, extra_sums, stream_final_state(code[:, -1], layout, init)
