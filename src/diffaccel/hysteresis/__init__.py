@@ -1,11 +1,18 @@
-"""diffaccel.hysteresis: differentiable Preisach hysteresis of magnets."""
+"""diffaccel.hysteresis: differentiable Preisach hysteresis of magnets.
+
+The GP parts (:class:`HysteresisGP`, :class:`HGPFitResult`,
+:func:`fit_hysteresis_gp`, :class:`HysteresisBO`) import GPyTorch and BoTorch
+(~1 s and ~100 MB); they load on first use of their names, so that fitting and
+predicting Preisach models (e.g. ``diffaccel hysteresis predict``) do not pay
+for them. ``from diffaccel.hysteresis import HysteresisGP`` works as usual.
+"""
 
 from __future__ import annotations
 
+from typing import Any
+
 from diffaccel.hysteresis.band import LaplaceBand, laplace_band
-from diffaccel.hysteresis.bo import HysteresisBO
 from diffaccel.hysteresis.fit import FitResult, fit_preisach
-from diffaccel.hysteresis.hgp import HGPFitResult, HysteresisGP, fit_hysteresis_gp
 from diffaccel.hysteresis.inverse import (
     InverseResult,
     invert_preisach,
@@ -35,6 +42,32 @@ from diffaccel.hysteresis.synthetic import (
     synthetic_measurement,
     synthetic_protocol,
 )
+
+# name -> submodule, loaded on first access (see the module docstring)
+_LAZY = {
+    "HGPFitResult": "hgp",
+    "HysteresisGP": "hgp",
+    "fit_hysteresis_gp": "hgp",
+    "HysteresisBO": "bo",
+}
+
+
+def __getattr__(name: str) -> Any:
+    """Load the GP names on first access (PEP 562)."""
+    if _LAZY.get(name) == "hgp":
+        from diffaccel.hysteresis import hgp
+
+        return getattr(hgp, name)
+    if _LAZY.get(name) == "bo":
+        from diffaccel.hysteresis import bo
+
+        return getattr(bo, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
+
 
 __all__ = [
     "CONFIG_FILE",
