@@ -127,3 +127,57 @@ def test_stream_reader_chunks_and_checks(tmp_path: Path) -> None:
     only = _write(tmp_path, "current_A\n")
     with pytest.raises(FormatError, match="header only"):
         list(iter_magnet_csv(only, "current_A")[1])
+
+
+@pytest.mark.parametrize(
+    "body",
+    [
+        "".join(f"{i},{0.5 * i},r{i}\n" for i in range(9)),
+        "0,1,a\n\n1,2,b\n 2 , 3 ,c\n3,4,d",  # blank line, spaces, no final newline
+        "0,1,a\r\n1,2,b\r\n2,3,c\r\n",  # CRLF
+        "0,1,a\n1,2,b\n2,3,\"c, quoted\"\n3,4,\"multi\nline\"\n4,5,e\n",
+    ],
+    ids=["plain", "blank-spaces", "crlf", "quoted-late"],
+)
+@pytest.mark.parametrize("chunk", [1, 2, 100])
+def test_stream_reader_rows_equal_the_csv_module(
+    tmp_path: Path, body: str, chunk: int
+) -> None:
+    import csv
+
+    from diffaccel.data import iter_magnet_csv
+
+    p = tmp_path / "m.csv"
+    p.write_bytes(("t,current_A,label\n" + body).encode())
+    whole = read_magnet_csv(p, "current_A", require_output=False)
+    header, chunks = iter_magnet_csv(p, "current_A", chunk_rows=chunk)
+    parts = list(chunks)
+    texts = [t for rows, _ in parts for t in rows]
+    assert header == whole.header
+    assert torch.cat([x for _, x in parts]).tolist() == whole.input.tolist()
+    # the row texts are CSV records holding the original cells
+    assert list(csv.reader(texts)) == whole.rows
+    # dropped columns leave the texts, not the header
+    header, chunks = iter_magnet_csv(p, "current_A", chunk_rows=chunk, drop=["t"])
+    kept = [t for rows, _ in chunks for t in rows]
+    assert list(csv.reader(kept)) == [r[1:] for r in whole.rows]
+
+
+@pytest.mark.parametrize(
+    ("body", "match"),
+    [
+        ("1\n2\n3,4\n", "data row 3 has 2 cells"),
+        ("1\n2\nnan\n", "data row 3: expected a finite number"),
+        ("1\n\n2\nx\n", "data row 3: expected a number; found 'x'"),
+        ("1\n" + "9" * 2000 + "\n", "a cell longer than 1000 characters"),
+    ],
+    ids=["ragged", "nan", "text-after-blank", "long-cell"],
+)
+def test_stream_reader_errors_in_plain_chunks(
+    tmp_path: Path, body: str, match: str
+) -> None:
+    from diffaccel.data import iter_magnet_csv
+
+    p = _write(tmp_path, "current_A\n" + body)
+    with pytest.raises(FormatError, match=match):
+        list(iter_magnet_csv(p, "current_A", chunk_rows=2)[1])

@@ -294,7 +294,9 @@ def predict_command(
         raise click.ClickException(f"cannot load a fit from {fit_dir}: {err}") from err
     in_col = config.get("input_column", DEFAULT_INPUT_COLUMN)
     try:
-        header, chunks = iter_magnet_csv(data, in_col, chunk_rows=chunk_rows)
+        header, chunks = iter_magnet_csv(
+            data, in_col, chunk_rows=chunk_rows, drop=(PREDICTION, PREDICTION_STD)
+        )
     except (OSError, ValueError) as err:
         raise click.ClickException(str(err)) from err
     clash = [c for c in (PREDICTION, PREDICTION_STD) if c in header]
@@ -303,12 +305,11 @@ def predict_command(
             f"{data} already has column(s) {clash}; pass --force to replace them "
             "in the output (the input file is never changed)."
         )
-    keep = [i for i, c in enumerate(header) if c not in clash]
-    out_header = [header[i] for i in keep] + [PREDICTION, PREDICTION_STD]
+    out_header = [c for c in header if c not in clash] + [PREDICTION, PREDICTION_STD]
     stats = {"rows": 0, "finite": True, "min": math.inf, "max": -math.inf}
 
     def write(path: Path) -> None:
-        pending: list[list[list[str]]] = []
+        pending: list[list[str]] = []
 
         def inputs():
             for rows, x in chunks:
@@ -318,23 +319,22 @@ def predict_command(
                 yield x
 
         with open(path, "w", newline="", encoding="utf-8") as f:
-            writer = csv.writer(f, lineterminator="\n")
-            writer.writerow(out_header)
+            csv.writer(f, lineterminator="\n").writerow(out_header)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", InputRangeWarning)  # noted below
                 for pred, std in predict_stream(model, inputs(), band):
                     rows = pending.pop(0)
                     if std is None:
                         std = torch.full_like(pred, math.nan)
-                    if clash:
-                        rows = [[row[i] for i in keep] for row in rows]
-                    # shortest round-trip text of each float
-                    ps = map(repr, pred.tolist())
-                    ss = map(repr, std.tolist())
-                    for row, p, s in zip(rows, ps, ss, strict=True):
-                        row.append(p)
-                        row.append(s)
-                    writer.writerows(rows)
+                    # the prediction as the shortest text that reads back to the
+                    # same float64; its std (float32 sums) to 7 digits
+                    lines = [
+                        f"{row},{p!r},{s:.7g}\n"
+                        for row, p, s in zip(
+                            rows, pred.tolist(), std.tolist(), strict=True
+                        )
+                    ]
+                    f.write("".join(lines))
                     stats["rows"] += len(rows)
                     stats["finite"] &= bool(torch.isfinite(pred).all())
 

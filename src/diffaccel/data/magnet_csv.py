@@ -13,7 +13,7 @@ import csv
 import io
 import itertools
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -213,64 +213,197 @@ def read_magnet_csv(
 
 
 def iter_magnet_csv(
-    path: str | os.PathLike, input_column: str, chunk_rows: int = 50_000
-) -> tuple[list[str], Iterator[tuple[list[list[str]], Tensor]]]:
+    path: str | os.PathLike,
+    input_column: str,
+    chunk_rows: int = 50_000,
+    drop: Sequence[str] = (),
+) -> tuple[list[str], Iterator[tuple[list[str], Tensor]]]:
     """Stream a long magnet CSV: its header and chunks of rows with their inputs.
 
     Checks as :func:`read_magnet_csv` (header and input column up front, each
-    chunk's rows as they arrive), holding one chunk in memory.
+    chunk's rows as they arrive), holding one chunk in memory. Rows come back
+    as CSV text, one string per row without the line end, ready to be written
+    back with more cells appended. Plain files (no quotes, no carriage
+    returns) are split with ``str`` methods and parsed with ``float`` in bulk;
+    a chunk they do not fit (blank lines, bad cells) and everything after a
+    quote or a carriage return go through the ``csv`` module, with the same
+    checks and errors.
 
     Args:
-        path: CSV file with a header row.
+        path: CSV file with a header row (UTF-8, with or without a BOM).
         input_column: Name of the input column.
         chunk_rows: Rows per chunk (>= 1).
+        drop: Columns left out of the returned row texts (not of ``header``).
 
     Returns:
-        ``(header, chunks)``; ``chunks`` yields ``(rows, inputs)`` with the
-        cells as text and the inputs as float64, shape ``(len(rows),)``.
+        ``(header, chunks)``; ``chunks`` yields ``(rows, inputs)``: the rows as
+        CSV text and the inputs as float64, shape ``(len(rows),)``.
 
     Raises:
         FileNotFoundError: if ``path`` does not exist.
         FormatError: as :func:`read_magnet_csv` (raised while iterating for
             problems in data rows).
+
+    Example:
+        >>> import tempfile, pathlib
+        >>> p = pathlib.Path(tempfile.mkdtemp()) / "m.csv"
+        >>> _ = p.write_text("t,current_A\\n0,1.5\\n1,2\\n2,3\\n")
+        >>> header, chunks = iter_magnet_csv(p, "current_A", chunk_rows=2)
+        >>> [(rows, x.tolist()) for rows, x in chunks]
+        [(['0,1.5', '1,2'], [1.5, 2.0]), (['2,3'], [3.0])]
     """
     path_s = str(path)
     if not Path(path).is_file():
         raise FileNotFoundError(f"{path_s}: no such file.")
     if chunk_rows < 1:
         raise ValueError(f"chunk_rows must be >= 1; got {chunk_rows}.")
-    batches = _row_batches(path, chunk_rows)
-    first: list[list[str]] = []
-    for batch in batches:
-        if batch:
-            first = batch
-            break
-    if not first:
-        raise FormatError(f"{path_s}: empty file; expected a header row and data.")
-    header = _header(path_s, first[0])
-    if input_column not in header:
-        raise FormatError(
-            f"{path_s}: no input column {input_column!r}; columns are {header}."
-        )
-    col = header.index(input_column)
+    stream = _stream_chunks(path, input_column, chunk_rows, tuple(drop))
+    header = next(stream)
+    return header, stream
 
-    def chunks() -> Iterator[tuple[list[list[str]], Tensor]]:
-        done = 0
-        for batch in itertools.chain([first[1:]], batches):
-            if not batch:
-                continue
-            for i, row in enumerate(batch):
-                if len(row) != len(header):
-                    raise FormatError(
-                        f"{path_s}: data row {done + i + 1} has {len(row)} cells; "
-                        f"the header has {len(header)}."
-                    )
-            yield batch, _parse_column(batch, col, input_column, path_s, done)
-            done += len(batch)
-        if done == 0:
-            raise FormatError(f"{path_s}: header only; expected at least one data row.")
 
-    return header, chunks()
+def _stream_chunks(
+    path: str | os.PathLike, input_column: str, size: int, drop: tuple[str, ...]
+) -> Iterator:
+    """Generator behind :func:`iter_magnet_csv`: the header, then the chunks."""
+    path_s = str(path)
+    try:
+        with open(path, encoding="utf-8-sig", newline="") as f:
+            header: list[str] = []
+            for line in f:
+                rows = _csv_rows([line], path_s)  # [] for a blank row
+                if rows:
+                    header = _header(path_s, rows[0])
+                    break
+            if not header:
+                raise FormatError(
+                    f"{path_s}: empty file; expected a header row and data."
+                )
+            if input_column not in header:
+                raise FormatError(
+                    f"{path_s}: no input column {input_column!r}; columns are {header}."
+                )
+            col = header.index(input_column)
+            keep = [i for i, c in enumerate(header) if c not in drop]
+            yield header
+            done = 0
+            while True:
+                lines = list(itertools.islice(f, size))
+                if not lines:
+                    break
+                block = "".join(lines)
+                if '"' in block or "\r" in block:
+                    # quoted cells may span lines: the csv module from here on
+                    reader = csv.reader(itertools.chain(lines, f))
+                    for rows in _reader_batches(reader, size, path_s):
+                        texts, x = _parse_rows(rows, header, col, keep, path_s, done)
+                        if texts:
+                            yield texts, x
+                            done += len(texts)
+                    break
+                got = _fast_chunk(block, len(header), col, keep)
+                if got is None:  # something to skip or report: the careful way
+                    rows = _csv_rows(lines, path_s)
+                    got = _parse_rows(rows, header, col, keep, path_s, done)
+                if got[0]:
+                    yield got
+                    done += len(got[0])
+            if done == 0:
+                raise FormatError(
+                    f"{path_s}: header only; expected at least one data row."
+                )
+    except UnicodeDecodeError as err:
+        raise FormatError(f"{path_s}: not UTF-8 text ({err.reason}).") from None
+
+
+def _fast_chunk(
+    block: str, n_cols: int, col: int, keep: list[int]
+) -> tuple[list[str], Tensor] | None:
+    """Rows and inputs of a plain chunk (no quotes), or ``None`` if it is not clean.
+
+    Clean: no blank lines, ``n_cols`` cells per row, no cell (line) longer
+    than ``MAX_CELL_CHARS``, finite numbers in the input column.
+    """
+    texts = block.split("\n")
+    if texts[-1] == "":
+        texts.pop()
+    if max(map(len, texts)) > MAX_CELL_CHARS:
+        return None
+    if n_cols == 1:
+        if "," in block:
+            return None
+        cells = texts
+    else:
+        if block.count(",") != len(texts) * (n_cols - 1) or any(
+            t.count(",") != n_cols - 1 for t in texts
+        ):
+            return None
+        cells = [t.split(",", col + 1)[col] for t in texts]
+    try:
+        x = torch.tensor(list(map(float, cells)), dtype=torch.float64)
+    except ValueError:  # a blank line or a cell that is not a number
+        return None
+    if not bool(torch.isfinite(x).all()):
+        return None
+    if len(keep) < n_cols:
+        texts = [",".join(t.split(",")[i] for i in keep) for t in texts]
+    return texts, x
+
+
+def _csv_rows(lines: Iterable[str], path_s: str) -> list[list[str]]:
+    """Rows of ``lines`` by the ``csv`` module (cells up to ``MAX_CELL_CHARS``)."""
+    return next(_reader_batches(csv.reader(lines), None, path_s), [])
+
+
+def _reader_batches(reader, size: int | None, path_s: str) -> Iterator[list[list[str]]]:
+    """Non-blank rows of a ``csv.reader`` in batches (one batch for ``None``)."""
+    while True:
+        limit = csv.field_size_limit(MAX_CELL_CHARS)
+        try:
+            batch = list(itertools.islice(reader, size))
+        except csv.Error as err:
+            if "field larger than field limit" in str(err):
+                raise FormatError(
+                    f"{path_s}: line {reader.line_num}: a cell longer than "
+                    f"{MAX_CELL_CHARS} characters; not magnet data."
+                ) from None
+            raise FormatError(
+                f"{path_s}: line {reader.line_num}: not valid CSV ({err})."
+            ) from None
+        finally:
+            csv.field_size_limit(limit)
+        if not batch:
+            return
+        yield [r for r in batch if "".join(r).strip()]
+        if size is None:
+            return
+
+
+def _parse_rows(
+    rows: list[list[str]],
+    header: list[str],
+    col: int,
+    keep: list[int],
+    path_s: str,
+    done: int,
+) -> tuple[list[str], Tensor]:
+    """Checked rows of a chunk as CSV text, and their inputs."""
+    for i, row in enumerate(rows):
+        if len(row) != len(header):
+            raise FormatError(
+                f"{path_s}: data row {done + i + 1} has {len(row)} cells; "
+                f"the header has {len(header)}."
+            )
+    x = _parse_column(rows, col, header[col], path_s, done)
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    texts = []
+    for row in rows:
+        writer.writerow([row[i] for i in keep])
+        texts.append(buf.getvalue()[:-1])
+        buf.seek(0)
+        buf.truncate()
+    return texts, x
 
 
 def write_csv_atomic(

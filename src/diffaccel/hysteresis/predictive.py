@@ -31,10 +31,10 @@ from diffaccel.hysteresis.fit import (
 from diffaccel.hysteresis.mesh import PreisachMesh
 from diffaccel.hysteresis.preisach import PreisachModel
 from diffaccel.hysteresis.states import (
+    StreamTable,
     stream_codes,
     stream_final_state,
     stream_sums,
-    stream_table,
 )
 
 __all__ = [
@@ -254,21 +254,23 @@ def predict_stream(
         layout = model._layout
         w = model.weights
         weights = (w / w.sum()).unsqueeze(0)
-        affine = band_w = None
+        mean_table = StreamTable(layout, weights)
+        affine = band_table = None
         if band is not None:
             affine, band_w = band.hysteron_weights(model)
+            # float32 table lookups, one bag of R rows per step
+            band_table = StreamTable(layout, band_w, dtype=torch.float32)
         for chunk in chunks:
             if chunk.numel() == 0:
                 continue
             un = model.normalize_input(chunk)
             code = stream_codes(un.clamp(0.0, 1.0), layout)
-            sums = stream_sums(code, stream_table(layout, weights, state))
+            sums = stream_sums(code, mean_table.update(state))
             y = model.offset + model.slope * un + model.scale * sums
             pred = model.output_loc + model.output_scale * y
             std = None
-            if band is not None:
-                # float32 table lookups, one bag of R rows per step
-                tab = stream_table(layout, band_w, state).to(torch.float32)
+            if band_table is not None:
+                tab = band_table.update(state)
                 bag = F.embedding_bag(code.T.contiguous(), tab, mode="sum")
                 std = model.output_scale * band.std_from_sums(affine, un, bag.T)
             state = stream_final_state(code[:, -1], layout, state)

@@ -40,6 +40,7 @@ from torch import Tensor
 
 __all__ = [
     "RowLayout",
+    "StreamTable",
     "demagnetized_state",
     "exact_magnetization",
     "exact_states",
@@ -357,28 +358,6 @@ def smooth_states(
     return s.reshape(*batch, t, m)
 
 
-def _row_tables(
-    layout: RowLayout, weights: Tensor, initial: Tensor
-) -> tuple[Tensor, Tensor]:
-    """Row sums of weighted states per row situation, shape ``(K, R, U + 1)`` x 2.
-
-    ``signed[k, r, j]``: row ``r`` once reached, its ``j`` lowest beta levels
-    up; ``never[k, r, j]``: never reached, initial states below level ``j``.
-    """
-    n_k = weights.shape[0]
-    below = layout.below.expand(n_k, -1, -1)
-    w_pad = torch.cat([weights, weights.new_zeros(n_k, 1)], dim=1)[:, layout.index]
-    w_cum = F.pad(torch.cumsum(w_pad, dim=-1), (1, 0))  # (K, R, L + 1)
-    w_row = w_cum[..., -1:]
-    w_below = torch.gather(w_cum, 2, below)  # (K, R, U + 1)
-    signed = 2.0 * w_below - w_row
-    init = initial.to(weights.dtype)
-    init_pad = torch.cat([init, init.new_zeros(1)])[layout.index]  # (R, L)
-    s_cum = F.pad(torch.cumsum(w_pad * init_pad, dim=-1), (1, 0))
-    never = torch.gather(s_cum, 2, below) + w_below - w_row
-    return signed, never
-
-
 def stream_codes(u: Tensor, layout: RowLayout) -> Tensor:
     """Situation of every mesh row at every step of one chunk, as table indices.
 
@@ -425,6 +404,52 @@ def stream_codes(u: Tensor, layout: RowLayout) -> Tensor:
     return code.add_((base + n_levels + 1).unsqueeze(1))
 
 
+class StreamTable:
+    """Row sums of weighted states for every code of :func:`stream_codes`.
+
+    ``table[code, k]`` for fixed weight vectors: the part for rows already
+    reached depends on the weights only and is built once; the part for rows
+    not yet reached depends on the states before the chunk and is refreshed by
+    :meth:`update` (cheap: ``O(K M)``).
+
+    Args:
+        layout: :class:`RowLayout` of the hysterons.
+        weights: Weight vectors, shape ``(K, M)``.
+        dtype: dtype of the table (default: that of ``weights``).
+
+    Shapes:
+        :meth:`update` returns ``(R (2 U + 3), K)``.
+    """
+
+    def __init__(
+        self, layout: RowLayout, weights: Tensor, dtype: torch.dtype | None = None
+    ) -> None:
+        n_k = weights.shape[0]
+        n_rows, n_levels = layout.below.shape[0], layout.below.shape[1] - 1
+        self.layout = layout
+        self.below = layout.below.expand(n_k, -1, -1)
+        pad = weights.new_zeros(n_k, 1)
+        self.w_pad = torch.cat([weights, pad], dim=1)[:, layout.index]  # (K, R, L)
+        w_cum = F.pad(torch.cumsum(self.w_pad, dim=-1), (1, 0))  # (K, R, L + 1)
+        w_row = w_cum[..., -1:]
+        w_below = torch.gather(w_cum, 2, self.below)  # (K, R, U + 1)
+        self.w_rest = w_below - w_row
+        signed = 2.0 * w_below - w_row
+        width = 2 * n_levels + 3
+        self.table = weights.new_zeros(n_rows, width, n_k, dtype=dtype or weights.dtype)
+        self.table[:, n_levels + 2 :] = signed.flip(-1).permute(1, 2, 0)
+        self.n_levels = n_levels
+
+    def update(self, initial: Tensor) -> Tensor:
+        """The table for a chunk that starts from states ``initial``, shape ``(M,)``."""
+        init = initial.to(self.w_pad.dtype)
+        init_pad = torch.cat([init, init.new_zeros(1)])[self.layout.index]  # (R, L)
+        s_cum = F.pad(torch.cumsum(self.w_pad * init_pad, dim=-1), (1, 0))
+        never = torch.gather(s_cum, 2, self.below) + self.w_rest
+        self.table[:, : self.n_levels + 1] = never.flip(-1).permute(1, 2, 0)
+        return self.table.view(-1, self.table.shape[2])
+
+
 def stream_table(layout: RowLayout, weights: Tensor, initial: Tensor) -> Tensor:
     """Row sums of weighted states for every code of :func:`stream_codes`.
 
@@ -436,10 +461,7 @@ def stream_table(layout: RowLayout, weights: Tensor, initial: Tensor) -> Tensor:
     Returns:
         ``table[code, k]``, shape ``(R (2 U + 3), K)``, dtype of ``weights``.
     """
-    signed, never = _row_tables(layout, weights, initial)  # (K, R, U + 1) each
-    gap = signed.new_zeros(*signed.shape[:2], 1)
-    tab = torch.cat([never.flip(-1), gap, signed.flip(-1)], dim=2)  # (K, R, W)
-    return tab.reshape(weights.shape[0], -1).T.contiguous()
+    return StreamTable(layout, weights).update(initial)
 
 
 def stream_final_state(last: Tensor, layout: RowLayout, initial: Tensor) -> Tensor:
