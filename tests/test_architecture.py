@@ -165,5 +165,5 @@ def test_command_loader_loads_only_cli_modules() -> None:
     from diffaccel.cli.main import COMMANDS, SUBCOMMANDS
 
     modules = [m for m, _, _ in COMMANDS.values()]
-    modules += [m for subs in SUBCOMMANDS.values() for m, _ in subs]
+    modules += [m for subs in SUBCOMMANDS.values() for m, _, _ in subs.values()]
     assert all(m.startswith("diffaccel.cli.") for m in modules), modules

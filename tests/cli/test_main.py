@@ -50,13 +50,44 @@ def test_command_help_runs(name: str) -> None:
     assert result.output.startswith(f"Usage: main {name} ")
 
 
-def test_subcommands_of_groups_are_attached() -> None:
-    for group, subs in SUBCOMMANDS.items():
-        cmd = load_command(group)
-        assert isinstance(cmd, click.Group)
-        for module, attr in subs:
-            sub = getattr(sys.modules[module], attr)
-            assert cmd.commands[sub.name] is sub
+SUBS = [(g, name) for g, subs in SUBCOMMANDS.items() for name in sorted(subs)]
+
+
+@pytest.mark.parametrize(("group", "name"), SUBS, ids=[f"{g}-{n}" for g, n in SUBS])
+def test_subcommands_load_from_the_table(group: str, name: str) -> None:
+    cmd = load_command(group)
+    assert isinstance(cmd, click.Group)
+    assert cmd.list_commands(click.Context(cmd)) == sorted(SUBCOMMANDS[group])
+    module, attr, help_line = SUBCOMMANDS[group][name]
+    sub = cmd.get_command(click.Context(cmd), name)
+    assert sub is getattr(sys.modules[module], attr)
+    assert sub.name == name
+    assert sub.get_short_help_str(limit=1000) == help_line
+    result = CliRunner().invoke(main, [group, name, "--help"])
+    assert result.exit_code == 0, result.output
+
+
+def test_subcommand_imports_only_its_own_module() -> None:
+    # hysteresis predict streams long files: no plotting, no GP libraries
+    code = (
+        "import sys\n"
+        "from diffaccel.cli.main import main\n"
+        "try:\n"
+        "    main(['hysteresis', 'predict', '--help'])\n"
+        "except SystemExit:\n"
+        "    pass\n"
+        "heavy = sorted({'matplotlib', 'gpytorch', 'botorch'} & set(sys.modules))\n"
+        "cmds = sorted(m for m in sys.modules if m.startswith('diffaccel.cli.'))\n"
+        "print('RESULT', heavy, cmds)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    )
+    expect = (
+        "RESULT [] ['diffaccel.cli.hysteresis', 'diffaccel.cli.hysteresis_predict', "
+        "'diffaccel.cli.main']"
+    )
+    assert expect in out.stdout, out.stdout
 
 
 def test_unknown_command_is_a_usage_error() -> None:

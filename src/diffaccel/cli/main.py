@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import importlib
 import logging
+from typing import Any
 
 import click
 
@@ -45,23 +46,53 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "Simulate a quadrupole scan of a known beam and write it to OUT (HDF5).",
     ),
 }
-#: group name -> subcommands defined in other modules, as (module, attribute)
-SUBCOMMANDS: dict[str, list[tuple[str, str]]] = {
-    "hysteresis": [("diffaccel.cli.hysteresis_gp", "gp_fit")],
+#: group name -> its subcommands, each (module, attribute, one-line help); a
+#: subcommand's module is imported only when it runs (``hysteresis predict``
+#: must not pay for the plotting of ``fit`` or the GP libraries of ``gp-fit``)
+SUBCOMMANDS: dict[str, dict[str, tuple[str, str, str]]] = {
+    "hysteresis": {
+        "fit": (
+            "diffaccel.cli.hysteresis_fit",
+            "fit_command",
+            "Fit a Preisach model to the first N rows of DATA (CSV) and test on "
+            "the rest.",
+        ),
+        "gp-fit": (
+            "diffaccel.cli.hysteresis_gp",
+            "gp_fit",
+            "Fit a joint hysteresis GP (Preisach state -> response) to DATA.csv.",
+        ),
+        "predict": (
+            "diffaccel.cli.hysteresis_predict",
+            "predict_command",
+            "Predict every row of a CSV (streamed), from the fit's initial state.",
+        ),
+    },
 }
+
+
+def _import(module: str, attr: str) -> click.Command:
+    return getattr(importlib.import_module(module), attr)
 
 
 def load_command(name: str) -> click.Command:
     """Import the module of command ``name`` and return the command.
 
-    Only ``cli`` modules are loaded this way (the leaf room: nothing imports it,
-    so deferring these imports cannot hide an import cycle).
+    A group in ``SUBCOMMANDS`` comes back as a lazy group: its subcommands are
+    listed from the table and imported when they run. Only ``cli`` modules are
+    loaded this way (the leaf room: nothing imports it, so deferring these
+    imports cannot hide an import cycle).
     """
     module, attr, _ = COMMANDS[name]
-    cmd = getattr(importlib.import_module(module), attr)
-    for sub_module, sub_attr in SUBCOMMANDS.get(name, []):
-        sub = getattr(importlib.import_module(sub_module), sub_attr)
-        cmd.add_command(sub)
+    cmd = _import(module, attr)
+    if name in SUBCOMMANDS and not isinstance(cmd, _LazyGroup):
+        cmd = _LazyGroup(
+            name=cmd.name,
+            callback=cmd.callback,
+            params=cmd.params,
+            help=cmd.help,
+            table=SUBCOMMANDS[name],
+        )
     return cmd
 
 
@@ -71,16 +102,30 @@ def _short_help(text: str, limit: int) -> str:
 
 
 class _LazyGroup(click.Group):
-    """A click group whose commands are imported when they are invoked."""
+    """A click group whose commands are imported when they are invoked.
+
+    ``table`` maps command names to ``(module, attribute, help)``; the top
+    level uses ``COMMANDS`` (and :func:`load_command`, which makes groups lazy
+    too).
+    """
+
+    def __init__(
+        self, *args: Any, table: dict[str, tuple[str, str, str]] | None = None, **kw
+    ) -> None:
+        super().__init__(*args, **kw)
+        self.table = COMMANDS if table is None else table
 
     def list_commands(self, ctx: click.Context) -> list[str]:
-        return sorted(COMMANDS)
+        return sorted(self.table)
 
     def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
-        if cmd_name not in COMMANDS:
+        if cmd_name not in self.table:
             return None
         if cmd_name not in self.commands:
-            self.commands[cmd_name] = load_command(cmd_name)
+            if self.table is COMMANDS:
+                self.commands[cmd_name] = load_command(cmd_name)
+            else:
+                self.commands[cmd_name] = _import(*self.table[cmd_name][:2])
         return self.commands[cmd_name]
 
     def invoke(self, ctx: click.Context) -> object:
@@ -111,7 +156,7 @@ class _LazyGroup(click.Group):
         # (same truncation as click.Group.format_commands)
         names = self.list_commands(ctx)
         limit = formatter.width - 6 - max(len(n) for n in names)
-        rows = [(n, _short_help(COMMANDS[n][2], limit)) for n in names]
+        rows = [(n, _short_help(self.table[n][2], limit)) for n in names]
         with formatter.section("Commands"):
             formatter.write_dl(rows)
 

@@ -1,0 +1,234 @@
+"""``diffaccel hysteresis fit``: fit a Preisach model to a magnet history."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import click
+import torch
+from tqdm import tqdm
+
+from diffaccel.cli.output import output_folder, save_png
+from diffaccel.data import (
+    DEFAULT_INPUT_COLUMN,
+    DEFAULT_OUTPUT_COLUMN,
+    atomic_write_json,
+    read_magnet_csv,
+)
+from diffaccel.hysteresis import (
+    CONFIG_FILE,
+    MODEL_FILE,
+    InputRangeWarning,
+    fit_magnet,
+    save_fit,
+)
+from diffaccel.hysteresis.predictive import rms
+from diffaccel.plotting.hysteresis import plot_preisach_density, plot_preisach_fit
+
+__all__ = ["fit_command"]
+
+SUMMARY_FILE = "summary.json"
+FIGURES = ("fit.png", "density.png")
+
+
+@click.command("fit")
+@click.argument("data", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option(
+    "--train-rows",
+    type=click.IntRange(min=1),
+    required=True,
+    help="Fit on the first N rows (time order); the rest are predicted.",
+)
+@click.option("--input", "input_col", default=DEFAULT_INPUT_COLUMN, show_default=True)
+@click.option(
+    "--output", "output_col", default=DEFAULT_OUTPUT_COLUMN, show_default=True
+)
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    required=True,
+    help="Folder for summary.json, model.pt, model.json and figures.",
+)
+@click.option(
+    "--mesh-size",
+    type=click.IntRange(min=2),
+    default=20,
+    show_default=True,
+    help="Cells per axis of the triangular Preisach mesh (20: 210 hysterons; "
+    "chosen on validation rows held out of the training rows, see "
+    "benchmarks/preisach_acceptance.py).",
+)
+@click.option(
+    "--symmetric/--no-symmetric",
+    default=None,
+    help="Density symmetric about the centre of the input range, "
+    "mu(a, b) = mu(-b, -a). Default: symmetric when the range is centred on 0 "
+    "(bipolar magnets, B-H loops).",
+)
+@click.option(
+    "--smoothness",
+    type=click.FloatRange(min=0),
+    default=0.0,
+    show_default=True,
+    help="Weight of the density roughness penalty.",
+)
+@click.option("--steps", type=click.IntRange(min=1), default=300, show_default=True)
+@click.option(
+    "--initial-state",
+    type=click.Choice(["negative", "positive", "demagnetized", "learned"]),
+    default="negative",
+    show_default=True,
+    help="Magnet state before the first row (demagnetized: a virgin curve; "
+    "its input range is then centred on 0).",
+)
+@click.option(
+    "--input-range",
+    type=(float, float),
+    default=None,
+    help="Model input range LO HI [input units]; default: training rows +- 1 % "
+    "(+- 1.01 max|input| for --initial-state demagnetized).",
+)
+@click.option("--no-figures", is_flag=True, help="Skip fit.png and density.png.")
+@click.option(
+    "--force", is_flag=True, help="Replace an earlier fit in OUT (at the end)."
+)
+def fit_command(
+    data: Path,
+    train_rows: int,
+    input_col: str,
+    output_col: str,
+    out_dir: Path,
+    mesh_size: int,
+    symmetric: bool | None,
+    smoothness: float,
+    steps: int,
+    initial_state: str,
+    input_range: tuple[float, float] | None,
+    no_figures: bool,
+    force: bool,
+) -> None:
+    """Fit a Preisach model to the first N rows of DATA (CSV) and test on the rest."""
+    try:
+        hist = read_magnet_csv(data, input_col, output_col)
+    except (OSError, ValueError) as err:
+        raise click.ClickException(str(err)) from err
+    if train_rows > len(hist):
+        raise click.BadParameter(
+            f"{train_rows} exceeds the {len(hist)} rows of {data}.",
+            param_hint="--train-rows",
+        )
+    with output_folder(
+        out_dir,
+        "hysteresis fit",
+        force=force,
+        owned=(SUMMARY_FILE, MODEL_FILE, CONFIG_FILE, *FIGURES),
+        inputs=[data],
+    ) as folder:
+        u, y = hist.input, hist.output
+        u_tr, y_tr = u[:train_rows], y[:train_rows]
+        try:
+            with tqdm(desc="fit", unit="eval", leave=False) as bar:
+
+                def progress(step: int, loss: float) -> None:
+                    bar.update(1)
+                    bar.set_postfix(loss=f"{loss:.3g}", refresh=False)
+
+                fit = fit_magnet(
+                    u_tr,
+                    y_tr,
+                    mesh_size=mesh_size,
+                    symmetric=symmetric,
+                    initial_state=initial_state,
+                    input_range=input_range,
+                    steps=steps,
+                    smoothness=smoothness,
+                    callback=progress,
+                )
+            model = fit.model
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", InputRangeWarning)
+                with torch.no_grad():
+                    pred = model(u)
+                    std = fit.band.std(model, u)
+        except ValueError as err:
+            raise click.ClickException(str(err)) from err
+        notes = [str(w.message) for w in caught if w.category is InputRangeWarning]
+        span = float(y_tr.max() - y_tr.min())
+        n_te = len(hist) - train_rows
+        resid = pred - y
+        train_rmse = rms(resid[:train_rows])
+        test_rmse = rms(resid[train_rows:]) if n_te else None
+        basis = torch.stack([torch.ones_like(u), u], dim=1)
+        coef = torch.linalg.lstsq(basis[:train_rows], y_tr[:, None]).solution
+        line_rmse = rms((basis @ coef).squeeze(1)[train_rows:] - y[train_rows:])
+        inside = (resid[train_rows:].abs() <= 2.0 * std[train_rows:]).double()
+
+        def pct(v: float | None) -> float | None:
+            return None if v is None else 100.0 * v / span
+
+        summary = {
+            "data": str(data),
+            "input_column": input_col,
+            "output_column": output_col,
+            "rows": len(hist),
+            "train_rows": train_rows,
+            "test_rows": n_te,
+            "output_range": span,
+            "output_range_rows": "training",
+            "train_rmse": train_rmse,
+            "train_rmse_percent": pct(train_rmse),
+            "test_rmse": test_rmse,
+            "test_rmse_percent": pct(test_rmse),
+            "straight_line_test_rmse": line_rmse if n_te else None,
+            "test_inside_2std": float(inside.mean()) if n_te else None,
+            "test_mean_std": float(std[train_rows:].mean()) if n_te else None,
+            "fit_seconds": fit.seconds,
+            "steps": fit.result.steps,
+            "mesh_size": mesh_size,
+            "n_hysterons": int(model.alpha.numel()),
+            "symmetric": fit.symmetric,
+            "band_calibration": fit.calibration,
+            "band_directions": int(fit.band.directions.shape[0]),
+            "validation": fit.validation,
+            "smoothness": smoothness,
+            "initial_state": initial_state,
+            "input_range": list(model.input_range),
+            "notes": notes,
+        }
+        save_fit(
+            folder.path,
+            model,
+            fit.band,
+            extra={"input_column": input_col, "output_column": output_col},
+        )
+        if not no_figures:
+            fig = plot_preisach_fit(
+                model,
+                u,
+                y,
+                n_train=train_rows,
+                std=std,
+                input_label=input_col,
+                output_label=output_col,
+            )
+            save_png(fig, folder.path / "fit.png")
+            fig = plot_preisach_density(model, input_label=input_col)
+            save_png(fig, folder.path / "density.png")
+        atomic_write_json(folder.path / SUMMARY_FILE, summary)
+    for note in notes:
+        click.echo(f"note: {note}", err=True)
+    test_txt = (
+        "n/a"
+        if test_rmse is None
+        else f"{test_rmse:.4g} ({pct(test_rmse):.3f} %; straight line "
+        f"{pct(line_rmse):.3f} %), {100 * float(inside.mean()):.0f} % of them "
+        "inside 2 std"
+    )
+    click.echo(
+        f"fit {train_rows} rows in {fit.seconds:.2f} s (symmetric {fit.symmetric}): "
+        f"train rmse {train_rmse:.4g} ({pct(train_rmse):.3f} %), held-out rmse "
+        f"{test_txt}; percentages of the training output range {span:.4g}; "
+        f"wrote {out_dir}"
+    )
