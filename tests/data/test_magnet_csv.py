@@ -135,7 +135,7 @@ def test_stream_reader_chunks_and_checks(tmp_path: Path) -> None:
         "".join(f"{i},{0.5 * i},r{i}\n" for i in range(9)),
         "0,1,a\n\n1,2,b\n 2 , 3 ,c\n3,4,d",  # blank line, spaces, no final newline
         "0,1,a\r\n1,2,b\r\n2,3,c\r\n",  # CRLF
-        "0,1,a\n1,2,b\n2,3,\"c, quoted\"\n3,4,\"multi\nline\"\n4,5,e\n",
+        '0,1,a\n1,2,b\n2,3,"c, quoted"\n3,4,"multi\nline"\n4,5,e\n',
     ],
     ids=["plain", "blank-spaces", "crlf", "quoted-late"],
 )
@@ -181,3 +181,38 @@ def test_stream_reader_errors_in_plain_chunks(
     p = _write(tmp_path, "current_A\n" + body)
     with pytest.raises(FormatError, match=match):
         list(iter_magnet_csv(p, "current_A", chunk_rows=2)[1])
+
+
+def test_append_columns_formats_in_bulk_like_format() -> None:
+    from diffaccel.data import append_columns
+
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(2000, generator=gen, dtype=torch.float64)
+    x = x * torch.exp(10.0 * torch.randn(2000, generator=gen, dtype=torch.float64))
+    x[:4] = torch.tensor([0.0, -0.0, 9.99999999999999999e2, -1e-99])
+    s = torch.rand(2000, generator=gen, dtype=torch.float64)
+    rows = [f'r{i},"q, {i}"' for i in range(2000)]
+    text = append_columns(rows, [x, s], [15, 7])
+    lines = text.split("\n")
+    assert lines[-1] == "" and len(lines) == 2001
+    cells = [line.rsplit(",", 2) for line in lines[:-1]]
+    assert [c[0] for c in cells] == rows
+    got_x = torch.tensor([float(c[1]) for c in cells], dtype=torch.float64)
+    got_s = torch.tensor([float(c[2]) for c in cells], dtype=torch.float64)
+    # 15 significant digits: within one unit of the last one (1e-14 relative)
+    assert ((got_x - x).abs() <= 1e-14 * x.abs()).all()
+    assert ((got_s - s).abs() <= 1e-6 * s).all()  # 7 digits
+    # the same text as Python's format where that rounds the same way
+    same = [c[1] == f"{v:.14e}" for c, v in zip(cells, x.tolist(), strict=True)]
+    assert sum(same) > 0.9 * len(same)
+    assert cells[0][1] == "0.00000000000000e+00" and cells[2][1].startswith("1.0")
+    assert [c[2] for c in cells[:3]] == [f"{v:.6e}" for v in s[:3].tolist()]
+
+
+def test_append_columns_falls_back_for_nonfinite_and_huge() -> None:
+    from diffaccel.data import append_columns
+
+    x = torch.tensor([1.0, float("nan"), -float("inf"), 1e200], dtype=torch.float64)
+    text = append_columns(["a", "b", "c", "d"], [x], [3])
+    assert text == "a,1.00e+00\nb,nan\nc,-inf\nd,1.00e+200\n"
+    assert append_columns([], [x[:0]], [3]) == ""

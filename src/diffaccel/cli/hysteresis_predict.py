@@ -16,6 +16,7 @@ import torch
 
 from diffaccel.data import (
     DEFAULT_INPUT_COLUMN,
+    append_columns,
     atomic_write,
     iter_magnet_csv,
 )
@@ -106,15 +107,9 @@ def predict_command(
                     rows = pending.pop(0)
                     if std is None:
                         std = torch.full_like(pred, math.nan)
-                    # the prediction as the shortest text that reads back to the
-                    # same float64; its std (float32 sums) to 7 digits
-                    lines = [
-                        f"{row},{p!r},{s:.7g}\n"
-                        for row, p, s in zip(
-                            rows, pred.tolist(), std.tolist(), strict=True
-                        )
-                    ]
-                    f.write("".join(lines))
+                    # 15 significant digits (all a float64 keeps in decimal);
+                    # the std (float32 sums) to 7
+                    f.write(append_columns(rows, [pred, std], [15, 7]))
                     stats["rows"] += len(rows)
                     stats["finite"] &= bool(torch.isfinite(pred).all())
 
