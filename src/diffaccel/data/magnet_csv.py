@@ -494,8 +494,12 @@ def _scientific(x: np.ndarray, digits: int) -> tuple[np.ndarray, np.ndarray] | N
     if (np.abs(e) > 99).any():
         return None
     n = x.shape[0]
-    powers = 10 ** np.arange(digits - 1, -1, -1, dtype=np.int64)
-    digit = (d.astype(np.int64)[:, None] // powers) % 10 + ord("0")
+    # digits of d < 10^15 from two int32 halves (int64 division is slow)
+    d64 = d.astype(np.int64)
+    halves = [(d64 // 10**8).astype(np.int32), (d64 % 10**8).astype(np.int32)]
+    powers = 10 ** np.arange(7, -1, -1, dtype=np.int32)
+    digit = np.concatenate([(h[:, None] // powers) % 10 for h in halves], axis=1)
+    digit = digit[:, 16 - digits :] + ord("0")
     mat = np.empty((n, digits + 7), dtype=np.uint32)
     mat[:, 0] = ord(",")
     mat[:, 1] = ord("-")
