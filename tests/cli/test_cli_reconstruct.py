@@ -81,6 +81,25 @@ def test_reconstruct_writes_summary_ensemble_figures(result_dir: Path) -> None:
         assert (result_dir / name).exists(), name
 
 
+def test_summary_std_is_calibrated_unless_no_uncertainty(
+    scan_file: Path, result_dir: Path, tmp_path: Path
+) -> None:
+    on = json.loads((result_dir / "summary.json").read_text())
+    assert on["uncertainty"]["method"].startswith("moment-space")
+    assert on["moments"]["rms"]["std_posterior"] is not None
+    assert "image_spread" in on["timings_s"]  # the figures drew the spread
+    out = tmp_path / "out"
+    args = ["reconstruct", str(scan_file), "--out", str(out), "--no-uncertainty"]
+    r = CliRunner().invoke(main, [*args, "--train-indices=even", *FAST])
+    assert r.exit_code == 0, r.output
+    off = json.loads((out / "summary.json").read_text())
+    assert off["uncertainty"] is None
+    assert off["moments"]["rms"]["std_posterior"] is None
+    assert off["moments"]["rms"]["std"] == off["moments"]["rms"]["std_ensemble"]
+    assert "ensemble members only" in off["uncertainty_note"]
+    assert "image_spread" not in off["timings_s"]
+
+
 def test_refuses_non_empty_out(scan_file: Path, result_dir: Path) -> None:
     r = CliRunner().invoke(
         main, ["reconstruct", str(scan_file), "--out", str(result_dir)]
@@ -135,6 +154,19 @@ def test_predict_on_another_dataset_and_settings(
     )
     assert r.exit_code == 0, r.output
     assert np.load(out2).shape == (2, 24, 24)
+    # the per-pixel spread, on the unit-sum scale of the images
+    std = tmp_path / "std.npy"
+    r = CliRunner().invoke(
+        main, [*args[:-2], "--particles", "1000", "--force", "--std-out", str(std)]
+    )
+    assert r.exit_code == 0, r.output
+    spread = np.load(std)
+    assert spread.shape == (3, 16, 20) and spread.dtype == np.float32
+    assert spread.min() >= 0 and 0 < spread.max() < np.load(out).max()
+    r = CliRunner().invoke(
+        main, [*args, "--force", "--std-out", str(tmp_path / "s.txt")]
+    )
+    assert r.exit_code != 0 and "--std-out" in r.output
 
 
 def _snapshots(out: Path) -> list[dict]:
@@ -354,6 +386,16 @@ def test_reconstruct_and_predict_version_2(two_scan_file: Path, tmp_path) -> Non
     # several scans do not fit one .npy array: a clear error
     r = CliRunner().invoke(main, [*args[:-1], str(tmp_path / "p.npy")])
     assert r.exit_code == 1 and "holds 2 scans" in r.output
+    # the spread of every scan: one array per scan name
+    std = tmp_path / "std.npz"
+    r = CliRunner().invoke(
+        main, [*args, "--particles", "1000", "--force", "--std-out", str(std)]
+    )
+    assert r.exit_code == 0, r.output
+    with np.load(std) as spread:
+        assert sorted(spread.files) == sorted(want.names)
+        for name, scan in want:
+            assert spread[name].shape == (scan.n_settings, *scan.screen_shape)
 
 
 def test_predict_h5_of_a_version_1_file_is_version_1(

@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import copy
+
 import pytest
 import torch
 
@@ -52,11 +54,41 @@ def test_posterior_identifies_the_constrained_directions_exactly() -> None:
     assert float(cov[0, 2]) == pytest.approx(0.0, abs=1e-15)
     # two fitted parameters: dof = n - 2 up to the prior's 1e-3 / 1e6 pull
     assert float(dof[0]) == pytest.approx(n - 2, abs=1e-6)
-    # residuals are taken at the reconstruction (delta = 0), not refitted
-    r_want = float((noise.square().sum() / (n - 2)).sqrt())
+    # the error scale is the rms of what the fit leaves: each half's noise
+    # about its own mean (the fitted shift), over n - 2 degrees of freedom
+    left = torch.cat(
+        [
+            noise[: n // 2] - noise[: n // 2].mean(),
+            noise[n // 2 :] - noise[n // 2 :].mean(),
+        ]
+    )
+    r_want = float((left.square().sum() / (n - 2)).sqrt())
     assert float(r[0]) == pytest.approx(r_want, rel=1e-6)
     assert float(cov[0, 0]) == pytest.approx(r_want**2 / (n // 2), rel=1e-6)
     assert float(shift[0]) == pytest.approx(float(noise[: n // 2].mean()), rel=1e-6)
+
+
+def test_a_systematic_offset_is_bias_not_noise() -> None:
+    # Residuals = a parameter shift the design explains + small noise (a
+    # reconstruction that is 3 % too large everywhere). The error scale must be
+    # the noise's, the shift must be recovered; counting the offset as noise
+    # (fitted_residuals=False) inflates the scale ~ offset / noise times.
+    g = torch.Generator().manual_seed(3)
+    n = 60
+    a = torch.randn(n, 3, generator=g, dtype=F64)
+    delta = torch.tensor([0.03, -0.02, 0.01], dtype=F64)
+    noise = 1e-4 * torch.randn(n, generator=g, dtype=F64)
+    prior = torch.ones(3, dtype=F64)
+    _, shift, r, _ = linear_posterior(
+        a, a @ delta + noise, torch.ones(n, dtype=F64), prior
+    )
+    # r estimates the noise std 1e-4 from 57 dof: within ~3/sqrt(2*57) = 30 %
+    assert float(r[0]) == pytest.approx(1e-4, rel=0.3)
+    torch.testing.assert_close(shift, delta, rtol=0, atol=1e-4)
+    _, _, r_raw, _ = linear_posterior(
+        a, a @ delta + noise, torch.ones(n, dtype=F64), prior, fitted_residuals=False
+    )
+    assert float(r_raw[0]) > 50 * float(r[0])
 
 
 def test_thin_quad_scan_cannot_see_one_cross_term() -> None:
@@ -171,3 +203,23 @@ def test_predict_images_returns_a_per_pixel_spread(six_d, small_scan) -> None:
     assert torch.equal(mean, plain)
     assert std.shape == mean.shape
     assert float(std.min()) >= 0 and float(std.max()) > 0
+
+
+def test_image_spread_has_no_shot_noise_from_the_draws(six_d, small_scan) -> None:
+    # With a posterior of zero width every draw is the member itself: the
+    # draws of a member share particles, so the spread must equal the
+    # ensemble-only spread (not grow by the draws' shot noise).
+    s = small_scan.settings[:2]
+    _, with_draws = six_d.predict_images(s, n_particles=2000, return_std=True)
+    _, members = six_d.predict_images(s, n_particles=2000, return_std=True, n_draws=0)
+    assert float((with_draws - members).min()) >= -1e-7
+    assert float(with_draws.max()) > float(members.max())  # the posterior widens
+    flat = copy.copy(six_d)
+    flat.info = dict(six_d.info)
+    unc = six_d.uncertainty
+    unc.theta_cov = torch.zeros_like(unc.theta_cov)
+    unc.centroid_cov = torch.zeros_like(unc.centroid_cov)
+    flat.info["uncertainty"] = unc.to_dict()
+    _, zero = flat.predict_images(s, n_particles=2000, return_std=True)
+    # float32 images of ~1e-2 per pixel; the recolouring maps round-trip to ~1e-6
+    torch.testing.assert_close(zero, members, rtol=0, atol=2e-5)

@@ -62,13 +62,15 @@ def write_figures(
     summary: dict[str, Any],
     out: Path,
     predicted: dict[str, torch.Tensor],
+    predicted_std: dict[str, torch.Tensor] | None = None,
 ) -> list[Path]:
     """Write the PNG figures into ``out``; returns their paths.
 
     ``phase_space.png`` (corner plot, truth overlaid when known),
     ``training.png``, ``rms_evolution.png`` and one measured-vs-predicted image
     grid per scan: ``images.png`` for a single scan, ``images_<scan>.png``
-    otherwise (held-out settings marked).
+    otherwise (held-out settings marked; with ``predicted_std`` a fourth row
+    shows the per-pixel spread of the prediction).
     """
     figs = {
         "phase_space.png": plot_corner(result, dataset.ground_truth),
@@ -87,6 +89,7 @@ def write_figures(
             extent=fwd.extent_mm(),
             held_out=[i not in train for i in range(scan.n_settings)],
             title=f"scan {name!r}" if len(dataset) > 1 else "",
+            predicted_std=None if predicted_std is None else predicted_std[name],
         )
     paths = []
     for name, fig in figs.items():
@@ -246,6 +249,7 @@ def run_reconstruction(
     resume: bool,
     figures: bool = True,
     distributed: bool = False,
+    uncertainty: bool = True,
 ) -> dict[str, Any]:
     """Reconstruct, then write ensemble, summary.json, particles and figures.
 
@@ -253,7 +257,9 @@ def run_reconstruction(
     :func:`~diffaccel.cli.output.output_folder`), including the checkpoint.
     With ``distributed`` (an initialised ``torch.distributed`` group) every
     process trains its share of the particles and only process 0 writes; the
-    others return an empty dict.
+    others return an empty dict. ``uncertainty``: attach the moment-space
+    posterior (calibrated ``std`` in summary.json, per-pixel spread in the
+    image figures); without it ``std`` is the ensemble scatter only.
     """
     writer = not distributed or tdist.get_rank() == 0
     t0 = time.perf_counter()
@@ -281,6 +287,7 @@ def run_reconstruction(
             callback=callback,
             device=device,
             distributed=distributed,
+            uncertainty=uncertainty,
         )
     except (ValueError, FloatingPointError) as err:
         raise click.ClickException(str(err)) from err
@@ -291,7 +298,13 @@ def run_reconstruction(
     t_train = time.perf_counter() - t0
     result.info["dataset"] = str(dataset_path)
     result.save(folder, overwrite=True)
-    predicted = predict_dataset(result, ds)
+    spread = None
+    if figures and uncertainty:
+        t_std = time.perf_counter()
+        predicted, spread = predict_dataset(result, ds, return_std=True)
+        result.info["timings_s"]["image_spread"] = time.perf_counter() - t_std
+    else:
+        predicted = predict_dataset(result, ds)
     summary = evaluate(result, ds, train_indices=selection, predicted=predicted)
     summary["dataset"] = str(dataset_path)
     parts = write_openpmd_particles(
@@ -304,7 +317,8 @@ def run_reconstruction(
     summary["particles_file"] = parts.name
     if figures:
         summary["figures"] = [
-            p.name for p in write_figures(result, ds, summary, folder, predicted)
+            p.name
+            for p in write_figures(result, ds, summary, folder, predicted, spread)
         ]
     summary["timings_s"]["total_wall"] = time.perf_counter() - t0
     summary["timings_s"]["reconstruct_wall"] = t_train
@@ -377,6 +391,14 @@ def run_reconstruction(
 )
 @click.option("--no-figures", is_flag=True, help="Skip the PNG figures.")
 @click.option(
+    "--uncertainty/--no-uncertainty",
+    default=True,
+    show_default=True,
+    help="Calibrated moment std (moment-space posterior, see docs/uncertainty.md) "
+    "and the per-pixel spread in the image figures; --no-uncertainty reports "
+    "the ensemble scatter only (faster, under-covers).",
+)
+@click.option(
     "--force", is_flag=True, help="Replace an earlier result in --out (at the end)."
 )
 @click.option(
@@ -405,6 +427,7 @@ def reconstruct_command(
     image_loss: str,
     blur: float | None,
     no_figures: bool,
+    uncertainty: bool,
     force: bool,
     resume: bool,
     distributed: bool,
@@ -477,6 +500,7 @@ def reconstruct_command(
                 resume,
                 figures=not no_figures,
                 distributed=distributed,
+                uncertainty=uncertainty,
             )
     except (KeyboardInterrupt, click.ClickException):
         if (partial_folder(out) / CHECKPOINT).is_file():
@@ -502,6 +526,26 @@ def reconstruct_command(
             "not constrained by the scan: "
             + ", ".join(summary["unconstrained_coordinates"])
         )
+
+
+def _write_spread(path: Path, spread: dict[str, torch.Tensor]) -> None:
+    """Per-pixel spreads as .npy (one scan) or .npz (one array per scan), atomically."""
+    arrays = {k: v.detach().cpu().numpy().astype(np.float32) for k, v in spread.items()}
+    if path.suffix.lower() == ".npy" and len(arrays) != 1:
+        raise click.ClickException(
+            f"--std-out {path}: {len(arrays)} scans; write them to an .npz file"
+        )
+    path.parent.mkdir(parents=True, exist_ok=True)
+
+    def _save(p: Path) -> None:
+        with p.open("wb") as f:
+            if path.suffix.lower() == ".npy":
+                np.save(f, next(iter(arrays.values())))
+            else:
+                np.savez(f, **arrays)
+
+    atomic_write(path, _save)
+    click.echo(f"wrote {path}: per-pixel spread of {len(arrays)} scan(s)")
 
 
 def parse_settings(text: str, names: list[str]) -> torch.Tensor:
@@ -572,7 +616,16 @@ def parse_settings(text: str, names: list[str]) -> torch.Tensor:
     help="Particles per ensemble member.",
 )
 @click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--force", is_flag=True, help="Overwrite --out.")
+@click.option(
+    "--std-out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Also write the per-pixel spread (1-sigma) of the predicted images, on "
+    "their unit-sum scale: .npy (K, H, W) float32 for one scan, or .npz with one "
+    "such array per scan name (ensemble scatter and the moment-space posterior; "
+    "see docs/uncertainty.md).",
+)
+@click.option("--force", is_flag=True, help="Overwrite --out (and --std-out).")
 def predict(
     result_dir: Path,
     dataset_path: Path | None,
@@ -580,11 +633,20 @@ def predict(
     out: Path,
     particles: int,
     seed: int,
+    std_out: Path | None,
     force: bool,
 ) -> None:
     """Ensemble-mean screen images of a reconstruction (RESULT_DIR) for new settings."""
-    if out.exists() and not force:
-        raise click.ClickException(f"{out} exists; pass --force to overwrite it")
+    for path in (out, std_out):
+        if path is not None and path.exists() and not force:
+            raise click.ClickException(f"{path} exists; pass --force to overwrite it")
+    if std_out is not None:
+        if std_out.suffix.lower() not in (".npy", ".npz"):
+            raise click.ClickException(
+                f"--std-out {std_out}: expected a .npy (one scan) or .npz file name"
+            )
+        if std_out.resolve() == out.resolve():
+            raise click.ClickException("--std-out and --out are the same file")
     if dataset_path is not None and out.resolve() == dataset_path.resolve():
         raise click.ClickException(
             f"--out {out} is the --dataset file; write the predictions elsewhere."
@@ -601,17 +663,30 @@ def predict(
             "--out .h5 needs --dataset (the file whose settings and screens to "
             "predict); with --settings write .npy"
         )
+    want_std = std_out is not None
     try:
         result = load(result_dir)
         if dataset_path is not None:
             other = read_scans(dataset_path)
-            predicted = predict_dataset(result, other, n_particles=particles, seed=seed)
+            predicted = predict_dataset(
+                result, other, n_particles=particles, seed=seed, return_std=want_std
+            )
+            if want_std:
+                predicted, spread = predicted
         else:
             fwd = result.forward
             settings = parse_settings(settings_text, fwd.names)
             images = result.predict_images(
-                settings, forward=fwd, n_particles=particles, seed=seed
+                settings,
+                forward=fwd,
+                n_particles=particles,
+                seed=seed,
+                return_std=want_std,
+                n_draws=4,
             )
+            if want_std:
+                images, std = images
+                spread = {result.scan_names[0]: std}
             check_on_screen(images, settings)
     except (FormatError, ValueError, FileNotFoundError, OSError) as err:
         raise click.ClickException(str(err)) from err
@@ -637,6 +712,8 @@ def predict(
         atomic_write(out, _save)
         k, h, w = images.shape
         click.echo(f"wrote {out}: {k} images of {h} x {w} pixels")
+        if std_out is not None:
+            _write_spread(std_out, spread)
         return
     try:
         written = write_scans(
@@ -651,3 +728,5 @@ def predict(
         f"wrote {written}: {n} predicted images in {len(predicted)} scan(s) "
         f"(format version {other.format_version})"
     )
+    if std_out is not None:
+        _write_spread(std_out, spread)

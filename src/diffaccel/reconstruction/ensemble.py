@@ -168,6 +168,7 @@ class Reconstruction:
         seed: int = 0,
         return_std: bool = False,
         n_draws: int = 8,
+        draw_particles: int = 10_000,
     ) -> Tensor | tuple[Tensor, Tensor]:
         """Ensemble-mean screen images for arbitrary settings.
 
@@ -187,8 +188,13 @@ class Reconstruction:
                 members and, when the reconstruction carries a moment-space
                 posterior (:attr:`uncertainty`), over ``n_draws`` posterior
                 beams per member (each member's particles linearly mapped to a
-                drawn centroid and covariance).
+                drawn centroid and covariance), combined as the variance of
+                the mixture (between members plus the mean within-member
+                variance over draws).
             n_draws: Posterior beams per member for ``return_std``.
+            draw_particles: Particles of each member imaged per posterior
+                draw (the first ones of its sample: the draws of a member share
+                them, so their shot noise cancels in the spread).
 
         Shapes:
             ``settings (K, P)`` -> ``(K, H, W)`` float32, each image summing to 1
@@ -214,17 +220,19 @@ class Reconstruction:
             imgs = _unit_sum(torch.stack([fwd.images(b, settings) for b in beams]))
             if not return_std:
                 return imgs if per_snapshot else imgs.mean(0)
-            spread = [imgs]
+            var = imgs.var(0) if len(beams) > 1 else torch.zeros_like(imgs[0])
             unc = self.uncertainty
-            if unc is not None and n_draws > 0:
+            if unc is not None and n_draws > 1:
                 g = torch.Generator().manual_seed(seed + 1)
                 mu, cov = unc.draw(n_draws, g)
+                within = torch.zeros_like(var)
                 for b in beams:
-                    drawn = _recolour(b, unc.dims, mu, cov)
-                    spread.append(
-                        _unit_sum(torch.stack([fwd.images(d, settings) for d in drawn]))
-                    )
-            std = torch.cat(spread).std(0)
+                    drawn = _recolour(b[:draw_particles], unc.dims, mu, cov)
+                    within += _unit_sum(
+                        torch.stack([fwd.images(d, settings) for d in drawn])
+                    ).var(0)
+                var = var + within / len(beams)
+            std = var.sqrt()
         return (imgs if per_snapshot else imgs.mean(0)), std
 
     @property

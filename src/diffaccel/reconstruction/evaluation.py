@@ -62,7 +62,9 @@ def predict_dataset(
     *,
     n_particles: int = 50_000,
     seed: int = 0,
-) -> dict[str, Tensor]:
+    return_std: bool = False,
+    n_draws: int = 4,
+) -> dict[str, Tensor] | tuple[dict[str, Tensor], dict[str, Tensor]]:
     """Ensemble-mean images of every scan and setting of ``dataset``.
 
     Each scan is imaged with a forward model built from that scan (its
@@ -70,19 +72,40 @@ def predict_dataset(
     test file with other settings or another screen works; the same particles
     (``seed``) go through every scan.
 
+    Args:
+        result: The reconstruction.
+        dataset: Scans whose settings and screens to predict.
+        n_particles: Particles per ensemble member.
+        seed: Sampling seed.
+        return_std: Also return the per-pixel spread of every image
+            (``Reconstruction.predict_images(return_std=True)``).
+        n_draws: Posterior beams per member for the spread.
+
     Returns:
-        ``{scan name: (K_s, H_s, W_s)}`` float32 images, each summing to 1.
+        ``{scan name: (K_s, H_s, W_s)}`` float32 images, each summing to 1;
+        with ``return_std`` a pair ``(images, spreads)`` of such dicts (the
+        spread on the scale of the unit-sum images). The images are the same
+        with and without ``return_std``.
     """
     scans = as_scans(dataset)
-    out = {}
+    out, spread = {}, {}
     for name, scan in scans:
         fwd = ScreenForwardModel.from_dataset(
             scan, blur_pixels=result.config.blur_pixels
         )
-        out[name] = result.predict_images(
-            scan.settings, forward=fwd, n_particles=n_particles, seed=seed
+        pred = result.predict_images(
+            scan.settings,
+            forward=fwd,
+            n_particles=n_particles,
+            seed=seed,
+            return_std=return_std,
+            n_draws=n_draws,
         )
-    return out
+        if return_std:
+            out[name], spread[name] = pred
+        else:
+            out[name] = pred
+    return (out, spread) if return_std else out
 
 
 def _train_indices(result: Reconstruction, name: str, k: int) -> list[int]:

@@ -16,11 +16,14 @@ The moment errors are estimated from the data themselves: the residuals between
 the measured and the reconstruction's predicted image moments at the training
 settings, scaled as ``r * <xx>_k`` (second moments; ``r * sqrt(<xx><yy>/2)`` for
 ``<xy>``) and ``r * sqrt(<xx>_k)`` (centroids), with ``r`` per scan from the
-residual sum of squares over its degrees of freedom ``n - p_eff`` (``p_eff`` the
-trace of the hat matrix). Residuals hold shot noise, finite counts *and* the part
-of model or optimisation bias that shows in the images, so the error scale is
-calibrated on the data rather than assumed. Optionally the least-squares shift of
-``theta`` that the residuals ask for is added as a bias variance.
+residual sum of squares left after the least-squares fit over its degrees of
+freedom ``n - p_eff`` (``p_eff`` the trace of the hat matrix): shot noise, finite
+counts and whatever no change of the beam's moments explains, so the error scale
+is calibrated on the data rather than assumed. The part of the residuals that a
+change of the beam *does* explain is the reconstruction's own bias (a training
+that leaves every size 2 % large shows up as image moments 4 % above the
+measured ones at every setting): the least-squares shift of ``theta`` that the
+residuals ask for is added as a bias variance ``shift shift^T``.
 
 Moment uncertainties (rms sizes, emittances, Twiss...) come from draws of
 ``(mu, Sigma)`` of this posterior, each moment computed from its own sub-block
@@ -177,14 +180,16 @@ def linear_posterior(
     *,
     min_dof: float = 1.0,
     inflation: float = 1.0,
+    fitted_residuals: bool = True,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Gaussian posterior of a linear model with error scales fitted to residuals.
 
     Model: ``residual = design @ delta + eps``, ``eps_m ~ N(0, (r_g scale_m)^2)``
     with one unknown ``r_g`` per group ``g`` of rows, prior
     ``delta ~ N(0, diag(prior_std^2))``. ``r_g^2 = RSS_g / (n_g - p_eff,g)`` with
-    ``RSS_g`` the scaled residual sum of squares and ``p_eff,g`` the group's
-    share of the trace of the hat matrix (fixed-point iteration).
+    ``RSS_g`` the scaled residual sum of squares left after the fit (what
+    ``design @ shift`` does not explain) and ``p_eff,g`` the group's share of
+    the trace of the hat matrix (fixed-point iteration).
 
     Args:
         design: ``(M, P)``.
@@ -196,6 +201,11 @@ def linear_posterior(
         min_dof: Lower bound of the degrees of freedom of each group.
         inflation: Factor on the fitted error scales ``r_g`` before the final
             posterior (widens what the data constrain, not the prior).
+        fitted_residuals: Take ``RSS_g`` after the fit (default). ``False``
+            takes it at ``delta = 0``: a systematic offset that a parameter
+            shift explains then also counts as noise (the first version; on
+            6D scans it made the error scale 10-100x too large, see
+            ``docs/uncertainty.md``).
 
     Returns:
         ``(cov (P, P), shift (P,), r (G,), dof (G,))``: posterior covariance, the
@@ -230,6 +240,9 @@ def linear_posterior(
         # diagonal of the hat matrix H = A C A^T W, summed per group
         hat = ((aw @ cov_u) * aw).sum(-1) * wrow
         p_eff = torch.zeros(n_groups, dtype=torch.float64).index_add_(0, g, hat)
+        if fitted_residuals:
+            fit = ew - aw @ (cov_u @ (aw.T @ (ew * wrow)))
+            rss_g = torch.zeros(n_groups, dtype=torch.float64).index_add_(0, g, fit**2)
         dof = (n_g - p_eff).clamp_min(min_dof)
         new = (rss_g / dof).clamp_min(1e-30)
         if torch.allclose(new, r2, rtol=1e-6):
@@ -342,6 +355,7 @@ def analyse_moments(
     bias_term: bool = True,
     inflation: float = 1.0,
     floor_relative: float = 0.0,
+    fitted_residuals: bool = True,
 ) -> MomentUncertainty:
     """Moment-space posterior of a reconstruction from its training images.
 
@@ -410,6 +424,7 @@ def analyse_moments(
         prior,
         torch.cat(grp_m),
         inflation=inflation,
+        fitted_residuals=fitted_residuals,
     )
     cen_prior = sd.clone()  # a centroid off by one rms is plausible a priori
     cen_cov, cen_shift, r_c, dof_c = linear_posterior(
@@ -419,6 +434,7 @@ def analyse_moments(
         cen_prior,
         torch.cat(grp_c),
         inflation=inflation,
+        fitted_residuals=fitted_residuals,
     )
     if bias_term:
         theta_cov = theta_cov + torch.outer(shift, shift)
