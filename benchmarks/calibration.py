@@ -12,17 +12,29 @@ Datasets:
 - ``gpsr4d``: ``../shared/data/phase_space/gpsr_4d_synthetic.h5``, even settings
   (check only: nothing was tuned on it);
 - ``sixd``: ``sixd_synthetic_train.h5`` with ``--dims 6`` (``--sixd``; slow);
-- ``awa6d-<preset>-s<seed>``: the AWA 6D layout (two scans, TDC, dipole)
-  simulated here with ``make_synthetic_awa6d`` (``--awa6d N`` cases; slow);
+- ``awa6d-<preset>-s<seed>``: the AWA 6D layout of the shared file (two
+  scans, TDC off/on, dipole, k1 = -12 ... 12 in 5 steps) of beams generated
+  here with ``make_synthetic_awa6d`` (``--awa6d N`` cases, default 2; seeds
+  400+ differ from the 310-313 the analysis was developed on);
 - ``quad-<preset>-n<noise>-s<seed>``: quad-only scans simulated here (presets
-  gaussian/correlated/nonlinear, Poisson noise at the peak pixel, seeds),
-  reconstructed with ``--dims 4`` and, for ``--quad-6d`` cases, ``--dims 6``
-  (z and pz unconstrained: each must be within 2 std or carry >= 20 %).
+  gaussian/correlated/nonlinear, Poisson noise at the peak pixel, seeds; KDE
+  images of one-pixel bandwidth, what the 4D default blur assumes),
+  reconstructed with ``--dims 4``; for the first ``--quad-6d`` of them the same
+  beam imaged as histograms (what the 6D default blur assumes) reconstructed
+  with ``--dims 6`` (z and pz unconstrained: each must be within 2 std or carry
+  >= 20 %), and the KDE images with ``--dims 6`` as ``blur_mismatch_cases``
+  (a screen resolution the model does not have: model error, reported apart).
 
 Prints one JSON object: per dataset the per-quantity z-scores, coverage and
-median relative std, and the pooled numbers.
+median relative std; the pooled numbers; ``met``: the acceptance of issue 10
+(pooled coverage of 2 std >= 85 %, over all and over the constrained
+quantities; median relative std of the constrained quantities <= 5 %, pooled
+and for each 6D dataset; on quad-only ``--dims 6`` z and pz each within 2 std or
+with a relative std >= 20 %); and the share of the reconstruction time that
+the uncertainty analysis takes.
 
-Usage: ``python benchmarks/calibration.py [--quick] [--sixd] [--seeds 0 1]``
+Usage: ``python benchmarks/calibration.py [--quick] [--sixd] [--seeds 0 1 2]
+[--awa6d 3] [--out calibration.json]``
 """
 
 from __future__ import annotations
@@ -140,13 +152,25 @@ def main() -> None:
     ap.add_argument("--no-gpsr4d", action="store_true")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--noise", type=float, nargs="+", default=[0.05, 0.2])
-    ap.add_argument("--awa6d", type=int, default=0, help="own AWA-6D cases")
+    ap.add_argument(
+        "--awa6d",
+        type=int,
+        default=2,
+        help="own AWA-6D cases (beams generated here; presets nonlinear, "
+        "correlated, gaussian in turn, one seed each)",
+    )
     ap.add_argument("--quad-6d", type=int, default=2, help="quad-only --dims 6 cases")
+    ap.add_argument(
+        "--no-mismatch",
+        action="store_true",
+        help="skip the quad-only --dims 6 runs on KDE images (blur mismatch)",
+    )
     ap.add_argument(
         "--no-uncertainty",
         action="store_true",
         help="ensemble scatter only (today's std), for comparison",
     )
+    ap.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     args = ap.parse_args()
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
     unc = not args.no_uncertainty
@@ -158,6 +182,7 @@ def main() -> None:
         ds = read_quad_scan(DATA / "gpsr_4d_synthetic.h5")
         datasets["gpsr4d"] = run("gpsr4d", ds, 4, list(range(0, ds.n_settings, 2)), unc)
     n6 = 0
+    mismatch: dict[str, dict] = {}
     for preset in presets:
         for noise in args.noise:
             for seed in seeds:
@@ -168,12 +193,36 @@ def main() -> None:
                 datasets[key] = run(key, ds, 4, None, unc)
                 if n6 < args.quad_6d:
                     n6 += 1
-                    datasets[key + "-6d"] = run(key + "-6d", ds, 6, None, unc)
-    for i, preset in enumerate(["nonlinear", "correlated", "gaussian"][: args.awa6d]):
+                    # the same beam, noise and seed imaged as histograms, the
+                    # screen response the 6D default blur assumes (README)
+                    ds6 = make_synthetic_quad_scan(
+                        preset,
+                        n_particles=10_000,
+                        noise=noise,
+                        seed=100 + seed,
+                        image_method="cic",
+                    )
+                    datasets[key + "-6d"] = run(key + "-6d", ds6, 6, None, unc)
+                    if not args.no_mismatch:
+                        # KDE (1 pixel) images with the 6D default blur: a wrong
+                        # screen resolution, model error the std does not cover
+                        k6 = key + "-6d-kde"
+                        mismatch[k6] = run(k6, ds, 6, None, unc)
+    awa_presets = ["nonlinear", "correlated", "gaussian"]
+    for i in range(args.awa6d):
         from diffaccel.data import make_synthetic_awa6d
 
-        ds = make_synthetic_awa6d(preset, n_particles=20_000, noise=0.05, seed=300 + i)
-        key = f"awa6d-{preset}-s{i}"
+        preset = awa_presets[i % 3]
+        seed = 400 + i  # not the beams the posterior was tuned on (310-313)
+        # the shared file's layout: k1 = -12 ... 12 in 5 steps x TDC off/on
+        ds = make_synthetic_awa6d(
+            preset,
+            n_particles=100_000,
+            k1_values=[-12.0, -6.0, 0.0, 6.0, 12.0],
+            noise=0.02,
+            seed=seed,
+        )
+        key = f"awa6d-{preset}-s{seed}"
         datasets[key] = run(key, ds, 6, None, unc)
     if args.sixd:
         from diffaccel.data import read_scans
@@ -197,12 +246,48 @@ def main() -> None:
                     "rel_std": q["rel_std"],
                     "ok": q["z"] <= 2 or (q["rel_std"] or 0) >= 0.2,
                 }
+    pooled = summarise(pooled_rows)
+    six = {
+        k: d["median_rel_std_constrained"]
+        for k, d in datasets.items()
+        if d["dims"] == 6 and not k.startswith("quad")
+    }
+    met = {
+        # issue 10: >= 85 % of rms sizes and emittances within 2 std, pooled
+        "coverage_2sigma_pooled": pooled["coverage_2sigma"] >= 0.85,
+        # the same over the constrained quantities (the unconstrained z, pz of
+        # quad-only --dims 6 are judged by the z/pz criterion below)
+        "coverage_2sigma_pooled_constrained": (
+            pooled["coverage_2sigma_constrained"] or 0
+        )
+        >= 0.85,
+        "median_rel_std_pooled": (pooled["median_rel_std_constrained"] or 1) <= 0.05,
+        "median_rel_std_each_6d_dataset": (
+            all(v is not None and v <= 0.05 for v in six.values()) if six else None
+        ),
+        "quad_only_6d_z_pz": all(v["ok"] for v in zpz.values()) if zpz else None,
+    }
+    with_mismatch = summarise(
+        pooled_rows + [q for d in mismatch.values() for q in d["quantities"].values()]
+    )
+    timings = [
+        (d["timings_s"].get("uncertainty", 0.0), d["wall_s"]) for d in datasets.values()
+    ]
     result = {
         "name": "calibration",
         "uncertainty": unc,
-        "pooled": summarise(pooled_rows),
+        "met": met,
+        "pooled": pooled,
         "pooled_dims4": summarise(four) if four else None,
+        # not in "pooled": quad-only --dims 6 on KDE (1 pixel) images, which the
+        # 6D default blur (histograms, sqrt(1/12) pixel) does not model
+        "blur_mismatch_cases": mismatch,
+        "pooled_with_blur_mismatch_cases": with_mismatch if mismatch else None,
+        "median_rel_std_6d_datasets": six,
         "quad_only_6d_z_pz": zpz,
+        "uncertainty_share_of_reconstruct_time": (
+            sum(u for u, _ in timings) / sum(w for _, w in timings) if timings else None
+        ),
         "datasets": datasets,
         "wall_s": time.perf_counter() - t_all,
         "torch": torch.__version__,
@@ -211,7 +296,7 @@ def main() -> None:
         "commit": git_commit(),
         "note": "timings under contention on a shared 2-core machine",
     }
-    emit(result)
+    emit(result, args.out)
 
 
 if __name__ == "__main__":

@@ -254,7 +254,7 @@ def run_gpsr(train, test, epochs: int, n_particles: int, method: str) -> dict:
         p = p / p.sum((-2, -1), keepdim=True).clamp_min(1e-30)
         held[name] = image_errors(p, scan.mean_images())["relative_l1"]
         fwd = ScreenForwardModel.from_dataset(
-            scan, blur_pixels=ReconstructionConfig(dims=6).blur_pixels
+            scan, blur_pixels=ReconstructionConfig(dims=6).blur_for(scan)
         )
         ours = fwd.images(x.float(), scan.settings)
         ours = ours / ours.sum((-2, -1), keepdim=True).clamp_min(1e-30)

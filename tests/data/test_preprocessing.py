@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -201,6 +204,14 @@ def test_pool_conserves_sum_and_position(raw, factor) -> None:
     torch.testing.assert_close(
         _physical_centroid(out), _physical_centroid(ds), rtol=0, atol=1e-6
     )
+
+
+def test_pool_carries_the_screen_resolution_into_the_new_pixels(raw) -> None:
+    assert pool(raw, 2).resolution_pixels is None  # unknown stays unknown
+    ds = replace(raw, resolution_pixels=1.0)
+    # variance in old pixels 1 + (4 - 1) / 12 = 1.25, in new (2x) pixels / 4
+    assert pool(ds, 2).resolution_pixels == pytest.approx(math.sqrt(1.25) / 2)
+    assert pool(ds, 1).resolution_pixels == pytest.approx(1.0)
 
 
 def test_normalize_and_average(raw) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import h5py
@@ -95,6 +96,20 @@ def test_read_shared_6d_benchmark(shared_file) -> None:
     assert ms.n_images == 20
 
 
+def test_screen_resolution_round_trips_per_scan(dataset_factory, tmp_path) -> None:
+    a = replace(dataset_factory(k=5, s=2, h=16, w=20), resolution_pixels=0.5)
+    b = dataset_factory(k=3, s=1, h=12, w=10)  # unknown: no attribute written
+    path = write_scans(MultiScanDataset({"straight": a, "bent": b}), tmp_path / "s.h5")
+    with h5py.File(path, "r") as h5:
+        assert float(h5["scans/straight/screen"].attrs["resolution_pixels"]) == 0.5
+        assert "resolution_pixels" not in h5["scans/bent/screen"].attrs
+    back = read_scans(path)
+    assert back["straight"].resolution_pixels == 0.5
+    assert back["bent"].resolution_pixels is None
+    one = write_quad_scan(a, tmp_path / "one.h5")  # version 1: /screen
+    assert read_quad_scan(one).resolution_pixels == 0.5
+
+
 def _corrupt(path: Path, action: str) -> None:
     with h5py.File(path, "r+") as h5:
         if action == "no_scans":
@@ -110,6 +125,10 @@ def _corrupt(path: Path, action: str) -> None:
             del h5["scans/bent"].attrs["beamline"]
         elif action == "scan_screen_pixel":
             h5["scans/straight/screen"].attrs["pixel_size_x"] = np.nan
+        elif action == "scan_resolution_nan":
+            h5["scans/straight/screen"].attrs["resolution_pixels"] = np.nan
+        elif action == "scan_resolution_negative":
+            h5["scans/bent/screen"].attrs["resolution_pixels"] = -1.0
         elif action == "scan_images_not_numbers":
             del h5["scans/bent/images"]
             h5["scans/bent/images"] = np.array([b"a", b"b"])
@@ -125,6 +144,14 @@ CORRUPTIONS = [
     ("scan_no_beamline", r"/scans/bent: missing attribute 'beamline'"),
     ("scan_screen_pixel", r"/scans/straight/screen.pixel_size_x: expected a finite"),
     ("scan_images_not_numbers", r"/scans/bent/images: expected real numbers"),
+    (
+        "scan_resolution_nan",
+        r"/scans/straight/screen.resolution_pixels: expected a finite",
+    ),
+    (
+        "scan_resolution_negative",
+        r"/scans/bent/screen.resolution_pixels: expected a number in \[0, 100\]",
+    ),
 ]
 
 

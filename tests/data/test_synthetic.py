@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
@@ -76,6 +77,16 @@ def test_default_geometry_keeps_beam_on_screen(preset: str) -> None:
     sx, sy = _image_moments(ds)
     # "a few mm rms at 1 mm pixels" at the largest setting, never over 8 mm
     assert 2e-3 < sx.max() < 8e-3 and 2e-3 < sy.max() < 8e-3
+
+
+def test_synthetic_scans_record_their_screen_resolution() -> None:
+    kw = {"n_particles": 500, "n_settings": 2, "screen_shape": (16, 16)}
+    assert make_synthetic_quad_scan(**kw).resolution_pixels == 1.0  # KDE, 1 pixel
+    wide = make_synthetic_quad_scan(**kw, bandwidth=2e-3)  # 1 mm pixels
+    assert wide.resolution_pixels == pytest.approx(2.0)
+    cic = make_synthetic_quad_scan(**kw, image_method="cic")
+    # cloud-in-cell: a triangle of one-pixel half-width, variance 1/6 pixel^2
+    assert cic.resolution_pixels == pytest.approx(math.sqrt(1 / 6))
 
 
 def test_image_moments_follow_linear_optics() -> None:

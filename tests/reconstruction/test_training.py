@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import math
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -118,6 +120,23 @@ def test_six_dimensional_training_runs(small_scan) -> None:
     x = r.sample(500)
     assert (x[:, 4:].std(0) > 0).all()
     assert "z" in r.unconstrained_coordinates()
+    # the file's KDE screens of one-pixel bandwidth, not the 6D default
+    assert small_scan.resolution_pixels == 1.0
+    assert r.forward.blur_pixels == 1.0 and r.info["blur_pixels"] == 1.0
+
+
+def test_blur_is_the_option_else_the_screen_resolution_else_by_dims(
+    small_scan,
+) -> None:
+    unknown = replace(small_scan, resolution_pixels=None)
+    six = ReconstructionConfig(dims=6)
+    assert six.blur_pixels is None  # resolved per scan, not here
+    assert six.blur_for(small_scan) == 1.0
+    assert six.blur_for(unknown) == pytest.approx(math.sqrt(1 / 12))
+    assert ReconstructionConfig(dims=4).blur_for(unknown) == 1.0
+    assert ReconstructionConfig(dims=6, blur_pixels=0.3).blur_for(small_scan) == 0.3
+    with pytest.raises(ValueError, match="blur_pixels"):
+        ReconstructionConfig(blur_pixels=-1.0)
 
 
 def test_config_files_from_before_the_steps_rename_are_read() -> None:

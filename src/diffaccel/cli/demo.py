@@ -105,11 +105,9 @@ def demo(out: Path, force: bool, seed: int) -> None:
         click.echo(f"wrote {path.name}; reconstructing (6D, 300 steps)...")
         # 6D tracking is chromatic (slower than the 4D linear maps): fewer, smaller
         # steps keep the demo well under a minute on two quiet CPU cores.
-        # the demo's images are KDE renderings of one-pixel bandwidth: model that
-        # point spread (the 6D default of 0.5 pixel assumes sharper images)
-        config = ReconstructionConfig(
-            dims=6, seed=seed, steps=300, n_particles=4096, blur_pixels=1.0
-        )
+        # the file records its screen resolution (KDE of one-pixel bandwidth),
+        # which the reconstruction models by default
+        config = ReconstructionConfig(dims=6, seed=seed, steps=300, n_particles=4096)
         scans = as_scans(ds)
         summary = run_reconstruction(
             scans,

@@ -386,8 +386,9 @@ def run_reconstruction(
     "--blur",
     type=click.FloatRange(min=0),
     default=None,
-    help="Point-spread rms of simulated images [pixels] [default: 1.0 for "
-    "--dims 4, 0.5 for --dims 6].",
+    help="Point-spread rms of simulated images [pixels] [default: the file's "
+    "screen resolution_pixels where recorded, else 1.0 for --dims 4, sqrt(1/12) "
+    "for --dims 6].",
 )
 @click.option("--no-figures", is_flag=True, help="Skip the PNG figures.")
 @click.option(

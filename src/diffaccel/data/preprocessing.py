@@ -406,7 +406,9 @@ def pool(ds: QuadScanDataset, factor: int | tuple[int, int] = 2) -> QuadScanData
 
     Returns:
         New dataset with images (K, S, ceil(H/fy), ceil(W/fx)) and pixel size
-        (fx * px, fy * py).
+        (fx * px, fy * py); a recorded ``resolution_pixels`` r becomes
+        ``sqrt(r^2 + (f^2 - 1) / 12) / f`` in the new pixels (summing f pixels
+        adds a box of f pixels in place of one; f the mean of fx and fy).
     """
     _check(ds)
     fy, fx = (factor, factor) if isinstance(factor, int) else factor
@@ -422,7 +424,17 @@ def pool(ds: QuadScanDataset, factor: int | tuple[int, int] = 2) -> QuadScanData
         ds.center[1] + ((hp - 1) / 2 - (h - 1) / 2) * py,
     )
     step = {"step": "pool", "factor": [fy, fx]}
-    return ds.with_step(step, images=out, pixel_size=(px * fx, py * fy), center=center)
+    res = ds.resolution_pixels
+    if res is not None:
+        f = 0.5 * (fx + fy)
+        res = math.sqrt(res**2 + (f**2 - 1.0) / 12.0) / f
+    return ds.with_step(
+        step,
+        images=out,
+        pixel_size=(px * fx, py * fy),
+        center=center,
+        resolution_pixels=res,
+    )
 
 
 # ---------------------------------------------------------------- normalisation

@@ -84,6 +84,8 @@ PARAMETER_LIMITS: dict[str, float] = {
 #: Largest pixel size and screen-centre offset accepted [m].
 MAX_PIXEL_SIZE = 10.0
 MAX_CENTER = 1.0
+#: Largest accepted screen resolution (point-spread rms) [pixels].
+MAX_RESOLUTION_PIXELS = 100.0
 #: Smallest screen: image moments need at least two pixels per axis.
 MIN_PIXELS = 2
 
@@ -112,6 +114,12 @@ class QuadScanDataset:
             (x [m], px, y [m], py, z [m], pz), or ``None`` for measured data.
         metadata: JSON-serialisable provenance; ``metadata["preprocessing"]`` is
             the list of processing steps (dicts with ``"step"`` and parameters).
+        resolution_pixels: Rms of the screen's point spread (image formation:
+            optics, scintillator, binning) [pixels], or ``None`` when unknown.
+            A reconstruction models its images with this blur unless told
+            otherwise (a wrong value biases the divergences: a constant
+            screen-variance offset is degenerate with ``<px px>`` in a
+            quadrupole + drift scan).
 
     Shapes:
         ``images`` (K, S, H, W), ``settings`` (K, P), ``ground_truth`` (N, 6).
@@ -149,6 +157,7 @@ class QuadScanDataset:
     center: tuple[float, float]
     ground_truth: Tensor | None = None
     metadata: dict = field(default_factory=dict)
+    resolution_pixels: float | None = None
 
     def __post_init__(self) -> None:
         _set = object.__setattr__
@@ -517,6 +526,17 @@ def _validate(ds: QuadScanDataset) -> None:
         raise FormatError(
             f"screen.center: expected |x|, |y| <= {MAX_CENTER:g} m; found {ds.center}"
         )
+    res = ds.resolution_pixels
+    if res is not None and not (
+        isinstance(res, int | float)
+        and not isinstance(res, bool)
+        and math.isfinite(res)
+        and 0 <= res <= MAX_RESOLUTION_PIXELS
+    ):
+        raise FormatError(
+            "screen.resolution_pixels: expected a number in "
+            f"[0, {MAX_RESOLUTION_PIXELS:g}] pixels; found {res!r}"
+        )
     if ds.species not in SPECIES:
         raise FormatError(f"species: expected one of {SPECIES}; found {ds.species!r}")
     elements = _validate_spec(ds.beamline_spec)
@@ -730,6 +750,11 @@ def _read_scan(group: h5py.Group, where: str, root: _Root) -> QuadScanDataset:
         _float_attr(screen, f"pixel_size_{a}", f"{where}screen") for a in "xy"
     )
     center = tuple(_float_attr(screen, f"center_{a}", f"{where}screen") for a in "xy")
+    resolution = (
+        _float_attr(screen, "resolution_pixels", f"{where}screen")
+        if "resolution_pixels" in screen.attrs
+        else None
+    )
     try:
         return QuadScanDataset(
             images=images,
@@ -743,6 +768,7 @@ def _read_scan(group: h5py.Group, where: str, root: _Root) -> QuadScanDataset:
             center=center,  # type: ignore[arg-type]
             ground_truth=root.ground_truth,
             metadata=root.metadata,
+            resolution_pixels=resolution,
         )
     except FormatError as err:
         # container messages name the field ("settings.names: ..."); add the path
@@ -894,6 +920,8 @@ def write_scan(group: h5py.Group, dataset: QuadScanDataset) -> None:
     screen.attrs["pixel_size_y"] = np.float64(dataset.pixel_size[1])
     screen.attrs["center_x"] = np.float64(dataset.center[0])
     screen.attrs["center_y"] = np.float64(dataset.center[1])
+    if dataset.resolution_pixels is not None:
+        screen.attrs["resolution_pixels"] = np.float64(dataset.resolution_pixels)
 
 
 def write_quad_scan(

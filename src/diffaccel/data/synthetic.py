@@ -300,6 +300,11 @@ def make_synthetic_quad_scan(
             "signal left; lower the noise"
         )
     noisy = noisy / totals
+    if image_method == "kde":  # a Gaussian of the bandwidth (default one pixel)
+        bw = [1.0, 1.0] if bandwidth is None else [bandwidth / p for p in pixel_size]
+        resolution = 0.5 * (bw[0] + bw[1])
+    else:  # cloud-in-cell deposit: a triangle of one pixel half-width
+        resolution = math.sqrt(1.0 / 6.0)
     metadata = {
         "synthetic": {
             "source": source,
@@ -326,6 +331,7 @@ def make_synthetic_quad_scan(
         center=center,
         ground_truth=beam,
         metadata=metadata,
+        resolution_pixels=resolution,
     )
 
 

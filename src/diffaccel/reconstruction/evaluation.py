@@ -68,7 +68,9 @@ def predict_dataset(
     """Ensemble-mean images of every scan and setting of ``dataset``.
 
     Each scan is imaged with a forward model built from that scan (its
-    beamline, screen grid and scanned names, the reconstruction's blur), so a
+    beamline, screen grid and scanned names; the reconstruction's ``--blur``
+    if one was given, else that scan's recorded resolution or the default by
+    ``dims``: ``ReconstructionConfig.blur_for``), so a
     test file with other settings or another screen works; the same particles
     (``seed``) go through every scan.
 
@@ -91,7 +93,7 @@ def predict_dataset(
     out, spread = {}, {}
     for name, scan in scans:
         fwd = ScreenForwardModel.from_dataset(
-            scan, blur_pixels=result.config.blur_pixels
+            scan, blur_pixels=result.config.blur_for(scan)
         )
         pred = result.predict_images(
             scan.settings,

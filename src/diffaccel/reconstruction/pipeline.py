@@ -176,7 +176,7 @@ def reconstruct(
     t0 = time.perf_counter()
     for name in used:
         forwards[name] = ScreenForwardModel.from_dataset(
-            scans[name], blur_pixels=config.blur_pixels
+            scans[name], blur_pixels=config.blur_for(scans[name])
         )
     # the affine maps of every training setting, once per run: the initial fit,
     # the 4D training step, the unconstrained flags and the uncertainty analysis
@@ -204,6 +204,7 @@ def reconstruct(
         name: {
             "train_indices": selection[name],
             "train_settings": scans[name].settings[selection[name]].tolist(),
+            "blur_pixels": forwards[name].blur_pixels,
             "setting_names": list(scans[name].setting_names),
         }
         for name in used

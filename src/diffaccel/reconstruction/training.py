@@ -173,8 +173,11 @@ class ReconstructionConfig:
         blur_pixels: Total point-spread rms of the simulated images [pixels],
             cloud-in-cell deposition (1/6 pixel^2 of variance) included; 1
             matches screens with a ~1 pixel resolution and the 1-pixel KDE of the
-            GPSR benchmark. None: 1.0 for ``dims = 4``, sqrt(1/12) ~ 0.29 (images
-            that are histograms, no point spread) for ``dims = 6``.
+            GPSR benchmark. None (default): each scan's recorded screen
+            resolution (``QuadScanDataset.resolution_pixels``, the file's
+            ``screen.resolution_pixels``) where the file has one, else 1.0 for
+            ``dims = 4`` and sqrt(1/12) ~ 0.29 (images that are histograms, no
+            point spread) for ``dims = 6``; see :meth:`blur_for`.
         entropy_radius: Mahalanobis scale of the redescending weights of the
             tail-robust covariance (see ``robust_covariance``).
         loss_smoothing: Rms [pixels] of a Gaussian applied to both the measured
@@ -228,8 +231,6 @@ class ReconstructionConfig:
     def __post_init__(self) -> None:
         if self.dims not in (4, 6):
             raise ValueError(f"dims must be 4 or 6; got {self.dims}.")
-        if self.blur_pixels is None:
-            object.__setattr__(self, "blur_pixels", _DIMS_DEFAULTS[self.dims][0])
         if self.loss_smoothing is None:
             object.__setattr__(self, "loss_smoothing", _DIMS_DEFAULTS[self.dims][1])
         if self.burn_in is None:  # never all members
@@ -260,7 +261,10 @@ class ReconstructionConfig:
             )
         if not self.loss_smoothing >= 0:
             raise ValueError(f"loss_smoothing must be >= 0; got {self.loss_smoothing}.")
-        if not 0 <= self.blur_pixels <= MAX_BLUR_PIXELS:
+        if (
+            self.blur_pixels is not None
+            and not 0 <= self.blur_pixels <= MAX_BLUR_PIXELS
+        ):
             raise ValueError(
                 f"blur_pixels must be in [0, {MAX_BLUR_PIXELS:g}] pixels; got "
                 f"{self.blur_pixels}."
@@ -272,6 +276,26 @@ class ReconstructionConfig:
     def cycle_length(self) -> int:
         """Steps per learning-rate cycle."""
         return self.steps // self.snapshots
+
+    def blur_for(self, scan: object | None = None) -> float:
+        """Point-spread rms [pixels] to image ``scan`` with.
+
+        ``blur_pixels`` when given, else the scan's recorded screen resolution
+        (``resolution_pixels``, when it has one), else the default by ``dims``
+        (1.0 for 4D, sqrt(1/12) for 6D).
+
+        Example:
+            >>> ReconstructionConfig(dims=4).blur_for()
+            1.0
+            >>> ReconstructionConfig(dims=6, blur_pixels=0.7).blur_for()
+            0.7
+        """
+        if self.blur_pixels is not None:
+            return float(self.blur_pixels)
+        recorded = getattr(scan, "resolution_pixels", None)
+        if recorded is not None:
+            return float(min(recorded, MAX_BLUR_PIXELS))
+        return float(_DIMS_DEFAULTS[self.dims][0])
 
     def to_dict(self) -> dict:
         """Plain-Python form (JSON and ``weights_only`` safe)."""
