@@ -90,9 +90,10 @@ __all__ = ["synthetic"]
 @click.option(
     "--method",
     "image_method",
-    type=click.Choice(["kde", "cic"]),
+    type=click.Choice(["kde", "cic", "histogram"]),
     default=None,
-    help="Screen image model (KDE bandwidth: one pixel) [default: kde; awa6d: cic].",
+    help="Screen image model (KDE bandwidth: one pixel; histogram: nearest-pixel "
+    "counts) [default: kde; awa6d: histogram].",
 )
 @click.option(
     "--noise",
@@ -200,7 +201,7 @@ def _awa6d(opts: _Options, out: Path, force: bool, beam: str) -> str:
     k = 9 if opts.n_settings is None else opts.n_settings
     lo = -12.0 if opts.k1_min is None else opts.k1_min
     hi = 12.0 if opts.k1_max is None else opts.k1_max
-    image_method = opts.image_method or "cic"
+    image_method = opts.image_method or "histogram"
     p0c = opts.p0c
     particles = None
     if opts.particle_file is not None:
