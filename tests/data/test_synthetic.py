@@ -255,7 +255,7 @@ def test_histogram_point_spread_is_a_twelfth_pixel_squared() -> None:
         image_method="histogram",
     )
     img = ds.mean_images().double()[0]
-    _, xs = ds.pixel_centers()
+    xs, _ = ds.pixel_centers()
     px = img.sum(0) / img.sum()
     var = float((px * xs**2).sum() - (px * xs).sum() ** 2)
     inside = beam[:, 0].abs() < 10e-3

@@ -1,0 +1,82 @@
+"""Issue 9's acceptance numbers on a beam other than the shared file's (slow).
+
+"Do not tune to this one file": the same AWA 6D geometry (quadrupole x TDC x
+dipole, two screens, 96 x 96 histogram images as in the shared files, even
+quadrupole settings for training, odd ones held out), but a beam of another
+shape: the three-mode ``nonlinear`` preset with a strong y-py correlation
+(0.93) and half the energy spread, generated here. Default 6D settings, as a
+user would run them; the limits are the shared benchmark's.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from diffaccel.data import make_synthetic_awa6d
+from diffaccel.data.synthetic import sample_preset_beam
+from diffaccel.reconstruction import (
+    ReconstructionConfig,
+    image_errors,
+    moment_errors,
+    reconstruct,
+)
+
+pytestmark = pytest.mark.slow
+
+#: the shared 6D benchmark's split: k1 = -12, -6, 0, 6, 12 train; -9, -3, 3, 9 test
+TRAIN_K1 = (-12.0, -6.0, 0.0, 6.0, 12.0)
+TEST_K1 = (-9.0, -3.0, 3.0, 9.0)
+
+
+def other_beam(n: int, seed: int) -> torch.Tensor:
+    """Three-mode beam in the AWA 6D scale: y-py correlation 0.93, 0.17 % spread."""
+    g = torch.Generator().manual_seed(seed)
+    beam = sample_preset_beam("nonlinear", n, g)
+    # the AWA 6D layout's scale of the presets (data.synthetic._AWA6D_BEAM_SCALE)
+    beam = beam * torch.tensor([1 / 3, 0.43, 1 / 3, 0.43, 0.8, 0.74 / 2])
+    beam[:, 3] += 0.5 * beam[:, 2]  # y-py correlation 0.69 -> 0.93
+    return beam - beam.mean(0)
+
+
+@pytest.fixture(scope="module")
+def run():
+    beam = other_beam(200_000, seed=3)
+    train = make_synthetic_awa6d(particles=beam, k1_values=TRAIN_K1, seed=3)
+    test = make_synthetic_awa6d(particles=beam, k1_values=TEST_K1, seed=3)
+    result = reconstruct(train, ReconstructionConfig(dims=6), uncertainty=False)
+    errors = moment_errors(result.sample(200_000), beam)
+    held = {
+        name: image_errors(
+            result.predict_images(scan.settings, scan=name), scan.mean_images()
+        )["relative_l1"]
+        for name, scan in test
+    }
+    return errors, held
+
+
+LIMITS = {
+    **{f"rms_{c}": 0.05 for c in ("x", "px", "y", "py", "z", "pz")},
+    "emit_x": 0.05,
+    "emit_y": 0.05,
+    "emit_z": 0.10,
+    "emit_6d": 0.15,
+}
+
+
+@pytest.mark.parametrize("key", list(LIMITS))
+def test_moments_match_the_truth(run, key: str) -> None:
+    errors, _ = run
+    assert abs(errors[key]) <= LIMITS[key], errors[key]
+
+
+@pytest.mark.parametrize("pair", ["x_z", "y_py", "z_pz"])
+def test_correlations_within_0_05(run, pair: str) -> None:
+    errors, _ = run
+    assert abs(errors[f"corr_diff_{pair}"]) <= 0.05, errors[f"corr_diff_{pair}"]
+
+
+@pytest.mark.parametrize("scan", ["dipole_off", "dipole_on"])
+def test_held_out_images_relative_l1_at_most_0_15(run, scan: str) -> None:
+    _, held = run
+    assert held[scan] <= 0.15, held[scan]
