@@ -261,6 +261,8 @@ def test_histogram_point_spread_is_a_twelfth_pixel_squared() -> None:
     inside = beam[:, 0].abs() < 10e-3
     true = float(beam[inside, 0].var())
     assert var - true == pytest.approx(1e-6 / 12, rel=0.1)
+    # and the file says so: the reconstruction's default blur for this scan
+    assert ds.resolution_pixels == pytest.approx((1 / 12) ** 0.5)
 
 
 # ------------------------------------------------------------------ AWA 6D layout

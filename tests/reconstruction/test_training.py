@@ -139,6 +139,30 @@ def test_blur_is_the_option_else_the_screen_resolution_else_by_dims(
         ReconstructionConfig(blur_pixels=-1.0)
 
 
+def test_defaults_depend_on_dims_and_explicit_values_win() -> None:
+    four, six = ReconstructionConfig(dims=4), ReconstructionConfig(dims=6)
+    assert (four.n_particles, four.steps, four.snapshots, four.burn_in) == (
+        6144,
+        300,
+        5,
+        0,
+    )
+    # 6D: more particles (finite-sample bias of the small emittances) and only
+    # the later cycles' members (the 6D emittance converges over cycles)
+    assert (six.n_particles, six.steps, six.snapshots, six.burn_in) == (
+        16384,
+        360,
+        6,
+        3,
+    )
+    assert six.steps // six.snapshots == four.steps // four.snapshots  # 60-step cycles
+    mine = ReconstructionConfig(dims=6, n_particles=2048, steps=40, snapshots=2)
+    assert (mine.n_particles, mine.steps, mine.burn_in) == (2048, 40, 1)
+    assert ReconstructionConfig(dims=6, steps=10, snapshots=1).burn_in == 0
+    # a saved config is the resolved one
+    assert ReconstructionConfig.from_dict(six.to_dict()) == six
+
+
 def test_config_files_from_before_the_steps_rename_are_read() -> None:
     d = ReconstructionConfig(steps=6, snapshots=2).to_dict()
     d["epochs"] = d.pop("steps")

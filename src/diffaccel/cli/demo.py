@@ -106,8 +106,12 @@ def demo(out: Path, force: bool, seed: int) -> None:
         # 6D tracking is chromatic (slower than the 4D linear maps): fewer, smaller
         # steps keep the demo well under a minute on two quiet CPU cores.
         # the file records its screen resolution (KDE of one-pixel bandwidth),
-        # which the reconstruction models by default
-        config = ReconstructionConfig(dims=6, seed=seed, steps=300, n_particles=4096)
+        # which the reconstruction models by default; 5 cycles, the first
+        # dropped (the 6D defaults are sized for the quadrupole x TDC x dipole
+        # scans, see ReconstructionConfig)
+        config = ReconstructionConfig(
+            dims=6, seed=seed, steps=300, snapshots=5, burn_in=1, n_particles=4096
+        )
         scans = as_scans(ds)
         summary = run_reconstruction(
             scans,

@@ -53,7 +53,7 @@ from diffaccel.reconstruction.training import checkpoint_config
 __all__ = ["predict", "reconstruct_command", "run_reconstruction"]
 
 CHECKPOINT = "checkpoint.pt"
-_DEFAULTS = ReconstructionConfig()
+_DEFAULTS = {d: ReconstructionConfig(dims=d) for d in (4, 6)}
 
 
 def write_figures(
@@ -337,25 +337,29 @@ def run_reconstruction(
 @click.option(
     "--particles",
     type=click.IntRange(min=16),
-    default=_DEFAULTS.n_particles,
-    show_default=True,
-    help="Fresh particles per training step.",
+    default=None,
+    help="Fresh particles per training step [default: "
+    f"{_DEFAULTS[4].n_particles} for --dims 4, {_DEFAULTS[6].n_particles} for "
+    "--dims 6].",
 )
 @click.option(
     "--steps",
     "--epochs",
     "steps",
     type=click.IntRange(min=1),
-    default=_DEFAULTS.steps,
-    show_default=True,
-    help="Optimisation steps (multiple of --snapshots); --epochs is an alias.",
+    default=None,
+    help="Optimisation steps (multiple of --snapshots); --epochs is an alias "
+    f"[default: {_DEFAULTS[4].steps} for --dims 4, {_DEFAULTS[6].steps} for "
+    "--dims 6].",
 )
 @click.option(
     "--snapshots",
     type=click.IntRange(min=1),
-    default=_DEFAULTS.snapshots,
-    show_default=True,
-    help="Ensemble members (cosine cycles).",
+    default=None,
+    help="Cosine learning-rate cycles; the ensemble keeps the last snapshots - "
+    f"burn-in (burn-in {_DEFAULTS[4].burn_in} for --dims 4, "
+    f"{_DEFAULTS[6].burn_in} for --dims 6) [default: {_DEFAULTS[4].snapshots} for "
+    f"--dims 4, {_DEFAULTS[6].snapshots} for --dims 6].",
 )
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--device", default="cpu", show_default=True, help="cpu, cuda, cuda:1...")
@@ -379,7 +383,7 @@ def run_reconstruction(
 @click.option(
     "--image-loss",
     type=click.Choice(["kl", "l1", "l2"]),
-    default=_DEFAULTS.image_loss,
+    default=_DEFAULTS[4].image_loss,
     show_default=True,
 )
 @click.option(
@@ -418,9 +422,9 @@ def run_reconstruction(
 def reconstruct_command(
     dataset: Path,
     out: Path,
-    particles: int,
-    steps: int,
-    snapshots: int,
+    particles: int | None,
+    steps: int | None,
+    snapshots: int | None,
     seed: int,
     device: str,
     train_indices: str,

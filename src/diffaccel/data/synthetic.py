@@ -336,6 +336,8 @@ def make_synthetic_quad_scan(
     if image_method == "kde":  # a Gaussian of the bandwidth (default one pixel)
         bw = [1.0, 1.0] if bandwidth is None else [bandwidth / p for p in pixel_size]
         resolution = 0.5 * (bw[0] + bw[1])
+    elif image_method == "histogram":  # a box of one pixel
+        resolution = math.sqrt(1.0 / 12.0)
     else:  # cloud-in-cell deposit: a triangle of one pixel half-width
         resolution = math.sqrt(1.0 / 6.0)
     metadata = {
