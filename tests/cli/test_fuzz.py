@@ -424,6 +424,18 @@ def test_hysteresis_fit_bad_options(files, tmp_path: Path, case: str) -> None:
     assert_clear_error(r)
 
 
+def test_hysteresis_fit_refuses_a_constant_input(tmp_path: Path) -> None:
+    # one current, varying field: nothing to learn (was exit 0, 32 % rmse and
+    # a RankWarning from the plot's straight line)
+    data = tmp_path / "const.csv"
+    data.write_text("current,field\n" + "".join(f"1.0,{i}\n" for i in range(20)))
+    args = ["hysteresis", "fit", str(data), "--train-rows", "16"]
+    r = CliRunner().invoke(main, [*args, "--out", str(tmp_path / "f"), *FIT])
+    assert_clear_error(r)
+    assert "input is constant" in r.output
+    assert not (tmp_path / "f").exists()
+
+
 @pytest.mark.parametrize("case", [*CSV_CASES])
 def test_hysteresis_predict_bad_csv(files, fit_dir, tmp_path: Path, case) -> None:
     out = tmp_path / "p.csv"
@@ -606,3 +618,23 @@ def test_synthetic_never_overwrites_its_particle_file(tmp_path: Path) -> None:
     )
     assert_clear_error(r)
     assert path.read_bytes() == before
+
+
+def test_predict_never_overwrites_a_file_of_its_result(
+    files, result_dir: Path, fit_dir: Path, tmp_path: Path
+) -> None:
+    # --force allows replacing an earlier output, never the result being read
+    # (hysteresis predict --out FIT/model.json --force destroyed the fit)
+    model = (fit_dir / "model.json").read_bytes()
+    data = tmp_path / "in.csv"
+    data.write_text("current\n1\n2\n")
+    args = ["hysteresis", "predict", str(fit_dir), "--input", str(data), "--force"]
+    r = CliRunner().invoke(main, [*args, "--out", str(fit_dir / "model.json")])
+    assert_clear_error(r)
+    assert "result folder" in r.output
+    assert (fit_dir / "model.json").read_bytes() == model
+    parts = (result_dir / "particles.h5").read_bytes()
+    args = ["predict", str(result_dir), "--dataset", str(files["good"]), "--force"]
+    r = CliRunner().invoke(main, [*args, "--out", str(result_dir / "particles.h5")])
+    assert_clear_error(r)
+    assert (result_dir / "particles.h5").read_bytes() == parts

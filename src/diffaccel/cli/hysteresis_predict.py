@@ -14,6 +14,7 @@ from pathlib import Path
 import click
 import torch
 
+from diffaccel.cli.output import check_out_file
 from diffaccel.data import (
     DEFAULT_INPUT_COLUMN,
     append_columns,
@@ -63,12 +64,7 @@ def predict_command(
     Writes the input's columns plus ``prediction`` and ``prediction_std`` (one
     standard deviation, including measurement noise) [output units].
     """
-    if out_file.exists() and not force:
-        raise click.ClickException(f"{out_file} exists; pass --force to overwrite.")
-    if out_file.resolve() == data.resolve():
-        raise click.ClickException(
-            f"--out {out_file} is the input file; write the predictions elsewhere."
-        )
+    check_out_file(out_file, force, {"--input": data})
     try:
         model, band, config = load_fit(fit_dir)
     except ValueError as err:

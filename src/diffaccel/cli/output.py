@@ -15,8 +15,9 @@ from diffaccel.data import (
     atomic_write,
     result_folder,
 )
+from diffaccel.data.result_folder import MARKER
 
-__all__ = ["output_folder", "save_png"]
+__all__ = ["check_out_file", "output_folder", "save_png"]
 
 
 @contextmanager
@@ -57,3 +58,31 @@ def output_folder(
 def save_png(fig: Any, path: Path, dpi: int = 120) -> Path:
     """Write a matplotlib figure as PNG (atomically); returns ``path``."""
     return atomic_write(path, lambda p: fig.savefig(p, format="png", dpi=dpi))
+
+
+def check_out_file(
+    out: Path, force: bool, inputs: dict[str, Path | None], option: str = "--out"
+) -> None:
+    """Refuse an output file that would replace something the user gave.
+
+    ``out`` may replace an existing file only with ``force``, never one of the
+    ``inputs`` (``{"--dataset": path}``; None entries are skipped) and never a
+    file of a diffaccel result folder (a fit, a reconstruction), ``force`` or
+    not: the command would destroy the result it reads. ``option`` names
+    ``out`` in the messages.
+
+    Raises:
+        click.ClickException: naming the option and the file.
+    """
+    if out.exists() and not force:
+        raise click.ClickException(f"{out} exists; pass --force to overwrite it")
+    for name, path in inputs.items():
+        if path is not None and out.resolve() == path.resolve():
+            raise click.ClickException(
+                f"{option} {out} is the {name} file; write the output elsewhere."
+            )
+    if out.exists() and (out.resolve().parent / MARKER).exists():
+        raise click.ClickException(
+            f"{option} {out} is a file of the result folder {out.parent}; write the "
+            "output elsewhere."
+        )

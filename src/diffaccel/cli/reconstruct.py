@@ -17,7 +17,7 @@ import torch.distributed as tdist
 from click.core import ParameterSource
 from tqdm import tqdm
 
-from diffaccel.cli.output import output_folder, save_png
+from diffaccel.cli.output import check_out_file, output_folder, save_png
 from diffaccel.data import (
     FormatError,
     MultiScanDataset,
@@ -642,20 +642,15 @@ def predict(
     force: bool,
 ) -> None:
     """Ensemble-mean screen images of a reconstruction (RESULT_DIR) for new settings."""
-    for path in (out, std_out):
-        if path is not None and path.exists() and not force:
-            raise click.ClickException(f"{path} exists; pass --force to overwrite it")
+    check_out_file(out, force, {"--dataset": dataset_path})
     if std_out is not None:
+        check_out_file(
+            std_out, force, {"--dataset": dataset_path, "--out": out}, "--std-out"
+        )
         if std_out.suffix.lower() not in (".npy", ".npz"):
             raise click.ClickException(
                 f"--std-out {std_out}: expected a .npy (one scan) or .npz file name"
             )
-        if std_out.resolve() == out.resolve():
-            raise click.ClickException("--std-out and --out are the same file")
-    if dataset_path is not None and out.resolve() == dataset_path.resolve():
-        raise click.ClickException(
-            f"--out {out} is the --dataset file; write the predictions elsewhere."
-        )
     if (dataset_path is None) == (settings_text is None):
         raise click.ClickException("give exactly one of --dataset or --settings")
     suffix = out.suffix.lower()

@@ -9,6 +9,7 @@ from typing import Any
 import click
 import torch
 
+from diffaccel.cli.output import check_out_file
 from diffaccel.data import (
     FormatError,
     make_synthetic_awa6d,
@@ -120,12 +121,7 @@ __all__ = ["synthetic"]
 def synthetic(out: Path, force: bool, **options: Any) -> None:
     """Simulate a quadrupole scan of a known beam and write it to OUT (HDF5)."""
     opts = _Options(**options)
-    if opts.particle_file is not None and out.resolve() == opts.particle_file.resolve():
-        raise click.ClickException(
-            f"OUT {out} is the --particle-file; write the scan elsewhere."
-        )
-    if out.exists() and not force:
-        raise click.ClickException(f"{out} exists; pass --force to overwrite it")
+    check_out_file(out, force, {"--particle-file": opts.particle_file})
     beam = (
         f"preset {opts.preset}"
         if opts.particle_file is None

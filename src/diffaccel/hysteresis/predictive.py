@@ -185,6 +185,11 @@ def fit_magnet(
         )
     if float(y[:n_fit].max() - y[:n_fit].min()) <= 0:
         raise ValueError("output is constant over the fitted rows; nothing to fit.")
+    if float(u[:n_fit].max() - u[:n_fit].min()) <= 0:
+        raise ValueError(
+            f"input is constant ({float(u[0]):g}) over the fitted rows; a "
+            "hysteresis fit needs the input to vary."
+        )
     chosen = symmetric_default(rng) if symmetric is None else bool(symmetric)
     model = _build(mesh_size, rng, initial_state, chosen)
     fit_preisach(
