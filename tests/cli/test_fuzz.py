@@ -80,6 +80,10 @@ def files(tmp_path_factory) -> dict[str, Path]:
         with h5py.File(p, "r+") as h5:
             edit(h5)
         f[name] = p
+    f["csv_constant_input"] = d / "const.csv"  # one current, varying field
+    f["csv_constant_input"].write_text(
+        "current,field\n" + "".join(f"1.0,{i}\n" for i in range(20))
+    )
     for name, text in CSV_CASES.items():
         p = d / f"{name}.csv"
         p.write_bytes(text if isinstance(text, bytes) else text.encode())
@@ -424,11 +428,10 @@ def test_hysteresis_fit_bad_options(files, tmp_path: Path, case: str) -> None:
     assert_clear_error(r)
 
 
-def test_hysteresis_fit_refuses_a_constant_input(tmp_path: Path) -> None:
+def test_hysteresis_fit_refuses_a_constant_input(files, tmp_path: Path) -> None:
     # one current, varying field: nothing to learn (was exit 0, 32 % rmse and
     # a RankWarning from the plot's straight line)
-    data = tmp_path / "const.csv"
-    data.write_text("current,field\n" + "".join(f"1.0,{i}\n" for i in range(20)))
+    data = files["csv_constant_input"]
     args = ["hysteresis", "fit", str(data), "--train-rows", "16"]
     r = CliRunner().invoke(main, [*args, "--out", str(tmp_path / "f"), *FIT])
     assert_clear_error(r)
@@ -515,6 +518,8 @@ GP_CASES = {
     "binary": ("csv_binary", []),
     "plain_missing": ("csv", ["--plain", "zz"]),
     "range_reversed": ("csv", ["--input-range", "5", "-5"]),
+    "plain_twice": ("csv", ["--plain", "current", "--plain", "current"]),
+    "constant_input": ("csv_constant_input", []),
 }
 
 

@@ -104,8 +104,18 @@ def gp_fit(
     summary JSON (noise, fit quality, the plain-GP noise for comparison) and a
     figure of the fit into OUT.
     """
+    repeated = sorted({c for c in plain_cols if plain_cols.count(c) > 1})
+    if repeated:
+        raise click.BadParameter(
+            f"column(s) {repeated} given more than once", param_hint="--plain"
+        )
     try:
         hist = read_magnet_csv(data, input_column=x_col, output_column=y_col)
+        if float(hist.input.max() - hist.input.min()) <= 0:
+            raise ValueError(
+                f"{data}: column {x_col!r} is constant ({float(hist.input[0]):g}); "
+                "a hysteresis GP needs the magnet input to vary."
+            )
         cols = [hist.input]
         for col in plain_cols:
             cols.append(read_magnet_csv(data, col, y_col).input)
