@@ -205,8 +205,10 @@ def test_parse_selection(dataset_factory, text: str, expected: dict) -> None:
         ("straight:x", r"scan 'straight': expected all, even, odd, none"),
         ("straight:none;bent:none", r"select no setting"),
         ("", r"expected a rule"),
+        # was exit 0 with the last rule silently winning
+        ("straight:all;straight:0", r"scan 'straight' is named twice"),
     ],
-    ids=["out_of_range", "unknown_scan", "bad_rule", "nothing", "empty"],
+    ids=["out_of_range", "unknown_scan", "bad_rule", "nothing", "empty", "twice"],
 )
 def test_parse_selection_errors(dataset_factory, text: str, message: str) -> None:
     with pytest.raises(ValueError, match=message):

@@ -160,7 +160,10 @@ def read_dataset(path: Path) -> MultiScanDataset:
     try:
         return as_scans(read_scans(path))
     except (FormatError, OSError) as err:
-        raise click.ClickException(f"cannot read {path}: {err}") from err
+        text = str(err)  # reader errors already read "PATH: field: problem"
+        if not text.startswith(str(path)):
+            text = f"{path}: {text}"
+        raise click.ClickException(f"cannot read {text}") from err
 
 
 def resume_config(

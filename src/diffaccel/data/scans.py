@@ -235,14 +235,16 @@ def parse_selection(text: str, dataset: MultiScanDataset) -> dict[str, list[int]
         ``{scan name: sorted setting indices}`` for every scan (possibly empty).
 
     Raises:
-        ValueError: naming the scan and rule for an unknown scan, a malformed
-            rule, an index out of range, or a selection with no setting at all.
+        ValueError: naming the scan and rule for an unknown scan, a scan named
+            twice, a malformed rule, an index out of range, or a selection with
+            no setting at all.
     """
     if not isinstance(text, str) or not text.strip():
         raise ValueError("train indices: expected a rule such as all, even or 0,2,4")
     out: dict[str, list[int]]
     if ":" in text:
         out = {name: [] for name in dataset.names}
+        named: set[str] = set()
         for part in (p for p in text.split(";") if p.strip()):
             name, sep, rule = part.partition(":")
             name = name.strip()
@@ -251,6 +253,12 @@ def parse_selection(text: str, dataset: MultiScanDataset) -> dict[str, list[int]
                     f"train indices: {part.strip()!r} must be SCAN:RULE with SCAN "
                     f"one of {dataset.names}"
                 )
+            if name in named:
+                raise ValueError(
+                    f"train indices: scan {name!r} is named twice in {text!r}; give "
+                    "one rule per scan"
+                )
+            named.add(name)
             k = dataset[name].n_settings
             out[name] = _indices(rule, k, f"train indices of scan {name!r}")
     else:
