@@ -406,6 +406,7 @@ FIT_ARGS = {
     "same_column": ["--output", "current"],
     "missing_column": ["--input", "nope"],
     "too_many_rows": ["--train-rows", "999"],
+    "mesh_huge": ["--mesh-size", "100000"],  # 5e9 hysterons: ran out of memory
 }
 
 
@@ -519,6 +520,7 @@ GP_CASES = {
     "plain_missing": ("csv", ["--plain", "zz"]),
     "range_reversed": ("csv", ["--input-range", "5", "-5"]),
     "plain_twice": ("csv", ["--plain", "current", "--plain", "current"]),
+    "mesh_huge": ("csv", ["--mesh-size", "100000"]),
     "constant_input": ("csv_constant_input", []),
 }
 

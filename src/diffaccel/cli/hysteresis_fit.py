@@ -23,6 +23,7 @@ from diffaccel.hysteresis import (
     fit_magnet,
     save_fit,
 )
+from diffaccel.hysteresis.mesh import MAX_CLI_MESH_SIZE
 from diffaccel.hysteresis.predictive import rms
 from diffaccel.plotting.hysteresis import plot_preisach_density, plot_preisach_fit
 
@@ -53,7 +54,7 @@ FIGURES = ("fit.png", "density.png")
 )
 @click.option(
     "--mesh-size",
-    type=click.IntRange(min=2),
+    type=click.IntRange(min=2, max=MAX_CLI_MESH_SIZE),
     default=20,
     show_default=True,
     help="Cells per axis of the triangular Preisach mesh (20: 210 hysterons; "

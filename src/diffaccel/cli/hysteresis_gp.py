@@ -18,6 +18,7 @@ from diffaccel.hysteresis import (
     PreisachModel,
     fit_hysteresis_gp,
 )
+from diffaccel.hysteresis.mesh import MAX_CLI_MESH_SIZE
 from diffaccel.plotting.hgp import plot_hgp_history
 
 __all__ = ["gp_fit"]
@@ -54,7 +55,7 @@ RANGE_MARGIN = 0.01
 )
 @click.option(
     "--mesh-size",
-    type=click.IntRange(min=2),
+    type=click.IntRange(min=2, max=MAX_CLI_MESH_SIZE),
     default=30,
     show_default=True,
     help="Cells per axis of the triangular Preisach mesh (30: 465 hysterons).",

@@ -104,25 +104,7 @@ def _row_batches(path: str | os.PathLike, size: int) -> Iterator[list[list[str]]
     path_s = str(path)
     try:
         with open(path, encoding="utf-8-sig", newline="") as f:
-            reader = csv.reader(f)
-            while True:
-                limit = csv.field_size_limit(MAX_CELL_CHARS)
-                try:
-                    batch = list(itertools.islice(reader, size))
-                except csv.Error as err:
-                    if "field larger than field limit" in str(err):
-                        raise FormatError(
-                            f"{path_s}: line {reader.line_num}: a cell longer than "
-                            f"{MAX_CELL_CHARS} characters; not magnet data."
-                        ) from None
-                    raise FormatError(
-                        f"{path_s}: line {reader.line_num}: not valid CSV ({err})."
-                    ) from None
-                finally:
-                    csv.field_size_limit(limit)
-                if not batch:
-                    return
-                yield [r for r in batch if "".join(r).strip()]
+            yield from _reader_batches(csv.reader(f), size, path_s)
     except UnicodeDecodeError as err:
         raise FormatError(f"{path_s}: not UTF-8 text ({err.reason}).") from None
 

@@ -12,7 +12,12 @@ import math
 import torch
 from torch import Tensor
 
-__all__ = ["PreisachMesh"]
+__all__ = ["MAX_CLI_MESH_SIZE", "PreisachMesh"]
+
+#: Largest ``n`` of :meth:`PreisachMesh.triangular` the command line accepts:
+#: ``n (n + 1) / 2`` hysterons, 125,250 for 500 (memory grows with it; a typo
+#: such as 100000 would ask for 5e9 and exhaust the memory before the first step).
+MAX_CLI_MESH_SIZE = 500
 
 _TRIANGLE_AREA = 0.5
 
