@@ -34,7 +34,7 @@ format: $(BIN)/diffaccel
 
 bench: $(BIN)/diffaccel
 	$(BIN)/pip install --quiet -e ".[bench]"
-	for b in benchmarks/*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
+	for b in benchmarks/[!_]*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache .ruff_cache

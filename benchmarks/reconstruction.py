@@ -76,58 +76,34 @@ def run_diffaccel(ds, train, test) -> dict:
 
 
 def run_gpsr(ds, train, test, epochs: int) -> dict:
-    import lightning as L  # noqa: F401  (gpsr's trainer)
-    from cheetah.accelerator import Screen
-    from gpsr.beams import NNParticleBeamGenerator
-    from gpsr.datasets import QuadScanDataset as GQuadScanDataset
-    from gpsr.modeling import GPSR, GPSRQuadScanLattice
-    from gpsr.train import train_gpsr
-    from torch.utils.data import DataLoader
+    import _gpsr4d
 
-    h, w = ds.screen_shape
-    mass = 0.51099895e6
-    energy = (ds.p0c**2 + mass**2) ** 0.5
     spec = {e["name"]: e for e in ds.beamline_spec}
-    screen = Screen(
-        resolution=(w, h),
-        pixel_size=torch.tensor(ds.pixel_size, dtype=torch.float32),
-        method="cloud-in-cell",
-        is_active=True,
-    )
-    lattice = GPSRQuadScanLattice(spec["Q1"]["length"], spec["D1"]["length"], screen)
-    # cheetah's screen reading has the same orientation as our files (checked:
-    # truth particles through this lattice match the stored images unflipped)
-    images = ds.mean_images()
-    train_set = GQuadScanDataset(ds.settings[train].float(), (images[train],), screen)
-    loader = DataLoader(train_set, batch_size=len(train))
-    torch.manual_seed(0)
-    model = GPSR(NNParticleBeamGenerator(10_000, energy), lattice)
-    with tempfile.TemporaryDirectory() as tmp:
-        from lightning.pytorch.loggers import CSVLogger
 
+    def data(indices) -> dict:
+        # cheetah's screen reading has the same orientation as our files
+        # (checked: truth particles through this lattice match the stored
+        # images unflipped)
+        return {
+            "images": ds.mean_images()[indices],
+            "settings": ds.settings[indices],
+            "pixel_size": tuple(ds.pixel_size),
+            "screen_shape": tuple(ds.screen_shape),
+            "p0c": ds.p0c,
+            "quad_length": spec["Q1"]["length"],
+            "drift_length": spec["D1"]["length"],
+        }
+
+    with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        lit = train_gpsr(
-            model,
-            loader,
-            n_epochs=epochs,
-            logger=CSVLogger(tmp),
-            checkpoint_period_epochs=epochs,
-            enable_progress_bar=False,
-            enable_model_summary=False,
-        )
+        lit = _gpsr4d.train(data(train), epochs, tmp)
         wall = time.perf_counter() - t0
     gm = lit.gpsr_model
     with torch.no_grad():
         beam = gm.beam_generator()
         # A fresh lattice and screen: calling the trained model with new settings
         # can return the cached images of the training settings (ANCHORS.md).
-        fresh = Screen(
-            resolution=(w, h),
-            pixel_size=torch.tensor(ds.pixel_size, dtype=torch.float32),
-            method="cloud-in-cell",
-            is_active=True,
-        )
-        lat = GPSRQuadScanLattice(spec["Q1"]["length"], spec["D1"]["length"], fresh)
+        lat = _gpsr4d.lattice(data(list(range(ds.n_settings))))
         lat.set_lattice_parameters(ds.settings.float())
         pred = lat.track_and_observe(beam)[0]
         pred = pred / pred.sum((-2, -1), keepdim=True)

@@ -199,8 +199,11 @@ def test_transfer_maps_are_computed_once_per_run(small_scan, monkeypatch) -> Non
     assert cfg.dims == 4  # the linear-map training path
     r = reconstruct(small_scan, cfg, train_indices=[0, 2, 4], uncertainty=True)
     assert "uncertainty" in r.info
-    evaluate(r, small_scan)
     assert calls == [3]  # one computation for the 3 training settings
+    evaluate(r, small_scan)
+    # and one for the evaluation's predictions of every setting (4D: images
+    # through the maps instead of tracking)
+    assert calls == [3, small_scan.n_settings]
     assert r.unconstrained_coordinates() == r.info["unconstrained_coordinates"]
     # recomputed from the forward models (another tolerance bypasses the stored)
     recomputed = r.unconstrained_coordinates(tolerance=1.0000001e-3)

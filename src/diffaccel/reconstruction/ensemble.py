@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Mapping
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -169,6 +170,7 @@ class Reconstruction:
         return_std: bool = False,
         n_draws: int = 8,
         draw_particles: int = 10_000,
+        maps: Tensor | None = None,
     ) -> Tensor | tuple[Tensor, Tensor]:
         """Ensemble-mean screen images for arbitrary settings.
 
@@ -195,6 +197,9 @@ class Reconstruction:
             draw_particles: Particles of each member imaged per posterior
                 draw (the first ones of its sample: the draws of a member share
                 them, so their shot noise cancels in the spread).
+            maps: The forward model's ``transfer_maps(settings)`` when the
+                caller has them (a 4D reconstruction images through them where
+                they are exact, instead of tracking).
 
         Shapes:
             ``settings (K, P)`` -> ``(K, H, W)`` float32, each image summing to 1
@@ -216,8 +221,21 @@ class Reconstruction:
             fwd = self.forward
         settings = fwd.check_settings(settings)
         beams = self.sample(n_particles, per_snapshot=True, seed=seed)
+        # a 4D beam (pz = 0) through a beamline whose affine maps are exact for
+        # it: one matrix product per beam instead of tracking (the same images
+        # up to the paraxial px^2 terms of the exact drift, see images_linear)
+        if self.config.dims == 4:
+            maps = fwd.linear_maps(settings, monochromatic=True, maps=maps)
+        else:
+            maps = None
+
+        def image(b: Tensor) -> Tensor:
+            if maps is None:
+                return fwd.images(b, settings)
+            return fwd.images_linear(b, maps)
+
         with torch.no_grad():
-            imgs = _unit_sum(torch.stack([fwd.images(b, settings) for b in beams]))
+            imgs = _unit_sum(torch.stack([image(b) for b in beams]))
             if not return_std:
                 return imgs if per_snapshot else imgs.mean(0)
             var = imgs.var(0) if len(beams) > 1 else torch.zeros_like(imgs[0])
@@ -225,11 +243,15 @@ class Reconstruction:
             if unc is not None and n_draws > 1:
                 g = torch.Generator().manual_seed(seed + 1)
                 mu, cov = unc.draw(n_draws, g)
+                # drawn beams keep pz = 0 only if the posterior is 4D
+                draw_image = (
+                    image if unc.dims == 4 else partial(fwd.images, settings=settings)
+                )
                 within = torch.zeros_like(var)
                 for b in beams:
                     drawn = _recolour(b[:draw_particles], unc.dims, mu, cov)
                     within += _unit_sum(
-                        torch.stack([fwd.images(d, settings) for d in drawn])
+                        torch.stack([draw_image(d) for d in drawn])
                     ).var(0)
                 var = var + within / len(beams)
             std = var.sqrt()

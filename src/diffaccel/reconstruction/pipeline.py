@@ -267,7 +267,9 @@ def attach_uncertainty(
         jacobians.append(r[..., :6, :6])
         meas.append(images.detach().cpu())
         pred.append(
-            result.predict_images(sets, scan=name, n_particles=n_particles, seed=seed)
+            result.predict_images(
+                sets, scan=name, n_particles=n_particles, seed=seed, maps=r
+            )
         )
         axes.append(fwd.screen.pixel_centers(dtype=torch.float64))
     m = beam_moments(result.sample(max(n_particles, 50_000), seed=seed))
