@@ -192,3 +192,19 @@ def test_predict_rejects_mismatched_model_files(
     result = CliRunner().invoke(main, [*args, "--out", str(tmp_path / "p.csv")])
     assert result.exit_code != 0 and "hysterons" in result.output
     assert len(result.output.strip().splitlines()) == 1
+
+
+def test_read_ahead_keeps_order_and_raises_in_the_caller() -> None:
+    from diffaccel.cli.hysteresis_predict import read_ahead
+
+    assert list(read_ahead(iter(range(50)), depth=3)) == list(range(50))
+
+    def broken():
+        yield 1
+        raise ValueError("bad row 2")
+
+    got = []
+    with pytest.raises(ValueError, match="bad row 2"):
+        for item in read_ahead(broken()):
+            got.append(item)
+    assert got == [1]

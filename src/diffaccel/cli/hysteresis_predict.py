@@ -8,8 +8,12 @@ from __future__ import annotations
 
 import csv
 import math
+import queue
+import threading
 import warnings
+from collections.abc import Iterable, Iterator
 from pathlib import Path
+from typing import TypeVar
 
 import click
 import torch
@@ -23,7 +27,7 @@ from diffaccel.data import (
 )
 from diffaccel.hysteresis import InputRangeWarning, load_fit, predict_stream
 
-__all__ = ["predict_command"]
+__all__ = ["predict_command", "read_ahead"]
 
 PREDICTION = "prediction"
 PREDICTION_STD = "prediction_std"
@@ -95,19 +99,25 @@ def predict_command(
                 stats["max"] = max(stats["max"], float(x.max()))
                 yield x
 
-        with open(path, "w", newline="", encoding="utf-8") as f:
-            csv.writer(f, lineterminator="\n").writerow(out_header)
+        def texts():
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", InputRangeWarning)  # noted below
-                for pred, std in predict_stream(model, inputs(), band):
+                # CSV parsing (next chunk) overlaps the model (this chunk):
+                # torch releases the GIL
+                for pred, std in predict_stream(model, read_ahead(inputs()), band):
                     rows = pending.pop(0)
+                    stats["rows"] += len(rows)
+                    stats["finite"] &= bool(torch.isfinite(pred).all())
                     if std is None:
                         std = torch.full_like(pred, math.nan)
                     # 15 significant digits (all a float64 keeps in decimal);
                     # the std (float32 sums) to 7
-                    f.write(append_columns(rows, [pred, std], [15, 7]))
-                    stats["rows"] += len(rows)
-                    stats["finite"] &= bool(torch.isfinite(pred).all())
+                    yield rows, [pred, std]
+
+        with open(path, "w", newline="", encoding="utf-8") as f:
+            csv.writer(f, lineterminator="\n").writerow(out_header)
+            for rows, columns in read_ahead(texts()):
+                f.write(append_columns(rows, columns, [15, 7]))
 
     try:
         atomic_write(out_file, write)
@@ -129,3 +139,47 @@ def predict_command(
     )
     if not stats["finite"]:
         raise click.ClickException("predictions contain non-finite values.")
+
+
+_DONE = object()
+T = TypeVar("T")
+
+
+def read_ahead(items: Iterable[T], depth: int = 2) -> Iterator[T]:
+    """Iterate ``items`` in a background thread, up to ``depth`` items ahead.
+
+    Lets Python work (CSV parsing, formatting) overlap torch and numpy work,
+    which releases the GIL. An exception raised by ``items`` is raised here,
+    in the caller's thread, when its turn comes.
+    """
+    buffer: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+
+    def work() -> None:
+        try:
+            for item in items:
+                while not stop.is_set():
+                    try:
+                        buffer.put((item, None), timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+        except BaseException as err:  # handed over to the consumer
+            buffer.put((_DONE, err))
+            return
+        buffer.put((_DONE, None))
+
+    thread = threading.Thread(target=work, daemon=True)
+    thread.start()
+    try:
+        while True:
+            item, err = buffer.get()
+            if err is not None:
+                raise err
+            if item is _DONE:
+                return
+            yield item
+    finally:
+        stop.set()
