@@ -216,3 +216,7 @@ def test_append_columns_falls_back_for_nonfinite_and_huge() -> None:
     text = append_columns(["a", "b", "c", "d"], [x], [3])
     assert text == "a,1.00e+00\nb,nan\nc,-inf\nd,1.00e+200\n"
     assert append_columns([], [x[:0]], [3]) == ""
+    # blocks all negative, all positive, mixed
+    neg, pos, mix = (torch.tensor(v) for v in ([-1.5, -2.0], [3.0, 4.0], [5.0, -6.0]))
+    text = append_columns(["a", "b"], [neg, pos, mix], [2, 2, 2])
+    assert text == "a,-1.5e+00,3.0e+00,5.0e+00\nb,-2.0e+00,4.0e+00,-6.0e+00\n"

@@ -434,19 +434,37 @@ def append_columns(
         ]
         return "".join(lines)
     n = len(rows)
+    # drop the sign slot (column 1 of a block) of non-negative values: at once
+    # for a block without negative values, row by row (shift left, NUL-padded)
+    # for mixed ones, right to left
+    blocks, mixed, start = [], [], 0
+    for block, negative in parts:
+        if not negative.any():
+            block = np.delete(block, 1, axis=1)
+        elif not negative.all():
+            mixed.append((start + 1, negative))
+        blocks.append(block)
+        start += block.shape[1]
     newline = np.full((n, 1), ord("\n"), dtype=np.uint32)
-    mat = np.concatenate([p[0] for p in parts] + [newline], axis=1)
-    # drop the sign slot of non-negative values, right to left; NUL-padded
-    start = np.cumsum([0] + [p[0].shape[1] for p in parts])
+    mat = np.concatenate([*blocks, newline], axis=1)
     nul = np.zeros((n, 1), dtype=np.uint32)
-    for (_, negative), col0 in reversed(list(zip(parts, start[:-1], strict=True))):
-        slot = col0 + 1
+    for slot, negative in reversed(mixed):
         shifted = np.concatenate([mat[:, :slot], mat[:, slot + 1 :], nul], axis=1)
         mat = np.where(negative[:, None], mat, shifted)
     width = mat.shape[1]
     # UCS-4 code points viewed as numpy str; trailing NULs are dropped
     text = np.ascontiguousarray(mat, dtype="<u4").view(f"<U{width}")[:, 0]
     return "".join(map(operator.add, rows, text.tolist()))
+
+
+# code points of "0000" .. "9999", 16 bytes each, viewed as one complex128 per
+# group so that a lookup is one 16-byte gather: shape (10^4,)
+_FOUR_DIGITS = (
+    (np.arange(10**4)[:, None] // np.array([1000, 100, 10, 1]) % 10 + ord("0"))
+    .astype(np.uint32)
+    .view(np.complex128)
+    .ravel()
+)
 
 
 def _scientific(x: np.ndarray, digits: int) -> tuple[np.ndarray, np.ndarray] | None:
@@ -476,12 +494,13 @@ def _scientific(x: np.ndarray, digits: int) -> tuple[np.ndarray, np.ndarray] | N
     if (np.abs(e) > 99).any():
         return None
     n = x.shape[0]
-    # digits of d < 10^15 from two int32 halves (int64 division is slow)
+    # digits of d < 10^15 as four groups of four, looked up (int64 division
+    # is slow): d = ((g0 * 10^4 + g1) * 10^4 + g2) * 10^4 + g3
     d64 = d.astype(np.int64)
-    halves = [(d64 // 10**8).astype(np.int32), (d64 % 10**8).astype(np.int32)]
-    powers = 10 ** np.arange(7, -1, -1, dtype=np.int32)
-    digit = np.concatenate([(h[:, None] // powers) % 10 for h in halves], axis=1)
-    digit = digit[:, 16 - digits :] + ord("0")
+    hi, lo = (d64 // 10**8).astype(np.int32), (d64 % 10**8).astype(np.int32)
+    groups = np.stack([hi // 10**4, hi % 10**4, lo // 10**4, lo % 10**4], axis=1)
+    digit = np.take(_FOUR_DIGITS, groups).view(np.uint32).reshape(n, 16)
+    digit = digit[:, 16 - digits :]
     mat = np.empty((n, digits + 7), dtype=np.uint32)
     mat[:, 0] = ord(",")
     mat[:, 1] = ord("-")
