@@ -176,3 +176,24 @@ def test_slac_quadrupole_acceptance() -> None:
     # cases: SLAC, bipolar and B-H, see test_predictive and the benchmark);
     # a band that ignored the minor loops would cover far fewer
     assert float((err.abs() < 2 * std[62:]).double().mean()) >= 0.7
+
+
+@pytest.mark.parametrize("symmetric", [False, True])
+def test_fit_objective_from_fixed_states_equals_the_model(symmetric: bool) -> None:
+    # the fit evaluates a fixed relay-state table (known initial state): it must
+    # be the model's own output for any density
+    from diffaccel.hysteresis.fit import _FromStates
+
+    gen = torch.Generator().manual_seed(3)
+    model = PreisachModel(
+        PreisachMesh.triangular(7), input_range=(-2.0, 3.0), symmetric=symmetric
+    )
+    with torch.no_grad():
+        model.raw_density.copy_(torch.randn(model.raw_density.shape, generator=gen))
+        model.offset.fill_(0.1)
+        model.slope.fill_(-0.3)
+        model.scale.fill_(1.7)
+    u = -2.0 + 5.0 * torch.rand(40, generator=gen, dtype=torch.float64)
+    with torch.no_grad():
+        got = _FromStates(model, model.normalize_input(u), model.states(u))()
+        torch.testing.assert_close(got, model(u), rtol=0, atol=1e-12)

@@ -93,6 +93,29 @@ class _Roughness(torch.nn.Module):
         return density_roughness(self.model)
 
 
+class _FromStates(torch.nn.Module):
+    """The model's output from a fixed exact state table ``(T, M)``.
+
+    With a known initial state the relay states of a training history do not
+    depend on the parameters, so a fit can compute them once and evaluate the
+    output as one matrix-vector product (for ``torch.func.functional_call``).
+    """
+
+    def __init__(self, model: PreisachModel, un: Tensor, states: Tensor) -> None:
+        super().__init__()
+        self.model = model
+        self.un = un
+        self.states = states
+
+    def forward(self) -> Tensor:
+        w = self.model.weights
+        return self.model._output(self.un, (self.states @ w) / w.sum())
+
+
+# largest state table (T x M entries, float64) a fit precomputes: 40 MB
+_MAX_STATE_TABLE = 5_000_000
+
+
 def check_series(
     current: Tensor, field_: Tensor, dtype, device
 ) -> tuple[Tensor, Tensor]:
@@ -221,11 +244,26 @@ def fit_preisach(
             for n in names:
                 own[n].copy_(proxies[n] * factor[n])
 
+    kind = model.initial_state_kind if initial_state is None else initial_state
+    learned = (
+        "raw_initial_state" in names and isinstance(kind, str) and kind == "learned"
+    )
+    from_states = None
+    if not learned and u.numel() * m_count <= _MAX_STATE_TABLE:
+        with torch.no_grad():
+            table = model.states(u, initial_state)
+        from_states = _FromStates(model, model.normalize_input(u), table)
+
     def objective() -> Tensor:
         subst = {n: proxies[n] * factor[n] for n in names}
-        m = torch.func.functional_call(
-            model, subst, (u,), {"initial_state": initial_state}, strict=False
-        )
+        if from_states is not None:
+            m = torch.func.functional_call(
+                from_states, {f"model.{n}": v for n, v in subst.items()}, ()
+            )
+        else:
+            m = torch.func.functional_call(
+                model, subst, (u,), {"initial_state": initial_state}, strict=False
+            )
         pred = (m - model.output_loc) / model.output_scale
         loss = ((pred - yn) ** 2).mean()
         if smoothness > 0:

@@ -413,7 +413,10 @@ class PreisachModel(nn.Module):
             Outputs [output units], shape ``(*B, T)``.
         """
         un = self.normalize_input(u)
-        m = self._magnetization(un, initial_state, smooth)
+        return self._output(un, self._magnetization(un, initial_state, smooth))
+
+    def _output(self, un: Tensor, m: Tensor) -> Tensor:
+        """Output [output units] from normalised inputs and magnetization."""
         y = self.offset + self.slope * un + self.scale * m
         return self.output_loc + self.output_scale * y
 
