@@ -89,7 +89,10 @@ def _check_finite(x: Tensor, y: Tensor) -> None:
             return
         if bool(torch.isfinite(x).all() & torch.isfinite(y).all()):
             return
-    raise ValueError("x and y contain NaN or infinite positions.")
+    raise ValueError(
+        "x and y contain NaN or infinite positions (after tracking: particles "
+        "lost, e.g. a setting or element too strong for the beam's momentum)."
+    )
 
 
 def pixel_centers(
