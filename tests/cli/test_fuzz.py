@@ -262,6 +262,7 @@ def test_reconstruct_bad_file(files, tmp_path: Path, case: str) -> None:
 RECONSTRUCT_ARGS = {
     "cuda7": ["--device", "cuda:7"],
     "device_junk": ["--device", "banana"],
+    "cpu1": ["--device", "cpu:1"],  # torch accepts it and ignores the index
     "zero_particles": ["--particles", "0"],
     "negative_steps": ["--steps", "-3"],
     "snapshots_over_steps": ["--steps", "2", "--snapshots", "5"],
@@ -647,3 +648,9 @@ def test_predict_never_overwrites_a_file_of_its_result(
     r = CliRunner().invoke(main, [*args, "--out", str(result_dir / "particles.h5")])
     assert_clear_error(r)
     assert (result_dir / "particles.h5").read_bytes() == parts
+
+
+def test_check_device_accepts_the_cpu_by_either_name() -> None:
+    from diffaccel.cli.reconstruct import check_device
+
+    assert check_device("cpu").type == check_device("cpu:0").type == "cpu"

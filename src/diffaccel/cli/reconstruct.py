@@ -148,6 +148,12 @@ def check_device(device: str) -> torch.device:
         raise click.BadParameter(
             f"{device}: MPS is not available on this machine", param_hint="--device"
         )
+    elif dev.type in ("cpu", "mps") and dev.index not in (None, 0):
+        # torch accepts "cpu:1" and ignores the index: refuse what does not exist
+        raise click.BadParameter(
+            f"{device}: there is one {dev.type} device; use --device {dev.type}",
+            param_hint="--device",
+        )
     elif dev.type not in ("cpu", "cuda", "mps"):
         raise click.BadParameter(
             f"{device}: unsupported device type {dev.type!r}", param_hint="--device"
