@@ -315,6 +315,8 @@ def test_reconstruct_refuses_an_input_inside_out(files, tmp_path: Path) -> None:
 
 PREDICT_SETTINGS = {
     "semicolon": ";",
+    "trailing_semicolon": "1;2;",  # an empty setting group, not ignored
+    "double_comma": "1,,2",
     "empty": "",
     "comma": ",",
     "letters": "a,b",

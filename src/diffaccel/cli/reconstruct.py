@@ -570,13 +570,22 @@ def parse_settings(text: str, names: list[str]) -> torch.Tensor:
 
     Raises:
         ValueError: naming the value that is not a number, a row of the wrong
-            length, or an empty list.
+            length, an empty row or value (a stray ``;`` or ``,``), or an empty
+            list.
     """
-    rows = [r for r in text.replace(" ", "").split(";") if r]
-    if len(names) == 1 and len(rows) == 1:
-        rows = [v for v in rows[0].split(",") if v]
-    if not rows:
+    if not text.replace(" ", "").strip(";,"):
         raise ValueError(f"--settings {text!r} holds no value; e.g. '-3,0,2.5'.")
+    rows = text.replace(" ", "").split(";")
+    if len(names) == 1 and len(rows) == 1:
+        rows = rows[0].split(",")
+        what, sep = "value", ","
+    else:
+        what, sep = "row", ";"
+    for i, row in enumerate(rows):
+        if not row:  # a stray separator would silently drop a setting
+            raise ValueError(
+                f"--settings {text!r}: {what} {i + 1} is empty (a stray {sep!r}?)."
+            )
     out = []
     for i, row in enumerate(rows):
         cells = row.split(":")
