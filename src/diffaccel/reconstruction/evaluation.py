@@ -260,7 +260,8 @@ def check_on_screen(images: Tensor, settings: Tensor, *, scan: str = "") -> Tens
         where = f"scan {scan!r}: " if scan else ""
         raise ValueError(
             f"{where}no predicted particle reaches the screen at setting {bad} "
-            f"({settings[bad].tolist()})."
+            f"({settings[bad].tolist()}; particles lost or off the screen, e.g. a "
+            "setting or element too strong for the beam's momentum)."
         )
     return sums
 
