@@ -26,6 +26,7 @@ from diffaccel.data import (
     read_openpmd_particles,
     read_scans,
     write_quad_scan,
+    write_scans,
 )
 from diffaccel.hysteresis import load_fit
 from diffaccel.reconstruction import load, load_checkpoint
@@ -256,6 +257,18 @@ def test_reconstruct_bad_file(files, tmp_path: Path, case: str) -> None:
         main, ["reconstruct", str(files[case]), "--out", str(tmp_path / "o"), *TINY]
     )
     assert_clear_error(r)
+    assert not (tmp_path / "o").exists()
+
+
+def test_reconstruct_refuses_v1_data_beside_scans(files, tmp_path: Path) -> None:
+    path = write_scans(read_scans(files["good"]), tmp_path / "v2.h5", format_version=2)
+    with h5py.File(path, "r+") as h5:  # a stray root-level images dataset
+        h5["images"] = np.zeros((3, 1, 8, 8), np.float32)
+    r = CliRunner().invoke(
+        main, ["reconstruct", str(path), "--out", str(tmp_path / "o"), *TINY]
+    )
+    assert_clear_error(r)
+    assert str(path) in r.output and "/images" in r.output
     assert not (tmp_path / "o").exists()
 
 

@@ -55,6 +55,14 @@ def test_round_trip_v2(dataset_factory, tmp_path: Path) -> None:
     _assert_same_scans(back, ms)
 
 
+def test_v1_reader_refuses_a_scans_group(dataset, tmp_path: Path) -> None:
+    path = write_quad_scan(dataset, tmp_path / "v1.h5")
+    with h5py.File(path, "r+") as h5:
+        h5.create_group("scans")
+    with pytest.raises(FormatError, match=r": /scans: a format_version 1 file"):
+        read_scans(path)
+
+
 def test_v1_file_reads_as_one_scan_and_writes_back_as_v1(
     dataset, tmp_path: Path
 ) -> None:
@@ -132,11 +140,17 @@ def _corrupt(path: Path, action: str) -> None:
         elif action == "scan_images_not_numbers":
             del h5["scans/bent/images"]
             h5["scans/bent/images"] = np.array([b"a", b"b"])
+        elif action == "root_images":  # v1-looking data beside /scans
+            h5["images"] = h5["scans/straight/images"][...]
+        elif action == "root_beamline":
+            h5.attrs["beamline"] = h5["scans/straight"].attrs["beamline"]
         else:  # pragma: no cover
             raise AssertionError(action)
 
 
 CORRUPTIONS = [
+    ("root_images", r"/images: a format_version 2 file keeps images under /scans"),
+    ("root_beamline", r"/.beamline: a format_version 2 file keeps the beamline"),
     ("no_scans", r"/scans: missing group"),
     ("empty_scans", r"/scans: expected at least one scan group"),
     ("scan_bad_name", r"/scans/bent/settings.names: 'Q9.k1' names element 'Q9'"),

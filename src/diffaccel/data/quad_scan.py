@@ -836,6 +836,7 @@ def read_file_scans(
     with open_quad_scan(path) as h5:
         try:
             version = _read_version(h5)
+            _refuse_other_version_fields(h5, version)
             root = _read_root(h5)
             if version == 1:
                 return version, {single_name: _read_scan(h5, "/", root)}, root.metadata
@@ -852,6 +853,36 @@ def read_file_scans(
             return version, scans, root.metadata
         except FormatError as err:
             raise FormatError(f"{path}: {err}") from err
+
+
+#: Root fields of one format version that the other version does not have.
+_V1_ONLY = ("images", "settings", "screen")
+
+
+def _refuse_other_version_fields(h5: h5py.File, version: int) -> None:
+    """Refuse root fields of the other format version (they would be ignored).
+
+    Raises:
+        FormatError: naming the field, e.g. a version-2 file with ``/images``.
+    """
+    if version == 1:
+        if "scans" in h5:
+            raise FormatError(
+                "/scans: a format_version 1 file holds its scan at the root; "
+                "/scans is version 2 (set format_version 2 or remove it)"
+            )
+        return
+    for key in _V1_ONLY:
+        if key in h5:
+            raise FormatError(
+                f"/{key}: a format_version 2 file keeps {key} under "
+                f"/scans/<name>/; this root-level {key} would be ignored"
+            )
+    if "beamline" in h5.attrs:
+        raise FormatError(
+            "/.beamline: a format_version 2 file keeps the beamline in "
+            "/scans/<name>.beamline; this root attribute would be ignored"
+        )
 
 
 def scan_names(h5: h5py.File) -> list[str]:
