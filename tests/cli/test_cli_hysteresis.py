@@ -208,3 +208,19 @@ def test_read_ahead_keeps_order_and_raises_in_the_caller() -> None:
         for item in read_ahead(broken()):
             got.append(item)
     assert got == [1]
+
+
+def test_predict_leaves_torch_threads_as_it_found_them(
+    magnet_csv: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "fit"
+    assert _fit(magnet_csv, out, "--no-figures").exit_code == 0
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        args = ["hysteresis", "predict", str(out), "--input", str(magnet_csv)]
+        result = CliRunner().invoke(main, [*args, "--out", str(tmp_path / "p.csv")])
+        assert result.exit_code == 0, result.output
+        assert torch.get_num_threads() == 2  # the model ran on one, restored
+    finally:
+        torch.set_num_threads(before)
