@@ -277,6 +277,7 @@ RECONSTRUCT_ARGS = {
     "device_junk": ["--device", "banana"],
     "cpu1": ["--device", "cpu:1"],  # torch accepts it and ignores the index
     "zero_particles": ["--particles", "0"],
+    "particles_beyond_memory": ["--particles", str(10**13)],  # ~15 PB to train
     "negative_steps": ["--steps", "-3"],
     "snapshots_over_steps": ["--steps", "2", "--snapshots", "5"],
     "blur_huge": ["--blur", "1e30"],

@@ -161,6 +161,26 @@ def check_device(device: str) -> torch.device:
     return dev
 
 
+def check_memory(config: ReconstructionConfig, n_images: int) -> None:
+    """Refuse (one line, ``--particles``) a run that cannot fit in this machine's RAM.
+
+    Compares :meth:`ReconstructionConfig.memory_bytes` with the physical memory
+    (POSIX ``sysconf``); where that is unknown nothing is checked.
+    """
+    try:
+        total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, ValueError, OSError):
+        return
+    need = config.memory_bytes(n_images)
+    if total > 0 and need > total:
+        raise click.BadParameter(
+            f"{config.n_particles} particles need about {need / 2**30:.3g} GiB "
+            f"of memory to train on {n_images} image(s); this machine has "
+            f"{total / 2**30:.3g} GiB: use fewer particles",
+            param_hint="--particles",
+        )
+
+
 def read_dataset(path: Path) -> MultiScanDataset:
     """The scans of a quad-scan file, or a one-line click error naming the problem."""
     try:
@@ -490,6 +510,8 @@ def reconstruct_command(
             )
         config = resume_config(found[0], config, given)
         click.echo(f"resuming from {found[0]} ({config})", err=True)
+    if torch.device(dev).type == "cpu":
+        check_memory(config, sum(len(v) for v in selection.values()))
     try:
         if writer:
             target = output_folder(
