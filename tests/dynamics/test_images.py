@@ -331,3 +331,65 @@ def test_cic_huge_finite_positions_are_not_rejected() -> None:
         cic_image(torch.tensor([0.0, float("inf")]), torch.zeros(2), (5, 5), 1e-3)
     with pytest.raises(ValueError, match="NaN or infinite"):
         kde_image(torch.zeros(2), torch.tensor([float("nan"), 0.0]), (5, 5), 1e-3)
+
+
+@pytest.mark.parametrize("weighted", [False, True], ids=["unweighted", "weighted"])
+@pytest.mark.parametrize("banded", [False, True], ids=["whole", "banded"])
+def test_kde_particle_chunks_equal_one_chunk(monkeypatch, weighted, banded) -> None:
+    """On the CPU the kernels are evaluated and used in chunks of particles
+    (cache-sized): chunks smaller than the beam and than a band (bands cut across
+    chunk boundaries, the last chunk partial) give the one-chunk images and
+    gradients, with unequal bandwidths and particles off the screen."""
+    import diffaccel.dynamics.images as images
+
+    g = torch.Generator().manual_seed(15)
+    n, shape, pixel, h = 700, (40, 13), 1e-3, (1.1e-3, 0.9e-3)
+    x = torch.randn(2, n, generator=g, dtype=F64) * 1.5e-3
+    y = torch.randn(2, n, generator=g, dtype=F64) * 9e-3
+    y[:, :3] = torch.tensor([-0.023, 0.024, 0.05], dtype=F64)  # beyond the edges
+    w = torch.rand(2, n, generator=g, dtype=F64) + 0.5 if weighted else None
+    monkeypatch.setattr(images, "_BAND_MIN_PARTICLES", 0 if banded else 10**9)
+    weight = torch.linspace(-1, 2, 2 * shape[0] * shape[1], dtype=F64)
+    sizes = []
+
+    def run(chunk_elements: int, min_particles: int):
+        monkeypatch.setattr(images, "_CHUNK_ELEMENTS", chunk_elements)
+        monkeypatch.setattr(images, "_CHUNK_MIN_PARTICLES", min_particles)
+        xg, yg = x.clone().requires_grad_(True), y.clone().requires_grad_(True)
+        wg = None if w is None else w.clone().requires_grad_(True)
+        image = kde_image(xg, yg, shape, pixel, bandwidth=h, weights=wg)
+        (image * weight.view_as(image)).sum().backward()
+        grads = (xg.grad, yg.grad) + (() if wg is None else (wg.grad,))
+        return (image.detach(), *grads)
+
+    chunk_particles = images._chunk_particles
+
+    def spy(count, rows):
+        sizes.append(chunk_particles(count, rows))
+        return sizes[-1]
+
+    monkeypatch.setattr(images, "_chunk_particles", spy)
+    one = run(2**40, 1)
+    assert all(s == n for s in sizes)
+    sizes.clear()
+    chunked = run(1, 97)  # 97 particles per chunk: 8 chunks, the last partial
+    assert sizes and all(s == 97 for s in sizes)
+    for a, b in zip(chunked, one, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-15)
+
+
+def test_kde_particle_chunks_gradcheck(monkeypatch) -> None:
+    import diffaccel.dynamics.images as images
+
+    monkeypatch.setattr(images, "_BAND_MIN_PARTICLES", 0)
+    monkeypatch.setattr(images, "_CHUNK_ELEMENTS", 1)
+    monkeypatch.setattr(images, "_CHUNK_MIN_PARTICLES", 3)
+    g = torch.Generator().manual_seed(16)
+    x = (torch.randn(8, generator=g, dtype=F64) * 1e-3).requires_grad_(True)
+    y = (torch.randn(8, generator=g, dtype=F64) * 12e-3).requires_grad_(True)
+    w = (torch.rand(8, generator=g, dtype=F64) + 0.5).requires_grad_(True)
+
+    def f(x, y, w):
+        return kde_image(x, y, (40, 6), 1e-3, bandwidth=1e-3, weights=w)
+
+    assert torch.autograd.gradcheck(f, (x, y, w))

@@ -337,9 +337,10 @@ def kde_image(
     Off the CPU (CUDA) all images are computed at once on the whole screen with
     fixed shapes (particles in chunks of fixed size): no per-image Python loop
     and no host synchronisation from data-dependent windows; same values (the
-    window only drops kernel values below the cut). On the CPU the kernels live
-    in a reused workspace (fresh memory costs a page fault per 4 KiB on first
-    touch) and the backward recomputes them.
+    window only drops kernel values below the cut). On the CPU the kernels are
+    evaluated and used in chunks of particles of a few MB (they stay in cache
+    between their passes), in a reused workspace (fresh memory costs a page
+    fault per 4 KiB on first touch), and the backward recomputes them.
 
     Args:
         x: Horizontal positions [m], shape ``(*K, N)``.
@@ -586,8 +587,10 @@ class _SeparableKDE(torch.autograd.Function):
             key = (f / c).floor_().clamp_(0, n_bands - 1).to(itype)
             order = torch.argsort(key)
             counts = torch.bincount(key, minlength=n_bands).tolist()
-            x, y = x[order], y[order]
-            weights = None if weights is None else weights[order]
+            # index_select / scatter_: 3-6x faster than x[order] / index_put_
+            x, y = x.index_select(0, order), y.index_select(0, order)
+            if weights is not None:
+                weights = weights.index_select(0, order)
         starts = [0]
         for k in counts:
             starts.append(starts[-1] + k)
@@ -604,17 +607,26 @@ class _SeparableKDE(torch.autograd.Function):
         rel = torch.arange(width, dtype=ys.dtype, device=ys.device) * pixel_y
         # kernels are stored transposed, (pixels, N): the broadcast subtraction
         # and the column sums of the backward then run along the long particle
-        # axis (3x faster than (N, pixels) on AVX2 CPUs)
-        # (w', N) and (width, N) kernels in a reused buffer (see _workspace); the
-        # backward recomputes them rather than keeping one pair per image
+        # axis (3x faster than (N, pixels) on AVX2 CPUs). They are evaluated and
+        # used in chunks of particles (see _chunk_particles) in a reused buffer
+        # (see _workspace); the backward recomputes them
         n, nx = x.shape[0], xs.shape[0]
-        kx, ky = _kernel_pair(
-            x, y - first, xs, rel, bandwidth, _workspace((nx + width) * n, x)
-        )
-        kxw = kx if weights is None else kx.mul_(weights)
-        out = kx.new_zeros(n_bands * c + 2 * reach, xs.shape[0])
-        for s, e, r in _nonempty_bands(starts, c):
-            out[r : r + width].addmm_(ky[:, s:e], kxw[:, s:e].transpose(0, 1))
+        y_rel = y - first
+        chunk = _chunk_particles(n, nx + width)
+        buf = _workspace((nx + width) * chunk, x)
+        out = x.new_zeros(n_bands * c + 2 * reach, xs.shape[0])
+        for s0, e0 in _particle_chunks(n, chunk):
+            kx, ky = _kernel_pair(
+                x[s0:e0],
+                y_rel[s0:e0],
+                xs,
+                rel,
+                bandwidth,
+                buf[: (nx + width) * (e0 - s0)],
+            )
+            kxw = kx if weights is None else kx.mul_(weights[s0:e0])
+            for s, e, r in _nonempty_bands(starts, c, s0, e0):
+                out[r : r + width].addmm_(ky[:, s:e], kxw[:, s:e].transpose(0, 1))
         ctx.bandwidth = bandwidth
         ctx.bands = (c, reach, n_bands, starts)
         ctx.save_for_backward(x, y, xs, rel, first, weights, order)
@@ -627,43 +639,59 @@ class _SeparableKDE(torch.autograd.Function):
         c, reach, n_bands, starts = ctx.bands
         width = rel.shape[0]
         n, nx = x.shape[0], xs.shape[0]
-        buf = _workspace((3 * nx + 2 * width) * n, x)
-        kx, ky = _kernel_pair(x, y - first, xs, rel, ctx.bandwidth, buf)
-        spare = buf[(nx + width) * n :]
+        y_rel = y - first
+        chunk = _chunk_particles(n, nx + width)
+        buf = _workspace((3 * nx + 2 * width) * chunk, x)
         padded = grad.new_zeros(n_bands * c + 2 * reach, grad.shape[1])
         padded[reach : reach + grad.shape[0]] = grad
+        need_y = ctx.needs_input_grad[1]
         need_x = ctx.needs_input_grad[0]
         need_w = weights is not None and ctx.needs_input_grad[5]
-        gx = gy = gw = None
-        row_sum = None  # sum_ij G_ij Ky_ni Kx_nj
-        if ctx.needs_input_grad[1]:
-            kxw = kx
-            if weights is not None:
-                kxw = torch.mul(kx, weights, out=spare[: nx * n].view(nx, n))
-            # (width, N): sum_j w Kx_nj G_ij, per band
-            bm = spare[nx * n : (nx + width) * n].view(width, n)
-            for s, e, r in _nonempty_bands(starts, c):
-                torch.mm(padded[r : r + width], kxw[:, s:e], out=bm[:, s:e])
-            bky = bm.mul_(ky)
-            b_sum = bky.sum(0)
-            gy = torch.addcmul(rel @ bky, y - first, b_sum, value=-1.0)
-            gy = gy * (1.0 / hy**2)
-            if weights is None:
-                row_sum = b_sum  # saves a pass over the (w', N) product below
-        if need_x or need_w:
-            # (w', N): sum_i Ky_ni G_ij, per band
-            a = spare[(nx + width) * n : (2 * nx + width) * n].view(nx, n)
-            for s, e, r in _nonempty_bands(starts, c):
-                band_t = padded[r : r + width].transpose(0, 1)
-                torch.mm(band_t, ky[:, s:e], out=a[:, s:e])
-            akx = a.mul_(kx)
-            if row_sum is None:
-                row_sum = akx.sum(0)
-            if need_w:
-                gw = row_sum
-            if need_x:
-                gx = torch.addcmul(xs @ akx, x, row_sum, value=-1.0)
-                gx = gx * (1.0 / hx**2) if weights is None else gx * (weights / hx**2)
+        gy = x.new_empty(n) if need_y else None
+        gx = x.new_empty(n) if need_x else None
+        gw = x.new_empty(n) if need_w else None
+        for s0, e0 in _particle_chunks(n, chunk):
+            m = e0 - s0
+            kx, ky = _kernel_pair(
+                x[s0:e0], y_rel[s0:e0], xs, rel, ctx.bandwidth, buf[: (nx + width) * m]
+            )
+            spare = buf[(nx + width) * m :]
+            w = None if weights is None else weights[s0:e0]
+            bands = list(_nonempty_bands(starts, c, s0, e0))
+            row_sum = None  # sum_ij G_ij Ky_ni Kx_nj
+            if need_y:
+                kxw = (
+                    kx
+                    if w is None
+                    else torch.mul(kx, w, out=spare[: nx * m].view(nx, m))
+                )
+                # (width, m): sum_j w Kx_nj G_ij, per band
+                bm = spare[nx * m : (nx + width) * m].view(width, m)
+                for s, e, r in bands:
+                    torch.mm(padded[r : r + width], kxw[:, s:e], out=bm[:, s:e])
+                bky = bm.mul_(ky)
+                b_sum = bky.sum(0)
+                g = torch.addcmul(rel @ bky, y_rel[s0:e0], b_sum, value=-1.0)
+                torch.mul(g, 1.0 / hy**2, out=gy[s0:e0])
+                if w is None:
+                    row_sum = b_sum  # saves a pass over the (w', m) product below
+            if need_x or need_w:
+                # (w', m): sum_i Ky_ni G_ij, per band
+                a = spare[(nx + width) * m : (2 * nx + width) * m].view(nx, m)
+                for s, e, r in bands:
+                    band_t = padded[r : r + width].transpose(0, 1)
+                    torch.mm(band_t, ky[:, s:e], out=a[:, s:e])
+                akx = a.mul_(kx)
+                if row_sum is None:
+                    row_sum = akx.sum(0)
+                if need_w:
+                    gw[s0:e0] = row_sum
+                if need_x:
+                    g = torch.addcmul(xs @ akx, x[s0:e0], row_sum, value=-1.0)
+                    if w is None:
+                        torch.mul(g, 1.0 / hx**2, out=gx[s0:e0])
+                    else:
+                        torch.mul(g, w / hx**2, out=gx[s0:e0])
         if order is not None:
             gx, gy, gw = (
                 None if g is None else _unsort(g, order) for g in (gx, gy, gw)
@@ -671,16 +699,41 @@ class _SeparableKDE(torch.autograd.Function):
         return gx, gy, None, None, None, gw, None
 
 
-def _nonempty_bands(starts: list[int], c: int) -> Iterator[tuple[int, int, int]]:
-    """``(first particle, end particle, first padded row)`` of each non-empty band."""
+def _nonempty_bands(
+    starts: list[int], c: int, lo: int = 0, hi: int | None = None
+) -> Iterator[tuple[int, int, int]]:
+    """``(first particle, end particle, first padded row)`` of each non-empty band.
+
+    Only the particles in ``[lo, hi)`` are taken, numbered from ``lo``.
+    """
+    hi = starts[-1] if hi is None else hi
     for k in range(len(starts) - 1):
-        if starts[k + 1] > starts[k]:
-            yield starts[k], starts[k + 1], k * c
+        s, e = max(starts[k], lo), min(starts[k + 1], hi)
+        if e > s:
+            yield s - lo, e - lo, k * c
+
+
+# Kernel values (both matrices) per chunk of particles: evaluating and using
+# the kernels chunk by chunk keeps them in cache between their passes (the
+# subtraction, the square, the exp and the products): 1.3-1.5x faster per image
+# than whole-window matrices on an AVX2 EPYC (4 MB chunks; from 1 MB the
+# per-call overhead dominates).
+_CHUNK_ELEMENTS = 2**20
+_CHUNK_MIN_PARTICLES = 1024
+
+
+def _chunk_particles(n: int, rows: int) -> int:
+    """Particles per chunk for kernels of ``rows`` pixels in all."""
+    return min(n, max(_CHUNK_MIN_PARTICLES, _CHUNK_ELEMENTS // max(rows, 1)))
+
+
+def _particle_chunks(n: int, chunk: int) -> list[tuple[int, int]]:
+    return [(s, min(s + chunk, n)) for s in range(0, n, chunk)]
 
 
 def _unsort(values: Tensor, order: Tensor) -> Tensor:
     """Inverse of ``values = original[order]``."""
-    return values.new_empty(values.shape).index_put_((order,), values)
+    return values.new_empty(values.shape).scatter_(0, order, values)
 
 
 # Above this many elements a workspace is not kept between calls (256 MB float32).
@@ -715,20 +768,24 @@ def _kernel_pair(
     bandwidth: tuple[float, float],
     buf: Tensor,
 ) -> tuple[Tensor, Tensor]:
-    """Kernels ``Kx (W', N)`` and ``Ky (H', N)`` written into the front of ``buf``."""
+    """Kernels ``Kx (W', N)`` and ``Ky (H', N)`` written into the front of ``buf``.
+
+    The two matrices are adjacent in ``buf``: the element-wise passes after the
+    subtraction run once over both (fewer, longer calls).
+    """
     n, nx, ny = x.shape[0], xs.shape[0], ys.shape[0]
-    kx = _unit_kernel(x, xs, bandwidth[0], out=buf[: nx * n].view(nx, n))
-    ky = _unit_kernel(y, ys, bandwidth[1], out=buf[nx * n : (nx + ny) * n].view(ny, n))
+    both = buf[: (nx + ny) * n]
+    kx = torch.sub(xs.unsqueeze(-1), x, out=both[: nx * n].view(nx, n))
+    ky = torch.sub(ys.unsqueeze(-1), y, out=both[nx * n :].view(ny, n))
+    zero = buf.new_zeros(())
+    hx, hy = bandwidth
+    if hx == hy:
+        torch.addcmul(zero, both, both, value=-0.5 * _LOG2_E / hx**2, out=both)
+    else:
+        torch.addcmul(zero, kx, kx, value=-0.5 * _LOG2_E / hx**2, out=kx)
+        torch.addcmul(zero, ky, ky, value=-0.5 * _LOG2_E / hy**2, out=ky)
+    both.clamp_(min=_MIN_EXPONENT * _LOG2_E).exp2_()
     return kx, ky
-
-
-def _unit_kernel(
-    u: Tensor, centers: Tensor, bw: float, out: Tensor | None = None
-) -> Tensor:
-    """``exp(-(c - u)^2 / (2 bw^2))``, ``(P, N)``: centres ``(P,)``, points ``(N,)``."""
-    k = torch.sub(centers.unsqueeze(-1), u, out=out)
-    k = torch.addcmul(k.new_zeros(()), k, k, value=-0.5 * _LOG2_E / bw**2, out=k)
-    return k.clamp_(min=_MIN_EXPONENT * _LOG2_E).exp2_()
 
 
 def _reach(
