@@ -6,7 +6,9 @@ from collections.abc import Sequence
 
 import numpy as np
 import torch
+from matplotlib.axes import Axes
 from matplotlib.figure import Figure
+from matplotlib.ticker import LogFormatter
 from torch import Tensor
 
 from diffaccel.plotting.text import literal, no_usetex
@@ -87,7 +89,13 @@ def plot_corner(
     )
     d = len(coords)
     fig = Figure(figsize=(2.1 * d + 0.6, 2.1 * d))
-    axes = fig.subplots(d, d, squeeze=False)
+    # the lower triangle and the diagonal only (no hidden axes to build), one
+    # artist per histogram (stairs, imshow): issue 12 counts the whole command
+    grid = fig.add_gridspec(d, d)
+    axes = np.empty((d, d), dtype=object)
+    for i in range(d):
+        for j in range(i + 1):
+            axes[i, j] = fig.add_subplot(grid[i, j])
     ranges = []
     for c in coords:
         ref = tru[:, c] if tru is not None and tru[:, c].std() > 0 else reco[:, c]
@@ -96,37 +104,30 @@ def plot_corner(
         ranges.append((lo - pad, hi + pad))
     for i, ci in enumerate(coords):
         for j, cj in enumerate(coords):
-            ax = axes[i, j]
             if j > i:
-                ax.set_axis_off()
                 continue
+            ax = axes[i, j]
             if i == j:
                 edges = np.linspace(*ranges[i], bins + 1)
-                ax.hist(
-                    reco[:, ci],
-                    bins=edges,
-                    density=True,
-                    color="C0",
-                    alpha=0.6,
-                    label="reconstruction",
+                h, _ = np.histogram(reco[:, ci], bins=edges, density=True)
+                ax.stairs(
+                    h, edges, fill=True, color="C0", alpha=0.6, label="reconstruction"
                 )
                 if tru is not None:
-                    ax.hist(
-                        tru[:, ci],
-                        bins=edges,
-                        density=True,
-                        histtype="step",
-                        color="k",
-                        lw=1.2,
-                        label="ground truth",
-                    )
+                    ht, _ = np.histogram(tru[:, ci], bins=edges, density=True)
+                    ax.stairs(ht, edges, color="k", lw=1.2, label="ground truth")
                 ax.set_yticks([])
             else:
                 ex = np.linspace(*ranges[j], bins + 1)
                 ey = np.linspace(*ranges[i], bins + 1)
                 h, _, _ = np.histogram2d(reco[:, cj], reco[:, ci], bins=(ex, ey))
-                ax.pcolormesh(
-                    ex, ey, h.T, cmap="viridis", shading="flat", rasterized=True
+                ax.imshow(
+                    h.T,
+                    cmap="viridis",
+                    origin="lower",
+                    extent=(ex[0], ex[-1], ey[0], ey[-1]),
+                    aspect="auto",
+                    interpolation="nearest",
                 )
                 if tru is not None:
                     ht, _, _ = np.histogram2d(tru[:, cj], tru[:, ci], bins=(ex, ey))
@@ -262,6 +263,19 @@ def plot_image_comparison(
     return fig
 
 
+def _log_scale(ax: Axes, scale: str = "log") -> None:
+    """Log (or symlog) y axis with plain tick labels (``0.01``, ``1e-05``).
+
+    The default labels are mathtext (``$10^{-2}$``): the first one makes
+    matplotlib build its mathtext parser, ~0.5 s of a default
+    ``reconstruct`` whose figures have no other mathtext (issue 12).
+    """
+    ax.set_yscale(scale)
+    ax.yaxis.set_major_formatter(LogFormatter())
+    if scale == "log":
+        ax.yaxis.set_minor_formatter(LogFormatter(labelOnlyBase=False))
+
+
 @no_usetex
 def plot_training_curves(reconstruction: Reconstruction) -> Figure:
     """Loss, image mismatch, learning rate and penalty vs step, snapshots marked.
@@ -278,18 +292,18 @@ def plot_training_curves(reconstruction: Reconstruction) -> Figure:
     fig = Figure(figsize=(8, 6))
     (a1, a2) = fig.subplots(2, 1, sharex=True)
     a1.plot(steps, h["image_loss"], color="C0", lw=0.8, label="image mismatch D")
-    a1.set_yscale("log")
+    _log_scale(a1)
     a1.set_ylabel(f"image mismatch ({reconstruction.config.image_loss})")
     a1b = a1.twinx()
     a1b.plot(steps, h["loss"], color="C1", lw=0.8, label="total loss")
     a1b.set_ylabel("total loss (-H + lambda D)")
-    a1b.set_yscale("symlog")
+    _log_scale(a1b, "symlog")
     a2.plot(steps, h["lr"], color="C2", label="learning rate")
-    a2.set_yscale("log")
+    _log_scale(a2)
     a2.set_ylabel("learning rate")
     a2b = a2.twinx()
     a2b.plot(steps, h["penalty"], color="C3", label="penalty lambda")
-    a2b.set_yscale("log")
+    _log_scale(a2b)
     a2b.set_ylabel("image penalty lambda")
     for ax in (a1, a2):
         for i, st in enumerate(h["snapshot_steps"]):
