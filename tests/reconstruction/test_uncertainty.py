@@ -223,3 +223,26 @@ def test_image_spread_has_no_shot_noise_from_the_draws(six_d, small_scan) -> Non
     _, zero = flat.predict_images(s, n_particles=2000, return_std=True)
     # float32 images of ~1e-2 per pixel; the recolouring maps round-trip to ~1e-6
     torch.testing.assert_close(zero, members, rtol=0, atol=2e-5)
+
+
+def test_linear_posterior_survives_an_exactly_fitted_group() -> None:
+    # 3 rows, 10 parameters: the residual lies in the design's column space, so
+    # the fitted error scale collapses (weights ~1e12 and more) and I + A^T W A
+    # is singular to machine precision at that scale: an LU inverse failed
+    # (a 3-step reconstruction hit it) or lost the prior of the unseen
+    # directions (3.9997 here). The posterior must stay finite, the 7 unseen
+    # directions keep their prior exactly and the 3 seen ones shrink.
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(3, 10, generator=g, dtype=torch.float64)
+    residual = a @ torch.randn(10, generator=g, dtype=torch.float64)
+    prior = torch.full((10,), 2.0, dtype=torch.float64)
+    cov, shift, *_ = linear_posterior(
+        a, residual, torch.ones(3, dtype=torch.float64), prior
+    )
+    assert torch.isfinite(cov).all() and torch.isfinite(shift).all()
+    assert torch.allclose(cov, cov.T)
+    vals = torch.linalg.eigvalsh(cov)
+    assert vals.min() > -1e-9  # positive semi-definite up to round-off
+    unseen = torch.full((7,), 4.0, dtype=torch.float64)
+    assert torch.allclose(vals[-7:], unseen, rtol=1e-9)
+    assert vals[:3].max() < 1e-6

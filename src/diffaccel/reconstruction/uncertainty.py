@@ -231,17 +231,13 @@ def linear_posterior(
     n_g = torch.bincount(g, minlength=n_groups).to(torch.float64)
     rss_g = torch.zeros(n_groups, dtype=torch.float64).index_add_(0, g, ew**2)
     r2 = (rss_g / n_g.clamp_min(1)).clamp_min(1e-30)
-    eye = torch.eye(a.shape[1], dtype=torch.float64)
     for _ in range(20):
-        wrow = 1.0 / r2[g]
-        prec = aw.T @ (aw * wrow[:, None]) + eye
-        cov_u = torch.linalg.inv(prec)
-        cov_u = 0.5 * (cov_u + cov_u.T)
-        # diagonal of the hat matrix H = A C A^T W, summed per group
-        hat = ((aw @ cov_u) * aw).sum(-1) * wrow
+        sw = r2[g].rsqrt()  # sqrt of the row weights
+        _, hat, _, fitted = _whitened_posterior(aw * sw[:, None], ew * sw)
+        # diagonal of the hat matrix, summed per group
         p_eff = torch.zeros(n_groups, dtype=torch.float64).index_add_(0, g, hat)
         if fitted_residuals:
-            fit = ew - aw @ (cov_u @ (aw.T @ (ew * wrow)))
+            fit = fitted / sw  # what the fit leaves, in scaled units
             rss_g = torch.zeros(n_groups, dtype=torch.float64).index_add_(0, g, fit**2)
         dof = (n_g - p_eff).clamp_min(min_dof)
         new = (rss_g / dof).clamp_min(1e-30)
@@ -250,12 +246,36 @@ def linear_posterior(
             break
         r2 = new
     r2 = r2 * inflation**2
-    wrow = 1.0 / r2[g]
-    cov_u = torch.linalg.inv(aw.T @ (aw * wrow[:, None]) + eye)
-    cov_u = 0.5 * (cov_u + cov_u.T)
-    shift_u = cov_u @ (aw.T @ (ew * wrow))
+    sw = r2[g].rsqrt()
+    cov_u, _, shift_u, _ = _whitened_posterior(aw * sw[:, None], ew * sw)
     cov = cov_u * p[:, None] * p[None, :]
     return cov, shift_u * p, r2.sqrt(), dof
+
+
+def _whitened_posterior(b: Tensor, e: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Posterior of ``e = b @ u + noise``, ``u ~ N(0, I)``, unit noise.
+
+    From the thin SVD ``b = U S V^T`` (``d = 1 / (1 + s^2)``), without forming
+    ``I + b^T b``: covariance ``I - V V^T + V diag(d) V^T`` (exactly ``I`` on
+    what ``b`` does not see, never above it), hat diagonal
+    ``sum_k U_mk^2 s_k^2 d_k``, mean ``V diag(s d) U^T e`` and the residual
+    left by it. Accurate however ill-conditioned: a group of rows fitted almost
+    exactly gives weights ~1e17, where an LU inverse of ``I + b^T b`` failed
+    with a zero pivot or returned variances above the prior.
+
+    Shapes: ``b (M, P)``, ``e (M,)`` -> ``((P, P), (M,), (P,), (M,))``.
+    """
+    u, s, vh = torch.linalg.svd(b, full_matrices=False)
+    v = vh.T
+    d = 1.0 / (1.0 + s**2)
+    eye = torch.eye(b.shape[1], dtype=b.dtype, device=b.device)
+    cov = eye - v @ vh + (v * d) @ vh
+    cov = 0.5 * (cov + cov.T)
+    hat = (u**2 * (s**2 * d)).sum(-1)
+    ue = u.T @ e
+    shift = v @ (s * d * ue)
+    fitted = e - u @ (s**2 * d * ue)
+    return cov, hat, shift, fitted
 
 
 @dataclass
