@@ -45,6 +45,7 @@ from pathlib import Path
 
 import torch
 from _meta import emit, git_commit
+from _sixd import HELD_OUT_L1, KEYS, LIMITS, TEST, TRAIN, WALL_LIMIT_S
 
 from diffaccel.data import read_scans
 from diffaccel.dynamics.coordinates import cheetah_to_bmad
@@ -57,38 +58,6 @@ from diffaccel.reconstruction import (
     moment_errors,
     predict_dataset,
 )
-
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "phase_space"
-TRAIN = DATA / "sixd_synthetic_train.h5"
-TEST = DATA / "sixd_synthetic_test.h5"
-KEYS = (
-    "rms_x",
-    "rms_px",
-    "rms_y",
-    "rms_py",
-    "rms_z",
-    "rms_pz",
-    "emit_x",
-    "emit_y",
-    "emit_z",
-    "emit_6d",
-    "corr_diff_x_z",
-    "corr_diff_y_py",
-    "corr_diff_z_pz",
-)
-#: Acceptance of issue 9: |relative error| of rms sizes, emittances, |corr diff|.
-LIMITS = {
-    **{f"rms_{c}": 0.05 for c in ("x", "px", "y", "py", "z", "pz")},
-    "emit_x": 0.05,
-    "emit_y": 0.05,
-    "emit_z": 0.10,
-    "emit_6d": 0.15,
-    "corr_diff_x_z": 0.05,
-    "corr_diff_y_py": 0.05,
-    "corr_diff_z_pz": 0.05,
-}
-HELD_OUT_L1 = 0.15
-WALL_LIMIT_S = 120.0
 
 
 def _errors(particles: torch.Tensor, truth: torch.Tensor) -> dict[str, float]:
@@ -298,7 +267,8 @@ def main() -> None:
         "git_commit": git_commit(),
         "load_avg_1min_at_start": os.getloadavg()[0],
         "truth_rms": truth["rms"].tolist(),
-        "limits": LIMITS | {"held_out_relative_l1": HELD_OUT_L1, "wall_s": 120.0},
+        "limits": LIMITS
+        | {"held_out_relative_l1": HELD_OUT_L1, "wall_s": WALL_LIMIT_S},
     }
     out["diffaccel"] = run_diffaccel(args.threads, test)
     if not args.skip_gpsr:

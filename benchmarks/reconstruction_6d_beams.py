@@ -39,9 +39,10 @@ from pathlib import Path
 
 import torch
 from _meta import emit, git_commit
+from _sixd import KEYS, LIMITS, TRAIN
 
 from diffaccel.data import make_synthetic_awa6d, read_scans
-from diffaccel.data.synthetic import sample_preset_beam
+from diffaccel.data.synthetic import AWA6D_BEAM_SCALE, sample_preset_beam
 from diffaccel.reconstruction import (
     ReconstructionConfig,
     image_errors,
@@ -49,35 +50,6 @@ from diffaccel.reconstruction import (
     reconstruct,
 )
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "phase_space"
-TRAIN = DATA / "sixd_synthetic_train.h5"
-KEYS = (
-    "rms_x",
-    "rms_px",
-    "rms_y",
-    "rms_py",
-    "rms_z",
-    "rms_pz",
-    "emit_x",
-    "emit_y",
-    "emit_z",
-    "emit_6d",
-    "corr_diff_x_z",
-    "corr_diff_y_py",
-    "corr_diff_z_pz",
-)
-LIMITS = {
-    **{f"rms_{c}": 0.05 for c in ("x", "px", "y", "py", "z", "pz")},
-    "emit_x": 0.05,
-    "emit_y": 0.05,
-    "emit_z": 0.10,
-    "emit_6d": 0.15,
-    "corr_diff_x_z": 0.05,
-    "corr_diff_y_py": 0.05,
-    "corr_diff_z_pz": 0.05,
-}
-#: the AWA 6D layout's scale of the presets (data.synthetic._AWA6D_BEAM_SCALE)
-SCALE = (1 / 3, 0.43, 1 / 3, 0.43, 0.8, 0.74)
 TRAIN_K1 = (-12.0, -6.0, 0.0, 6.0, 12.0)
 TEST_K1 = (-9.0, -3.0, 3.0, 9.0)
 
@@ -88,7 +60,9 @@ def synthetic_beam(name: str, n: int, seed: int) -> torch.Tensor:
     preset = {"correlated": "correlated", "nonlinear_ypy": "nonlinear"}.get(
         name, "gaussian"
     )
-    b = sample_preset_beam(preset, n, g) * torch.tensor(SCALE, dtype=torch.float64)
+    b = sample_preset_beam(preset, n, g) * torch.tensor(
+        AWA6D_BEAM_SCALE, dtype=torch.float64
+    )
     if name == "nonlinear_ypy":
         b[:, 3] += 0.5 * b[:, 2]
         b[:, 5] *= 0.5

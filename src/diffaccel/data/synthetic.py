@@ -24,6 +24,7 @@ from diffaccel.dynamics import Beamline, Species
 
 __all__ = [
     "AWA6D_BEAMLINES",
+    "AWA6D_BEAM_SCALE",
     "DEFAULT_BEAMLINE",
     "PRESETS",
     "make_synthetic_awa6d",
@@ -419,7 +420,7 @@ AWA6D_PIXEL_SIZE = {
 #: Scale of the preset beams for this layout (x, px, y, py, z, pz): about
 #: 0.5 mm, 0.26 mrad, 0.8 mm and 0.37 % rms, so that every setting stays on
 #: the 96 x 96 pixel screens.
-_AWA6D_BEAM_SCALE = (1 / 3, 0.43, 1 / 3, 0.43, 0.8, 0.74)
+AWA6D_BEAM_SCALE = (1 / 3, 0.43, 1 / 3, 0.43, 0.8, 0.74)
 
 
 def make_synthetic_awa6d(
@@ -475,7 +476,7 @@ def make_synthetic_awa6d(
     generator = torch.Generator().manual_seed(int(seed))
     if particles is None:
         beam = sample_preset_beam(preset, n_particles, generator)
-        beam = beam * torch.tensor(_AWA6D_BEAM_SCALE, dtype=beam.dtype)
+        beam = beam * torch.tensor(AWA6D_BEAM_SCALE, dtype=beam.dtype)
     else:
         beam = torch.as_tensor(particles, dtype=torch.float64)
     k1 = torch.as_tensor(
