@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import csv
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -12,7 +14,7 @@ from click.testing import CliRunner
 
 from diffaccel.cli.main import main
 from diffaccel.data import write_csv_atomic
-from diffaccel.hysteresis import load_fit
+from diffaccel.hysteresis import load_fit, save_fit
 from diffaccel.hysteresis.synthetic import bh_loop_case, synthetic_measurement
 
 FAST = ["--mesh-size", "12", "--steps", "30"]
@@ -210,17 +212,67 @@ def test_read_ahead_keeps_order_and_raises_in_the_caller() -> None:
     assert got == [1]
 
 
-def test_predict_leaves_torch_threads_as_it_found_them(
+def test_predict_runs_without_torch_and_reads_older_fit_folders(
     magnet_csv: Path, tmp_path: Path
 ) -> None:
     out = tmp_path / "fit"
     assert _fit(magnet_csv, out, "--no-figures").exit_code == 0
-    before = torch.get_num_threads()
-    torch.set_num_threads(2)
-    try:
-        args = ["hysteresis", "predict", str(out), "--input", str(magnet_csv)]
-        result = CliRunner().invoke(main, [*args, "--out", str(tmp_path / "p.csv")])
-        assert result.exit_code == 0, result.output
-        assert torch.get_num_threads() == 2  # the model ran on one, restored
-    finally:
-        torch.set_num_threads(before)
+    new_csv, old_csv = tmp_path / "new.csv", tmp_path / "old.csv"
+    code = (
+        "import sys\n"
+        "from diffaccel.cli.main import main\n"
+        "try:\n"
+        "    main(sys.argv[1:])\n"
+        "except SystemExit as e:\n"
+        "    assert not e.code, e.code\n"
+        "print('RESULT', 'torch' in sys.modules, 'h5py' in sys.modules)\n"
+    )
+    args = ["hysteresis", "predict", str(out), "--input", str(magnet_csv)]
+    run = subprocess.run(
+        [sys.executable, "-c", code, *args, "--out", str(new_csv)],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert "RESULT False False" in run.stdout, run.stdout + run.stderr
+    # a folder saved before stream.npz: the model is read with torch
+    old = tmp_path / "old_fit"
+    old.mkdir()
+    for name in ("model.pt", "model.json"):
+        (old / name).write_bytes((out / name).read_bytes())
+    args = ["hysteresis", "predict", str(old), "--input", str(magnet_csv)]
+    result = CliRunner().invoke(main, [*args, "--out", str(old_csv)])
+    assert result.exit_code == 0, result.output
+    assert old_csv.read_text() == new_csv.read_text()
+
+
+@pytest.mark.parametrize(
+    ("damage", "match"),
+    [
+        ("pt", "not the file"),
+        ("npz", "cannot read arrays"),
+        ("range", "input_range"),
+    ],
+)
+def test_predict_refuses_a_stream_file_of_another_fit(
+    magnet_csv: Path, tmp_path: Path, damage: str, match: str
+) -> None:
+    out = tmp_path / "fit"
+    assert _fit(magnet_csv, out, "--no-figures").exit_code == 0
+    if damage == "pt":  # model.pt of another fit, stream.npz of this one
+        model, band, _ = load_fit(out)
+        with torch.no_grad():
+            model.slope.add_(1.0)
+        keep = (out / "stream.npz").read_bytes()
+        save_fit(out, model, band)
+        (out / "stream.npz").write_bytes(keep)
+    elif damage == "npz":
+        (out / "stream.npz").write_bytes(b"PK\x03\x04 not a zip")
+    else:
+        config = json.loads((out / "model.json").read_text())
+        config["input_range"] = [0.0, 1.0]
+        (out / "model.json").write_text(json.dumps(config))
+    args = ["hysteresis", "predict", str(out), "--input", str(magnet_csv)]
+    result = CliRunner().invoke(main, [*args, "--out", str(tmp_path / "p.csv")])
+    assert result.exit_code != 0 and match in result.output, result.output
+    assert len(result.output.strip().splitlines()) == 1

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -120,7 +121,7 @@ def test_stream_reader_chunks_and_checks(tmp_path: Path) -> None:
     got = [(len(rows), x) for rows, x in chunks]
     assert header == ["current_A"]
     assert all(1 <= n <= 4 for n, _ in got) and len(got) == 3
-    assert torch.cat([x for _, x in got]).tolist() == [float(i) for i in range(10)]
+    assert np.concatenate([x for _, x in got]).tolist() == [float(i) for i in range(10)]
     bad = _write(tmp_path, "current_A\n1\n2\nx\n")
     with pytest.raises(FormatError, match="row 3: expected a number"):
         list(iter_magnet_csv(bad, "current_A", chunk_rows=2)[1])
@@ -154,7 +155,7 @@ def test_stream_reader_rows_equal_the_csv_module(
     parts = list(chunks)
     texts = [t for rows, _ in parts for t in rows]
     assert header == whole.header
-    assert torch.cat([x for _, x in parts]).tolist() == whole.input.tolist()
+    assert np.concatenate([x for _, x in parts]).tolist() == whole.input.tolist()
     # the row texts are CSV records holding the original cells
     assert list(csv.reader(texts)) == whole.rows
     # dropped columns leave the texts, not the header

@@ -11,7 +11,6 @@ from diffaccel.hysteresis.states import (
     demagnetized_state,
     exact_magnetization,
     exact_states,
-    exact_stream_step,
     smooth_states,
 )
 
@@ -271,32 +270,4 @@ def test_gradcheck_exact_wrt_weights_and_initial() -> None:
     s0 = (torch.rand(len(mesh), generator=gen, dtype=F64) - 0.5).requires_grad_(True)
     assert torch.autograd.gradcheck(
         lambda w_, s_: exact_magnetization(u, layout, w_, s_), (w, s0)
-    )
-
-
-@pytest.mark.parametrize("chunk", [1, 13, 200], ids=["1", "13", "200"])
-@pytest.mark.parametrize("init", INITIAL, ids=list(INITIAL))
-@pytest.mark.parametrize("mesh", MESHES, ids=list(MESHES))
-def test_stream_step_equals_relay_loop(mesh: str, init: str, chunk: int) -> None:
-    gen = torch.Generator().manual_seed(4)
-    alpha, beta = MESHES[mesh](gen)
-    s0 = INITIAL[init](alpha, beta, gen)
-    u = torch.cat([torch.rand(60, generator=gen, dtype=F64), alpha[:5], beta[:5]])
-    u = u[torch.randperm(u.numel(), generator=gen)]
-    ref = relay_loop(u, alpha, beta, s0)
-    layout = RowLayout(alpha, beta)
-    w = torch.rand(alpha.shape, generator=gen, dtype=F64)
-    extra = torch.randn(3, alpha.numel(), generator=gen, dtype=F64)
-    sums, extras, state = [], [], s0
-    for part in u.split(chunk):
-        s, e, state = exact_stream_step(part, layout, w, state, extra)
-        sums.append(s)
-        extras.append(e)
-    # carried states are exact relays: no tolerance
-    assert torch.equal(state, ref[-1])
-    # float64 sums in another order: round-off on ~100 terms
-    torch.testing.assert_close(torch.cat(sums), ref @ w, rtol=0, atol=1e-12)
-    # band directions are summed in float32: ~1e-7 of the terms' magnitude
-    torch.testing.assert_close(
-        torch.cat(extras, dim=1), extra @ ref.T, rtol=0, atol=1e-5
     )

@@ -19,6 +19,7 @@ from diffaccel.data import (
 from diffaccel.hysteresis import (
     CONFIG_FILE,
     MODEL_FILE,
+    STREAM_FILE,
     InputRangeWarning,
     fit_magnet,
     save_fit,
@@ -50,7 +51,7 @@ FIGURES = ("fit.png", "density.png")
     "out_dir",
     type=click.Path(file_okay=False, path_type=Path),
     required=True,
-    help="Folder for summary.json, model.pt, model.json and figures.",
+    help="Folder for summary.json, model.pt, model.json, stream.npz and figures.",
 )
 @click.option(
     "--mesh-size",
@@ -124,7 +125,7 @@ def fit_command(
         out_dir,
         "hysteresis fit",
         force=force,
-        owned=(SUMMARY_FILE, MODEL_FILE, CONFIG_FILE, *FIGURES),
+        owned=(SUMMARY_FILE, MODEL_FILE, CONFIG_FILE, STREAM_FILE, *FIGURES),
         inputs=[data],
     ) as folder:
         u, y = hist.input, hist.output

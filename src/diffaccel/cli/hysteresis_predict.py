@@ -1,7 +1,10 @@
 """``diffaccel hysteresis predict``: predict a long magnet history, streamed.
 
-Imports only what predicting needs (torch, the Preisach model, the CSV
-reader): no plotting, no GP libraries (see ``benchmarks/preisach_stream.py``).
+Imports only what predicting needs: numpy, the streaming code of fitted models
+(:mod:`diffaccel.hysteresis.stream`) and the CSV streaming of
+:mod:`diffaccel.data.magnet_stream`; no torch (~2 s of start-up), no plotting,
+no GP libraries (see ``benchmarks/preisach_stream.py``). A fit folder saved
+before ``stream.npz`` existed is read with torch instead.
 """
 
 from __future__ import annotations
@@ -12,13 +15,13 @@ import queue
 import threading
 import warnings
 from collections.abc import Iterable, Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import TypeVar
 
 import click
-import torch
+import numpy as np
 
+import diffaccel.hysteresis as hysteresis
 from diffaccel.cli.output import check_out_file
 from diffaccel.data import (
     DEFAULT_INPUT_COLUMN,
@@ -26,7 +29,12 @@ from diffaccel.data import (
     atomic_write,
     iter_magnet_csv,
 )
-from diffaccel.hysteresis import InputRangeWarning, load_fit, predict_stream
+from diffaccel.hysteresis import (
+    InputRangeWarning,
+    StreamPredictor,
+    StreamSpec,
+    load_stream_fit,
+)
 
 __all__ = ["predict_command", "read_ahead"]
 
@@ -71,7 +79,7 @@ def predict_command(
     """
     check_out_file(out_file, force, {"--input": data})
     try:
-        model, band, config = load_fit(fit_dir)
+        spec, config = _load(fit_dir)
     except ValueError as err:
         raise click.ClickException(f"cannot load a fit from {fit_dir}: {err}") from err
     in_col = config.get("input_column", DEFAULT_INPUT_COLUMN)
@@ -101,16 +109,18 @@ def predict_command(
                 yield x
 
         def texts():
+            predictor = StreamPredictor(spec)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", InputRangeWarning)  # noted below
                 # CSV parsing (next chunk) overlaps the model (this chunk):
-                # torch releases the GIL
-                for pred, std in predict_stream(model, read_ahead(inputs()), band):
+                # numpy and scipy release the GIL
+                for x in read_ahead(inputs()):
+                    pred, std = predictor(x)
                     rows = pending.pop(0)
                     stats["rows"] += len(rows)
-                    stats["finite"] &= bool(torch.isfinite(pred).all())
+                    stats["finite"] &= bool(np.isfinite(pred).all())
                     if std is None:
-                        std = torch.full_like(pred, math.nan)
+                        std = np.full_like(pred, math.nan)
                     # 15 significant digits (all a float64 keeps in decimal);
                     # the std (float32 sums) to 7
                     yield rows, [pred, std]
@@ -121,11 +131,10 @@ def predict_command(
                 f.write(append_columns(rows, columns, [15, 7]))
 
     try:
-        with _one_torch_thread():
-            atomic_write(out_file, write)
+        atomic_write(out_file, write)
     except ValueError as err:
         raise click.ClickException(str(err)) from err
-    lo, hi = model.input_range
+    lo, hi = spec.input_range
     beyond = max(lo - stats["min"], stats["max"] - hi, 0.0)
     if beyond > 0:
         click.echo(
@@ -187,18 +196,13 @@ def read_ahead(items: Iterable[T], depth: int = 2) -> Iterator[T]:
         stop.set()
 
 
-@contextmanager
-def _one_torch_thread() -> Iterator[None]:
-    """One intra-op torch thread inside the block (restored after it).
-
-    The command runs three threads (reading ahead, the model, formatting); the
-    model's torch ops get one thread of their own. A second intra-op thread
-    competes with the pipeline for the cores: on the 2-core test machine
-    10.1 s vs 14.7 s wall (same 4.9 s CPU) for 10^6 rows under load.
-    """
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
+def _load(fit_dir: Path) -> tuple[StreamSpec, dict]:
+    """The fit's stream spec and settings: from ``stream.npz`` without torch, or
+    (a folder saved before that file existed) from the model with torch."""
     try:
-        yield
-    finally:
-        torch.set_num_threads(before)
+        return load_stream_fit(fit_dir)
+    except FileNotFoundError:
+        pass
+    model, band, config = hysteresis.load_fit(fit_dir)
+    spec = band.stream_spec(model) if band is not None else model.stream_spec()
+    return spec, config

@@ -5,6 +5,8 @@ naming the offending field. Coordinates in memory are always Bmad
 (x, px, y, py, z, pz); foreign conventions are converted at the file boundary.
 """
 
+from typing import Any
+
 from diffaccel.data.atomic import (
     atomic_write,
     atomic_write_bytes,
@@ -13,31 +15,11 @@ from diffaccel.data.atomic import (
     clean_json,
 )
 from diffaccel.data.errors import FormatError
-from diffaccel.data.magnet_csv import (
+from diffaccel.data.magnet_stream import (
     DEFAULT_INPUT_COLUMN,
     DEFAULT_OUTPUT_COLUMN,
-    MagnetHistory,
     append_columns,
     iter_magnet_csv,
-    read_magnet_csv,
-    write_csv_atomic,
-)
-from diffaccel.data.particles_io import read_openpmd_particles, write_openpmd_particles
-from diffaccel.data.preprocessing import (
-    average_shots,
-    center_centroids,
-    crop_to_beam,
-    median_filter,
-    normalize,
-    pool,
-    subtract_background,
-    threshold,
-)
-from diffaccel.data.quad_scan import (
-    FORMAT_VERSION,
-    QuadScanDataset,
-    read_quad_scan,
-    write_quad_scan,
 )
 from diffaccel.data.result_folder import (
     ResultFolder,
@@ -45,21 +27,71 @@ from diffaccel.data.result_folder import (
     partial_folder,
     result_folder,
 )
-from diffaccel.data.scans import (
-    SINGLE_SCAN_NAME,
-    MultiScanDataset,
-    parse_selection,
-    read_scans,
-    write_scans,
-)
-from diffaccel.data.synthetic import (
-    AWA6D_BEAMLINES,
-    DEFAULT_BEAMLINE,
-    PRESETS,
-    make_synthetic_awa6d,
-    make_synthetic_quad_scan,
-    sample_preset_beam,
-)
+
+# name -> module of the torch/h5py parts, loaded on first use of the name (PEP
+# 562), so that commands that only stream CSV files (``hysteresis predict``) do
+# not import torch and h5py (~2 s)
+_LAZY = {
+    "MagnetHistory": "magnet_csv",
+    "read_magnet_csv": "magnet_csv",
+    "write_csv_atomic": "magnet_csv",
+    "read_openpmd_particles": "particles_io",
+    "write_openpmd_particles": "particles_io",
+    "average_shots": "preprocessing",
+    "center_centroids": "preprocessing",
+    "crop_to_beam": "preprocessing",
+    "median_filter": "preprocessing",
+    "normalize": "preprocessing",
+    "pool": "preprocessing",
+    "subtract_background": "preprocessing",
+    "threshold": "preprocessing",
+    "FORMAT_VERSION": "quad_scan",
+    "QuadScanDataset": "quad_scan",
+    "read_quad_scan": "quad_scan",
+    "write_quad_scan": "quad_scan",
+    "SINGLE_SCAN_NAME": "scans",
+    "MultiScanDataset": "scans",
+    "parse_selection": "scans",
+    "read_scans": "scans",
+    "write_scans": "scans",
+    "AWA6D_BEAMLINES": "synthetic",
+    "DEFAULT_BEAMLINE": "synthetic",
+    "PRESETS": "synthetic",
+    "make_synthetic_awa6d": "synthetic",
+    "make_synthetic_quad_scan": "synthetic",
+    "sample_preset_beam": "synthetic",
+}
+
+
+def __getattr__(name: str) -> Any:
+    """Load the torch/h5py names on first access (PEP 562)."""
+    if name not in _LAZY:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    from diffaccel.data import (
+        magnet_csv,
+        particles_io,
+        preprocessing,
+        quad_scan,
+        scans,
+        synthetic,
+    )
+
+    modules = {
+        "magnet_csv": magnet_csv,
+        "particles_io": particles_io,
+        "preprocessing": preprocessing,
+        "quad_scan": quad_scan,
+        "scans": scans,
+        "synthetic": synthetic,
+    }
+    value = getattr(modules[_LAZY[name]], name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
+
 
 __all__ = [
     "AWA6D_BEAMLINES",

@@ -1,9 +1,12 @@
 """diffaccel.hysteresis: differentiable Preisach hysteresis of magnets.
 
-The GP parts (:class:`HysteresisGP`, :class:`HGPFitResult`,
+Names load on first use (PEP 562): the streaming of fitted models
+(:class:`StreamSpec`, :class:`StreamPredictor`, :func:`load_stream_fit`) needs
+numpy only, so that ``diffaccel hysteresis predict`` does not import torch
+(~2 s); the torch parts load together on first use of one of their names; the
+GP parts (:class:`HysteresisGP`, :class:`HGPFitResult`,
 :func:`fit_hysteresis_gp`, :class:`HysteresisBO`) import GPyTorch and BoTorch
-(~1 s and ~100 MB); they load on first use of their names, so that fitting and
-predicting Preisach models (e.g. ``diffaccel hysteresis predict``) do not pay
+(~1 s and ~100 MB) and load apart, so that fitting Preisach models does not pay
 for them. ``from diffaccel.hysteresis import HysteresisGP`` works as usual.
 """
 
@@ -11,40 +14,44 @@ from __future__ import annotations
 
 from typing import Any
 
-from diffaccel.hysteresis.band import LaplaceBand, laplace_band
-from diffaccel.hysteresis.fit import FitResult, fit_preisach
-from diffaccel.hysteresis.inverse import (
-    InverseResult,
-    invert_preisach,
-    next_step_output,
+from diffaccel.hysteresis.fit_folder import (
+    CONFIG_FILE,
+    MODEL_FILE,
+    STREAM_FILE,
+    load_stream_fit,
 )
-from diffaccel.hysteresis.magnet import (
-    HystereticMagnet,
-    hysteretic_settings,
-    magnetic_rigidity,
-)
-from diffaccel.hysteresis.mesh import PreisachMesh
-from diffaccel.hysteresis.predictive import (
-    MagnetFit,
-    default_input_range,
-    fit_magnet,
-    predict_stream,
-    symmetric_default,
-)
-from diffaccel.hysteresis.preisach import (
-    INITIAL_STATES,
+from diffaccel.hysteresis.stream import (
     InputRangeWarning,
-    PreisachModel,
-)
-from diffaccel.hysteresis.saved import CONFIG_FILE, MODEL_FILE, load_fit, save_fit
-from diffaccel.hysteresis.synthetic import (
-    synthetic_magnet,
-    synthetic_measurement,
-    synthetic_protocol,
+    StreamPredictor,
+    StreamSpec,
+    predict_chunks,
 )
 
 # name -> submodule, loaded on first access (see the module docstring)
 _LAZY = {
+    "LaplaceBand": "band",
+    "laplace_band": "band",
+    "FitResult": "fit",
+    "fit_preisach": "fit",
+    "InverseResult": "inverse",
+    "invert_preisach": "inverse",
+    "next_step_output": "inverse",
+    "HystereticMagnet": "magnet",
+    "hysteretic_settings": "magnet",
+    "magnetic_rigidity": "magnet",
+    "PreisachMesh": "mesh",
+    "MagnetFit": "predictive",
+    "default_input_range": "predictive",
+    "fit_magnet": "predictive",
+    "predict_stream": "predictive",
+    "symmetric_default": "predictive",
+    "INITIAL_STATES": "preisach",
+    "PreisachModel": "preisach",
+    "load_fit": "saved",
+    "save_fit": "saved",
+    "synthetic_magnet": "synthetic",
+    "synthetic_measurement": "synthetic",
+    "synthetic_protocol": "synthetic",
     "HGPFitResult": "hgp",
     "HysteresisGP": "hgp",
     "fit_hysteresis_gp": "hgp",
@@ -53,16 +60,41 @@ _LAZY = {
 
 
 def __getattr__(name: str) -> Any:
-    """Load the GP names on first access (PEP 562)."""
-    if _LAZY.get(name) == "hgp":
-        from diffaccel.hysteresis import hgp
+    """Load the torch names on first access, the GP ones apart (PEP 562)."""
+    where = _LAZY.get(name)
+    if where is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    if where == "hgp":
+        from diffaccel.hysteresis import hgp as module
+    elif where == "bo":
+        from diffaccel.hysteresis import bo as module
+    else:
+        from diffaccel.hysteresis import (
+            band,
+            fit,
+            inverse,
+            magnet,
+            mesh,
+            predictive,
+            preisach,
+            saved,
+            synthetic,
+        )
 
-        return getattr(hgp, name)
-    if _LAZY.get(name) == "bo":
-        from diffaccel.hysteresis import bo
-
-        return getattr(bo, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+        module = {
+            "band": band,
+            "fit": fit,
+            "inverse": inverse,
+            "magnet": magnet,
+            "mesh": mesh,
+            "predictive": predictive,
+            "preisach": preisach,
+            "saved": saved,
+            "synthetic": synthetic,
+        }[where]
+    value = getattr(module, name)
+    globals()[name] = value
+    return value
 
 
 def __dir__() -> list[str]:
@@ -73,6 +105,7 @@ __all__ = [
     "CONFIG_FILE",
     "INITIAL_STATES",
     "MODEL_FILE",
+    "STREAM_FILE",
     "FitResult",
     "HGPFitResult",
     "HysteresisBO",
@@ -84,6 +117,8 @@ __all__ = [
     "MagnetFit",
     "PreisachMesh",
     "PreisachModel",
+    "StreamPredictor",
+    "StreamSpec",
     "default_input_range",
     "fit_hysteresis_gp",
     "fit_magnet",
@@ -92,8 +127,10 @@ __all__ = [
     "invert_preisach",
     "laplace_band",
     "load_fit",
+    "load_stream_fit",
     "magnetic_rigidity",
     "next_step_output",
+    "predict_chunks",
     "predict_stream",
     "save_fit",
     "symmetric_default",

@@ -16,20 +16,23 @@ row's features ``f_t``; :class:`LaplaceBand` keeps the leading eigen-directions
 of ``Sigma`` (scaled by the square roots of their eigenvalues), so that the
 variance of a long history is a handful of weighted sums of hysteron states,
 streamed with the model's own output
-(:func:`~diffaccel.hysteresis.states.exact_stream_step`). A calibration factor
+(:class:`~diffaccel.hysteresis.stream.StreamPredictor`). A calibration factor
 (>= 1), measured on validation rows held out of the training rows, scales the
 whole band.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
 from diffaccel.hysteresis.preisach import PreisachModel
+from diffaccel.hysteresis.stream import StreamPredictor, StreamSpec
 
 __all__ = ["LENGTH_SCALES", "LaplaceBand", "laplace_band"]
 
@@ -97,20 +100,20 @@ class LaplaceBand(nn.Module):
             v = 0.5 * (v + v[:, model.mirror])
         return d[:, :2], a * (d[:, 2:3] + v)
 
-    def std_from_sums(self, affine: Tensor, un: Tensor, sums: Tensor) -> Tensor:
-        """Standard deviation [normalised output units] from state sums.
-
-        Args:
-            affine: Output of :meth:`hysteron_weights`, shape ``(K, 2)``.
-            un: Normalised inputs (unclipped), shape ``(T,)``.
-            sums: ``sum_i W_ki s_i(t)``, shape ``(K, T)``.
-        """
-        # (T, K) layout; in the dtype of ``sums`` (float32 when streamed)
-        a = affine.to(sums.dtype)
-        u_c = un.clamp(0.0, 1.0).to(sums.dtype).unsqueeze(1)
-        proj = torch.addcmul(sums.T + a[:, 0], u_c, a[:, 1])
-        norm = torch.linalg.vector_norm(proj, dim=1).to(un.dtype)
-        return self.calibration.to(un) * (norm**2 + self.noise_std.to(un) ** 2).sqrt()
+    def stream_spec(
+        self, model: PreisachModel, initial_state: str | Tensor | None = None
+    ) -> StreamSpec:
+        """:meth:`PreisachModel.stream_spec` with this band (numpy, float64)."""
+        spec = model.stream_spec(initial_state)
+        with torch.no_grad():
+            affine, w = self.hysteron_weights(model)
+            return dataclasses.replace(
+                spec,
+                band_affine=affine.detach().cpu().double().numpy(),
+                band_weights=w.detach().cpu().double().numpy(),
+                noise_std=float(self.noise_std),
+                calibration=float(self.calibration),
+            )
 
     def std(
         self,
@@ -120,6 +123,10 @@ class LaplaceBand(nn.Module):
     ) -> Tensor:
         """Predictive standard deviation [output units] along one history.
 
+        Evaluated by the streaming code
+        (:class:`~diffaccel.hysteresis.stream.StreamPredictor`, float64 sums),
+        without a ``(T, M)`` state table; no gradients.
+
         Args:
             model: The fitted model the band belongs to.
             u: Inputs [input units], shape ``(T,)``.
@@ -127,12 +134,20 @@ class LaplaceBand(nn.Module):
 
         Returns:
             One standard deviation including measurement noise, shape ``(T,)``.
+
+        Raises:
+            ValueError: for inputs that are not one non-empty history, or NaN.
         """
-        un = model.normalize_input(u)
-        s = model._normalized_states(un, initial_state)
-        affine, w = self.hysteron_weights(model)
-        sums = w @ s.transpose(0, 1)
-        return model.output_scale * self.std_from_sums(affine, un, sums)
+        u = torch.as_tensor(u, dtype=model.alpha.dtype, device=model.alpha.device)
+        if u.ndim != 1 or u.numel() == 0:
+            raise ValueError(
+                f"inputs need shape (T,) with T >= 1; got {tuple(u.shape)}."
+            )
+        predictor = StreamPredictor(
+            self.stream_spec(model, initial_state), band_dtype=np.float64
+        )
+        _, std = predictor(u.detach().cpu().double().numpy())
+        return torch.as_tensor(std, dtype=u.dtype, device=u.device)
 
 
 def _features(model: PreisachModel, un: Tensor, initial_state) -> Tensor:

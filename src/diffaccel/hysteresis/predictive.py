@@ -18,7 +18,6 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from diffaccel.hysteresis.band import LaplaceBand, laplace_band
@@ -30,12 +29,7 @@ from diffaccel.hysteresis.fit import (
 )
 from diffaccel.hysteresis.mesh import PreisachMesh
 from diffaccel.hysteresis.preisach import PreisachModel
-from diffaccel.hysteresis.states import (
-    StreamTable,
-    stream_codes,
-    stream_final_state,
-    stream_sums,
-)
+from diffaccel.hysteresis.stream import StreamPredictor
 
 __all__ = [
     "RANGE_MARGIN",
@@ -252,34 +246,21 @@ def predict_stream(
         band. Inputs beyond the range warn once
         per chunk (:class:`~diffaccel.hysteresis.InputRangeWarning`).
     """
-    with torch.no_grad():
-        state = model.initial_states(initial_state)
-        if state.ndim != 1:
-            raise ValueError("predict_stream needs one history: state shape (M,).")
-        layout = model._layout
-        w = model.weights
-        weights = (w / w.sum()).unsqueeze(0)
-        mean_table = StreamTable(layout, weights)
-        affine = band_table = None
-        if band is not None:
-            affine, band_w = band.hysteron_weights(model)
-            # float32 table lookups, one bag of R rows per step
-            band_table = StreamTable(layout, band_w, dtype=torch.float32)
-        for chunk in chunks:
-            if chunk.numel() == 0:
-                continue
-            un = model.normalize_input(chunk)
-            code = stream_codes(un.clamp(0.0, 1.0), layout)
-            sums = stream_sums(code, mean_table.update(state))
-            y = model.offset + model.slope * un + model.scale * sums
-            pred = model.output_loc + model.output_scale * y
-            std = None
-            if band_table is not None:
-                tab = band_table.update(state)
-                bag = F.embedding_bag(code.T.contiguous(), tab, mode="sum")
-                std = model.output_scale * band.std_from_sums(affine, un, bag.T)
-            state = stream_final_state(code[:, -1], layout, state)
-            yield pred, std
+    if band is not None:
+        spec = band.stream_spec(model, initial_state)
+    else:
+        spec = model.stream_spec(initial_state)
+    predictor = StreamPredictor(spec)  # the numpy streaming code, see stream.py
+    dtype, device = model.alpha.dtype, model.alpha.device
+    for chunk in chunks:
+        u = torch.as_tensor(chunk).detach().reshape(-1)
+        if u.numel() == 0:
+            continue
+        pred, std = predictor(u.to(device="cpu", dtype=torch.float64).numpy())
+        pred = torch.as_tensor(pred, dtype=dtype, device=device)
+        if std is not None:
+            std = torch.as_tensor(std, dtype=dtype, device=device)
+        yield pred, std
 
 
 def rms(x: Tensor) -> float:

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -18,18 +18,18 @@ from diffaccel.hysteresis.states import (
     exact_states,
     smooth_states,
 )
+from diffaccel.hysteresis.stream import (
+    RANGE_TOL,
+    InputRangeWarning,
+    StreamSpec,
+    warn_outside_range,
+)
 
 __all__ = ["INITIAL_STATES", "InputRangeWarning", "PreisachModel"]
 
 INITIAL_STATES = ("negative", "positive", "demagnetized", "learned")
-# tolerance on normalised inputs outside [0, 1] (round-off of the affine map)
-_RANGE_TOL = 1e-9
 # start of the virtual history of each initial state (normalised input)
 _START = {"negative": 0.0, "positive": 1.0, "demagnetized": 0.5, "learned": 0.5}
-
-
-class InputRangeWarning(UserWarning):
-    """Inputs beyond a model's input range, predicted as saturated."""
 
 
 def _positive(raw: Tensor) -> Tensor:
@@ -252,15 +252,9 @@ class PreisachModel(nn.Module):
         lo, hi = self.input_range
         un = (u - lo) / (hi - lo)
         below, above = float(-un.min()), float(un.max() - 1.0)
-        if below > _RANGE_TOL or above > _RANGE_TOL:
-            far = max(below, above)
-            warnings.warn(
-                f"inputs reach {float(u.min()):.6g} .. {float(u.max()):.6g}, up to "
-                f"{far * (hi - lo):.4g} ({100 * far:.3g} % of the range) outside the "
-                f"model's input range [{lo:.6g}, {hi:.6g}]; predicted as saturated "
-                "(every hysteron switched) plus the linear term.",
-                InputRangeWarning,
-                stacklevel=2,
+        if below > RANGE_TOL or above > RANGE_TOL:
+            warn_outside_range(
+                float(u.min()), float(u.max()), below, above, (lo, hi), stacklevel=2
             )
         return un
 
@@ -276,7 +270,7 @@ class PreisachModel(nn.Module):
         """
         u = torch.as_tensor(u, dtype=self.alpha.dtype, device=self.alpha.device)
         lo, hi = self.input_range
-        tol = _RANGE_TOL * (hi - lo)
+        tol = RANGE_TOL * (hi - lo)
         if u.numel() and (float(u.min()) < lo - tol or float(u.max()) > hi + tol):
             raise ValueError(
                 f"{what} span {float(u.min()):.6g} .. {float(u.max()):.6g}, outside "
@@ -440,6 +434,38 @@ class PreisachModel(nn.Module):
         s0 = self.initial_states(initial_state)
         return exact_states(un, self.alpha, self.beta, s0, self._layout, last=True)
 
+    def stream_spec(self, initial_state: str | Tensor | None = None) -> StreamSpec:
+        """The model's numbers for streaming long histories (numpy, no gradients).
+
+        Args:
+            initial_state: State before the history (one history: shape
+                ``(M,)``), see :meth:`initial_states`.
+
+        Returns:
+            A :class:`~diffaccel.hysteresis.stream.StreamSpec` without a band
+            (``LaplaceBand.stream_spec`` adds one), float64.
+        """
+        with torch.no_grad():
+            s0 = self.initial_states(initial_state)
+            if s0.ndim != 1:
+                raise ValueError(
+                    f"streaming needs one history: initial state shape "
+                    f"({self.alpha.numel()},); got {tuple(s0.shape)}."
+                )
+            w = self.weights
+            return StreamSpec(
+                input_range=self.input_range,
+                alpha=_host(self.alpha),
+                beta=_host(self.beta),
+                weights=_host(w / w.sum()),
+                initial=_host(s0),
+                offset=float(self.offset),
+                slope=float(self.slope),
+                scale=float(self.scale),
+                output_loc=float(self.output_loc),
+                output_scale=float(self.output_scale),
+            )
+
     def predict(
         self,
         u: Tensor,
@@ -473,3 +499,8 @@ class PreisachModel(nn.Module):
         u = u.expand(*batch, u.shape[-1])
         full = torch.cat([h, u], dim=-1)
         return self(full, initial_state, smooth=smooth)[..., h.shape[-1] :]
+
+
+def _host(x: Tensor) -> np.ndarray:
+    """A float64 numpy copy of ``x`` (detached, on the host)."""
+    return x.detach().to(device="cpu", dtype=torch.float64).numpy().copy()

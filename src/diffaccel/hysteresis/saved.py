@@ -1,25 +1,29 @@
-"""Fitted Preisach models on disk: ``model.json`` (settings) and ``model.pt`` (tensors).
+"""Fitted Preisach models on disk: ``model.json`` (settings), ``model.pt`` (tensors)
+and ``stream.npz`` (numbers for streaming, see :mod:`~diffaccel.hysteresis.fit_folder`).
 
 ``model.pt`` holds the model's ``state_dict`` and, under keys ``band.*``, its
 predictive band; it is read with ``torch.load(weights_only=True)``. Every
-mismatch between the two files is a one-line ``ValueError`` naming the file.
+mismatch between the files is a one-line ``ValueError`` naming the file.
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import torch
 
 from diffaccel.data import atomic_write, atomic_write_json
 from diffaccel.hysteresis.band import LaplaceBand
+from diffaccel.hysteresis.fit_folder import (
+    CONFIG_FILE,
+    MODEL_FILE,
+    read_config,
+    write_stream_file,
+)
 from diffaccel.hysteresis.preisach import PreisachModel
 
-__all__ = ["CONFIG_FILE", "MODEL_FILE", "load_fit", "save_fit"]
+__all__ = ["load_fit", "save_fit"]
 
-MODEL_FILE = "model.pt"
-CONFIG_FILE = "model.json"
 _BAND = "band."
 
 
@@ -29,7 +33,10 @@ def save_fit(
     band: LaplaceBand | None = None,
     extra: dict | None = None,
 ) -> None:
-    """Write ``model.pt`` and ``model.json`` into ``fit_dir`` (atomically each).
+    """Write ``model.pt``, ``model.json`` and ``stream.npz`` into ``fit_dir``.
+
+    Each file is written atomically; ``stream.npz`` (the model's numbers for
+    ``diffaccel hysteresis predict``, which runs without torch) last.
 
     Args:
         fit_dir: Folder (created if missing).
@@ -47,6 +54,8 @@ def save_fit(
     config = {**(extra or {}), **model.config(), "band": band is not None}
     atomic_write(fit_dir / MODEL_FILE, lambda p: torch.save(tensors, p))
     atomic_write_json(fit_dir / CONFIG_FILE, config)
+    spec = band.stream_spec(model) if band is not None else model.stream_spec()
+    write_stream_file(fit_dir, spec)
 
 
 def load_fit(fit_dir: str | Path) -> tuple[PreisachModel, LaplaceBand | None, dict]:
@@ -61,15 +70,9 @@ def load_fit(fit_dir: str | Path) -> tuple[PreisachModel, LaplaceBand | None, di
     """
     fit_dir = Path(fit_dir)
     cfg_path, pt_path = fit_dir / CONFIG_FILE, fit_dir / MODEL_FILE
-    for p in (cfg_path, pt_path):
-        if not p.is_file():
-            raise ValueError(f"{p}: missing; is {fit_dir} a hysteresis fit folder?")
-    try:
-        config = json.loads(cfg_path.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ValueError(f"{cfg_path}: not valid JSON ({err}).") from None
-    if not isinstance(config, dict):
-        raise ValueError(f"{cfg_path}: expected a JSON object.")
+    config = read_config(fit_dir)
+    if not pt_path.is_file():
+        raise ValueError(f"{pt_path}: missing; is {fit_dir} a hysteresis fit folder?")
     try:
         tensors = torch.load(pt_path, weights_only=True, map_location="cpu")
     except Exception as err:  # torch raises several types for corrupt files

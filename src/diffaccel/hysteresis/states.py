@@ -38,17 +38,14 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from diffaccel.hysteresis.stream import row_layout
+
 __all__ = [
     "RowLayout",
-    "StreamTable",
     "demagnetized_state",
     "exact_magnetization",
     "exact_states",
     "smooth_states",
-    "stream_codes",
-    "stream_final_state",
-    "stream_sums",
-    "stream_table",
 ]
 
 
@@ -71,30 +68,16 @@ class RowLayout:
     """
 
     def __init__(self, alpha: Tensor, beta: Tensor) -> None:
-        m = alpha.numel()
+        # built once per mesh, on the host, by the one implementation that
+        # streaming uses too (diffaccel.hysteresis.stream.row_layout)
+        rows = row_layout(alpha.detach().cpu().numpy(), beta.detach().cpu().numpy())
         dev = alpha.device
-        row_alpha, row = torch.unique(alpha, sorted=True, return_inverse=True)
-        beta_levels, beta_rank = torch.unique(beta, sorted=True, return_inverse=True)
-        order_b = torch.argsort(beta, stable=True)
-        order = order_b[torch.argsort(row[order_b], stable=True)]
-        counts = torch.bincount(row, minlength=row_alpha.numel())
-        starts = torch.cumsum(counts, 0) - counts
-        col = torch.empty_like(row)
-        col[order] = torch.arange(m, device=dev) - starts[row[order]]
-        n_rows, width = row_alpha.numel(), int(counts.max())
-        index = torch.full((n_rows, width), m, dtype=torch.long, device=dev)
-        index[row, col] = torch.arange(m, device=dev)
-        n_levels = beta_levels.numel()
-        hist = torch.zeros(n_rows, n_levels, dtype=torch.long, device=dev)
-        hist.index_put_((row, beta_rank), torch.ones_like(row), accumulate=True)
-        below = F.pad(torch.cumsum(hist, dim=1), (1, 0))
-        # position of each (row, level) count inside the row's padded prefix sums
-        self.row_alpha = row_alpha
-        self.beta_levels = beta_levels.contiguous()
-        self.beta_rank = beta_rank
-        self.index = index
-        self.row = row
-        self.below = below
+        self.row_alpha = torch.as_tensor(rows.row_alpha, device=dev)
+        self.beta_levels = torch.as_tensor(rows.beta_levels, device=dev).contiguous()
+        self.beta_rank = torch.as_tensor(rows.beta_rank, device=dev)
+        self.index = torch.as_tensor(rows.index, device=dev)
+        self.row = torch.as_tensor(rows.row, device=dev)
+        self.below = torch.as_tensor(rows.below, device=dev)
 
     def to(self, device: torch.device | str | None, dtype: torch.dtype) -> RowLayout:
         """Move in place to ``device``; cast thresholds to ``dtype``; return self."""
@@ -356,187 +339,3 @@ def smooth_states(
     rising = (direction > 0).unsqueeze(-1)
     s = _segment_state(rising, s_k, u_k, u2.unsqueeze(-1), alpha, beta, width)
     return s.reshape(*batch, t, m)
-
-
-def stream_codes(u: Tensor, layout: RowLayout) -> Tensor:
-    """Situation of every mesh row at every step of one chunk, as table indices.
-
-    At every step each row of the mesh is in one of ``2 (U + 1)`` situations
-    (reached or not, and how many of its beta levels are up), so any weighted
-    sum of the states is a lookup per row in a table of
-    :func:`stream_table`, summed over rows. Row ``r``'s code is
-    ``r W + U + 1 + c`` (``W = 2 U + 3``) with ``c`` in ``[1, U + 1]`` once
-    its alpha was reached in the chunk (``U + 1 - c`` beta levels up: those
-    below the minimum since the last reach) and ``c`` in ``[-U - 1, -1]``
-    before (the ``-c - 1`` levels below the chunk's running minimum keep their
-    state, the others are down).
-
-    One ``cumsum`` and one ``cummax`` over ``(R, T)`` int32 keys (as in
-    :func:`_row_events`), no other table: the key
-    ``(segment - 1) (U + 2) + (U + 1 - rank)`` is negative until the row's
-    alpha is first reached, so its running maximum minus the segment offset
-    is ``c`` itself.
-
-    Args:
-        u: Normalised inputs [1] of one chunk, shape ``(T,)``, inside ``[0, 1]``.
-        layout: :class:`RowLayout` of the hysterons.
-
-    Returns:
-        Codes, shape ``(R, T)``, int32 (int64 for chunks beyond ~2^31 / U rows).
-    """
-    n_levels = layout.beta_levels.numel()
-    t = u.numel()
-    small = (t + 1) * (n_levels + 2) < 2**31 - 1
-    idx = torch.int32 if small else torch.int64
-    u = u.contiguous()
-    rank = torch.searchsorted(layout.beta_levels, u, side="left", out_int32=small)
-    inv = (n_levels + 1 - rank).to(idx)  # (T,) in [1, U + 1]
-    up = u.unsqueeze(0) >= layout.row_alpha.unsqueeze(1)  # (R, T)
-    seg = torch.cumsum(up, dim=1, dtype=idx).sub_(1)  # reaches so far, minus 1
-    key = torch.where(up, torch.ones((), dtype=idx), inv)
-    del up
-    key.add_(seg, alpha=n_levels + 2)
-    code = key.cummax(dim=1).values
-    del key
-    code.sub_(seg.clamp_(min=0), alpha=n_levels + 2)
-    width = 2 * n_levels + 3
-    base = torch.arange(code.shape[0], dtype=idx, device=u.device) * width
-    return code.add_((base + n_levels + 1).unsqueeze(1))
-
-
-class StreamTable:
-    """Row sums of weighted states for every code of :func:`stream_codes`.
-
-    ``table[code, k]`` for fixed weight vectors: the part for rows already
-    reached depends on the weights only and is built once; the part for rows
-    not yet reached depends on the states before the chunk and is refreshed by
-    :meth:`update` (cheap: ``O(K M)``).
-
-    Args:
-        layout: :class:`RowLayout` of the hysterons.
-        weights: Weight vectors, shape ``(K, M)``.
-        dtype: dtype of the table (default: that of ``weights``).
-
-    Shapes:
-        :meth:`update` returns ``(R (2 U + 3), K)``.
-    """
-
-    def __init__(
-        self, layout: RowLayout, weights: Tensor, dtype: torch.dtype | None = None
-    ) -> None:
-        n_k = weights.shape[0]
-        n_rows, n_levels = layout.below.shape[0], layout.below.shape[1] - 1
-        self.layout = layout
-        self.below = layout.below.expand(n_k, -1, -1)
-        pad = weights.new_zeros(n_k, 1)
-        self.w_pad = torch.cat([weights, pad], dim=1)[:, layout.index]  # (K, R, L)
-        w_cum = F.pad(torch.cumsum(self.w_pad, dim=-1), (1, 0))  # (K, R, L + 1)
-        w_row = w_cum[..., -1:]
-        w_below = torch.gather(w_cum, 2, self.below)  # (K, R, U + 1)
-        self.w_rest = w_below - w_row
-        signed = 2.0 * w_below - w_row
-        width = 2 * n_levels + 3
-        self.table = weights.new_zeros(n_rows, width, n_k, dtype=dtype or weights.dtype)
-        self.table[:, n_levels + 2 :] = signed.flip(-1).permute(1, 2, 0)
-        self.n_levels = n_levels
-
-    def update(self, initial: Tensor) -> Tensor:
-        """The table for a chunk that starts from states ``initial``, shape ``(M,)``."""
-        init = initial.to(self.w_pad.dtype)
-        init_pad = torch.cat([init, init.new_zeros(1)])[self.layout.index]  # (R, L)
-        s_cum = F.pad(torch.cumsum(self.w_pad * init_pad, dim=-1), (1, 0))
-        never = torch.gather(s_cum, 2, self.below) + self.w_rest
-        self.table[:, : self.n_levels + 1] = never.flip(-1).permute(1, 2, 0)
-        return self.table.view(-1, self.table.shape[2])
-
-
-def stream_table(layout: RowLayout, weights: Tensor, initial: Tensor) -> Tensor:
-    """Row sums of weighted states for every code of :func:`stream_codes`.
-
-    Args:
-        layout: :class:`RowLayout` of the hysterons.
-        weights: Weight vectors, shape ``(K, M)``.
-        initial: States before the chunk, shape ``(M,)``.
-
-    Returns:
-        ``table[code, k]``, shape ``(R (2 U + 3), K)``, dtype of ``weights``.
-    """
-    return StreamTable(layout, weights).update(initial)
-
-
-def stream_final_state(last: Tensor, layout: RowLayout, initial: Tensor) -> Tensor:
-    """Hysteron states after a chunk from its last codes.
-
-    Args:
-        last: Codes of the chunk's last step, ``stream_codes(...)[:, -1]``,
-            shape ``(R,)``.
-        layout: :class:`RowLayout` of the hysterons.
-        initial: States before the chunk, shape ``(M,)``.
-
-    Returns:
-        States in ``[-1, 1]``, shape ``(M,)``, dtype of ``initial``.
-    """
-    n_levels = layout.beta_levels.numel()
-    width = 2 * n_levels + 3
-    rows = torch.arange(last.numel(), device=last.device)
-    c = (last - n_levels - 1 - width * rows)[layout.row]
-    q = layout.beta_rank
-    one = initial.new_ones(())
-    up_after = torch.where(q < n_levels + 1 - c, one, -one)  # reached
-    stays = torch.where(q < -c - 1, initial, -one)  # never reached
-    return torch.where(c > 0, up_after, stays)
-
-
-def stream_sums(code: Tensor, table: Tensor) -> Tensor:
-    """Sum over rows of ``table[code]`` for one weight vector.
-
-    Args:
-        code: Output of :func:`stream_codes`, shape ``(R, T)``.
-        table: Output of :func:`stream_table` with ``K = 1``, shape ``(R W, 1)``.
-
-    Returns:
-        Shape ``(T,)``, dtype of ``table`` (summed in it).
-    """
-    picked = table[:, 0].index_select(0, code.reshape(-1))
-    return picked.view(code.shape).sum(dim=0)
-
-
-def exact_stream_step(
-    u: Tensor,
-    layout: RowLayout,
-    weights: Tensor,
-    initial: Tensor,
-    extra: Tensor | None = None,
-) -> tuple[Tensor, Tensor | None, Tensor]:
-    """Weighted sums of exact relay states along one chunk, and the state after it.
-
-    One pass over the chunk (:func:`stream_codes`) serves the model's weights,
-    further weight vectors (the directions of a predictive band) and the final
-    state, so that a long history can be streamed chunk by chunk in bounded
-    memory: feed the returned state as ``initial`` of the next chunk.
-
-    Args:
-        u: Normalised inputs [1] of one chunk, shape ``(T,)``, inside ``[0, 1]``.
-        layout: :class:`RowLayout` of the hysterons.
-        weights: Weights (any sign), shape ``(M,)``; summed in their dtype.
-        initial: States before the chunk, in ``[-1, 1]``, shape ``(M,)``.
-        extra: Further weight vectors, shape ``(K, M)``, summed in float32
-            (relative round-off ~1e-7: meant for standard deviations).
-
-    Returns:
-        ``(sums, extra_sums, final)``: ``sums[t] = sum_i weights_i s_i(t)``,
-        shape ``(T,)``; the same for ``extra``, shape ``(K, T)`` (``None``
-        without ``extra``); the states after the last step, shape ``(M,)``.
-
-    Shapes:
-        See Args/Returns.
-    """
-    code = stream_codes(u, layout)
-    init = initial.to(weights.dtype)
-    sums = stream_sums(code, stream_table(layout, weights.unsqueeze(0), init))
-    extra_sums = None
-    if extra is not None:
-        tab = stream_table(layout, extra, initial.to(extra.dtype))
-        bag = F.embedding_bag(code.T.contiguous(), tab.to(torch.float32), mode="sum")
-        extra_sums = bag.T.to(extra.dtype)
-    return sums, extra_sums, stream_final_state(code[:, -1], layout, init)
