@@ -246,3 +246,44 @@ def test_linear_posterior_survives_an_exactly_fitted_group() -> None:
     unseen = torch.full((7,), 4.0, dtype=torch.float64)
     assert torch.allclose(vals[-7:], unseen, rtol=1e-9)
     assert vals[:3].max() < 1e-6
+
+
+def test_psf_excess_is_what_the_model_images_add_over_a_histogram(small_scan) -> None:
+    # physics: a point spread adds its variance to an image's second moments.
+    # The forward model deposits with cloud-in-cell (1/6 pixel^2) even when
+    # blur_pixels asks for the 1/12 pixel^2 of nearest-pixel histograms, so
+    # its images of the SAME particles are wider than a histogram by exactly
+    # psf_excess (what analyse_moments removes before comparing moments).
+    from diffaccel.reconstruction import ScreenForwardModel
+    from diffaccel.reconstruction.pipeline import psf_excess
+
+    fwd = ScreenForwardModel.from_dataset(small_scan, blur_pixels=(1 / 12) ** 0.5)
+    g = torch.Generator().manual_seed(5)
+    beam = torch.randn(200_000, 6, generator=g, dtype=F64) * 1e-3
+    sets = small_scan.settings[:3]
+    model = fwd.images(beam, sets)
+    at = fwd.track_to_screen(beam, sets)
+    xs, ys = fwd.screen.pixel_centers(dtype=F64)
+    psx, psy = fwd.screen.pixel_size
+    ix = torch.round((at[..., 0] - xs[0]) / psx).long()
+    iy = torch.round((at[..., 2] - ys[0]) / psy).long()
+    h, w = len(ys), len(xs)
+    keep = (ix >= 0) & (ix < w) & (iy >= 0) & (iy < h)
+    hist = torch.zeros(len(sets), h * w, dtype=F64)
+    for k in range(len(sets)):
+        hist[k].index_add_(
+            0, (iy[k] * w + ix[k])[keep[k]], torch.ones(int(keep[k].sum()), dtype=F64)
+        )
+    hist = hist.reshape(-1, h, w)
+    dm = image_moments(model, xs, ys) - image_moments(hist, xs, ys)
+    ex, ey = psf_excess(fwd)
+    assert ex == pytest.approx(psx**2 / 12) and ey == pytest.approx(psy**2 / 12)
+    # spots of 1-2.4 pixels: the histogram's rounding error e adds 1/12 plus
+    # 2 cov(x, e), which scatters by ~2 sigma 0.29 / sqrt(N) ~ 4 % of 1/12
+    # at N = 200k (12 % at 20k): 15 % is 3.5 of that scatter; a wrong excess
+    # (0 or 1/6 pixel^2) is 100 % off
+    want = torch.full((3,), 1.0, dtype=F64)
+    torch.testing.assert_close(dm[:, 2] / ex, want, rtol=0.15, atol=0)
+    torch.testing.assert_close(dm[:, 4] / ey, want, rtol=0.15, atol=0)
+    fwd1 = ScreenForwardModel.from_dataset(small_scan, blur_pixels=1.0)
+    assert psf_excess(fwd1) == (0.0, 0.0)

@@ -232,6 +232,26 @@ def reconstruct(
     return result
 
 
+def psf_excess(fwd: ScreenForwardModel) -> tuple[float, float]:
+    """Variance ``(x, y)`` [m^2] the forward model's point spread adds beyond
+    ``blur_pixels``.
+
+    The model deposits with cloud-in-cell (variance 1/6 pixel^2 per axis) and
+    blurs only what ``blur_pixels`` asks beyond that, so a ``blur_pixels``
+    below ``sqrt(1/6)`` (the 6D default ``sqrt(1/12)`` of histogram images)
+    images every particle wider than the data: ``(1/6 - blur^2)`` pixel^2.
+
+    Example:
+        >>> from diffaccel.data import make_synthetic_quad_scan
+        >>> ds = make_synthetic_quad_scan("gaussian", n_particles=100)
+        >>> psf_excess(ScreenForwardModel.from_dataset(ds, blur_pixels=1.0))
+        (0.0, 0.0)
+    """
+    extra = max(1.0 / 6.0 - fwd.blur_pixels**2, 0.0)
+    psx, psy = fwd.screen.pixel_size
+    return (extra * psx**2, extra * psy**2)
+
+
 def attach_uncertainty(
     result: Reconstruction,
     measured: Mapping[str, torch.Tensor],
@@ -259,7 +279,7 @@ def attach_uncertainty(
         maps: Each scan's ``transfer_maps(settings)`` ``(K_s, 7, 7)`` when the
             caller has them (computed here otherwise).
     """
-    jacobians, meas, pred, axes = [], [], [], []
+    jacobians, meas, pred, axes, excess = [], [], [], [], []
     for name, images in measured.items():
         fwd = result.forwards[name]
         sets = settings[name]
@@ -272,6 +292,8 @@ def attach_uncertainty(
             )
         )
         axes.append(fwd.screen.pixel_centers(dtype=torch.float64))
+        excess.append(psf_excess(fwd))
+    options.setdefault("psf_excess", excess)  # type: ignore[arg-type]
     m = beam_moments(result.sample(max(n_particles, 50_000), seed=seed))
     unc = analyse_moments(
         jacobians,
