@@ -52,6 +52,8 @@ from diffaccel.reconstruction import (
 
 TRAIN_K1 = (-12.0, -6.0, 0.0, 6.0, 12.0)
 TEST_K1 = (-9.0, -3.0, 3.0, 9.0)
+#: Seed of each synthetic beam (its particles and image noise).
+BEAM_SEEDS = {"correlated": 2, "nonlinear_ypy": 3, "gaussian_coupled": 4}
 
 
 def synthetic_beam(name: str, n: int, seed: int) -> torch.Tensor:
@@ -80,7 +82,7 @@ def run_beam(name: str, seeds: list[int]) -> dict:
         train, test = read_scans(TRAIN), None
         truth = train.ground_truth
     else:
-        seed = {"correlated": 2, "nonlinear_ypy": 3, "gaussian_coupled": 4}[name]
+        seed = BEAM_SEEDS[name]
         truth = synthetic_beam(name, 200_000, seed)
         train = make_synthetic_awa6d(particles=truth, k1_values=TRAIN_K1, seed=seed)
         test = make_synthetic_awa6d(particles=truth, k1_values=TEST_K1, seed=seed)
