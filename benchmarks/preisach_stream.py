@@ -7,11 +7,12 @@ predicted by the CLI in a fresh process, as a user runs it:
 everything included: Python start-up, imports, CSV parsing and writing), the
 median of ``--cli-repeats`` runs, with the child's CPU time and the machine's
 load average (on a shared machine the wall time is inflated by the others'
-work). The child runs with torch's default threads unless ``--threads`` is
-given (the command itself gives the model one torch thread; its reader
-and writer threads use the other core). The library part alone
-(``predict_stream`` with the band, and the mean only; one thread) is timed
-in this process, as the median of ``--repeats`` runs.
+work). The command imports no torch (numpy and scipy only, see
+``diffaccel.hysteresis.stream``); its reader and writer threads overlap the
+model where numpy and scipy release the GIL. ``--threads`` sets
+``OMP_NUM_THREADS`` for it. The library part alone (``predict_stream`` with the
+band, and the mean only; one thread) is timed in this process, as the median
+of ``--repeats`` runs.
 
 Anchor (from issue 11, not re-run: the old one-pass code needs 8.5 GB): the
 same 10^6 rows x 1000 hysterons took 58 s and 8.5 GB before streaming.
@@ -119,7 +120,7 @@ def main() -> None:
         "name": "preisach_stream",
         "device": "cpu",
         "threads_library": torch.get_num_threads(),
-        "threads_cli": "1 for the model, plus a reader and a writer thread",
+        "threads_cli": "the model, a reader and a writer thread (numpy, no torch)",
         "cpu_count": os.cpu_count(),
         "dtype": "float64",
         "torch": torch.__version__,

@@ -21,10 +21,12 @@ from diffaccel.hysteresis import (
 from diffaccel.hysteresis.band import _features
 from diffaccel.hysteresis.states import demagnetized_state
 from diffaccel.hysteresis.stream import (
-    StreamTable,
+    RowGroups,
     row_layout,
+    start_codes,
     stream_codes,
     stream_final_state,
+    stream_table,
 )
 
 F64 = torch.float64
@@ -86,20 +88,32 @@ def test_stream_tables_equal_relay_loop(mesh: str, init: str, chunk: int) -> Non
     layout = row_layout(alpha, beta)
     w = rng.random(alpha.shape)
     extra = rng.standard_normal((3, alpha.size))
-    mean, band = StreamTable(layout, w[None]), StreamTable(layout, extra)
-    sums, extras, state = [], [], s0
-    for start in range(0, u.size, chunk):
-        code = stream_codes(u[start : start + chunk], layout)
-        sums.append(mean.update(state)[:, 0][code].sum(axis=0))
-        extras.append(band.update(state)[code].sum(axis=0))  # (T, 3)
-        state = stream_final_state(code[:, -1], layout, state)
-    # carried states are exact relays: no tolerance
-    np.testing.assert_array_equal(state, ref[-1])
-    # float64 sums in another order: round-off on ~100 terms
-    np.testing.assert_allclose(np.concatenate(sums), ref @ w, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(
-        np.concatenate(extras), ref @ extra.T, rtol=0, atol=1e-12
-    )
+    # rows one by one, and merged into groups (tables of summed rows)
+    groups = RowGroups(layout, cap=64)
+    assert len(groups.starts) < layout.row_alpha.size
+    tables = {}
+    for name, lay in (("rows", layout), ("groups", groups.layout)):
+        mean, band = stream_table(lay, w[None], s0), stream_table(lay, extra, s0)
+        if name == "groups":
+            mean, band = groups.table(mean), groups.table(band)
+        tables[name] = (lay, mean[:, 0], band)
+    for name, (lay, mean, band) in tables.items():
+        sums, extras, last = [], [], start_codes(lay)
+        np.testing.assert_array_equal(stream_final_state(last, lay, s0), s0)
+        for start in range(0, u.size, chunk):
+            code = stream_codes(u[start : start + chunk], lay, last)
+            last = code[:, -1]
+            # the codes carry the state: exact relays, no tolerance
+            state = stream_final_state(last, lay, s0)
+            np.testing.assert_array_equal(state, ref[start : start + chunk][-1])
+            code = groups.codes(code) if name == "groups" else code
+            sums.append(mean[code].sum(axis=0))
+            extras.append(band[code].sum(axis=0))  # (T, 3)
+        # float64 sums in another order: round-off on ~100 terms
+        np.testing.assert_allclose(np.concatenate(sums), ref @ w, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(
+            np.concatenate(extras), ref @ extra.T, rtol=0, atol=1e-12
+        )
 
 
 def _fitted_like(
@@ -184,7 +198,7 @@ def test_beyond_the_range_saturates_with_the_linear_term_and_warns() -> None:
     np.testing.assert_allclose(np.r_[first, second], whole, rtol=0, atol=1e-12)
     np.testing.assert_allclose(std, std_ref[4:], rtol=1e-12)
     # saturated: 9 A and 7 A differ by the linear term only
-    lin = model.output_scale * model.slope * 2.0 / 8.0
+    lin = (model.output_scale * model.slope).detach() * 2.0 / 8.0
     assert abs(float(first[3] - first[1]) - float(lin)) < 1e-12
     with pytest.raises(ValueError, match="NaN or infinite"):
         p(np.array([0.0, np.nan]))

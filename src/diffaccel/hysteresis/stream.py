@@ -12,9 +12,11 @@ predict`` runs it without importing torch.
 
 Exact relays as in :mod:`diffaccel.hysteresis.states`: at every step each row of
 the mesh (hysterons of equal ``alpha``, sorted by ``beta``) is in one of
-``2 (U + 1)`` situations for ``U`` distinct betas (reached in the chunk or not,
-and how many of its beta levels are up), so any weighted sum of the states is a
-lookup per row in a table (:class:`StreamTable`), summed over rows.
+``2 (U + 1)`` situations for ``U`` distinct betas (reached or not, and how many
+of its beta levels are up), coded by :func:`stream_codes` (a chunk continues
+from the codes of the previous one), so any weighted sum of the states is a
+lookup per row in a table built once (:func:`stream_table`), summed over rows;
+:class:`RowGroups` merges rows into fewer, larger tables.
 
 Inputs beyond the model's input range saturate (every hysteron switched) while
 the linear term continues; they warn (:class:`InputRangeWarning`).
@@ -32,13 +34,16 @@ import numpy as np
 __all__ = [
     "RANGE_TOL",
     "InputRangeWarning",
+    "RowGroups",
     "StreamPredictor",
     "StreamSpec",
-    "StreamTable",
+    "permute_rows",
     "predict_chunks",
     "row_layout",
+    "start_codes",
     "stream_codes",
     "stream_final_state",
+    "stream_table",
     "warn_outside_range",
 ]
 
@@ -124,92 +129,122 @@ def row_layout(alpha: np.ndarray, beta: np.ndarray) -> Rows:
     return Rows(row_alpha, beta_levels, beta_rank, index, row, below)
 
 
-def stream_codes(un: np.ndarray, layout: Rows) -> np.ndarray:
+def permute_rows(layout: Rows, order: np.ndarray) -> Rows:
+    """The same hysterons with the mesh rows in ``order`` (``(R,)``, a permutation)."""
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    return layout._replace(
+        row_alpha=layout.row_alpha[order],
+        index=layout.index[order],
+        below=layout.below[order],
+        row=rank[layout.row],
+    )
+
+
+def start_codes(layout: Rows) -> np.ndarray:
+    """Codes (:func:`stream_codes`) before the first input: nothing reached yet,
+    every hysteron in its initial state, shape ``(R,)``."""
+    return _code_base(layout) - (layout.beta_levels.size + 1)
+
+
+def stream_codes(
+    un: np.ndarray, layout: Rows, last: np.ndarray | None = None
+) -> np.ndarray:
     """Situation of every mesh row at every step of one chunk, as table indices.
 
     Row ``r``'s code is ``r W + U + 1 + c`` (``W = 2 U + 3``) with ``c`` in
-    ``[1, U + 1]`` once its alpha was reached in the chunk (``U + 1 - c`` beta
-    levels up: those below the minimum since the last reach) and ``c`` in
-    ``[-U - 1, -1]`` before (the ``-c - 1`` levels below the chunk's running
-    minimum keep their state, the others are down).
+    ``[1, U + 1]`` once its alpha was reached (``U + 1 - c`` beta levels up:
+    those below the minimum input since the last reach) and ``c`` in
+    ``[-U - 1, -1]`` before (the ``-c - 1`` levels below the running minimum
+    since the start of the history keep their initial state, the others are
+    down). The chunk continues from ``last``, the codes of the previous chunk's
+    last step, so codes (and their tables, :func:`stream_table`) mean the same
+    in every chunk: the codes carry the hysteron state
+    (:func:`stream_final_state`).
 
-    One cumulative sum and one cumulative maximum over ``(R, T)`` integer
-    keys: ``(segment - 1) (U + 2) + (U + 1 - rank)`` is negative until the
-    row's alpha is first reached, and its running maximum minus the segment
-    offset is ``c`` itself.
+    One cumulative sum and one cumulative maximum over ``(R, T)`` integer keys:
+    ``(segment - 1) (U + 2) + (U + 1 - rank)`` is negative until the row's
+    alpha is first reached, and its running maximum minus the segment offset
+    is ``c`` itself.
 
     Args:
         un: Normalised inputs [1] of one chunk, shape ``(T,)``, inside ``[0, 1]``.
         layout: :class:`Rows` of the hysterons.
+        last: Codes of the previous step, shape ``(R,)``; ``None`` is the
+            start of the history (:func:`start_codes`).
 
     Returns:
         Codes, shape ``(R, T)``, int32 (int64 for chunks beyond ~2^31 / U rows).
     """
     n_levels = layout.beta_levels.size
+    last = start_codes(layout) if last is None else last
+    base = _code_base(layout)
+    never = last.astype(np.int64) < base  # c < 0: not reached before the chunk
     idx = np.int32 if (un.size + 1) * (n_levels + 2) < 2**31 - 1 else np.int64
+    step = idx(n_levels + 2)
     rank = np.searchsorted(layout.beta_levels, un, side="left")
     inv = (n_levels + 1 - rank).astype(idx)  # (T,) in [1, U + 1]
     up = un[None, :] >= layout.row_alpha[:, None]  # (R, T)
-    seg = np.cumsum(up, axis=1, dtype=idx)  # reaches so far
-    seg -= 1
+    offset = np.cumsum(up, axis=1, dtype=idx)  # reaches in the chunk
+    offset *= step
     key = np.where(up, idx(1), inv[None, :])
     del up
-    step = idx(n_levels + 2)
-    key += seg * step
-    code = np.maximum.accumulate(key, axis=1)
-    del key
-    np.maximum(seg, 0, out=seg)
-    seg *= step
-    code -= seg
+    # keys of rows never reached are one segment (step) higher than in the
+    # docstring above, so that the chunk's reaches alone set the offset
+    key += offset
+    # the carried situation is the running maximum before the first step
+    first = (last.astype(np.int64) - base + never * int(step)).astype(idx)
+    np.maximum(key[:, 0], first, out=key[:, 0])
+    np.maximum.accumulate(key, axis=1, out=key)
+    # code = key - max(segment, 0) step + base, segment = reaches - never
+    np.maximum(offset, (never * step).astype(idx)[:, None], out=offset)
+    offset -= base.astype(idx)[:, None]
+    key -= offset
+    return key
+
+
+def _code_base(layout: Rows, dtype: type = np.int64) -> np.ndarray:
+    """``r W + U + 1`` per row: code minus ``c``, shape ``(R,)``."""
+    n_levels = layout.beta_levels.size
     width = 2 * n_levels + 3
-    base = np.arange(code.shape[0], dtype=idx) * idx(width) + idx(n_levels + 1)
-    code += base[:, None]
-    return code
+    base = np.arange(layout.row_alpha.size, dtype=dtype) * dtype(width)
+    return base + dtype(n_levels + 1)
 
 
-class StreamTable:
+def stream_table(
+    layout: Rows, weights: np.ndarray, initial: np.ndarray, dtype: type | None = None
+) -> np.ndarray:
     """Row sums of weighted states for every code of :func:`stream_codes`.
-
-    ``table[code, k]`` for fixed weight vectors: the part for rows already
-    reached depends on the weights only and is built once; the part for rows
-    not yet reached depends on the states before the chunk and is refreshed by
-    :meth:`update` (cheap: ``O(K M)``).
 
     Args:
         layout: :class:`Rows` of the hysterons.
         weights: Weight vectors, shape ``(K, M)``.
-        dtype: dtype of the table (default: that of ``weights``).
+        initial: States before the history, shape ``(M,)``.
+        dtype: dtype of the table (default: that of ``weights``); the entries
+            are computed in the dtype of ``weights``.
 
-    Shapes:
-        :meth:`update` returns ``(R (2 U + 3), K)``.
+    Returns:
+        ``table[code, k] = sum_{i in row} weights_ki s_i``, shape
+        ``(R (2 U + 3), K)``.
     """
-
-    def __init__(
-        self, layout: Rows, weights: np.ndarray, dtype: np.dtype | None = None
-    ) -> None:
-        n_k = weights.shape[0]
-        n_rows, n_levels = layout.below.shape[0], layout.below.shape[1] - 1
-        self.layout = layout
-        pad = np.zeros((n_k, 1), dtype=weights.dtype)
-        self.w_pad = np.concatenate([weights, pad], axis=1)[:, layout.index]
-        w_cum = _cumsum0(self.w_pad)  # (K, R, L + 1)
-        w_row = w_cum[..., -1:]
-        w_below = np.take_along_axis(w_cum, layout.below[None], axis=2)
-        self.w_rest = w_below - w_row  # (K, R, U + 1)
-        signed = 2.0 * w_below - w_row
-        width = 2 * n_levels + 3
-        self.table = np.zeros((n_rows, width, n_k), dtype=dtype or weights.dtype)
-        self.table[:, n_levels + 2 :] = signed[..., ::-1].transpose(1, 2, 0)
-        self.n_levels = n_levels
-
-    def update(self, initial: np.ndarray) -> np.ndarray:
-        """The table for a chunk that starts from states ``initial``, shape ``(M,)``."""
-        init = np.append(initial.astype(self.w_pad.dtype), 0.0)[self.layout.index]
-        s_cum = _cumsum0(self.w_pad * init)
-        never = np.take_along_axis(s_cum, self.layout.below[None], axis=2)
-        never += self.w_rest
-        self.table[:, : self.n_levels + 1] = never[..., ::-1].transpose(1, 2, 0)
-        return self.table.reshape(-1, self.table.shape[2])
+    n_k = weights.shape[0]
+    n_rows, n_levels = layout.below.shape[0], layout.below.shape[1] - 1
+    pad = np.zeros((n_k, 1), dtype=weights.dtype)
+    w_pad = np.concatenate([weights, pad], axis=1)[:, layout.index]  # (K, R, L)
+    below = layout.below[None]
+    w_cum = _cumsum0(w_pad)  # (K, R, L + 1)
+    w_row = w_cum[..., -1:]
+    w_below = np.take_along_axis(w_cum, below, axis=2)  # (K, R, U + 1)
+    signed = 2.0 * w_below - w_row  # reached: levels below j up, the rest down
+    init = np.append(initial.astype(weights.dtype), 0.0)[layout.index]  # (R, L)
+    s_cum = _cumsum0(w_pad * init)
+    # never reached: levels below k keep their initial state, the rest down
+    never = np.take_along_axis(s_cum, below, axis=2) + w_below - w_row
+    width = 2 * n_levels + 3
+    table = np.zeros((n_rows, width, n_k), dtype=dtype or weights.dtype)
+    table[:, : n_levels + 1] = never[..., ::-1].transpose(1, 2, 0)
+    table[:, n_levels + 2 :] = signed[..., ::-1].transpose(1, 2, 0)
+    return table.reshape(-1, n_k)
 
 
 def _cumsum0(x: np.ndarray) -> np.ndarray:
@@ -222,31 +257,127 @@ def _cumsum0(x: np.ndarray) -> np.ndarray:
 def stream_final_state(
     last: np.ndarray, layout: Rows, initial: np.ndarray
 ) -> np.ndarray:
-    """Hysteron states after a chunk from its last codes.
+    """Hysteron states from the codes of one step.
 
     Args:
-        last: Codes of the chunk's last step, ``stream_codes(...)[:, -1]``,
-            shape ``(R,)``.
+        last: Codes of one step, e.g. ``stream_codes(...)[:, -1]``, shape ``(R,)``.
         layout: :class:`Rows` of the hysterons.
-        initial: States before the chunk, shape ``(M,)``.
+        initial: States before the history, shape ``(M,)``.
 
     Returns:
         States in ``[-1, 1]``, shape ``(M,)``, dtype of ``initial``.
     """
     n_levels = layout.beta_levels.size
-    width = 2 * n_levels + 3
-    rows = np.arange(last.size)
-    c = (last.astype(np.int64) - n_levels - 1 - width * rows)[layout.row]
+    c = (last.astype(np.int64) - _code_base(layout))[layout.row]
     q = layout.beta_rank
     up_after = np.where(q < n_levels + 1 - c, 1.0, -1.0)  # reached
     stays = np.where(q < -c - 1, initial, -1.0)  # never reached
     return np.where(c > 0, up_after, stays).astype(initial.dtype)
 
 
-def _row_sums(code: np.ndarray, table: np.ndarray) -> np.ndarray:
-    """``sum_r table[code[r, t], :]``, shape ``(T, K)``, summed in the table's dtype.
+class RowGroups:
+    """Mesh rows merged into groups, so that a weighted sum is fewer lookups.
 
-    A sparse product: one row of ``R`` ones per step (rows summed in order).
+    A row of ``L`` hysterons is in one of only ``A = 2 (L + 1)`` distinct
+    situations (how many of its own hysterons are up, reached or not), whatever
+    its code. Rows whose numbers of situations multiply to at most ``cap``
+    share one table (the sums of their entries for every combination), so that
+    a weighted sum over the mesh takes one lookup per group instead of one per
+    row (e.g. 990 hysterons in 87 rows: 30 groups at ``cap = 2048``).
+
+    Args:
+        layout: :class:`Rows` of the hysterons.
+        cap: Most combinations per group.
+
+    Attributes:
+        layout: ``layout`` with its rows in group order (use it for the codes).
+        starts: First row of each group, shape ``(G,)``.
+    """
+
+    def __init__(self, layout: Rows, cap: int = 2048) -> None:
+        n_rows, n1 = layout.below.shape
+        n_levels = n1 - 1
+        length = layout.below[:, -1]
+        sizes = 2 * (length + 1)
+        members: list[list[int]] = []
+        product: list[int] = []
+        for r in np.argsort(-sizes, kind="stable").tolist():  # best fit decreasing
+            fits = [g for g in range(len(members)) if product[g] * sizes[r] <= cap]
+            if fits:
+                g = max(fits, key=lambda g: product[g])
+                members[g].append(r)
+                product[g] *= int(sizes[r])
+            else:
+                members.append([r])
+                product.append(int(sizes[r]))
+        order = np.array([r for m in members for r in m])
+        self.layout = permute_rows(layout, order)
+        self.starts = np.cumsum([0] + [len(m) for m in members[:-1]])
+        self.sizes = sizes[order]
+        # situation id of every (row, code position); position U + 1 is unused
+        below = self.layout.below
+        width = 2 * n_levels + 3
+        ids = np.zeros((n_rows, width), dtype=np.int64)
+        ids[:, : n_levels + 1] = below[:, ::-1]  # never reached, k = U - p
+        ids[:, n_levels + 2 :] = self.sizes[:, None] // 2 + below[:, ::-1]
+        self._ids = ids
+        self._used = np.ones(width, dtype=bool)
+        self._used[n_levels + 1] = False
+        stride = np.ones(n_rows, dtype=np.int64)
+        offset = np.zeros(n_rows, dtype=np.int64)
+        self._groups = []
+        total = 0
+        for g, start in enumerate(self.starts.tolist()):
+            rows = list(range(start, start + len(members[g])))
+            for i in reversed(range(len(rows) - 1)):
+                stride[rows[i]] = stride[rows[i + 1]] * self.sizes[rows[i + 1]]
+            offset[rows[0]] = total
+            total += int(np.prod(self.sizes[rows]))
+            self._groups.append(rows)
+        self.n_entries = total
+        self.rowmap = (ids * stride[:, None] + offset[:, None]).reshape(-1)
+        self._rowmap: dict = {}
+        counts = np.array([len(m) for m in members])
+        self._later = [np.flatnonzero(counts > i) for i in range(1, counts.max())]
+
+    def table(self, table: np.ndarray, dtype: type | None = None) -> np.ndarray:
+        """Group tables from a row table of :func:`stream_table` (same layout).
+
+        Entries are summed over a group's rows in the dtype of ``table``.
+
+        Returns:
+            Shape ``(n_entries, K)``.
+        """
+        n_rows = self.layout.row_alpha.size
+        n_k = table.shape[1]
+        full = table.reshape(n_rows, -1, n_k)
+        out = []
+        for rows in self._groups:
+            joint = np.zeros((1, n_k), dtype=table.dtype)
+            for r in rows:
+                per = np.zeros((self.sizes[r], n_k), dtype=table.dtype)
+                per[self._ids[r, self._used]] = full[r, self._used]
+                joint = (joint[:, None, :] + per[None, :, :]).reshape(-1, n_k)
+            out.append(joint)
+        return np.concatenate(out).astype(dtype or table.dtype)
+
+    def codes(self, code: np.ndarray) -> np.ndarray:
+        """Group codes from row codes of :func:`stream_codes`, ``(R, T) -> (G, T)``."""
+        rowmap = self._rowmap.get(code.dtype)
+        if rowmap is None:
+            rowmap = self._rowmap[code.dtype] = self.rowmap.astype(code.dtype)
+        picked = rowmap[code]
+        out = picked[self.starts]
+        # add the i-th row of every group that has one (5x faster than reduceat)
+        for i, groups in enumerate(self._later, start=1):
+            out[groups] += picked[self.starts[groups] + i]
+        return out
+
+
+def _row_sums(code: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """``sum_g table[code[g, t], :]``, shape ``(T, K)``, summed in the table's dtype.
+
+    A sparse product: one row of ``G`` ones per step (summed in order).
     """
     from scipy.sparse import csr_array  # ~0.1 s; only streamed bands need it
 
@@ -408,14 +539,26 @@ class StreamPredictor:
         ([1.0, 1.0], [-1.0])
     """
 
-    def __init__(self, spec: StreamSpec, band_dtype: type = np.float32) -> None:
+    def __init__(
+        self, spec: StreamSpec, band_dtype: type = np.float32, cap: int = 2048
+    ) -> None:
         self.spec = spec
-        self.layout = row_layout(spec.alpha, spec.beta)
-        self.state = np.asarray(spec.initial, dtype=np.float64).copy()
-        self._mean = StreamTable(self.layout, spec.weights[None, :])
+        self._groups = RowGroups(row_layout(spec.alpha, spec.beta), cap)
+        self.layout = self._groups.layout
+        self._last = start_codes(self.layout)
+        initial = np.asarray(spec.initial, dtype=np.float64)
+        mean = stream_table(self.layout, spec.weights[None, :], initial)
+        self._mean = self._groups.table(mean)[:, 0]
         self._band = None
         if spec.has_band:
-            self._band = StreamTable(self.layout, spec.band_weights, dtype=band_dtype)
+            band = stream_table(self.layout, spec.band_weights, initial)
+            self._band = self._groups.table(band, dtype=band_dtype)
+
+    @property
+    def state(self) -> np.ndarray:
+        """Hysteron states after the inputs so far, shape ``(M,)``."""
+        initial = np.asarray(self.spec.initial, dtype=np.float64)
+        return stream_final_state(self._last, self.layout, initial)
 
     def normalize(self, u: np.ndarray, stacklevel: int = 2) -> np.ndarray:
         """Normalised inputs [1] of ``u`` [input units] (unclipped), checked.
@@ -449,23 +592,22 @@ class StreamPredictor:
         u = np.asarray(u, dtype=np.float64).reshape(-1)
         un = self.normalize(u)
         un_c = np.clip(un, 0.0, 1.0)  # saturation beyond the range
-        code = stream_codes(un_c, self.layout)
-        mean_tab = self._mean.update(self.state)[:, 0]
-        sums = mean_tab[code].sum(axis=0)
+        code = stream_codes(un_c, self.layout, self._last)
+        self._last = code[:, -1].copy()
+        code = self._groups.codes(code)  # (G, T)
+        sums = self._mean[code].sum(axis=0)
         y = s.offset + s.slope * un + s.scale * sums
         pred = s.output_loc + s.output_scale * y
         std = None
         if self._band is not None:
-            tab = self._band.update(self.state)
-            proj = _row_sums(code, tab)  # (T, K) in the table's dtype
-            a = s.band_affine.astype(tab.dtype)
+            proj = _row_sums(code, self._band)  # (T, K) in the table's dtype
+            a = s.band_affine.astype(self._band.dtype)
             proj += a[:, 0]
-            proj += un_c.astype(tab.dtype)[:, None] * a[:, 1]
+            proj += un_c.astype(self._band.dtype)[:, None] * a[:, 1]
             # the norm accumulated in float64, rounded to the sums' dtype
             norm2 = np.einsum("tk,tk->t", proj, proj, dtype=np.float64)
-            norm = np.sqrt(norm2).astype(tab.dtype).astype(np.float64)
+            norm = np.sqrt(norm2).astype(self._band.dtype).astype(np.float64)
             std = s.output_scale * (s.calibration * np.sqrt(norm**2 + s.noise_std**2))
-        self.state = stream_final_state(code[:, -1], self.layout, self.state)
         return pred, std
 
 
