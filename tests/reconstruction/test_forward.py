@@ -157,3 +157,62 @@ def test_spec_round_trip() -> None:
     fwd = _model(blur=1.5)
     back = ScreenForwardModel.from_spec(fwd.to_spec())
     assert back.to_spec() == fwd.to_spec()
+
+
+def _awa6d_forwards() -> tuple[list[ScreenForwardModel], list[torch.Tensor]]:
+    from diffaccel.data.synthetic import AWA6D_BEAMLINES
+
+    forwards, settings = [], []
+    for spec in AWA6D_BEAMLINES.values():
+        spec = [dict(e) for e in spec]
+        spec[-1].update(shape=[24, 24], pixel_size=[8e-4, 8e-4])
+        forwards.append(
+            ScreenForwardModel(
+                Beamline.from_spec(spec),
+                ["SCAN_QUAD.k1", "SCAN_TDC.voltage"],
+                43.36e6,
+                blur_pixels=0.8,
+            )
+        )
+        k1 = torch.tensor([-6.0, -6.0, 0.0, 6.0, 6.0], dtype=torch.float64)
+        volts = torch.tensor([0.0, 4e6, 0.0, 0.0, 4e6], dtype=torch.float64)
+        settings.append(torch.stack([k1, volts], -1))
+    return forwards, settings
+
+
+@pytest.mark.parametrize("rows", [None, ([0, 1, 2, 3, 4], [1, 4]), ([0, 2], [0, 3, 4])])
+def test_shared_upstream_gives_each_scans_images(gaussian_beam, rows) -> None:
+    from diffaccel.reconstruction.forward import SharedUpstream
+
+    forwards, settings = _awa6d_forwards()
+    if rows is not None:
+        settings = [s[r] for s, r in zip(settings, rows, strict=True)]
+    x = gaussian_beam[:2000] * 0.3
+    g = torch.Generator().manual_seed(0)
+    x[:, 4:] = torch.randn(2000, 2, generator=g, dtype=x.dtype) * 1e-3  # z, pz
+    x = x.float().requires_grad_(True)
+    shared = SharedUpstream.build(forwards, settings)
+    # quadrupole, drift, cavity and drift tracked once for the distinct rows
+    assert len(shared.upstream) == 4
+    images = shared(x)
+    (sum(i.square().sum() for i in images)).backward()
+    grad = x.grad.clone()
+    x.grad = None
+    plain = [f.images(x, s) for f, s in zip(forwards, settings, strict=True)]
+    (sum(i.square().sum() for i in plain)).backward()
+    for a, b in zip(images, plain, strict=True):
+        assert a.shape == b.shape
+        assert torch.equal(a, b)  # the same arithmetic, only shared
+    # float32 gradients summed in another order
+    assert torch.allclose(grad, x.grad, rtol=1e-5, atol=1e-6 * x.grad.abs().max())
+
+
+def test_shared_upstream_none_when_nothing_is_shared() -> None:
+    from diffaccel.reconstruction.forward import SharedUpstream
+
+    forwards, settings = _awa6d_forwards()
+    assert SharedUpstream.build(forwards[:1], settings[:1]) is None
+    # every upstream row distinct across the scans: nothing to save
+    assert SharedUpstream.build(forwards, [settings[0][:2], settings[1][2:]]) is None
+    other = ScreenForwardModel(Beamline.from_spec(SPEC), ["Q1.k1"], 43.36e6)
+    assert SharedUpstream.build([forwards[0], other], [settings[0], K1]) is None

@@ -399,3 +399,147 @@ class _LinearCIC(torch.autograd.Function):
             [False, True],
         )[1]
         return torch.bmm(g.view(k, spec.n, 2), spec.g_t).sum(0), None
+
+
+class SharedUpstream:
+    """Screen images of several scans that begin with the same elements.
+
+    Scans of one beam often share their first elements and settings: in the AWA
+    6D layout both scans pass the same scanned quadrupole, drift and deflecting
+    cavity before one goes straight to a screen and the other through a
+    spectrometer dipole. Those leading elements are tracked once per call, for
+    the distinct rows of their settings over all scans, and each scan then
+    tracks only its own remaining elements from there (same arithmetic as
+    :meth:`ScreenForwardModel.images`, so the same images).
+
+    Build it with :meth:`build`, which returns None when nothing is shared.
+
+    Args:
+        upstream: The shared leading elements with every distinct row of their
+            scanned settings applied (``(U,)`` parameters).
+        rows: For each scan, the index of each of its settings among the ``U``
+            distinct rows; None where they are exactly ``0 .. U - 1``.
+        downstream: For each scan, its remaining elements (ending at the screen).
+        names: For each scan, the scanned names of its remaining elements.
+        settings: For each scan, the settings of those names ``(K_s, P'_s)``.
+        forwards: The scans' forward models (screen, blur, ``p0c``, species).
+
+    Shapes:
+        ``__call__(particles (N, 6))`` -> one ``(K_s, H_s, W_s)`` image stack per
+        scan.
+    """
+
+    def __init__(
+        self,
+        upstream: Beamline,
+        rows: list[Tensor | None],
+        downstream: list[Beamline],
+        names: list[list[str]],
+        settings: list[Tensor],
+        forwards: list[ScreenForwardModel],
+    ) -> None:
+        self.upstream = upstream
+        self.rows = rows
+        self.downstream = downstream
+        self.names = names
+        self.settings = settings
+        self.forwards = forwards
+
+    @classmethod
+    def build(
+        cls,
+        forwards: Sequence[ScreenForwardModel],
+        settings: Sequence[Tensor],
+        device: str | torch.device = "cpu",
+    ) -> SharedUpstream | None:
+        """The shared upstream of ``forwards`` with ``settings``, or None.
+
+        The shared part is the longest run of leading elements (no screen) with
+        the same specification in every scan, the same reference momentum and
+        species. None when it is empty or when its distinct settings rows are
+        as many as all scans' rows together (nothing to save).
+
+        Shapes:
+            ``settings[s] (K_s, P_s)``.
+        """
+        forwards = list(forwards)
+        if len(forwards) < 2:
+            return None
+        first = forwards[0]
+        if any(f.p0c != first.p0c or f.species != first.species for f in forwards[1:]):
+            return None
+        specs = [f.beamline.to_spec() for f in forwards]
+        n_shared = 0
+        for i in range(min(len(s) for s in specs)):
+            spec = specs[0][i]
+            if spec["type"] == "Screen" or any(s[i] != spec for s in specs[1:]):
+                break
+            n_shared = i + 1
+        if n_shared == 0:
+            return None
+        shared = {e["name"] for e in specs[0][:n_shared]}
+
+        def upstream_name(name: str) -> bool:
+            return name.rsplit(".", 1)[0] in shared
+
+        up_names = [n for n in first.names if upstream_name(n)]
+        if any(
+            sorted(n for n in f.names if upstream_name(n)) != sorted(up_names)
+            for f in forwards
+        ):
+            return None
+        checked = [
+            f.check_settings(s).cpu() for f, s in zip(forwards, settings, strict=True)
+        ]
+        up_values = [
+            s[:, [f.names.index(n) for n in up_names]]
+            for f, s in zip(forwards, checked, strict=True)
+        ]
+        stacked = torch.cat(up_values)
+        if up_names:
+            distinct, inverse = torch.unique(stacked, dim=0, return_inverse=True)
+        else:
+            distinct, inverse = stacked[:1], torch.zeros(len(stacked), dtype=torch.long)
+        if len(distinct) >= len(stacked) and up_names:
+            return None
+        line = Beamline.from_spec(specs[0][:n_shared])
+        line = line.with_params({n: distinct[:, p] for p, n in enumerate(up_names)})
+        rows, downstream, names, down_settings = [], [], [], []
+        start = 0
+        for f, spec, s in zip(forwards, specs, checked, strict=True):
+            k = s.shape[0]
+            idx = inverse[start : start + k]
+            start += k
+            identity = k == len(distinct) and bool((idx == torch.arange(k)).all())
+            rows.append(None if identity else idx.to(device))
+            downstream.append(Beamline.from_spec(spec[n_shared:]).to(device))
+            own = [n for n in f.names if not upstream_name(n)]
+            names.append(own)
+            down_settings.append(s[:, [f.names.index(n) for n in own]].to(device))
+        return cls(line.to(device), rows, downstream, names, down_settings, forwards)
+
+    def __call__(self, particles: Tensor) -> list[Tensor]:
+        p0c = self.forwards[0].p0c
+        species = self.forwards[0]._species
+        at = self.upstream.track(particles, p0c, species=species)  # (U, N, 6)
+        images = []
+        for rows, line, names, sets, fwd in zip(
+            self.rows,
+            self.downstream,
+            self.names,
+            self.settings,
+            self.forwards,
+            strict=True,
+        ):
+            start = at if rows is None else at.index_select(0, rows)
+            screens = line.screen_images(
+                start,
+                p0c,
+                settings=sets if names else None,
+                names=names if names else None,
+                species=species,
+                method="cic",
+                blur_sigma=fwd._blur(),
+            )
+            images.append(screens[fwd.screen.name])
+        return images
