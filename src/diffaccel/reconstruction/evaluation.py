@@ -145,6 +145,7 @@ def evaluate(
     train_indices: Mapping[str, Sequence[int]] | None = None,
     predicted: Mapping[str, Tensor] | None = None,
     n_sample: int = 100_000,
+    sample: Tensor | None = None,
 ) -> dict[str, Any]:
     """Moments, image errors per scan and ground-truth errors of a reconstruction.
 
@@ -158,6 +159,9 @@ def evaluate(
         predicted: Images from :func:`predict_dataset` (computed if None).
         n_sample: Particles drawn (per member for the moments) to compute the
             moments and to compare with the ground truth.
+        sample: ``result.sample(n_sample)`` when the caller has drawn it (the
+            CLI writes the same particles to its particles file); drawn here
+            otherwise.
 
     Returns:
         JSON-ready dict: ``scans`` (per scan: ``train_indices``,
@@ -207,7 +211,8 @@ def evaluate(
     unc = result.info.get("uncertainty")
     truth = scans.ground_truth
     if truth is not None:
-        sample = result.sample(n_sample)
+        if sample is None:
+            sample = result.sample(n_sample)
         truth = truth.to(torch.float64)
         dims = result.config.dims
         gt = moment_errors(sample, truth)

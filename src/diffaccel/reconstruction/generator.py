@@ -7,6 +7,10 @@ import math
 import torch
 from torch import Tensor, nn
 
+#: Particles per block when :meth:`BeamGenerator.forward` samples without
+#: gradients (blocks of the MLP's hidden activations fit in the CPU's cache).
+_SAMPLE_CHUNK = 16_384
+
 
 class BeamGenerator(nn.Module):
     """Generative model of a beam's phase-space distribution.
@@ -135,7 +139,13 @@ class BeamGenerator(nn.Module):
         base = standard_normal_samples(
             n, self.dims, generator, quasi_random, dtype=p.dtype, device=p.device
         )
-        return self.transform(base)
+        if n <= _SAMPLE_CHUNK or torch.is_grad_enabled():
+            return self.transform(base)
+        # sampling without gradients (evaluation, figures, particle files: ~10^6
+        # particles in a default reconstruct): the MLP's (chunk, width)
+        # intermediates stay cache-resident, ~1.3x faster; row by row the same
+        # operations, so the same particles
+        return torch.cat([self.transform(b) for b in base.split(_SAMPLE_CHUNK)])
 
 
 #: Bits of the Sobol integers: ``u = (k + 1/2) / 2**23`` is exact in float32.
