@@ -1,6 +1,6 @@
 """Entry point for ``python -m diffaccel``."""
 
-from diffaccel.cli.main import main
+from diffaccel.cli.main import run
 
 if __name__ == "__main__":
-    main()
+    run()

@@ -114,3 +114,25 @@ def test_command_import_restores_the_garbage_collector(enabled: bool) -> None:
         assert gc.isenabled() is enabled
     finally:
         gc.enable() if was else gc.disable()
+
+
+def test_program_keeps_output_and_exit_status_when_it_ends_at_once() -> None:
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
+    ok = subprocess.run(  # stdout a pipe (block-buffered)
+        [sys.executable, "-m", "diffaccel", "--version"],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
+    assert ok.returncode == 0
+    assert "diffaccel" in ok.stdout
+    bad = subprocess.run(
+        [sys.executable, "-m", "diffaccel", "no-such-command"],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
+    assert bad.returncode == 2
+    assert "no-such-command" in bad.stderr
