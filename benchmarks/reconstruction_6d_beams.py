@@ -19,7 +19,13 @@ held-out images on the odd ones):
 - ``nonlinear_ypy``: the three-mode ``nonlinear`` preset with y-py correlation
   0.93 and half the energy spread;
 - ``gaussian_coupled``: a Gaussian with y-py 0.69, chirp (z-pz 0.38) and an
-  x-z tilt (0.30).
+  x-z tilt (0.30);
+- the shared file's family as its README describes it (non-Gaussian, energy
+  chirp with curvature, x-z tilt, correlated in all six dimensions), our own
+  construction (:data:`FAMILY`, :func:`family_beam`): ``chirp_curved``
+  (z-pz 0.79), ``chirp_negative`` (-0.61, transverse curvature) and
+  ``chirp_weak_tilted`` (0.23, strong curvature, y-pz term). Their fails are
+  also listed apart (``fails_family`` vs ``fails_presets``).
 
 The synthetic beams have 200 000 particles (truth and images). Prints one JSON
 object (benchmarks/_meta.py). Times are in-process training times; under load
@@ -53,12 +59,79 @@ from diffaccel.reconstruction import (
 TRAIN_K1 = (-12.0, -6.0, 0.0, 6.0, 12.0)
 TEST_K1 = (-9.0, -3.0, 3.0, 9.0)
 #: Seed of each synthetic beam (its particles and image noise).
-BEAM_SEEDS = {"correlated": 2, "nonlinear_ypy": 3, "gaussian_coupled": 4}
+BEAM_SEEDS = {
+    "correlated": 2,
+    "nonlinear_ypy": 3,
+    "gaussian_coupled": 4,
+    "chirp_curved": 5,
+    "chirp_negative": 6,
+    "chirp_weak_tilted": 7,
+}
+#: Beams of the shared file's family as its README describes it (non-Gaussian,
+#: energy chirp with curvature, x-z tilt, correlated in all six dimensions), our
+#: own construction and parameters (not fitted to that file): chirp h [1/m],
+#: curvature c [1/m^2] (pz += h z + c (z^2 - <z^2>)), uncorrelated energy
+#: spread, x-z tilt (z += tilt x), x-px and y-py correlations, a transverse
+#: curvature (px += kappa x^2) and a weak y-pz term.
+FAMILY = {
+    "chirp_curved": dict(
+        h=2.0,
+        c=800.0,
+        spread=1.0e-3,
+        tilt=0.4,
+        xpx=-0.4,
+        ypy=0.5,
+        kappa=0.0,
+        ypz=0.0,
+    ),
+    "chirp_negative": dict(
+        h=-1.5,
+        c=-1500.0,
+        spread=0.6e-3,
+        tilt=-0.6,
+        xpx=0.3,
+        ypy=-0.3,
+        kappa=300.0,
+        ypz=0.0,
+    ),
+    "chirp_weak_tilted": dict(
+        h=0.8,
+        c=2500.0,
+        spread=1.5e-3,
+        tilt=0.25,
+        xpx=-0.6,
+        ypy=0.2,
+        kappa=-200.0,
+        ypz=0.5,
+    ),
+}
+
+
+def family_beam(params: dict, n: int, g: torch.Generator) -> torch.Tensor:
+    """A beam of the shared file's family (see :data:`FAMILY`), Bmad ``(n, 6)``."""
+    u = torch.randn(n, 6, generator=g, dtype=torch.float64)
+    sx, spx, sy, spy, sz = 5e-4, 2.6e-4, 5e-4, 2.6e-4, 8e-4
+    x = sx * u[:, 0]
+    px = spx * (params["xpx"] * u[:, 0] + (1 - params["xpx"] ** 2) ** 0.5 * u[:, 1])
+    px = px + params["kappa"] * (x**2 - (x**2).mean())
+    y = sy * u[:, 2]
+    py = spy * (params["ypy"] * u[:, 2] + (1 - params["ypy"] ** 2) ** 0.5 * u[:, 3])
+    z = sz * u[:, 4] + params["tilt"] * x
+    pz = (
+        params["h"] * z
+        + params["c"] * (z**2 - (z**2).mean())
+        + params["spread"] * u[:, 5]
+        + params["ypz"] * y
+    )
+    return torch.stack([x, px, y, py, z, pz], -1)
 
 
 def synthetic_beam(name: str, n: int, seed: int) -> torch.Tensor:
     """One of the benchmark's synthetic beams, Bmad coordinates ``(n, 6)``."""
     g = torch.Generator().manual_seed(seed)
+    if name in FAMILY:
+        b = family_beam(FAMILY[name], n, g)
+        return b - b.mean(0)
     preset = {"correlated": "correlated", "nonlinear_ypy": "nonlinear"}.get(
         name, "gaussian"
     )
@@ -123,7 +196,8 @@ def run_beam(name: str, seeds: list[int]) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument(
-        "--beams", default="shared,correlated,nonlinear_ypy,gaussian_coupled"
+        "--beams",
+        default="shared,correlated,nonlinear_ypy,gaussian_coupled," + ",".join(FAMILY),
     )
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--threads", type=int, default=2)
@@ -144,6 +218,9 @@ def main() -> None:
     for name in args.beams.split(","):
         out["beams"][name] = run_beam(name, seeds)
     out["fails"] = {n: b["fails"] for n, b in out["beams"].items() if b["fails"]}
+    # the shared file's family (README's description) apart from the presets
+    out["fails_family"] = {n: f for n, f in out["fails"].items() if n in FAMILY}
+    out["fails_presets"] = {n: f for n, f in out["fails"].items() if n not in FAMILY}
     out["load_avg_1min_at_end"] = os.getloadavg()[0]
     emit(out, args.out)
 

@@ -1,0 +1,236 @@
+"""Longitudinal second moments the scans cannot see, and where to put them.
+
+In the AWA 6D layout (quadrupole, deflecting cavity, then a drift or a
+spectrometer dipole) the energy spread reaches the dipole screen only as
+``2 R16 (R11 S_x,pz + R12 S_px,pz) + R16^2 S_pz,pz`` with ``R16`` the same at
+every quadrupole strength and ``R11, R12`` nearly linear in it: the images fix
+two of the three numbers, and the variance of pz can be traded against the
+px-pz covariance without changing any image to first order. The streak of the
+cavity does the same to ``S_z,z`` and ``S_py,z``. Training then drifts along
+these directions wherever the entropy pushes: to the largest 6D volume, which
+on synthetic beams put pz 8-44 % and z up to 9 % above the truth, and Adam
+keeps moving along such a direction at full step however weak its gradient.
+
+This module finds those directions from the transfer maps (the null space of
+the linear map from the longitudinal covariance entries to the screen second
+moments, the transverse ones held) and moves each ensemble member along them
+to a stated prior point: the one where the correlations that the direction
+trades carry no information beyond the other coordinates (zero partial
+correlation, ``tr(P V_off) = 0`` with ``P`` the precision matrix and ``V_off``
+the direction's off-diagonal part: the maximum-entropy choice of the
+correlations with the variances held). The move is the smallest displacement of
+the particles that gives the new covariance (the optimal-transport map between
+the two Gaussians), folded into the generator's last linear layers, so images
+change only at the order the data cannot see.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+from diffaccel.reconstruction.generator import BeamGenerator
+
+#: Covariance entries (i <= j) that involve z or pz: the unknowns.
+_LONGITUDINAL = [(i, j) for i in range(6) for j in range(i, 6) if j >= 4]
+#: A direction is unseen when its singular value of the scaled moment design is
+#: below this fraction of the largest. AWA 6D layout (shared 6D training file):
+#: 1e-4 (pz: px-pz vs pz-pz) and 4e-3 (z: py-z vs z-z), the next 0.19.
+UNSEEN_TOLERANCE = 0.02
+
+
+def unseen_directions(
+    maps: Sequence[Tensor], cov: Tensor, tolerance: float = UNSEEN_TOLERANCE
+) -> Tensor:
+    """Longitudinal covariance directions that leave every screen's moments unchanged.
+
+    Args:
+        maps: Each scan's affine maps to its screen ``(K_s, 7, 7)`` (or
+            ``(K_s, 6, 6)``).
+        cov: Covariance of the beam ``(6, 6)`` [Bmad units]: scales the
+            unknowns (to correlations) and the rows (to relative moments).
+        tolerance: See :data:`UNSEEN_TOLERANCE`.
+
+    Returns:
+        ``(F, 6, 6)`` float64 symmetric directions in Bmad units (each of unit
+        norm in correlation units); ``F = 0`` when the scans see every
+        longitudinal entry, or do not see z or pz at all (no dispersion or no
+        deflecting cavity: then the prior sets that coordinate).
+    """
+    s = cov.to(torch.float64)
+    sig = s.diagonal().clamp_min(1e-300).sqrt()
+    r = torch.cat([m.to(torch.float64)[:, :6, :6] for m in maps])
+    ii = torch.tensor([e[0] for e in _LONGITUDINAL])
+    jj = torch.tensor([e[1] for e in _LONGITUDINAL])
+    mult = torch.where(ii == jj, 1.0, 2.0).to(torch.float64)
+    rows = []
+    for a, b in ((0, 0), (2, 2), (0, 2)):
+        u, v = r[:, a], r[:, b]  # (K, 6)
+        # <(u.x)(v.x)> = sum_ij u_i v_j S_ij, symmetrised, in correlation units
+        coef = 0.5 * (u[:, ii] * v[:, jj] + v[:, ii] * u[:, jj]) * mult
+        coef = coef * (sig[ii] * sig[jj])
+        su = torch.einsum("ki,ij,kj->k", u, s, u).clamp_min(1e-300)
+        sv = torch.einsum("ki,ij,kj->k", v, s, v).clamp_min(1e-300)
+        rows.append(coef / (su * sv).sqrt()[:, None])  # relative to the sizes
+    design = torch.cat(rows)
+    scale = design.abs().amax(0)
+    if any(
+        float(scale[_LONGITUDINAL.index((i, i))]) <= 1e-9 * float(scale.max())
+        for i in (4, 5)
+    ):
+        # z or pz not seen at all (e.g. a quadrupole scan alone): nothing is
+        # traded against a correlation; their prior sets them
+        return torch.zeros(0, 6, 6, dtype=torch.float64)
+    _, sv, vh = torch.linalg.svd(design, full_matrices=True)
+    full = torch.zeros(vh.shape[0], dtype=torch.float64)
+    full[: sv.shape[0]] = sv
+    flat = vh[full < tolerance * float(sv[0])]
+    out = torch.zeros(flat.shape[0], 6, 6, dtype=torch.float64)
+    for k, vec in enumerate(flat):
+        m = torch.zeros(6, 6, dtype=torch.float64)
+        m[ii, jj] = vec * sig[ii] * sig[jj]
+        out[k] = m + m.T - torch.diag(m.diagonal())
+    return out
+
+
+def place_unseen(cov: Tensor, directions: Tensor, iterations: int = 30) -> Tensor:
+    """``cov`` moved along ``directions`` to zero partial correlation of their trade.
+
+    Solves ``tr(P V_k,off) = 0`` for every direction ``V_k`` (``P`` the inverse of
+    ``cov + sum_k t_k V_k``, ``V_off`` its off-diagonal part) by damped Newton
+    steps that keep the covariance positive definite.
+
+    Shapes:
+        ``cov (6, 6)``, ``directions (F, 6, 6)`` -> ``(6, 6)`` float64.
+    """
+    s0 = cov.to(torch.float64)
+    if directions.shape[0] == 0:
+        return s0
+    v = directions.to(torch.float64)
+    off = v - torch.diag_embed(v.diagonal(dim1=-2, dim2=-1))
+    t = torch.zeros(v.shape[0], dtype=torch.float64)
+
+    def residual(t: Tensor) -> tuple[Tensor, Tensor] | None:
+        s = s0 + torch.einsum("k,kij->ij", t, v)
+        if float(torch.linalg.eigvalsh(s).min()) <= 0:
+            return None
+        return torch.linalg.inv(s), s
+
+    for _ in range(iterations):
+        p, _s = residual(t)  # type: ignore[misc]
+        g = torch.einsum("ij,kji->k", p, off)
+        if float(g.abs().max()) < 1e-12 * float(p.diagonal().max()):
+            break
+        # d tr(P V_j,off) / d t_k = -tr(P V_k P V_j,off)
+        jac = -torch.einsum("ab,kbc,cd,jda->jk", p, v, p, off)
+        step = torch.linalg.lstsq(jac, -g[:, None]).solution[:, 0]
+        for _half in range(30):
+            trial = residual(t + step)
+            if trial is not None:
+                g_new = torch.einsum("ij,kji->k", trial[0], off)
+                if float(g_new.norm()) < float(g.norm()):
+                    break
+            step = step / 2
+        else:
+            break
+        t = t + step
+    return s0 + torch.einsum("k,kij->ij", t, v)
+
+
+def transport_map(cov: Tensor, target: Tensor) -> Tensor:
+    """Symmetric ``A`` with ``A cov A^T = target``, closest to the identity.
+
+    The optimal-transport (Monge) map between two centred Gaussians:
+    ``A = S^-1/2 (S^1/2 T S^1/2)^1/2 S^-1/2``; every particle moves as little as
+    possible (in mean square) for the covariance to become ``target``.
+    """
+
+    def sqrt_psd(m: Tensor) -> tuple[Tensor, Tensor]:
+        w, q = torch.linalg.eigh(0.5 * (m + m.T))
+        w = w.clamp_min(0)
+        return q @ torch.diag(w.sqrt()) @ q.T, q @ torch.diag(w.rsqrt()) @ q.T
+
+    # whitened by the diagonal first: Bmad coordinates differ by orders of magnitude
+    d = cov.diagonal().sqrt()
+    s = cov / (d[:, None] * d[None, :])
+    t = target / (d[:, None] * d[None, :])
+    root, inv_root = sqrt_psd(s)
+    middle, _ = sqrt_psd(root @ t @ root)
+    a = inv_root @ middle @ inv_root
+    return a * (d[:, None] / d[None, :])
+
+
+def place_members(
+    snapshots: Sequence[dict],
+    dims: int,
+    width: int,
+    depth: int,
+    maps: Sequence[Tensor],
+    *,
+    n_particles: int = 65536,
+    seed: int = 0,
+) -> list[dict]:
+    """Each member's generator moved along the unseen directions (see the module).
+
+    Args:
+        snapshots: Generator state dicts (``BeamGenerator``) of the members.
+        dims: Generated coordinates (only 6 has longitudinal ones; 4 returns
+            the snapshots unchanged).
+        width: MLP width of the generators.
+        depth: MLP depth of the generators.
+        maps: Each scan's affine maps of its training settings ``(K_s, 7, 7)``.
+        n_particles: Quasi-random particles per member for its covariance.
+        seed: Seed of those samples.
+
+    Returns:
+        New state dicts (the inputs are not changed): with ``A`` the transport
+        map and ``mu`` the member's centroid, particles become
+        ``mu + A (x - mu)``, written into the offset, the mixing matrix and
+        the last linear layer of the generator.
+    """
+    if dims != 6:
+        return [dict(s) for s in snapshots]
+    out = []
+    for state in snapshots:
+        gen = BeamGenerator(dims, width=width, depth=depth, scale=torch.ones(dims))
+        gen.load_state_dict(state)
+        gen.requires_grad_(False)
+        g = torch.Generator().manual_seed(seed)
+        x = gen(n_particles, generator=g, quasi_random=True).to(torch.float64)
+        mu = x.mean(0)
+        cov = torch.cov(x.T)
+        directions = unseen_directions(maps, cov)
+        if directions.shape[0] == 0:
+            out.append(dict(state))
+            continue
+        a = transport_map(cov, place_unseen(cov, directions))
+        out.append(_fold(state, a, mu))
+    return out
+
+
+def _fold(state: dict, a: Tensor, mu: Tensor) -> dict:
+    """State dict of the generator whose particles are ``mu + A (x - mu)``.
+
+    ``x = s0 (b + e^l u)`` with ``u = mix base + W h + c``: with
+    ``D = diag(s0 e^l)`` the new ``u' = D^-1 A D u`` (mixing matrix and last
+    layer multiplied by ``M = D^-1 A D``) and ``b' = (A s0 b + (I - A) mu) / s0``.
+    """
+    new = {k: v.clone() for k, v in state.items()}
+    dtype = state["mix"].dtype
+    s0 = state["ref_scale"].to(torch.float64)
+    d = s0 * state["log_scale"].to(torch.float64).exp()
+    m = a / d[:, None] * d[None, :]
+    new["mix"] = (m @ state["mix"].to(torch.float64)).to(dtype)
+    last = max(
+        (k for k in state if k.startswith("mlp.") and k.endswith(".weight")),
+        key=lambda k: int(k.split(".")[1]),
+    )
+    bias = last[: -len("weight")] + "bias"
+    new[last] = (m @ state[last].to(torch.float64)).to(dtype)
+    new[bias] = (m @ state[bias].to(torch.float64)).to(dtype)
+    b = state["offset"].to(torch.float64)
+    eye = torch.eye(a.shape[0], dtype=torch.float64)
+    new["offset"] = ((a @ (s0 * b) + (eye - a) @ mu) / s0).to(dtype)
+    return new
