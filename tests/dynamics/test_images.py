@@ -98,12 +98,11 @@ def _direct_kde(x, y, w, shape, pixel, h):
 
 
 @pytest.mark.parametrize("axis", ["rows", "columns"])
-def test_kde_banded_equals_direct_sum_and_whole_window(monkeypatch, axis) -> None:
-    """Large windows are rendered in bands of rows (or columns) of sorted
-    particles: images equal the direct Gaussian sum, gradients equal those of the
-    whole-window product, including particles off the screen."""
-    import diffaccel.dynamics.images as images
-
+def test_kde_tiles_equal_dense_reference_on_and_off_screen(axis) -> None:
+    """On the CPU each particle's kernel along the longer window side is a tile
+    of pixels around its nearest pixel (particles sorted into one band per
+    row or column): images and gradients equal the dense Gaussian sum's,
+    including particles off the screen, with weights."""
     g = torch.Generator().manual_seed(11)
     n, pixel, h = 300, 1e-3, 1.1e-3
     wide = torch.randn(2, n, generator=g, dtype=F64) * 9e-3
@@ -113,50 +112,75 @@ def test_kde_banded_equals_direct_sum_and_whole_window(monkeypatch, axis) -> Non
         (narrow, wide, (40, 13)) if axis == "rows" else (wide, narrow, (13, 40))
     )
     w = torch.rand(2, n, generator=g, dtype=F64) + 0.5
-    bands = []
+    probe = torch.linspace(-1, 2, 2 * shape[0] * shape[1], dtype=F64)
 
-    def spy(rows, reach, count):
-        c = band_rows(rows, reach, count)
-        bands.append(c)
-        return c
-
-    band_rows = images._band_rows
-    monkeypatch.setattr(images, "_BAND_MIN_PARTICLES", 0)
-    monkeypatch.setattr(images, "_band_rows", spy)
-
-    def run(banded: bool):
-        monkeypatch.setattr(images, "_BAND_MIN_PARTICLES", 0 if banded else 10**9)
+    def run(render):
         xg, yg, wg = (t.clone().requires_grad_(True) for t in (x, y, w))
-        image = kde_image(xg, yg, shape, pixel, bandwidth=h, weights=wg)
-        (
-            image * torch.linspace(-1, 2, image.numel(), dtype=F64).view_as(image)
-        ).sum().backward()
+        image = render(xg, yg, wg)
+        (image * probe.view_as(image)).sum().backward()
         return image.detach(), xg.grad, yg.grad, wg.grad
 
-    banded = run(True)
-    assert any(c is not None for c in bands)
-    whole = run(False)
-    torch.testing.assert_close(
-        banded[0], _direct_kde(x, y, w, shape, pixel, h), rtol=1e-12, atol=1e-15
-    )
-    for a, b in zip(banded[1:], whole[1:], strict=True):
+    tiles = run(lambda a, b, c: kde_image(a, b, shape, pixel, bandwidth=h, weights=c))
+    dense = run(lambda a, b, c: _direct_kde(a, b, c, shape, pixel, h))
+    # only kernel values below exp(-9^2 / 2) = 2.6e-18 of the peak are dropped
+    torch.testing.assert_close(tiles[0], dense[0], rtol=1e-12, atol=1e-15)
+    for a, b in zip(tiles[1:], dense[1:], strict=True):
         torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
 
 
-def test_kde_banded_gradcheck(monkeypatch) -> None:
+@pytest.mark.parametrize(
+    "bandwidth_px", [0.07, 0.09, 0.3, 1.0, 2.6], ids=lambda s: f"{s}px"
+)
+@pytest.mark.parametrize("dtype", [F64, torch.float32], ids=["f64", "f32"])
+def test_kde_tile_truncation_is_bounded(bandwidth_px, dtype) -> None:
+    """Single particles at offsets across a pixel (tile radius
+    r = floor(cut s + 1/2) pixels, tiles by powers of exp(f / s^2)): every pixel
+    equals the dense Gaussian to the dtype's precision, and the pixels left out
+    hold less than exp(-cut^2 / 2) of the peak (cut 9 in float64, 6 in float32).
+    Bandwidths from below the one-pixel tile (0.07 px, r = 0; 0.09 px, r = 1,
+    where powers come closest to overflow) to wide tiles."""
     import diffaccel.dynamics.images as images
 
-    monkeypatch.setattr(images, "_BAND_MIN_PARTICLES", 0)
+    cut = images._KDE_CUT if dtype == F64 else images._KDE_CUT_FLOAT32
+    pixel, shape = 1e-3, (31, 29)
+    h = bandwidth_px * pixel
+    offsets = torch.tensor([-0.4999, -0.31, 0.0, 0.27, 0.4999], dtype=F64)
+    # one particle per image, x near column 16, y near row 14
+    x = (offsets + 2.0) * pixel
+    y = (offsets.flip(0) - 1.0) * pixel
+    image = kde_image(
+        x.to(dtype).unsqueeze(-1), y.to(dtype).unsqueeze(-1), shape, pixel, bandwidth=h
+    ).double()
+    ones = torch.ones(len(offsets), 1, dtype=F64)
+    dense = _direct_kde(x.unsqueeze(-1), y.unsqueeze(-1), ones, shape, pixel, h)
+    peak = (pixel / (math.sqrt(2 * math.pi) * h)) ** 2  # the kernel's maximum
+    assert torch.isfinite(image).all()
+    dropped = image == 0
+    assert (dense[dropped] <= math.exp(-(cut**2) / 2) * peak).all()
+    # float32: positions carry a round-off of ~2e-6 pixel (16 pixels from the
+    # screen's edge), which moves a kernel value by its log-slope |u| / s^2
+    # (u the distance in pixels) times that, plus a few ulp
+    xs, ys = pixel_centers(shape, pixel, dtype=F64)
+    dx, dy = (xs - x[:, None]) / pixel, (ys - y[:, None]) / pixel
+    slope = (dy.abs()[:, :, None] + dx.abs()[:, None, :]) / bandwidth_px**2
+    rtol = 1e-12 if dtype == F64 else 1e-6 + 4e-6 * slope
+    error = (image - dense).abs()
+    assert (error <= rtol * dense)[~dropped].all()
+
+
+def test_kde_tile_gradcheck() -> None:
     g = torch.Generator().manual_seed(12)
     x = (torch.randn(7, generator=g, dtype=F64) * 1e-3).requires_grad_(True)
     y = (torch.randn(7, generator=g, dtype=F64) * 12e-3).requires_grad_(True)
     w = (torch.rand(7, generator=g, dtype=F64) + 0.5).requires_grad_(True)
-    assert images._band_rows(40, 9, 7) is not None
 
     def f(x, y, w):
-        return kde_image(x, y, (40, 6), 1e-3, bandwidth=1e-3, weights=w)
+        tall = kde_image(x, y, (40, 6), 1e-3, bandwidth=(1e-3, 0.7e-3), weights=w)
+        wide = kde_image(y, x, (6, 40), 1e-3, bandwidth=(0.7e-3, 1e-3), weights=w)
+        return tall, wide
 
-    assert torch.autograd.gradcheck(f, (x, y, w))
+    # fast mode: random projections of the Jacobian (exact one: ~500 backwards)
+    assert torch.autograd.gradcheck(f, (x, y, w), fast_mode=True)
 
 
 @pytest.mark.parametrize("weighted", [False, True], ids=["unweighted", "weighted"])
@@ -334,12 +358,13 @@ def test_cic_huge_finite_positions_are_not_rejected() -> None:
 
 
 @pytest.mark.parametrize("weighted", [False, True], ids=["unweighted", "weighted"])
-@pytest.mark.parametrize("banded", [False, True], ids=["whole", "banded"])
-def test_kde_particle_chunks_equal_one_chunk(monkeypatch, weighted, banded) -> None:
-    """On the CPU the kernels are evaluated and used in chunks of particles
-    (cache-sized): chunks smaller than the beam and than a band (bands cut across
-    chunk boundaries, the last chunk partial) give the one-chunk images and
-    gradients, with unequal bandwidths and particles off the screen."""
+@pytest.mark.parametrize("tall", [False, True], ids=["wide", "tall"])
+def test_kde_particle_chunks_equal_one_chunk(monkeypatch, weighted, tall) -> None:
+    """On the CPU the window kernels are evaluated and used in chunks of
+    particles (cache-sized): chunks smaller than the beam and than a band (bands
+    cut across chunk boundaries, the last chunk partial) give the one-chunk
+    images and gradients, with unequal bandwidths and particles off the screen,
+    tiles along rows (tall beam) or columns (wide beam)."""
     import diffaccel.dynamics.images as images
 
     g = torch.Generator().manual_seed(15)
@@ -347,8 +372,9 @@ def test_kde_particle_chunks_equal_one_chunk(monkeypatch, weighted, banded) -> N
     x = torch.randn(2, n, generator=g, dtype=F64) * 1.5e-3
     y = torch.randn(2, n, generator=g, dtype=F64) * 9e-3
     y[:, :3] = torch.tensor([-0.023, 0.024, 0.05], dtype=F64)  # beyond the edges
+    if not tall:
+        x, y, shape = y, x, shape[::-1]
     w = torch.rand(2, n, generator=g, dtype=F64) + 0.5 if weighted else None
-    monkeypatch.setattr(images, "_BAND_MIN_PARTICLES", 0 if banded else 10**9)
     weight = torch.linspace(-1, 2, 2 * shape[0] * shape[1], dtype=F64)
     sizes = []
 
@@ -366,11 +392,14 @@ def test_kde_particle_chunks_equal_one_chunk(monkeypatch, weighted, banded) -> N
 
     def spy(count, rows):
         sizes.append(chunk_particles(count, rows))
+        counts.append(count)
         return sizes[-1]
 
+    counts = []
     monkeypatch.setattr(images, "_chunk_particles", spy)
     one = run(2**40, 1)
-    assert all(s == n for s in sizes)
+    # one chunk: every particle whose tile reaches the screen (3 are beyond it)
+    assert sizes == counts and all(n - 3 <= s <= n for s in sizes)
     sizes.clear()
     chunked = run(1, 97)  # 97 particles per chunk: 8 chunks, the last partial
     assert sizes and all(s == 97 for s in sizes)
@@ -381,7 +410,6 @@ def test_kde_particle_chunks_equal_one_chunk(monkeypatch, weighted, banded) -> N
 def test_kde_particle_chunks_gradcheck(monkeypatch) -> None:
     import diffaccel.dynamics.images as images
 
-    monkeypatch.setattr(images, "_BAND_MIN_PARTICLES", 0)
     monkeypatch.setattr(images, "_CHUNK_ELEMENTS", 1)
     monkeypatch.setattr(images, "_CHUNK_MIN_PARTICLES", 3)
     g = torch.Generator().manual_seed(16)
@@ -392,4 +420,4 @@ def test_kde_particle_chunks_gradcheck(monkeypatch) -> None:
     def f(x, y, w):
         return kde_image(x, y, (40, 6), 1e-3, bandwidth=1e-3, weights=w)
 
-    assert torch.autograd.gradcheck(f, (x, y, w))
+    assert torch.autograd.gradcheck(f, (x, y, w), fast_mode=True)
