@@ -38,7 +38,8 @@ with a relative std >= 20 %); and the share of the reconstruction time that
 the uncertainty analysis takes; ``per_class``: the same coverage and median
 for each class of data (GPSR 4D, quad-only by dims and noise level, own AWA-6D
 beams, other 6D beams, the shared 6D file), ``met.each_class``: every class
-at >= 85 % within 2 std and a median relative std <= 5 %.
+at >= 85 % of its constrained quantities within 2 std and a median relative
+std <= 5 %.
 
 Usage: ``python benchmarks/calibration.py [--quick] [--sixd] [--seeds 0 1 2]
 [--awa6d 3] [--beams6d correlated] [--quad-6d gaussian] [--out calibration.json]``
@@ -189,8 +190,8 @@ def main() -> None:
     ap.add_argument(
         "--beams6d",
         nargs="*",
-        default=["correlated", "nonlinear_ypy", "gaussian_coupled"],
-        help="other 6D beams of benchmarks/reconstruction_6d_beams.py",
+        default=list(BEAM_SEEDS),
+        help="other 6D beams of benchmarks/reconstruction_6d_beams.py (default all)",
     )
     ap.add_argument(
         "--mismatch",
@@ -211,6 +212,7 @@ def main() -> None:
     presets = ["gaussian", "nonlinear"] if args.quick else args.presets
     seeds = args.seeds[:1] if args.quick else args.seeds
     datasets: dict[str, dict] = {}
+    load_start = os.getloadavg()[0]
     t_all = time.perf_counter()
     if not args.no_gpsr4d:
         ds = read_quad_scan(DATA / "gpsr_4d_synthetic.h5")
@@ -286,10 +288,11 @@ def main() -> None:
         classes.setdefault(dataset_class(k, d), []).extend(d["quantities"].values())
     per_class = {c: summarise(rows) for c, rows in classes.items()}
     for c in per_class.values():
-        c["met"] = (
-            c["coverage_2sigma"] >= 0.85
-            and (c["median_rel_std_constrained"] or 1) <= 0.05
-        )
+        # over the constrained quantities: the unconstrained z, pz of quad-only
+        # --dims 6 are judged by the z/pz criterion (prior-limited, >= 20 %)
+        c["met"] = (c["coverage_2sigma_constrained"] or 0) >= 0.85 and (
+            c["median_rel_std_constrained"] or 1
+        ) <= 0.05
     six = {
         k: d["median_rel_std_constrained"]
         for k, d in datasets.items()
@@ -337,6 +340,8 @@ def main() -> None:
         ),
         "datasets": datasets,
         "wall_s": time.perf_counter() - t_all,
+        "load_avg_1min_at_start": load_start,
+        "load_avg_1min_at_end": os.getloadavg()[0],
         "torch": torch.__version__,
         "threads": torch.get_num_threads(),
         "machine": platform.machine(),
