@@ -51,6 +51,7 @@ import argparse
 import json
 import os
 import platform
+import re
 import statistics
 import sys
 import time
@@ -127,7 +128,7 @@ def summarise(rows: list[dict]) -> dict:
 def dataset_class(key: str, entry: dict) -> str:
     """Class of a dataset for the per-class summary (noise levels apart)."""
     if key.startswith("quad-"):
-        noise = key.split("-n")[1].split("-")[0]
+        noise = re.search(r"-n([0-9.]+)-s", key).group(1)
         return f"quad-only dims {entry['dims']}, noise {noise}"
     if key.startswith("awa6d"):
         return "own AWA-6D beams"

@@ -23,7 +23,11 @@ is calibrated on the data rather than assumed. The part of the residuals that a
 change of the beam *does* explain is the reconstruction's own bias (a training
 that leaves every size 2 % large shows up as image moments 4 % above the
 measured ones at every setting): the least-squares shift of ``theta`` that the
-residuals ask for is added as a bias variance ``shift shift^T``.
+residuals ask for is added as a bias variance ``shift shift^T``. Image moments
+are beam moments plus the variance of the point spread the image was formed
+with; where the forward model's spread exceeds the data's (``psf_excess``, e.g.
+cloud-in-cell 1/6 pixel^2 against histograms, 1/12) the excess is removed from
+the predicted moments first, so it is not mistaken for a change of the beam.
 
 Moment uncertainties (rms sizes, emittances, Twiss...) come from draws of
 ``(mu, Sigma)`` of this posterior, each moment computed from its own sub-block
