@@ -120,19 +120,19 @@ def test_program_keeps_output_and_exit_status_when_it_ends_at_once() -> None:
     import os
 
     env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
-    ok = subprocess.run(  # stdout a pipe (block-buffered)
-        [sys.executable, "-m", "diffaccel", "--version"],
-        capture_output=True,
-        text=True,
-        env=env,
-    )
+
+    def program(*args: str) -> subprocess.CompletedProcess:
+        # stdout a pipe (block-buffered)
+        return subprocess.run(
+            [sys.executable, "-m", "diffaccel", *args],
+            capture_output=True,
+            text=True,
+            env=env,
+        )
+
+    ok = program("--version")
     assert ok.returncode == 0
     assert "diffaccel" in ok.stdout
-    bad = subprocess.run(
-        [sys.executable, "-m", "diffaccel", "no-such-command"],
-        capture_output=True,
-        text=True,
-        env=env,
-    )
+    bad = program("no-such-command")
     assert bad.returncode == 2
     assert "no-such-command" in bad.stderr

@@ -17,20 +17,6 @@ from diffaccel.hysteresis.states import (
 F64 = torch.float64
 
 
-def relay_loop(u, alpha, beta, s0):
-    """Hysteron-by-hysteron, step-by-step exact relays in float64 Python."""
-    out = torch.empty(len(u), len(alpha), dtype=F64)
-    for i, (a, b) in enumerate(zip(alpha.tolist(), beta.tolist(), strict=True)):
-        s = float(s0[i])
-        for t, ut in enumerate(u.tolist()):
-            if ut >= a:
-                s = 1.0
-            elif ut <= b:
-                s = -1.0
-            out[t, i] = s
-    return out
-
-
 def _random_points(m: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     a = torch.rand(m, generator=gen, dtype=F64)
     b = torch.rand(m, generator=gen, dtype=F64)
@@ -58,14 +44,14 @@ INITIAL = {
 
 @pytest.mark.parametrize("init", INITIAL, ids=list(INITIAL))
 @pytest.mark.parametrize("mesh", MESHES, ids=list(MESHES))
-def test_vectorised_equals_relay_loop(mesh: str, init: str) -> None:
+def test_vectorised_equals_relay_loop(mesh: str, init: str, relay_loop) -> None:
     gen = torch.Generator().manual_seed(1)
     alpha, beta = MESHES[mesh](gen)
     s0 = INITIAL[init](alpha, beta, gen)
     # random inputs plus exact threshold values (ties: u == alpha switches up)
     u = torch.cat([torch.rand(50, generator=gen, dtype=F64), alpha[:5], beta[:5]])
     u = u[torch.randperm(u.numel(), generator=gen)]
-    ref = relay_loop(u, alpha, beta, s0)
+    ref = torch.from_numpy(relay_loop(u, alpha, beta, s0))
     states = exact_states(u, alpha, beta, s0)
     assert torch.equal(states, ref)  # relays are exact: no tolerance
     w = torch.rand(alpha.shape, generator=gen, dtype=F64)
@@ -74,7 +60,7 @@ def test_vectorised_equals_relay_loop(mesh: str, init: str) -> None:
     torch.testing.assert_close(m, ref @ w, rtol=0, atol=1e-12)
 
 
-def test_batched_equals_loop_over_batch() -> None:
+def test_batched_equals_loop_over_batch(relay_loop) -> None:
     gen = torch.Generator().manual_seed(2)
     mesh = PreisachMesh.triangular(6)
     layout = RowLayout(mesh.alpha, mesh.beta)
@@ -86,7 +72,7 @@ def test_batched_equals_loop_over_batch() -> None:
     assert m.shape == (2, 3, 30) and s.shape == (2, 3, 30, len(mesh))
     for i in range(2):
         for j in range(3):
-            ref = relay_loop(u[i, j], mesh.alpha, mesh.beta, s0[i, j])
+            ref = torch.from_numpy(relay_loop(u[i, j], mesh.alpha, mesh.beta, s0[i, j]))
             assert torch.equal(s[i, j], ref)
             torch.testing.assert_close(m[i, j], ref @ w, rtol=0, atol=1e-12)
 

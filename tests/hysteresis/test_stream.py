@@ -32,20 +32,6 @@ from diffaccel.hysteresis.stream import (
 F64 = torch.float64
 
 
-def relay_loop(u, alpha, beta, s0):
-    """Hysteron-by-hysteron, step-by-step exact relays in float64 Python."""
-    out = np.empty((len(u), len(alpha)))
-    for i, (a, b) in enumerate(zip(alpha.tolist(), beta.tolist(), strict=True)):
-        s = float(s0[i])
-        for t, ut in enumerate(u.tolist()):
-            if ut >= a:
-                s = 1.0
-            elif ut <= b:
-                s = -1.0
-            out[t, i] = s
-    return out
-
-
 def _random_points(m: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     a, b = rng.random(m), rng.random(m)
     alpha, beta = np.maximum(a, b), np.minimum(a, b)
@@ -78,7 +64,9 @@ INITIAL = {
 @pytest.mark.parametrize("chunk", [1, 13, 200], ids=["1", "13", "200"])
 @pytest.mark.parametrize("init", INITIAL, ids=list(INITIAL))
 @pytest.mark.parametrize("mesh", MESHES, ids=list(MESHES))
-def test_stream_tables_equal_relay_loop(mesh: str, init: str, chunk: int) -> None:
+def test_stream_tables_equal_relay_loop(
+    mesh: str, init: str, chunk: int, relay_loop
+) -> None:
     rng = np.random.default_rng(4)
     alpha, beta = MESHES[mesh](rng)
     s0 = INITIAL[init](alpha, beta, rng)
