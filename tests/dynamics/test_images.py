@@ -183,6 +183,17 @@ def test_kde_tile_gradcheck() -> None:
     assert torch.autograd.gradcheck(f, (x, y, w), fast_mode=True)
 
 
+def _kde_and_grads(x, y, shape, pixel, h, w, weight) -> tuple:
+    """KDE image of ``(x, y)`` (weights ``w``) and the gradients of
+    ``sum(image * weight)`` with respect to x, y (and w)."""
+    xg, yg = x.clone().requires_grad_(True), y.clone().requires_grad_(True)
+    wg = None if w is None else w.clone().requires_grad_(True)
+    image = kde_image(xg, yg, shape, pixel, bandwidth=h, weights=wg)
+    (image * weight.view_as(image)).sum().backward()
+    grads = (xg.grad, yg.grad) + (() if wg is None else (wg.grad,))
+    return (image.detach(), *grads)
+
+
 @pytest.mark.parametrize("weighted", [False, True], ids=["unweighted", "weighted"])
 def test_kde_full_screen_path_equals_windowed_path(monkeypatch, weighted) -> None:
     """The fixed-shape path (all images at once, no host sync; used off the CPU)
@@ -201,12 +212,7 @@ def test_kde_full_screen_path_equals_windowed_path(monkeypatch, weighted) -> Non
 
     def run(full: bool):
         monkeypatch.setattr(images, "_full_screen_path", lambda t: full)
-        xg, yg = x.clone().requires_grad_(True), y.clone().requires_grad_(True)
-        wg = None if w is None else w.clone().requires_grad_(True)
-        image = kde_image(xg, yg, shape, pixel, bandwidth=h, weights=wg)
-        (image * weight.view_as(image)).sum().backward()
-        grads = (xg.grad, yg.grad) + (() if wg is None else (wg.grad,))
-        return (image.detach(), *grads)
+        return _kde_and_grads(x, y, shape, pixel, h, w, weight)
 
     full, windowed = run(True), run(False)
     # windowed drops kernel values beyond 9 bandwidths (< 3e-18 of the peak)
@@ -381,12 +387,7 @@ def test_kde_particle_chunks_equal_one_chunk(monkeypatch, weighted, tall) -> Non
     def run(chunk_elements: int, min_particles: int):
         monkeypatch.setattr(images, "_CHUNK_ELEMENTS", chunk_elements)
         monkeypatch.setattr(images, "_CHUNK_MIN_PARTICLES", min_particles)
-        xg, yg = x.clone().requires_grad_(True), y.clone().requires_grad_(True)
-        wg = None if w is None else w.clone().requires_grad_(True)
-        image = kde_image(xg, yg, shape, pixel, bandwidth=h, weights=wg)
-        (image * weight.view_as(image)).sum().backward()
-        grads = (xg.grad, yg.grad) + (() if wg is None else (wg.grad,))
-        return (image.detach(), *grads)
+        return _kde_and_grads(x, y, shape, pixel, h, w, weight)
 
     chunk_particles = images._chunk_particles
 
