@@ -37,7 +37,7 @@ def test_image_comparison_and_curves(scan_and_result, tmp_path) -> None:
     fig = plot_image_comparison(
         ds.mean_images(), pred, ds.settings, held_out=[False, True, False, True]
     )
-    assert len([a for a in fig.axes if a.images]) == 3 * 4
+    assert sum(len(a.images) for a in fig.axes) == 3 * 4  # one image per panel
     for f in (fig, plot_training_curves(r), plot_rms_evolution(r, ds.ground_truth)):
         f.savefig(tmp_path / "x.png")
     with pytest.raises(ValueError, match="differ"):
@@ -51,9 +51,27 @@ def test_image_comparison_shows_the_predicted_spread(scan_and_result, tmp_path) 
         ds.settings, n_particles=1000, return_std=True, n_draws=2
     )
     fig = plot_image_comparison(ds.mean_images(), pred, ds.settings, predicted_std=std)
-    assert len([a for a in fig.axes if a.images]) == 4 * 4  # a fourth row
+    assert sum(len(a.images) for a in fig.axes) == 4 * 4  # a fourth row
     fig.savefig(tmp_path / "x.png")
     with pytest.raises(ValueError, match="predicted_std"):
         plot_image_comparison(
             ds.mean_images(), pred, ds.settings, predicted_std=std[:2]
         )
+
+
+def test_image_comparison_panels_keep_their_scales_and_blocks(tmp_path) -> None:
+    g = torch.Generator().manual_seed(0)
+    meas = torch.rand(4, 6, 8, generator=g) * torch.arange(1.0, 5.0)[:, None, None]
+    pred = meas.flip(-1)
+    fig = plot_image_comparison(
+        meas, pred, torch.arange(4.0)[:, None], held_out=[0, 1, 0, 0], max_columns=3
+    )
+    ims = [im for a in fig.axes for im in a.images]
+    assert len(ims) == 3 * 4  # two blocks of 3 columns, 4 settings
+    # measured and predicted panels of a setting share its own colour scale
+    vmax = [max(float(meas[i].max()), float(pred[i].max())) for i in range(4)]
+    tops = sorted({im.get_clim() for im in ims if im.get_cmap().name == "viridis"})
+    assert tops == sorted((0.0, v) for v in vmax)
+    titles = {t.get_text(): t.get_color() for a in fig.axes for t in a.texts}
+    assert titles["1 (test)"] == "C3" and titles["2"] == "k"
+    fig.savefig(tmp_path / "x.png")

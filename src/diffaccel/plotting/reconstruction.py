@@ -7,6 +7,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 from matplotlib.axes import Axes
+from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
 from matplotlib.ticker import LogFormatter
 from torch import Tensor
@@ -192,12 +193,18 @@ def plot_image_comparison(
     (``Reconstruction.predict_images(..., return_std=True)``) on the scale of
     the difference row, so a difference inside the spread looks no darker.
 
+    Every panel is an image with its own colour scale and a frame, all in one
+    set of axes without ticks: a set of axes per panel (their tick machinery)
+    cost more than half of this figure's time in a default ``reconstruct``
+    (issue 12 counts the whole command).
+
     Args:
         measured: Sum-normalised measured images ``(K, H, W)``.
         predicted: Sum-normalised predicted images ``(K, H, W)``.
         settings: Settings ``(K, P)``; their values label each panel.
         setting_name: Label of the columns (e.g. ``"Q1.k1"``).
-        extent: ``(x_min, x_max, y_min, y_max)`` of the screen [mm].
+        extent: ``(x_min, x_max, y_min, y_max)`` of the screen [mm]
+            (kept for callers; the panels have no axes to label).
         held_out: Per setting, True if it was not used for training.
         max_columns: Settings per block.
         title: Prefix of the figure title (e.g. the scan name).
@@ -221,45 +228,68 @@ def plot_image_comparison(
     ]
     cols = min(k, max_columns)
     blocks = -(-k // cols)
-    fig = Figure(figsize=(1.45 * cols + 0.8, 1.47 * nrow * blocks))
-    axes = fig.subplots(nrow * blocks, cols, squeeze=False)
+    rows = nrow * blocks
+    fig = Figure(figsize=(1.45 * cols + 0.8, 1.47 * rows))
+    _fixed_margins(fig, 0.35, 0.05, 0.05, 0.5)
+    ax = fig.add_subplot()
+    ax.set_axis_off()
+    # panel (row r, column c) spans [c (1 + gx), c (1 + gx) + 1] in x and
+    # [-r (1 + gy) - 1, -r (1 + gy)] in y (data units = panels; the gaps of
+    # the former grid of axes)
+    gx, gy = 0.06, 0.22
+    ax.set_xlim(0, cols + (cols - 1) * gx)
+    ax.set_ylim(-(rows + (rows - 1) * gy), 0)
     dmax = float(np.abs(p - m).max()) or 1.0
-    for idx in range(blocks * cols):
+    labels = ("measured", "predicted", "pred - meas", "pred spread")
+    frames = []
+    for idx in range(k):
         b, c = divmod(idx, cols)
-        column = [axes[nrow * b + i, c] for i in range(nrow)]
-        top, mid, bot = column[:3]
-        for ax in column:
-            ax.set_xticks([])
-            ax.set_yticks([])
-        if idx >= k:
-            for ax in column:
-                ax.set_axis_off()
-            continue
+        x0 = c * (1 + gx)
         vmax = max(float(m[idx].max()), float(p[idx].max()))
-        kw = {"origin": "lower", "extent": extent, "aspect": "auto"}
-        top.imshow(m[idx], cmap="viridis", vmin=0, vmax=vmax, **kw)
-        mid.imshow(p[idx], cmap="viridis", vmin=0, vmax=vmax, **kw)
-        bot.imshow(p[idx] - m[idx], cmap="RdBu_r", vmin=-dmax, vmax=dmax, **kw)
+        panels = [
+            (m[idx], "viridis", 0.0, vmax),
+            (p[idx], "viridis", 0.0, vmax),
+            (p[idx] - m[idx], "RdBu_r", -dmax, dmax),
+        ]
         if sd is not None:
-            column[3].imshow(sd[idx], cmap="Reds", vmin=0, vmax=dmax, **kw)
+            panels.append((sd[idx], "Reds", 0.0, dmax))
+        for i, (img, cmap, lo, hi) in enumerate(panels):
+            top = -(nrow * b + i) * (1 + gy)
+            ax.imshow(
+                img,
+                cmap=cmap,
+                vmin=lo,
+                vmax=hi,
+                origin="lower",
+                extent=(x0, x0 + 1, top - 1, top),
+                aspect="auto",
+            )
+            frames.append([(x0, top - 1), (x0 + 1, top - 1), (x0 + 1, top), (x0, top)])
+            if c == 0:
+                ax.text(
+                    -0.04, top - 0.5, labels[i], rotation=90, ha="right", va="center"
+                )
         ho = held_out is not None and bool(held_out[idx])
-        top.set_title(
+        ax.text(
+            x0 + 0.5,
+            -nrow * b * (1 + gy) + 0.05,
             s[idx] + (" (test)" if ho else ""),
             fontsize=8,
             color="C3" if ho else "k",
+            ha="center",
+            va="bottom",
         )
-        if c == 0:
-            top.set_ylabel("measured")
-            mid.set_ylabel("predicted")
-            bot.set_ylabel("pred - meas")
-            if sd is not None:
-                column[3].set_ylabel("pred spread")
+    ax.add_collection(
+        PolyCollection(
+            frames, facecolors="none", edgecolors="k", linewidths=0.8, clip_on=False
+        ),
+        autolim=False,
+    )
     fig.suptitle(
         (f"{literal(title)}: " if title else "")
         + f"Screen images per setting {literal(setting_name)} (colour scale per "
         f"column; difference scale +-{dmax:.2g})"
     )
-    _fixed_margins(fig, 0.35, 0.05, 0.05, 0.5, wspace=0.06, hspace=0.22)
     return fig
 
 
