@@ -112,3 +112,24 @@ def test_sampling_without_gradients_in_blocks_gives_the_same_particles(
     # a block's products differently from the whole matrix's, never by more
     torch.testing.assert_close(blocks, whole, rtol=1e-6, atol=0.0)
     assert not torch.equal(blocks[:500], blocks[500:])  # every row its own particle
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_tanh_layer_is_tanh(dtype: torch.dtype) -> None:
+    from diffaccel.reconstruction.generator import tanh_layer
+
+    g = torch.Generator().manual_seed(0)
+    h = 3 * torch.randn(4000, 6, generator=g, dtype=dtype)  # tanh saturated too
+    w = torch.randn(6, 16, generator=g, dtype=dtype).requires_grad_()
+    b = torch.randn(16, generator=g, dtype=dtype)
+    ours = tanh_layer(h, w, b)
+    ref = torch.tanh(torch.addmm(b, h, w))
+    # float64: the identity 2 sigmoid(2z) - 1 = tanh z to rounding; float32:
+    # the product's own rounding (|z| up to ~30, ~2e-6) plus ~1e-7 of sigmoid
+    tol = 1e-14 if dtype == torch.float64 else 5e-6
+    assert (ours - ref).abs().max() < tol
+    (gw,) = torch.autograd.grad(ours.sum(), w)
+    (gw_ref,) = torch.autograd.grad(ref.sum(), w)
+    assert (gw - gw_ref).abs().max() < tol * 100 * gw_ref.abs().max()
+    with torch.no_grad():  # in place on its own buffer: the same values
+        assert torch.equal(tanh_layer(h, w, b), ours.detach())

@@ -111,7 +111,11 @@ class BeamGenerator(nn.Module):
 
     def transform(self, base: Tensor) -> Tensor:
         """Map base samples ``(n, dims)`` to particles ``(n, 6)`` [Bmad units]."""
-        u = torch.addmm(self.mlp(base), base, self.mix.T)
+        h = base
+        layers = [m for m in self.mlp if isinstance(m, nn.Linear)]
+        for lin in layers[:-1]:
+            h = _hidden_layer(h, lin.weight.T, lin.bias, self.dims)
+        u = torch.addmm(lin_out(h, layers[-1]), base, self.mix.T)
         # s0 * (b + exp(a) * u) with the (dims,) factors formed first: one
         # fused multiply-add over the particles
         x = torch.addcmul(
@@ -237,6 +241,55 @@ def standard_normal_samples(
     return shifted_sobol_normals(points, generator).to(dtype=dtype, device=device)
 
 
+def tanh_layer(h: Tensor, weight_t: Tensor, bias: Tensor) -> Tensor:
+    """``tanh(h @ weight_t + bias)``, computed as ``2 sigmoid(2 z) - 1``.
+
+    torch's CPU ``tanh`` (SLEEF, AVX2) costs ~3x its ``sigmoid``: ~5.5 vs
+    ~1.7 ns per element here, a quarter of a default 4D training step (issue
+    12). The factor 2 rides on the matrix product (``alpha``, ``beta``), the
+    ``2 s - 1`` is one kernel; the result is tanh to ~1e-7 absolute in
+    float32 (a few rounding steps of ``s`` in [0, 1]). Training
+    (:class:`_GeneratorFn`) and sampling (:meth:`BeamGenerator.transform`)
+    both use it (4D, see :func:`_hidden_layer`), so that a trained generator
+    samples what it was trained on.
+
+    Shapes:
+        ``h (n, i)``, ``weight_t (i, o)``, ``bias (o,)`` or ``(n, o)`` ->
+        ``(n, o)``.
+    """
+    s = torch.addmm(bias, h, weight_t, beta=2, alpha=2).sigmoid_()
+    minus_one = _MINUS_ONE.get((s.dtype, s.device))
+    if minus_one is None:
+        minus_one = torch.tensor(-1.0, dtype=s.dtype, device=s.device)
+        _MINUS_ONE[(s.dtype, s.device)] = minus_one
+    # out=s only where autograd does not need s (sigmoid's backward does)
+    return torch.add(minus_one, s, alpha=2, out=None if s.requires_grad else s)
+
+
+#: -1 per dtype and device: ``2 s - 1`` as ``torch.add(-1, s, alpha=2)``
+_MINUS_ONE: dict[tuple[torch.dtype, torch.device], Tensor] = {}
+
+
+def _hidden_layer(h: Tensor, weight_t: Tensor, bias: Tensor, dims: int) -> Tensor:
+    """A hidden layer of the MLP: :func:`tanh_layer` for ``dims = 4``.
+
+    6D keeps torch's ``tanh``: its defaults and acceptance runs (slow tests,
+    ``benchmarks/reconstruction_6d*.py``) were validated with it, and a
+    rounding-level change takes a different (equally good) training path that
+    they would have to re-establish. 4D was checked with :func:`tanh_layer`
+    on seeds 0-7 of the GPSR 4D benchmark (same accuracy, issue 12).
+    """
+    if dims == 4:
+        return tanh_layer(h, weight_t, bias)
+    z = torch.addmm(bias, h, weight_t)
+    return z.tanh_() if not z.requires_grad else z.tanh()
+
+
+def lin_out(h: Tensor, lin: nn.Linear) -> Tensor:
+    """The MLP's last (linear) layer: ``h @ W.T + b``."""
+    return torch.addmm(lin.bias, h, lin.weight.T)
+
+
 class FlatGenerator:
     """Training view of a :class:`BeamGenerator`: one flat parameter vector.
 
@@ -293,14 +346,12 @@ class FlatGenerator:
         self.points = None
         if quasi_random:
             pts = sobol_integers(n, model.dims, device=p.device)
-            pts = pts[index * self.n : (index + 1) * self.n]
-            # 2 k + 1: then (2 k + 1) xor (2 shift) = 2 (k xor shift) + 1, and one
-            # multiplication by 2**-(SOBOL_BITS + 1) gives the cell centre
-            self.points = (2 * pts + 1).contiguous()
+            self.points = pts[index * self.n : (index + 1) * self.n].contiguous()
             self._cells = torch.empty(
                 self.n, model.dims, dtype=p.dtype, device=p.device
             )
-            self._cell = torch.tensor(
+            # half a cell: (k xor shift) 2**-SOBOL_BITS + this is the cell centre
+            self._half_cell = torch.tensor(
                 2.0 ** -(SOBOL_BITS + 1), dtype=p.dtype, device=p.device
             )
         # per-step views made once (each view is an ATen op; issue 12 counts
@@ -337,8 +388,9 @@ class FlatGenerator:
             generator=generator,
             device=self.points.device,
         )
-        cells = torch.bitwise_xor(self.points, shift.mul_(2))
-        u = self._cells.copy_(cells).mul_(self._cell)
+        cells = self._cells.copy_(torch.bitwise_xor(self.points, shift))
+        # (k xor shift + 1/2) 2**-SOBOL_BITS: the cell centres, exact in float32
+        u = torch.add(self._half_cell, cells, alpha=2.0**-SOBOL_BITS, out=cells)
         return torch.special.ndtri(u)
 
     def sample(self, generator: torch.Generator | None) -> Tensor:
@@ -363,7 +415,7 @@ class _GeneratorFn(torch.autograd.Function):
         hidden = [base]
         h = base
         for i in range(len(wts) - 1):
-            h = torch.addmm(biases[i], h, wts[i]).tanh_()
+            h = _hidden_layer(h, wts[i], biases[i], m.dims)
             hidden.append(h)
         u = torch.addmm(biases[-1], h, wts[-1]).addmm_(base, net._mix_t)
         factor = m.ref_scale * m.log_scale.exp()
