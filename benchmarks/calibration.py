@@ -17,8 +17,8 @@ Datasets:
   here with ``make_synthetic_awa6d`` (``--awa6d N`` cases, default 2; seeds
   400+ differ from the 310-313 the analysis was developed on);
 - ``beams6d-<beam>``: the other beams of ``benchmarks/reconstruction_6d_beams.py``
-  (correlated, nonlinear_ypy, gaussian_coupled; ``--beams6d``), the cases
-  whose pz and z emittance the 6D training leaves 11-39 % off;
+  (every beam of its ``BEAM_SEEDS`` by default, or those named by
+  ``--beams6d``: presets, the shared file's family, other kinds);
 - ``quad-<preset>-n<noise>-s<seed>``: quad-only scans simulated here (presets
   gaussian/correlated/nonlinear, Poisson noise at the peak pixel, seeds; KDE
   images of one-pixel bandwidth, recorded in the data as

@@ -24,8 +24,16 @@ held-out images on the odd ones):
   chirp with curvature, x-z tilt, correlated in all six dimensions), our own
   construction (:data:`FAMILY`, :func:`family_beam`): ``chirp_curved``
   (z-pz 0.79), ``chirp_negative`` (-0.61, transverse curvature) and
-  ``chirp_weak_tilted`` (0.23, strong curvature, y-pz term). Their fails are
-  also listed apart (``fails_family`` vs ``fails_presets``).
+  ``chirp_weak_tilted`` (0.23, strong curvature, y-pz term), and two random
+  draws of its parameters and sizes (``family_draw_a``: z-pz 0.57, y-pz term;
+  ``family_draw_b``: z-pz -0.95, x-z -0.48, px-pz 0.27), see :data:`FAMILY`;
+- beams of other kinds (:data:`OTHER_KINDS`): ``double_horn`` (double-horn
+  current profile of a compressed bunch) and ``wide`` (2x the shared file's rms
+  x, 1.6x its rms y, a third of its energy spread).
+
+Their fails are listed apart (``fails_family``, ``fails_other_kinds``,
+``fails_presets``); a run fails where any seed exceeds a limit, the held-out
+relative L1 (limit 0.15 per scan) included (``held_out_l1_<scan>``).
 
 The synthetic beams have 200 000 particles (truth and images). Prints one JSON
 object (benchmarks/_meta.py). Times are in-process training times; under load
@@ -45,7 +53,7 @@ from pathlib import Path
 
 import torch
 from _meta import emit, git_commit
-from _sixd import KEYS, LIMITS, TRAIN
+from _sixd import HELD_OUT_L1, KEYS, LIMITS, TRAIN
 
 from diffaccel.data import make_synthetic_awa6d, read_scans
 from diffaccel.data.synthetic import AWA6D_BEAM_SCALE, sample_preset_beam
@@ -66,6 +74,12 @@ BEAM_SEEDS = {
     "chirp_curved": 5,
     "chirp_negative": 6,
     "chirp_weak_tilted": 7,
+    # the generalisation audit's beams (issue 9, session "stop 11"): two
+    # family draws (FAMILY) and two of other kinds (OTHER_KINDS)
+    "family_draw_a": 11,
+    "family_draw_b": 12,
+    "double_horn": 13,
+    "wide": 14,
 }
 #: Beams of the shared file's family as its README describes it (non-Gaussian,
 #: energy chirp with curvature, x-z tilt, correlated in all six dimensions), our
@@ -104,13 +118,88 @@ FAMILY = {
         kappa=-200.0,
         ypz=0.5,
     ),
+    # Two further members for the generalisation audit, NOT chosen by hand:
+    # draws of numpy.random.default_rng(20261123), uniform in ranges plausible
+    # for AWA at 43 MeV (rounded to 3 digits; per draw in this order): sign of
+    # h, |h| 0.5-4 1/m, sign of c, |c| 300-3000 1/m^2, spread 0.3-2e-3, sign of
+    # tilt, |tilt| 0.1-0.7, xpx, ypy -0.95..0.95, kappa -400..400 1/m, ypz
+    # -0.5..0.5 1/m, sizes (rms before the correlations) sx 0.35-0.7 mm, spx
+    # 0.18-0.35 mrad, sy, spy likewise, sz 0.5-0.9 mm (the three beams above:
+    # 0.5 mm, 0.26 mrad, 0.8 mm). Kept: the first two draws with at least
+    # 99.8 % of the beam on both screens at every setting (the shared file's
+    # truth: 99.9 %): draws 2 and 3; draw 1 lost 0.27 % at k1 = -12, 4 MV (an
+    # earlier sz range up to 1.2 mm lost 0.3-0.8 % on most draws: the TDC
+    # streak overfills the 96-pixel screens).
+    "family_draw_a": dict(
+        h=2.14,
+        c=507.0,
+        spread=1.86e-3,
+        tilt=0.18,
+        xpx=-0.788,
+        ypy=-0.187,
+        kappa=135.0,
+        ypz=0.473,
+        sx=6.71e-4,
+        spx=1.98e-4,
+        sy=6.98e-4,
+        spy=2.50e-4,
+        sz=6.05e-4,
+    ),
+    "family_draw_b": dict(
+        h=-2.41,
+        c=-539.0,
+        spread=0.315e-3,
+        tilt=-0.548,
+        xpx=0.597,
+        ypy=-0.84,
+        kappa=-220.0,
+        ypz=0.365,
+        sx=6.92e-4,
+        spx=3.32e-4,
+        sy=5.41e-4,
+        spy=3.05e-4,
+        sz=7.17e-4,
+    ),
+}
+#: Beams of other kinds a user would plausibly measure (generalisation audit):
+#: ``double_horn`` (:func:`double_horn_beam`: the current profile of a
+#: magnetically compressed bunch, arcsine-like with spikes at head and tail,
+#: residual chirp with curvature; z kurtosis 1.6) and ``wide`` (a family beam
+#: with 2.0x the shared file's rms x, 1.6x its rms y, 1.35x its rms px, 0.37x
+#: its energy spread, converging in y: it fills the screens differently, rms
+#: 1.9-14 pixels where the shared file's truth has 0.4-15; 99.88 % on screen).
+OTHER_KINDS = {
+    "double_horn": dict(
+        half_length=1.3e-3, horn_width=0.08, h=-2.5, c=1200.0, spread=0.7e-3
+    ),
+    "wide": dict(
+        h=1.5,
+        c=600.0,
+        spread=0.6e-3,
+        tilt=0.3,
+        xpx=-0.85,
+        ypy=-0.6,
+        kappa=0.0,
+        ypz=0.0,
+        sx=1.0e-3,
+        spx=3.5e-4,
+        sy=0.75e-3,
+        spy=2.6e-4,
+        sz=0.7e-3,
+    ),
 }
 
 
 def family_beam(params: dict, n: int, g: torch.Generator) -> torch.Tensor:
-    """A beam of the shared file's family (see :data:`FAMILY`), Bmad ``(n, 6)``."""
+    """A beam of the shared file's family (see :data:`FAMILY`), Bmad ``(n, 6)``.
+
+    Sizes ``sx, spx, sy, spy, sz`` [m, 1, m, 1, m] default to 0.5 mm, 0.26 mrad,
+    0.5 mm, 0.26 mrad, 0.8 mm.
+    """
     u = torch.randn(n, 6, generator=g, dtype=torch.float64)
-    sx, spx, sy, spy, sz = 5e-4, 2.6e-4, 5e-4, 2.6e-4, 8e-4
+    sx, sy = params.get("sx", 5e-4), params.get("sy", 5e-4)
+    spx, spy = params.get("spx", 2.6e-4), params.get("spy", 2.6e-4)
+    sz = params.get("sz", 8e-4)
     x = sx * u[:, 0]
     px = spx * (params["xpx"] * u[:, 0] + (1 - params["xpx"] ** 2) ** 0.5 * u[:, 1])
     px = px + params["kappa"] * (x**2 - (x**2).mean())
@@ -126,11 +215,42 @@ def family_beam(params: dict, n: int, g: torch.Generator) -> torch.Tensor:
     return torch.stack([x, px, y, py, z, pz], -1)
 
 
+def double_horn_beam(params: dict, n: int, g: torch.Generator) -> torch.Tensor:
+    """A compressed bunch with a double-horn current profile, Bmad ``(n, 6)``.
+
+    z = half_length sin(theta) with theta uniform in (-pi/2, pi/2) (the
+    arcsine profile of a folded chirp: current spikes at head and tail),
+    smeared by ``horn_width`` x half_length; pz = h z + c (z^2 - <z^2>) +
+    spread; transverse Gaussian of the shared file's sizes with x-px -0.7,
+    y-py 0.8 and a weak x-z tilt (z += 0.2 x).
+    """
+    u = torch.randn(n, 6, generator=g, dtype=torch.float64)
+    theta = (torch.rand(n, generator=g, dtype=torch.float64) - 0.5) * math.pi
+    a = params["half_length"]
+    x = 5e-4 * u[:, 0]
+    px = 2.6e-4 * (-0.7 * u[:, 0] + 0.51**0.5 * u[:, 1])
+    y = 4.6e-4 * u[:, 2]
+    py = 2.6e-4 * (0.8 * u[:, 2] + 0.6 * u[:, 3])
+    z = a * torch.sin(theta) + params["horn_width"] * a * u[:, 4] + 0.2 * x
+    pz = (
+        params["h"] * z
+        + params["c"] * (z**2 - (z**2).mean())
+        + params["spread"] * u[:, 5]
+    )
+    return torch.stack([x, px, y, py, z, pz], -1)
+
+
 def synthetic_beam(name: str, n: int, seed: int) -> torch.Tensor:
     """One of the benchmark's synthetic beams, Bmad coordinates ``(n, 6)``."""
     g = torch.Generator().manual_seed(seed)
     if name in FAMILY:
         b = family_beam(FAMILY[name], n, g)
+        return b - b.mean(0)
+    if name == "double_horn":
+        b = double_horn_beam(OTHER_KINDS[name], n, g)
+        return b - b.mean(0)
+    if name == "wide":
+        b = family_beam(OTHER_KINDS[name], n, g)
         return b - b.mean(0)
     preset = {"correlated": "correlated", "nonlinear_ypy": "nonlinear"}.get(
         name, "gaussian"
@@ -167,6 +287,7 @@ def run_beam(name: str, seeds: list[int]) -> dict:
         wall = time.perf_counter() - t0
         e = moment_errors(result.sample(200_000), truth)
         run = {"seed": s, "train_wall_s": wall, **{k: e[k] for k in KEYS}}
+        run["rms_max_abs"] = max(abs(e[f"rms_{c}"]) for c in "x px y py z pz".split())
         if test is not None:
             run["held_out_relative_l1"] = {
                 n: image_errors(
@@ -185,19 +306,19 @@ def run_beam(name: str, seeds: list[int]) -> dict:
             "limit": LIMITS[k],
             "within_limit_all_seeds": bool((v.abs() <= LIMITS[k]).all()),
         }
-    return {
-        "config": config.to_dict(),
-        "runs": runs,
-        "stats": stats,
-        "fails": [k for k, s in stats.items() if not s["within_limit_all_seeds"]],
-    }
+    fails = [k for k, s in stats.items() if not s["within_limit_all_seeds"]]
+    if test is not None:
+        worst = {n: max(r["held_out_relative_l1"][n] for r in runs) for n, _ in test}
+        stats["held_out_relative_l1_worst"] = worst
+        fails += [f"held_out_l1_{n}" for n, v in worst.items() if v > HELD_OUT_L1]
+    return {"config": config.to_dict(), "runs": runs, "stats": stats, "fails": fails}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument(
         "--beams",
-        default="shared,correlated,nonlinear_ypy,gaussian_coupled," + ",".join(FAMILY),
+        default=",".join(["shared", *BEAM_SEEDS]),
     )
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--threads", type=int, default=2)
@@ -220,7 +341,14 @@ def main() -> None:
     out["fails"] = {n: b["fails"] for n, b in out["beams"].items() if b["fails"]}
     # the shared file's family (README's description) apart from the presets
     out["fails_family"] = {n: f for n, f in out["fails"].items() if n in FAMILY}
-    out["fails_presets"] = {n: f for n, f in out["fails"].items() if n not in FAMILY}
+    out["fails_other_kinds"] = {
+        n: f for n, f in out["fails"].items() if n in OTHER_KINDS
+    }
+    out["fails_presets"] = {
+        n: f
+        for n, f in out["fails"].items()
+        if n not in FAMILY and n not in OTHER_KINDS
+    }
     out["load_avg_1min_at_end"] = os.getloadavg()[0]
     emit(out, args.out)
 
