@@ -562,8 +562,8 @@ class _TileKDE(torch.autograd.Function):
         v = (t.detach() - t0) / pt
         band = torch.round(v)
         f = v - band  # offset from the nearest pixel centre, [-1/2, 1/2] pixel
-        band = band.add_(r)
-        band = torch.where((band >= 0) & (band < n_bands), band, n_bands)
+        # off the screen (band < 0 or >= n_bands) -> n_bands
+        band = band.add_(r).clamp_(-1, n_bands).remainder_(n_bands + 1)
         # small integer keys: radix sort (int16 is 5x faster than int32)
         itype = torch.int16 if n_bands < 2**15 else torch.int32
         band = band.to(itype)
@@ -571,9 +571,7 @@ class _TileKDE(torch.autograd.Function):
         counts = torch.bincount(band, minlength=n_bands + 1).tolist()
         nv = n - counts[-1]  # particles whose tile reaches the screen
         order = order[:nv]
-        starts = [0]
-        for k in counts[:-1]:
-            starts.append(starts[-1] + k)
+        bands = _band_ranges(counts[:-1])
         f = f.index_select(0, order)
         # d relative to the first window pixel: smaller numbers, less cancellation
         d_rel = d.detach().index_select(0, order).sub_(centers[0])
@@ -582,18 +580,16 @@ class _TileKDE(torch.autograd.Function):
         nd = centers.shape[0]
         chunk = _chunk_particles(nv, nd)
         buf = _workspace(nk * nv + nd * chunk, t)
-        tiles = _tile_kernel(f, ht / pt, r, buf[: nk * nv].view(nk, nv))
-        if w is not None:
-            tiles.mul_(w)
+        tiles = _tile_kernel(f, ht / pt, r, buf[: nk * nv].view(nk, nv), w)
         spare = buf[nk * nv :]
         out = t.new_zeros(n_bands + 2 * r, nd)
         for s0, e0 in _particle_chunks(nv, chunk):
             m = e0 - s0
             kd = _window_kernel(d_rel[s0:e0], c_rel, hd, spare[: nd * m].view(nd, m))
-            for s, e, row in _nonempty_bands(starts, s0, e0):
+            for s, e, row in _bands_in(bands, s0, e0):
                 out[row : row + nk].addmm_(tiles[:, s0 + s : s0 + e], kd[:, s:e].t())
         ctx.geometry = (r, n_bands, n, pt, ht, hd)
-        ctx.starts = starts
+        ctx.bands = bands
         ctx.save_for_backward(f, d_rel, c_rel, w, order)
         return out[2 * r : 2 * r + nt]
 
@@ -624,47 +620,56 @@ class _TileKDE(torch.autograd.Function):
             m = e0 - s0
             kd = _window_kernel(d_rel[s0:e0], c_rel, hd, spare[: nd * m].view(nd, m))
             tx = spare[nd * m : (nd + 2 * nk) * m].view(2 * nk, m)
-            for s, e, row in _nonempty_bands(ctx.starts, s0, e0):
+            for s, e, row in _bands_in(ctx.bands, s0, e0):
                 torch.mm(
                     gg[row : row + nk].view(2 * nk, nd), kd[:, s:e], out=tx[:, s:e]
                 )
             tx.view(nk, 2, m).mul_(tiles[:, None, s0:e0])
             torch.mm(red, tx, out=sums[:, s0:e0])
         s_0, s_t, s_d = sums.unbind(0)
-        gt = torch.addcmul(s_t, f, s_0, value=-1.0).mul_(pt / ht**2)
-        gd = torch.addcmul(s_d, d_rel, s_0, value=-1.0).mul_(1.0 / hd**2)
         need_w = w is not None and ctx.needs_input_grad[4]
+        g = sums.new_empty(3 if need_w else 2, nv)
+        gt = torch.addcmul(s_t, f, s_0, value=-1.0, out=g[0]).mul_(pt / ht**2)
+        gd = torch.addcmul(s_d, d_rel, s_0, value=-1.0, out=g[1]).mul_(1 / hd**2)
         if w is not None:
             gt.mul_(w)
             gd.mul_(w)
+        if need_w:
+            g[2] = s_0
         # back to the caller's particle order; dropped particles get zero
-        g = torch.stack([gt, gd, s_0] if need_w else [gt, gd])
-        g = g.new_zeros(g.shape[0], n).index_copy_(1, order, g)
+        g = g.new_zeros(g.shape[0], n).scatter_(1, order.expand_as(g), g)
         gw = g[2] if need_w else None
         return g[0], g[1], None, None, gw
 
 
-def _tile_kernel(f: Tensor, s: float, r: int, out: Tensor) -> Tensor:
-    """``out[k, n] = exp(-(k - r - f_n)^2 / (2 s^2))``, ``k = 0 .. 2r``, into ``out``.
+def _tile_kernel(
+    f: Tensor, s: float, r: int, out: Tensor, scale: Tensor | None = None
+) -> Tensor:
+    """``out[k, n] = scale_n exp(-(k - r - f_n)^2 / (2 s^2))``, ``k = 0 .. 2r``.
 
-    Three exponentials per particle instead of ``2 r + 1``: with
+    Two exponentials per particle instead of ``2 r + 1``: with
     ``g0 = exp(-f^2 / 2 s^2)`` and ``a = exp(f / s^2)``, the value at offset
-    ``k - r = j`` is ``exp(-j^2 / 2 s^2) g0 a^j`` (``a^j`` by repeated
-    multiplication, a relative error of about ``|j|`` ulp). No overflow for
-    ``|f| <= 1/2``: ``r <= cut s + 1/2`` bounds ``|j f| / s^2`` by
-    ``cut / (2 s) + 1 / (4 s^2)``, at most 72 (float32 overflows at 88) for the
-    ``s >= 1 / (2 cut)`` that give ``r >= 1``.
+    ``k - r = j > 0`` is the one at ``j - 1`` times ``a exp(-(2 j - 1) / 2 s^2)``
+    (``1 / a`` for ``j < 0``): one pass per row, a relative error of about
+    ``|j|`` ulp; the ``exp(-j^2 / 2 s^2)`` factors come with the recurrence, so
+    no intermediate exceeds a kernel value by more than ``a <= exp(1 / 2 s^2)``
+    (the old ``g0 a^j`` reached ``exp(72)`` at ``s = 1 / (2 cut)``, the smallest
+    bandwidth with ``r >= 1``). ``scale`` (default 1, e.g. particle weights)
+    multiplies ``g0``.
     """
     c = _LOG2_E / (2.0 * s * s)  # exp(-u / 2 s^2) = exp2(-c u)
-    torch.mul(f, f, out=out[r]).mul_(-c).exp2_()
+    zero = f.new_zeros(())
+    torch.addcmul(zero, f, f, value=-c, out=out[r]).exp2_()
+    if scale is not None:
+        out[r].mul_(scale)
     if r > 0:
-        up = torch.mul(f, 2.0 * c).exp2_()
-        down = torch.mul(f, -2.0 * c).exp2_()
+        up = torch.mul(f, 2.0 * c).exp2_()  # exp(f / s^2)
+        down = torch.reciprocal(up)
         for j in range(1, r + 1):
-            torch.mul(out[r + j - 1], up, out=out[r + j])
-            torch.mul(out[r - j + 1], down, out=out[r - j])
-        j = torch.arange(-r, r + 1, dtype=f.dtype, device=f.device)
-        out.mul_(torch.exp2(-c * j * j).unsqueeze(-1))
+            # out[r +- j] / out[r +- (j - 1)] = exp(-(2 j - 1) / 2 s^2) exp(+-f / s^2)
+            q = 2.0 ** (-c * (2 * j - 1))
+            torch.addcmul(zero, out[r + j - 1], up, value=q, out=out[r + j])
+            torch.addcmul(zero, out[r - j + 1], down, value=q, out=out[r - j])
     return out
 
 
@@ -675,18 +680,26 @@ def _window_kernel(d: Tensor, centers: Tensor, h: float, out: Tensor) -> Tensor:
     return out.clamp_(min=_MIN_EXPONENT * _LOG2_E).exp2_()
 
 
-def _nonempty_bands(
-    starts: list[int], lo: int = 0, hi: int | None = None
-) -> Iterator[tuple[int, int, int]]:
-    """``(first particle, end particle, band)`` of each non-empty band.
+def _band_ranges(counts: list[int]) -> list[tuple[int, int, int]]:
+    """``(first particle, end particle, band)`` of each non-empty band."""
+    out, start = [], 0
+    for band, count in enumerate(counts):
+        if count:
+            out.append((start, start + count, band))
+            start += count
+    return out
 
-    Only the particles in ``[lo, hi)`` are taken, numbered from ``lo``.
-    """
-    hi = starts[-1] if hi is None else hi
-    for k in range(len(starts) - 1):
-        s, e = max(starts[k], lo), min(starts[k + 1], hi)
-        if e > s:
-            yield s - lo, e - lo, k
+
+def _bands_in(
+    bands: list[tuple[int, int, int]], lo: int, hi: int
+) -> Iterator[tuple[int, int, int]]:
+    """The parts of ``bands`` within particles ``[lo, hi)``, numbered from ``lo``."""
+    for s, e, band in bands:
+        if e <= lo:
+            continue
+        if s >= hi:
+            return
+        yield max(s, lo) - lo, min(e, hi) - lo, band
 
 
 # Window-kernel values per chunk of particles: evaluating and using the kernels
