@@ -236,8 +236,11 @@ def test_resume_refuses_other_options_and_other_data(
     assert r.exit_code == 1 and "no checkpoint.pt" in r.output
 
 
+# plot_corner is drawn by the forked child (cli.background), the image grid by
+# the command's own process: a failure in either fails the command
+@pytest.mark.parametrize("figure", ["plot_corner", "plot_image_comparison"])
 def test_late_failure_with_force_keeps_the_old_result(
-    scan_file: Path, tmp_path: Path, monkeypatch
+    scan_file: Path, tmp_path: Path, monkeypatch, figure: str
 ) -> None:
     out = tmp_path / "out"
     args = ["reconstruct", str(scan_file), "--out", str(out), *FAST]
@@ -247,9 +250,10 @@ def test_late_failure_with_force_keeps_the_old_result(
     def broken(*a, **kw):
         raise RuntimeError("figure failed")
 
-    monkeypatch.setattr(cli_reconstruct, "write_figures", broken)
+    monkeypatch.setattr(cli_reconstruct, figure, broken)
     r = CliRunner().invoke(main, [*args, "--seed", "1", "--force"])
     assert r.exit_code != 0
+    assert "figure failed" in r.output
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import ExitStack, contextmanager, nullcontext
+from functools import partial
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -17,6 +18,7 @@ import torch.distributed as tdist
 from click.core import ParameterSource
 from tqdm import tqdm
 
+from diffaccel.cli.background import can_fork, in_child
 from diffaccel.cli.output import check_out_file, output_folder, save_png
 from diffaccel.data import (
     FormatError,
@@ -56,32 +58,42 @@ CHECKPOINT = "checkpoint.pt"
 _DEFAULTS = {d: ReconstructionConfig(dims=d) for d in (4, 6)}
 
 
-def write_figures(
-    result: Reconstruction,
-    dataset: MultiScanDataset,
-    summary: dict[str, Any],
-    out: Path,
-    predicted: dict[str, torch.Tensor],
-    predicted_std: dict[str, torch.Tensor] | None = None,
-) -> list[Path]:
-    """Write the PNG figures into ``out``; returns their paths.
+def write_result_figures(
+    result: Reconstruction, dataset: MultiScanDataset, out: Path
+) -> list[str]:
+    """Write ``phase_space.png``, ``training.png`` and ``rms_evolution.png``.
 
-    ``phase_space.png`` (corner plot, truth overlaid when known),
-    ``training.png``, ``rms_evolution.png`` and one measured-vs-predicted image
-    grid per scan: ``images.png`` for a single scan, ``images_<scan>.png``
-    otherwise (held-out settings marked; with ``predicted_std`` a fourth row
-    shows the per-pixel spread of the prediction).
+    The corner plot (truth overlaid when known), the training curves and the
+    rms sizes during training; returns the file names.
     """
     figs = {
         "phase_space.png": plot_corner(result, dataset.ground_truth),
         "training.png": plot_training_curves(result),
         "rms_evolution.png": plot_rms_evolution(result, dataset.ground_truth),
     }
+    return [save_png(fig, out / name, dpi=110).name for name, fig in figs.items()]
+
+
+def write_image_figures(
+    dataset: MultiScanDataset,
+    train_indices: Mapping[str, Sequence[int]],
+    out: Path,
+    predicted: dict[str, torch.Tensor],
+    predicted_std: dict[str, torch.Tensor] | None = None,
+) -> list[str]:
+    """Write one measured-vs-predicted image grid per scan; returns the file names.
+
+    ``images.png`` for a single scan, ``images_<scan>.png`` otherwise
+    (settings not in ``train_indices`` marked held out; with
+    ``predicted_std`` a fourth row shows the per-pixel spread of the
+    prediction).
+    """
+    names = []
     for name, scan in dataset:
-        train = set(summary["scans"][name]["train_indices"])
+        train = {int(i) for i in train_indices.get(name, [])}
         fwd = ScreenForwardModel.from_dataset(scan)
         fig_name = "images.png" if len(dataset) == 1 else f"images_{name}.png"
-        figs[fig_name] = plot_image_comparison(
+        fig = plot_image_comparison(
             scan.mean_images(),
             predicted[name],
             scan.settings,
@@ -91,11 +103,8 @@ def write_figures(
             title=f"scan {name!r}" if len(dataset) > 1 else "",
             predicted_std=None if predicted_std is None else predicted_std[name],
         )
-    paths = []
-    for name, fig in figs.items():
-        path = out / name
-        paths.append(save_png(fig, path, dpi=110))
-    return paths
+        names.append(save_png(fig, out / fig_name, dpi=110).name)
+    return names
 
 
 #: Files a reconstruction writes (a folder of only these is an earlier result).
@@ -268,6 +277,17 @@ def _shared_refusal(target: Any, distributed: bool) -> Iterator[Any]:
         yield folder
 
 
+@contextmanager
+def _torch_threads(n: int) -> Iterator[None]:
+    """torch's intra-op threads at most ``n`` in the block."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(min(n, before))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 def run_reconstruction(
     ds: MultiScanDataset,
     dataset_path: Path,
@@ -327,38 +347,52 @@ def run_reconstruction(
     t_train = time.perf_counter() - t0
     result.info["dataset"] = str(dataset_path)
     result.save(folder, overwrite=True)
-    spread = None
-    if figures and uncertainty:
-        t_std = time.perf_counter()
-        predicted, spread = predict_dataset(result, ds, return_std=True)
-        result.info["timings_s"]["image_spread"] = time.perf_counter() - t_std
-    else:
-        predicted = predict_dataset(result, ds)
-    # the particles file holds the sample that evaluate() compares with the
-    # ground truth (n_sample, seed 0): drawn once
-    particles = result.sample(100_000)
-    summary = evaluate(
-        result,
-        ds,
-        train_indices=selection,
-        predicted=predicted,
-        n_sample=100_000,
-        sample=particles,
-    )
-    summary["dataset"] = str(dataset_path)
-    parts = write_openpmd_particles(
-        folder / "particles.h5",
-        particles,
-        ds.p0c,
-        ds.species,
-        overwrite=True,
-    )
-    summary["particles_file"] = parts.name
-    if figures:
-        summary["figures"] = [
-            p.name
-            for p in write_figures(result, ds, summary, folder, predicted, spread)
-        ]
+    # the corner plot, training curves and rms figures are drawn by a forked
+    # child (cli.background) while this process predicts, evaluates and draws
+    # the image grids, each on one core: torch runs on one thread meanwhile,
+    # since an OpenMP team that shares its cores with the child waits for it
+    # at every kernel (issue 12: ~0.5 s of a default reconstruct on 2 cores)
+    with ExitStack() as stack:
+        figures_done = None
+        if figures:
+            figures_done = stack.enter_context(
+                in_child(
+                    partial(write_result_figures, result, ds, folder),
+                    fork=not distributed,
+                )
+            )
+            if can_fork() and not distributed:
+                stack.enter_context(_torch_threads(1))
+        spread = None
+        if figures and uncertainty:
+            t_std = time.perf_counter()
+            predicted, spread = predict_dataset(result, ds, return_std=True)
+            result.info["timings_s"]["image_spread"] = time.perf_counter() - t_std
+        else:
+            predicted = predict_dataset(result, ds)
+        # the particles file holds the sample that evaluate() compares with
+        # the ground truth (n_sample, seed 0): drawn once
+        particles = result.sample(100_000)
+        summary = evaluate(
+            result,
+            ds,
+            train_indices=selection,
+            predicted=predicted,
+            n_sample=100_000,
+            sample=particles,
+        )
+        summary["dataset"] = str(dataset_path)
+        parts = write_openpmd_particles(
+            folder / "particles.h5",
+            particles,
+            ds.p0c,
+            ds.species,
+            overwrite=True,
+        )
+        summary["particles_file"] = parts.name
+        if figures_done is not None:
+            images = write_image_figures(ds, selection, folder, predicted, spread)
+            summary["figures"] = figures_done() + images
     summary["timings_s"]["total_wall"] = time.perf_counter() - t0
     summary["timings_s"]["reconstruct_wall"] = t_train
     atomic_write_json(folder / "summary.json", summary)

@@ -145,14 +145,16 @@ def plot_corner(
                         )
                 ax.set_ylim(ranges[i])
             ax.set_xlim(ranges[j])
+            # labels switched off with tick_params, not set_*ticklabels([]),
+            # which builds every tick to label it with nothing (~0.1 s here)
             if i == d - 1:
                 ax.set_xlabel(_LABELS[cj])
             else:
-                ax.set_xticklabels([])
+                ax.tick_params(labelbottom=False)
             if j == 0 and i > 0:
                 ax.set_ylabel(_LABELS[ci])
-            elif j > 0 or i == 0:
-                ax.set_yticklabels([]) if i != j else None
+            elif i != j:
+                ax.tick_params(labelleft=False)
     title = f"Reconstructed phase space ({reconstruction.n_snapshots}-member ensemble"
     title += ", contours/lines: ground truth)" if tru is not None else ")"
     fig.suptitle(title)
