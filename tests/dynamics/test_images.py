@@ -128,6 +128,36 @@ def test_kde_tiles_equal_dense_reference_on_and_off_screen(axis) -> None:
         torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.parametrize("rows", [230, 300], ids=["uint8_keys", "int16_keys"])
+def test_kde_tiles_on_long_screens_equal_dense_reference(rows) -> None:
+    """Band keys (rows + 2 r bands, r = 10 here) sort as uint8 while they fit
+    and as int16 beyond: both give the dense Gaussian sum's images and
+    gradients, with batch dims (2, 2), one image of a single particle and one
+    whose particles all miss the screen (zero image, zero gradients)."""
+    g = torch.Generator().manual_seed(17)
+    n, pixel, h, shape = 200, 1e-3, 1.1e-3, (rows, 7)
+    x = torch.randn(2, 2, n, generator=g, dtype=F64) * 1e-3
+    y = torch.randn(2, 2, n, generator=g, dtype=F64) * rows * 0.2e-3
+    y[1, 0] = 1.0  # every particle 1 m above the screen
+    w = torch.rand(2, 2, n, generator=g, dtype=F64) + 0.5
+    w[1, 1, 1:] = 0.0  # a single particle (the others weigh nothing)
+    probe = torch.linspace(-1, 2, 4 * rows * 7, dtype=F64).view(2, 2, rows, 7)
+
+    def run(render):
+        xg, yg, wg = (t.clone().requires_grad_(True) for t in (x, y, w))
+        image = render(xg, yg, wg)
+        (image * probe).sum().backward()
+        return image.detach(), xg.grad, yg.grad, wg.grad
+
+    tiles = run(lambda a, b, c: kde_image(a, b, shape, pixel, bandwidth=h, weights=c))
+    dense = run(lambda a, b, c: _direct_kde(a, b, c, shape, pixel, h))
+    assert torch.equal(tiles[0][1, 0], torch.zeros(shape, dtype=F64))
+    assert not tiles[1][1, 0].any() and not tiles[2][1, 0].any()
+    torch.testing.assert_close(tiles[0], dense[0], rtol=1e-12, atol=1e-15)
+    for a, b in zip(tiles[1:], dense[1:], strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
 @pytest.mark.parametrize(
     "bandwidth_px", [0.07, 0.09, 0.3, 1.0, 2.6], ids=lambda s: f"{s}px"
 )
