@@ -355,13 +355,11 @@ def run_reconstruction(
     with ExitStack() as stack:
         figures_done = None
         if figures:
+            fork = not distributed and can_fork()
             figures_done = stack.enter_context(
-                in_child(
-                    partial(write_result_figures, result, ds, folder),
-                    fork=not distributed,
-                )
+                in_child(partial(write_result_figures, result, ds, folder), fork=fork)
             )
-            if can_fork() and not distributed:
+            if fork:
                 stack.enter_context(_torch_threads(1))
         spread = None
         if figures and uncertainty:
