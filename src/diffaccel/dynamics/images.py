@@ -328,7 +328,7 @@ def kde_image(
     float32 -> 1.5e-8, below its round-off). On the CPU, per image, the shorter
     side of the window of pixels within the cut of some particle gets a kernel
     matrix; along the longer side each particle has a tile of ``2 r + 1`` pixels
-    around its nearest one (``r = floor(cut h / pixel + 1/2)``, three
+    around its nearest one (``r = floor(cut h / pixel + 1/2)``, two
     exponentials per particle), particles are sorted by that pixel and each
     such band of particles adds one product to ``2 r + 1`` rows: the same exact
     values, for a fraction of the work on a wide beam. The gradient is analytic
