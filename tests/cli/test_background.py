@@ -63,3 +63,11 @@ def test_the_child_runs_torch_on_one_thread() -> None:
 
     with in_child(torch.get_num_threads) as result:
         assert result() == 1
+
+
+@needs_fork
+def test_a_child_that_dies_without_a_result_is_a_clear_error() -> None:
+    # e.g. killed by the out-of-memory killer: no traceback from the pipe
+    with in_child(lambda: os._exit(3)) as result, pytest.raises(RuntimeError) as err:
+        result()
+    assert str(err.value) == "the child process ended with exit code 3 and no result"

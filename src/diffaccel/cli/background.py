@@ -6,17 +6,18 @@ figures in a thread would not help: both parts need the GIL between their
 kernels and hand it over every few milliseconds. A child forked after training
 has its own interpreter, a copy of the trained ensemble and of the imported
 modules, and draws on the second core while the parent evaluates (issue 12
-counts the whole command).
+counts the whole command). The child is a standard :mod:`multiprocessing`
+process (``fork`` context); nothing but its result is pickled.
 """
 
 from __future__ import annotations
 
-import json
-import os
+import multiprocessing
 import sys
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from multiprocessing.connection import Connection
 from typing import TypeVar
 
 import torch
@@ -44,11 +45,26 @@ def can_fork() -> bool:
     ]
     return (
         sys.platform.startswith("linux")
-        and hasattr(os, "fork")
+        and "fork" in multiprocessing.get_all_start_methods()
         and threading.current_thread() is threading.main_thread()
         and not torch.cuda.is_initialized()
         and not others
     )
+
+
+def _child(work: Callable[[], object], conn: Connection) -> None:
+    """Body of the child process: ``work()``'s result or its error, through ``conn``."""
+    try:
+        torch.set_num_threads(1)
+        message = {"result": work()}
+    except BaseException as err:  # everything goes to the parent
+        text = str(err).strip().splitlines()
+        first = text[0] if text else ""
+        message = {"error": f"{type(err).__name__}: {first}"[:_MAX_MESSAGE]}
+    try:
+        conn.send(message)
+    finally:
+        conn.close()
 
 
 @contextmanager
@@ -57,13 +73,13 @@ def in_child(
 ) -> Iterator[Callable[[], _T]]:
     """Run ``work()`` in a forked child; the block gets a function returning its result.
 
-    The child runs torch on one thread (an OpenMP pool does not survive
-    ``fork``) and ends with ``os._exit`` after sending ``work()``'s result
-    (JSON-serialisable) or its error through a pipe; it runs none of the
-    parent's clean-up. Leaving the block waits for the child, so that nothing
-    it writes outlives an error of the parent. Without ``fork`` (or where
-    :func:`can_fork` is False) ``work()`` runs in this process when the result
-    is first asked for.
+    The child is a :mod:`multiprocessing` process of the ``fork`` context (a
+    copy of this process: nothing is pickled but the result), runs torch on one
+    thread (an OpenMP pool does not survive ``fork``) and sends ``work()``'s
+    result (picklable) or its error back through a pipe. Leaving the block
+    waits for the child, so that nothing it writes outlives an error of the
+    parent. Without ``fork`` (or where :func:`can_fork` is False) ``work()``
+    runs in this process when the result is first asked for.
 
     Raises:
         RuntimeError: from the result function, with the child's error as one
@@ -79,44 +95,26 @@ def in_child(
 
         yield run_here
         return
-    read_end, write_end = os.pipe()
-    sys.stdout.flush()
-    sys.stderr.flush()
-    pid = os.fork()
-    if pid == 0:  # the child: never returns
-        os.close(read_end)
-        status = 1
-        try:
-            torch.set_num_threads(1)
-            message = json.dumps({"result": work()})
-            status = 0
-        except BaseException as err:  # everything goes to the parent
-            text = str(err).strip().splitlines()
-            first = text[0] if text else ""
-            message = json.dumps(
-                {"error": f"{type(err).__name__}: {first}"[:_MAX_MESSAGE]}
-            )
-        try:
-            with os.fdopen(write_end, "w") as pipe:
-                pipe.write(message)
-            sys.stdout.flush()
-            sys.stderr.flush()
-        finally:
-            os._exit(status)
-    os.close(write_end)
+    context = multiprocessing.get_context("fork")
+    receive, send = context.Pipe(duplex=False)
+    child = context.Process(target=_child, args=(work, send), daemon=True)
+    child.start()
+    send.close()  # the child holds the sending end now
     outcome: dict = {}
 
     def wait() -> _T:
         if not outcome:
-            with os.fdopen(read_end, "r") as pipe:
-                text = pipe.read()
-            _, status = os.waitpid(pid, 0)
             try:
-                outcome.update(json.loads(text))
-            except ValueError:
+                outcome.update(receive.recv())
+            except EOFError:
+                child.join()
                 outcome["error"] = (
-                    f"the child process ended with status {status} and no result"
+                    f"the child process ended with exit code {child.exitcode} "
+                    "and no result"
                 )
+            finally:
+                receive.close()
+                child.join()
         if "error" in outcome:
             raise RuntimeError(outcome["error"])
         return outcome["result"]
