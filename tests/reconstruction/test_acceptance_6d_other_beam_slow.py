@@ -14,9 +14,7 @@ variance apart from py-z), and training alone drifted there (measured
 z-pz correlation +0.098). With it (1 thread, under load): rms z +1.5 %, pz
 +2.8 %, z emittance +4.4 %, 6D emittance +4.2 %, z-pz correlation +0.017,
 held-out relative L1 0.116 / 0.116 (the non-Gaussian shape moved along with
-the second moments cost image fidelity; 0.09 before). With the prior held
-during training (ReconstructionConfig.unseen_weight): rms z +1.4 %, pz +1.2 %,
-z emittance +2.5 %, 6D -1.0 %, z-pz -0.004, held-out 0.091 / 0.092.
+the second moments costs image fidelity; 0.09 before).
 """
 
 from __future__ import annotations
