@@ -703,10 +703,7 @@ def train_generator(
         directions = unseen_directions([m.cpu() for m in map_all], guess.cov)
         if directions.shape[0]:
             hold = UnseenPenalty(
-                traded_pairs(directions, guess.cov),
-                norm,
-                config.unseen_weight,
-                reduce=_SumOverProcesses.apply if distributed else None,
+                traded_pairs(directions, guess.cov), norm, config.unseen_weight
             )
     if distributed and rank != 0:
         ckpt = None  # process 0 writes the checkpoints
