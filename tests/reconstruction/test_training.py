@@ -12,7 +12,6 @@ from diffaccel.reconstruction import (
     load_checkpoint,
     reconstruct,
 )
-from diffaccel.reconstruction.training import train_generator
 
 FAST = {"n_particles": 1024, "steps": 24, "snapshots": 3, "checkpoint_every": 5}
 
@@ -102,9 +101,8 @@ def test_corrupt_checkpoint(tmp_path: Path) -> None:
         ({"dims": 5}, "dims must be 4 or 6"),
         ({"image_loss": "l3"}, "image_loss"),
         ({"n_particles": 3}, "n_particles"),
-        ({"unseen_weight": -1.0}, "unseen_weight"),
     ],
-    ids=["cycles", "dims", "loss", "particles", "unseen_weight"],
+    ids=["cycles", "dims", "loss", "particles"],
 )
 def test_bad_config(kwargs: dict, match: str) -> None:
     with pytest.raises(ValueError, match=match):
@@ -210,52 +208,3 @@ def test_transfer_maps_are_computed_once_per_run(small_scan, monkeypatch) -> Non
     # recomputed from the forward models (another tolerance bypasses the stored)
     recomputed = r.unconstrained_coordinates(tolerance=1.0000001e-3)
     assert recomputed == r.info["unconstrained_coordinates"]
-
-
-def test_six_dimensional_training_holds_the_unseen_directions() -> None:
-    """The penalty of ReconstructionConfig.unseen_weight acts in 6D training:
-    on AWA 6D data the traded (px-pz, py-z) partial correlations of the
-    trained generator end nearer zero with it than without."""
-    from diffaccel.data import make_synthetic_awa6d
-    from diffaccel.reconstruction.forward import ScreenForwardModel
-    from diffaccel.reconstruction.generator import BeamGenerator
-    from diffaccel.reconstruction.initial import fit_gaussian
-    from diffaccel.reconstruction.unseen import (
-        UnseenPenalty,
-        traded_pairs,
-        unseen_directions,
-    )
-
-    ds = make_synthetic_awa6d(
-        "correlated",
-        n_particles=5000,
-        k1_values=[-12.0, 0.0, 12.0],
-        screen_shape=(24, 24),
-        seed=1,
-    )
-    fwds = [ScreenForwardModel.from_dataset(s, blur_pixels=0.5) for _, s in ds]
-    meas = [s.mean_images() for _, s in ds]
-    sets = [s.settings for _, s in ds]
-    guess = fit_gaussian(fwds, meas, sets)
-    maps = [f.transfer_maps(s) for f, s in zip(fwds, sets, strict=True)]
-    pairs = traded_pairs(unseen_directions(maps, guess.cov), guess.cov)
-    assert sorted(pairs) == [(1, 5), (3, 4)]
-    measure = UnseenPenalty(pairs, guess.cov.diagonal().sqrt(), 1.0)
-    out = {}
-    for weight in (0.0, 0.1):
-        config = ReconstructionConfig(  # the full image weight from the start
-            dims=6,
-            n_particles=1024,
-            steps=12,
-            snapshots=1,
-            penalty_start=1e4,
-            unseen_weight=weight,
-        )
-        state = train_generator(fwds, meas, sets, guess, config, maps=maps)
-        gen = BeamGenerator(6, width=config.width, scale=torch.ones(6))
-        gen.load_state_dict(state.model)
-        with torch.no_grad():
-            x = gen(20_000, generator=torch.Generator().manual_seed(0))
-        out[weight] = float(measure(x.double()))
-    # sum of squared partial correlations, measured 0.15 without, 0.0016 with
-    assert out[0.1] < 0.1 * out[0.0]

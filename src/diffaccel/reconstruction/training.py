@@ -35,11 +35,6 @@ from diffaccel.reconstruction.losses import (
     off_screen_allowance,
     penalty_schedule,
 )
-from diffaccel.reconstruction.unseen import (
-    UnseenPenalty,
-    traded_pairs,
-    unseen_directions,
-)
 
 logger = logging.getLogger(__name__)
 
@@ -240,21 +235,6 @@ class ReconstructionConfig:
             against py-z) to the point of zero partial correlation (see
             :mod:`diffaccel.reconstruction.unseen`). Training alone drifts
             there to the largest entropy: pz +8 to +44 % on synthetic beams.
-        unseen_weight: With ``dims = 6`` and ``place_unseen``, training holds
-            those directions at the same point throughout: ``unseen_weight``
-            times the summed squared traded partial correlations
-            (:class:`~diffaccel.reconstruction.unseen.UnseenPenalty`, on z and
-            pz only) is added to the mean image distance (so it follows the
-            penalty schedule). The generator then fits the image shapes with
-            the directions at the prior and the move after training is small.
-            0 turns it off. Own beam ``chirp_negative``
-            (benchmarks/reconstruction_6d_beams.py, seed 0): the move alone
-            gave pz -5.5 %, held-out image error 0.153; 0.1: pz +1.8 %, emit_z
-            +4.7 %, held-out 0.080. Shared 6D training file: 6D emittance -2.8
-            % (0.01: +5.0 %; 0.1 only from the fourth cycle on: +5.2 %, but
-            chirp_negative emit_z +10.3 %); a fixed weight of 1e3 from the
-            first step (not following the schedule) cost the shared file's x
-            emittance (+5.4 %).
         seed: Seed of the explicit ``torch.Generator`` (weights and samples).
         checkpoint_every: Steps between checkpoints (also at every snapshot).
         report_every: Steps between reads of the losses from the device (the
@@ -282,7 +262,6 @@ class ReconstructionConfig:
     longitudinal_scale: tuple[float, float] = (1e-3, 1e-3)
     prior_factor: float = 3.0
     place_unseen: bool = True
-    unseen_weight: float = 0.1
     seed: int = 0
     checkpoint_every: int = 100
     report_every: int = 10
@@ -314,8 +293,6 @@ class ReconstructionConfig:
                 f"steps ({self.steps}) must be a multiple of snapshots "
                 f"({self.snapshots}) so that every cycle has the same length."
             )
-        if not self.unseen_weight >= 0:
-            raise ValueError(f"unseen_weight must be >= 0; got {self.unseen_weight}.")
         if self.report_every < 1:
             raise ValueError(f"report_every must be >= 1; got {self.report_every}.")
         if self.n_particles < 16:
@@ -694,17 +671,6 @@ def train_generator(
         radius=config.entropy_radius,
         reduce=tdist.all_reduce if distributed else None,
     )
-    hold = None  # 6D: the unseen longitudinal directions held at the prior
-    if dims == 6 and config.place_unseen and config.unseen_weight > 0:
-        map_all = [
-            f.transfer_maps(s) if r is None else r
-            for f, s, r in zip(forwards, settings_list, map_list, strict=True)
-        ]
-        directions = unseen_directions([m.cpu() for m in map_all], guess.cov)
-        if directions.shape[0]:
-            hold = UnseenPenalty(
-                traded_pairs(directions, guess.cov), norm, config.unseen_weight
-            )
     if distributed and rank != 0:
         ckpt = None  # process 0 writes the checkpoints
     total = config.steps
@@ -739,10 +705,7 @@ def train_generator(
         # torch.autograd import torch.fx.experimental.symbolic_shapes and
         # sympy, ~0.5 s of a default ``reconstruct`` (issue 12: the whole
         # process); sub(alpha=) costs fewer ATen ops than lam * D - (H - C)
-        # 6D: the unseen directions held at the prior, weighed like the images
-        target = dist if hold is None else dist + hold(x)
-        objective = torch.sub(rel, target, alpha=lam)
-        (grad,) = torch.autograd.grad(objective, [net.flat])
+        (grad,) = torch.autograd.grad(torch.sub(rel, dist, alpha=lam), [net.flat])
         grad.neg_()
         if distributed:  # each process holds its particles' part of the gradient
             tdist.all_reduce(grad)

@@ -14,33 +14,14 @@ keeps moving along such a direction at full step however weak its gradient.
 This module finds those directions from the transfer maps (the null space of
 the linear map from the longitudinal covariance entries to the screen second
 moments, the transverse ones held) and moves each ensemble member along them
-to a stated prior point: the one where the correlation that each direction
-trades (AWA 6D: px-pz, py-z) carries no information beyond the other
-coordinates and the shape of the transverse distribution, i.e. zero partial
-correlation of that pair given the other four coordinates and the quadratic
-monomials of (x, px, y, py). The quadratic terms matter on non-Gaussian beams:
-a beam whose px and pz both follow x^2 (transverse curvature, and a curved
-chirp with an x-z tilt) has a px-pz covariance that the images do pin (through
-the curvature of the image shapes), and a Gaussian (linear) partial
-correlation would count it as traded (own beam ``chirp_negative``: the
-Gaussian criterion put its truth at pz +3 %, emit_z +5 %; this one at
-+0.3 %, +0.3 %; on the beams with no such curvature the two agree).
-
-Training holds the same point (:class:`UnseenPenalty`, weight
-``ReconstructionConfig.unseen_weight``, from the first step on, acting on z
-and pz only), so the generator fits the image shapes with the unseen
-directions already at the prior; the move after training then only removes
-what is left. Without the penalty the move is large (own beam
-``chirp_negative``: pz +82 % before it) and, being linear, reshapes what the
-images do see: held-out image error 0.076 -> 0.153 on that beam (0.184 with
-the all-coordinate map below), 0.078 with the penalty.
-
-The move leaves the transverse coordinates of every particle unchanged and
-maps (z, pz) affinely (their regression on the transverse coordinates set to
-the target, the residual moved by the optimal-transport map between the two
-Gaussians of the residuals), folded into the generator's last linear layers:
-straight-ahead images with the cavity off do not change at all, and the others
-only at the order the data cannot see.
+to a stated prior point: the one where the correlations that the direction
+trades carry no information beyond the other coordinates (zero partial
+correlation, ``tr(P V_off) = 0`` with ``P`` the precision matrix and ``V_off``
+the direction's off-diagonal part: the maximum-entropy choice of the
+correlations with the variances held). The move is the smallest displacement of
+the particles that gives the new covariance (the optimal-transport map between
+the two Gaussians), folded into the generator's last linear layers, so images
+change only at the order the data cannot see.
 """
 
 from __future__ import annotations
@@ -114,194 +95,47 @@ def unseen_directions(
     return out
 
 
-#: Coordinates kept by the placement and whose quadratic monomials condition
-#: the partial correlations: x, px, y, py.
-_TRANSVERSE = 4
-
-
-def traded_pairs(directions: Tensor, cov: Tensor) -> list[tuple[int, int]]:
-    """The correlation each direction trades: its largest off-diagonal entry.
-
-    Args:
-        directions: ``(F, 6, 6)`` from :func:`unseen_directions`.
-        cov: Beam covariance ``(6, 6)`` (the entries are compared as
-            correlations).
-
-    Returns:
-        ``(i, j)`` with ``i < j`` per direction (AWA 6D: ``(1, 5)`` px-pz and
-        ``(3, 4)`` py-z).
-    """
-    sig = cov.to(torch.float64).diagonal().clamp_min(1e-300).sqrt()
-    out = []
-    for v in directions.to(torch.float64):
-        c = v / (sig[:, None] * sig[None, :])
-        c = c - torch.diag(c.diagonal())
-        i, j = divmod(int(c.abs().argmax()), 6)
-        out.append((min(i, j), max(i, j)))
-    return out
-
-
-def residual_covariance(particles: Tensor) -> Tensor:
-    """Covariance of the particles left after their transverse curvature.
-
-    The covariance of the residuals of a least-squares regression of all six
-    coordinates on the ten quadratic monomials of ``(x, px, y, py)`` (centred):
-    what the partial correlations of :func:`place_unseen` are conditioned on
-    besides the coordinates themselves. Equal to the covariance for a
-    Gaussian beam (up to sampling noise).
-
-    Shapes:
-        ``particles (N, 6)`` -> ``(6, 6)`` float64.
-    """
-    x = particles.to(torch.float64)
-    sig = x.std(0).clamp_min(1e-300)
-    u = (x - x.mean(0)) / sig  # standardised: the monomials are O(1)
-    i, j = torch.triu_indices(_TRANSVERSE, _TRANSVERSE)
-    q = u[:, i] * u[:, j]
-    c = torch.cov(torch.cat([u, q], 1).T)
-    cxq, cqq = c[:6, 6:], c[6:, 6:]
-    res = c[:6, :6] - cxq @ torch.linalg.solve(cqq, cxq.T)
-    return res * (sig[:, None] * sig[None, :])
-
-
-class UnseenPenalty:
-    """Training penalty that holds the unseen directions at the prior point.
-
-    ``weight * sum_k g_k^2`` with ``g_k`` the partial correlation of the pair
-    that direction ``k`` trades (:func:`traded_pairs`), given the other
-    coordinates and the quadratic transverse monomials (as in
-    :func:`residual_covariance`), of the particles of one training step:
-    the images do not see these directions, so without it the generator's
-    shape along them is whatever the entropy and the last placement left,
-    and a linear move after training cannot re-fit the image shapes (own beam
-    ``chirp_negative``: pz +82 % before the move, held-out L1 0.15 after).
-    Differentiable (float64 moments of one ``(N, 16)`` matrix).
-
-    Args:
-        pairs: Traded pairs ``(i, j)``.
-        scale: Per-coordinate scale ``(6,)`` (standardises the monomials).
-        weight: Factor of the squared partial correlations.
-
-    Shapes:
-        ``__call__(particles (N, 6))`` -> ``()`` float64.
-    """
-
-    def __init__(
-        self, pairs: Sequence[tuple[int, int]], scale: Tensor, weight: float
-    ) -> None:
-        self.ii = torch.tensor([p[0] for p in pairs], device=scale.device)
-        self.jj = torch.tensor([p[1] for p in pairs], device=scale.device)
-        self.inv_scale = 1.0 / scale.to(torch.float64)
-        self.tri = torch.triu_indices(_TRANSVERSE, _TRANSVERSE, device=scale.device)
-        self.weight = weight
-
-    def partial_correlations(self, particles: Tensor) -> Tensor:
-        """``g_k`` of every pair ``(F,)`` (differentiable in z and pz only)."""
-        # the transverse coordinates are seen: the penalty moves only z and pz
-        # (on the shared 6D training file, a gradient into them as well cost
-        # the y emittance, y-py correlation 0.98: +6.9 % instead of +1.3 %)
-        t = _TRANSVERSE
-        x = torch.cat([particles[:, :t].detach(), particles[:, t:]], 1)
-        u = x.to(torch.float64) * self.inv_scale
-        u = u - u.mean(0)
-        q = u[:, self.tri[0]] * u[:, self.tri[1]]
-        z = torch.cat([u, q - q.mean(0)], 1)
-        c = z.T @ z / (z.shape[0] - 1)
-        cxq = c[:6, 6:]
-        res = c[:6, :6] - cxq @ torch.linalg.solve(c[6:, 6:], cxq.T)
-        p = torch.linalg.inv(res)
-        d = p.diagonal()
-        return p[self.ii, self.jj] / (d[self.ii] * d[self.jj]).sqrt()
-
-    def __call__(self, particles: Tensor) -> Tensor:
-        return self.weight * self.partial_correlations(particles).square().sum()
-
-
-def longitudinal_map(cov: Tensor, target: Tensor) -> Tensor:
-    """``K`` with ``K cov K^T = target`` that keeps x, px, y, py.
-
-    ``target`` must share the transverse block of ``cov``. With ``L = (z, pz)``
-    and ``T`` the transverse coordinates: ``L' = B' T + M (L - B T)``, with
-    ``B, B'`` the regressions of ``L`` on ``T`` in ``cov`` and ``target`` and
-    ``M`` the optimal-transport map (:func:`transport_map`) between the
-    residual covariances.
-
-    Shapes:
-        ``cov (6, 6)``, ``target (6, 6)`` -> ``(6, 6)`` float64.
-    """
-    t = _TRANSVERSE
-
-    def regression(s: Tensor) -> tuple[Tensor, Tensor]:
-        b = torch.linalg.solve(s[:t, :t], s[:t, t:]).T  # (2, 4)
-        return b, s[t:, t:] - b @ s[:t, t:]
-
-    b0, e0 = regression(cov.to(torch.float64))
-    b1, e1 = regression(target.to(torch.float64))
-    m = transport_map(e0, e1)
-    k = torch.eye(cov.shape[0], dtype=torch.float64)
-    k[t:, t:] = m
-    k[t:, :t] = b1 - m @ b0
-    return k
-
-
-def place_unseen(
-    cov: Tensor,
-    directions: Tensor,
-    residual: Tensor | None = None,
-    iterations: int = 30,
-) -> Tensor:
+def place_unseen(cov: Tensor, directions: Tensor, iterations: int = 30) -> Tensor:
     """``cov`` moved along ``directions`` to zero partial correlation of their trade.
 
-    For every direction ``V_k`` (traded pair ``(i, j)`` from
-    :func:`traded_pairs`) solves ``P_ij = 0``, ``P`` the inverse of
-    ``K R K^T``: ``R`` the ``residual`` covariance
-    (:func:`residual_covariance`; default ``cov``, i.e. Gaussian partial
-    correlations) carried by the map ``K`` (:func:`longitudinal_map`) from
-    ``cov`` to ``cov + sum_k t_k V_k``. Damped Newton steps (finite-difference
-    Jacobian, ``F x F``) that keep the covariance positive definite.
+    Solves ``tr(P V_k,off) = 0`` for every direction ``V_k`` (``P`` the inverse of
+    ``cov + sum_k t_k V_k``, ``V_off`` its off-diagonal part) by damped Newton
+    steps that keep the covariance positive definite.
 
     Shapes:
-        ``cov (6, 6)``, ``directions (F, 6, 6)``, ``residual (6, 6)`` ->
-        ``(6, 6)`` float64.
+        ``cov (6, 6)``, ``directions (F, 6, 6)`` -> ``(6, 6)`` float64.
     """
     s0 = cov.to(torch.float64)
     if directions.shape[0] == 0:
         return s0
     v = directions.to(torch.float64)
-    r = s0 if residual is None else residual.to(torch.float64)
-    pairs = traded_pairs(v, s0)
-    ii = torch.tensor([p[0] for p in pairs])
-    jj = torch.tensor([p[1] for p in pairs])
+    off = v - torch.diag_embed(v.diagonal(dim1=-2, dim2=-1))
+    t = torch.zeros(v.shape[0], dtype=torch.float64)
 
-    def partial(t: Tensor) -> Tensor | None:
+    def residual(t: Tensor) -> tuple[Tensor, Tensor] | None:
         s = s0 + torch.einsum("k,kij->ij", t, v)
         if float(torch.linalg.eigvalsh(s).min()) <= 0:
             return None
-        k = longitudinal_map(s0, s)
-        p = torch.linalg.inv(k @ r @ k.T)
-        d = p.diagonal()
-        return p[ii, jj] / (d[ii] * d[jj]).sqrt()
+        return torch.linalg.inv(s), s
 
-    t = torch.zeros(v.shape[0], dtype=torch.float64)
-    g = partial(t)
-    eye = torch.eye(v.shape[0], dtype=torch.float64)
-    h = 1e-6  # t is in correlation units (directions of unit norm there)
     for _ in range(iterations):
-        if g is None or float(g.abs().max()) < 1e-10:
+        p, _s = residual(t)  # type: ignore[misc]
+        g = torch.einsum("ij,kji->k", p, off)
+        if float(g.abs().max()) < 1e-12 * float(p.diagonal().max()):
             break
-        cols = [partial(t + h * e) for e in eye]
-        if any(c is None for c in cols):
-            break
-        jac = torch.stack([(c - g) / h for c in cols], 1)  # type: ignore[operator]
+        # d tr(P V_j,off) / d t_k = -tr(P V_k P V_j,off)
+        jac = -torch.einsum("ab,kbc,cd,jda->jk", p, v, p, off)
         step = torch.linalg.lstsq(jac, -g[:, None]).solution[:, 0]
         for _half in range(30):
-            trial = partial(t + step)
-            if trial is not None and float(trial.norm()) < float(g.norm()):
-                break
+            trial = residual(t + step)
+            if trial is not None:
+                g_new = torch.einsum("ij,kji->k", trial[0], off)
+                if float(g_new.norm()) < float(g.norm()):
+                    break
             step = step / 2
         else:
             break
-        t, g = t + step, trial
+        t = t + step
     return s0 + torch.einsum("k,kij->ij", t, v)
 
 
@@ -351,9 +185,9 @@ def place_members(
         seed: Seed of those samples.
 
     Returns:
-        New state dicts (the inputs are not changed): with ``A`` the map of
-        :func:`longitudinal_map` and ``mu`` the member's centroid, particles
-        become ``mu + A (x - mu)``, written into the offset, the mixing matrix and
+        New state dicts (the inputs are not changed): with ``A`` the transport
+        map and ``mu`` the member's centroid, particles become
+        ``mu + A (x - mu)``, written into the offset, the mixing matrix and
         the last linear layer of the generator.
     """
     if dims != 6:
@@ -371,8 +205,8 @@ def place_members(
         if directions.shape[0] == 0:
             out.append(dict(state))
             continue
-        target = place_unseen(cov, directions, residual_covariance(x))
-        out.append(_fold(state, longitudinal_map(cov, target), mu))
+        a = transport_map(cov, place_unseen(cov, directions))
+        out.append(_fold(state, a, mu))
     return out
 
 
