@@ -1,0 +1,87 @@
+"""Issue 9's acceptance numbers on a beam that fills the screens differently (slow).
+
+"Do not tune to this one file": the AWA 6D geometry of the shared files
+(quadrupole x TDC x dipole, two screens, 96 x 96 histogram images, even
+quadrupole settings for training, odd ones held out) with a beam of the shared
+file's README family (energy chirp with curvature, x-z tilt) but other sizes:
+2x its rms x, 1.6x its rms y, 0.37x its energy spread, converging in y. It is
+``wide`` of ``benchmarks/reconstruction_6d_beams.py`` (the generalisation
+audit, docs/generalisation_6d.md), built here again so the test does not
+import the benchmarks.
+
+The other-beam test (three-mode nonlinear beam) did not catch a 6D default
+that regressed this beam: a training-held prior of the unseen directions
+(3b83105, reverted) gave z emittance +17 % (seed 0) and +44 % (seed 1) here
+while the three-mode beam passed. With the default as of 4d8a415 (1 thread):
+rms within 2.0 %, z emittance +4.3 %, 6D -4.6 %, z-pz correlation -0.023,
+held-out relative L1 0.076 / 0.086 (seeds 1, 2: z emittance -0.9, +0.9 %).
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from test_acceptance_6d_slow import LIMITS  # the shared 6D benchmark's limits
+
+from diffaccel.data import make_synthetic_awa6d
+from diffaccel.reconstruction import (
+    ReconstructionConfig,
+    image_errors,
+    moment_errors,
+    reconstruct,
+)
+
+pytestmark = pytest.mark.slow
+
+#: the shared 6D benchmark's split: k1 = -12, -6, 0, 6, 12 train; -9, -3, 3, 9 test
+TRAIN_K1 = (-12.0, -6.0, 0.0, 6.0, 12.0)
+TEST_K1 = (-9.0, -3.0, 3.0, 9.0)
+
+
+def wide_beam(n: int, seed: int) -> torch.Tensor:
+    """Chirped, tilted family beam: rms x 1.0 mm, y 0.75 mm, pz 0.14 %, Bmad (n, 6)."""
+    g = torch.Generator().manual_seed(seed)
+    u = torch.randn(n, 6, generator=g, dtype=torch.float64)
+    x = 1.0e-3 * u[:, 0]
+    px = 3.5e-4 * (-0.85 * u[:, 0] + (1 - 0.85**2) ** 0.5 * u[:, 1])
+    y = 0.75e-3 * u[:, 2]
+    py = 2.6e-4 * (-0.6 * u[:, 2] + 0.8 * u[:, 3])  # converging in y
+    z = 0.7e-3 * u[:, 4] + 0.3 * x  # x-z tilt
+    # energy chirp with curvature [1/m, 1/m^2] and an uncorrelated spread
+    pz = 1.5 * z + 600.0 * (z**2 - (z**2).mean()) + 0.6e-3 * u[:, 5]
+    beam = torch.stack([x, px, y, py, z, pz], -1)
+    return beam - beam.mean(0)
+
+
+@pytest.fixture(scope="module")
+def run():
+    beam = wide_beam(200_000, seed=14)
+    train = make_synthetic_awa6d(particles=beam, k1_values=TRAIN_K1, seed=14)
+    test = make_synthetic_awa6d(particles=beam, k1_values=TEST_K1, seed=14)
+    result = reconstruct(train, ReconstructionConfig(dims=6), uncertainty=False)
+    errors = moment_errors(result.sample(200_000), beam)
+    held = {
+        name: image_errors(
+            result.predict_images(scan.settings, scan=name), scan.mean_images()
+        )["relative_l1"]
+        for name, scan in test
+    }
+    return errors, held
+
+
+@pytest.mark.parametrize("key", list(LIMITS))
+def test_moments_match_the_truth(run, key: str) -> None:
+    errors, _ = run
+    assert abs(errors[key]) <= LIMITS[key], errors[key]
+
+
+@pytest.mark.parametrize("key", [f"corr_diff_{p}" for p in ("x_z", "y_py", "z_pz")])
+def test_correlations_within_0_05(run, key: str) -> None:
+    errors, _ = run
+    assert abs(errors[key]) <= 0.05, errors[key]
+
+
+@pytest.mark.parametrize("scan", ["dipole_off", "dipole_on"])
+def test_held_out_images_relative_l1_at_most_0_15(run, scan: str) -> None:
+    _, held = run
+    assert held[scan] <= 0.15, held[scan]
