@@ -113,9 +113,10 @@ class BeamGenerator(nn.Module):
         """Map base samples ``(n, dims)`` to particles ``(n, 6)`` [Bmad units]."""
         h = base
         layers = [m for m in self.mlp if isinstance(m, nn.Linear)]
-        for lin in layers[:-1]:
+        *hidden, last = layers
+        for lin in hidden:
             h = _hidden_layer(h, lin.weight.T, lin.bias, self.dims)
-        u = torch.addmm(lin_out(h, layers[-1]), base, self.mix.T)
+        u = torch.addmm(last.bias, h, last.weight.T).addmm_(base, self.mix.T)
         # s0 * (b + exp(a) * u) with the (dims,) factors formed first: one
         # fused multiply-add over the particles
         x = torch.addcmul(
@@ -283,11 +284,6 @@ def _hidden_layer(h: Tensor, weight_t: Tensor, bias: Tensor, dims: int) -> Tenso
         return tanh_layer(h, weight_t, bias)
     z = torch.addmm(bias, h, weight_t)
     return z.tanh_() if not z.requires_grad else z.tanh()
-
-
-def lin_out(h: Tensor, lin: nn.Linear) -> Tensor:
-    """The MLP's last (linear) layer: ``h @ W.T + b``."""
-    return torch.addmm(lin.bias, h, lin.weight.T)
 
 
 class FlatGenerator:
