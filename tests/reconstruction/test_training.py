@@ -101,8 +101,9 @@ def test_corrupt_checkpoint(tmp_path: Path) -> None:
         ({"dims": 5}, "dims must be 4 or 6"),
         ({"image_loss": "l3"}, "image_loss"),
         ({"n_particles": 3}, "n_particles"),
+        ({"unseen_prior": "quadratic"}, "unseen_prior"),
     ],
-    ids=["cycles", "dims", "loss", "particles"],
+    ids=["cycles", "dims", "loss", "particles", "prior"],
 )
 def test_bad_config(kwargs: dict, match: str) -> None:
     with pytest.raises(ValueError, match=match):

@@ -207,7 +207,13 @@ def reconstruct(
         # longitudinal directions the scans cannot see: placed by a stated
         # prior, not wherever training drifted (see reconstruction.unseen)
         snapshots = place_members(
-            snapshots, config.dims, config.width, config.depth, maps, seed=config.seed
+            snapshots,
+            config.dims,
+            config.width,
+            config.depth,
+            maps,
+            seed=config.seed,
+            prior=config.unseen_prior,
         )
     t_place = time.perf_counter() - t_place
     per_scan = {

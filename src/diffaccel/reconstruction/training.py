@@ -35,6 +35,7 @@ from diffaccel.reconstruction.losses import (
     off_screen_allowance,
     penalty_schedule,
 )
+from diffaccel.reconstruction.unseen import UNSEEN_PRIORS
 
 logger = logging.getLogger(__name__)
 
@@ -235,6 +236,14 @@ class ReconstructionConfig:
             against py-z) to the point of zero partial correlation (see
             :mod:`diffaccel.reconstruction.unseen`). Training alone drifts
             there to the largest entropy: pz +8 to +44 % on synthetic beams.
+        unseen_prior: The prior point of ``place_unseen``
+            (:func:`~diffaccel.reconstruction.unseen.place_unseen`): ``"pair"``
+            (default) zero partial correlation of the pair each direction
+            trades (px-pz, py-z) given the other coordinates; ``"gaussian"``
+            the earlier ``tr(P V_off) = 0`` over the direction's whole
+            off-diagonal part (it also weighs the seen z-pz chirp in:
+            ``docs/generalisation_6d.md``, double_horn emit_z +10 to +12 %
+            with it, +3 to +6 % with ``"pair"``).
         seed: Seed of the explicit ``torch.Generator`` (weights and samples).
         checkpoint_every: Steps between checkpoints (also at every snapshot).
         report_every: Steps between reads of the losses from the device (the
@@ -262,6 +271,7 @@ class ReconstructionConfig:
     longitudinal_scale: tuple[float, float] = (1e-3, 1e-3)
     prior_factor: float = 3.0
     place_unseen: bool = True
+    unseen_prior: str = "pair"
     seed: int = 0
     checkpoint_every: int = 100
     report_every: int = 10
@@ -292,6 +302,11 @@ class ReconstructionConfig:
             raise ValueError(
                 f"steps ({self.steps}) must be a multiple of snapshots "
                 f"({self.snapshots}) so that every cycle has the same length."
+            )
+        if self.unseen_prior not in UNSEEN_PRIORS:
+            raise ValueError(
+                f"unseen_prior must be one of {UNSEEN_PRIORS}; got "
+                f"{self.unseen_prior!r}."
             )
         if self.report_every < 1:
             raise ValueError(f"report_every must be >= 1; got {self.report_every}.")
