@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -146,3 +147,16 @@ def test_save_load_keeps_every_forward_model(result, tmp_path: Path) -> None:
 def test_training_selection_errors_name_the_scan(two_scans, selection, message):
     with pytest.raises(ValueError, match=message):
         training_selection(two_scans, selection)
+
+
+def test_refit_of_placed_members_changes_them(two_scans, result) -> None:
+    """``refit_steps`` (opt-in): every member is trained again after placement."""
+    refit = reconstruct(
+        two_scans,
+        replace(CONFIG, refit_steps=2),
+        train_indices={"straight": [0, 2, 4], "bent": [0, 1, 2]},
+        uncertainty=False,
+    )
+    assert refit.n_snapshots == result.n_snapshots
+    for a, b in zip(refit.snapshots, result.snapshots, strict=True):
+        assert not torch.equal(a["offset"], b["offset"])

@@ -9,9 +9,12 @@ import torch
 
 from diffaccel.reconstruction import (
     ReconstructionConfig,
+    ScreenForwardModel,
     load_checkpoint,
     reconstruct,
 )
+from diffaccel.reconstruction.initial import fit_gaussian
+from diffaccel.reconstruction.training import train_generator
 
 FAST = {"n_particles": 1024, "steps": 24, "snapshots": 3, "checkpoint_every": 5}
 
@@ -102,8 +105,10 @@ def test_corrupt_checkpoint(tmp_path: Path) -> None:
         ({"image_loss": "l3"}, "image_loss"),
         ({"n_particles": 3}, "n_particles"),
         ({"unseen_prior": "quadratic"}, "unseen_prior"),
+        ({"refit_steps": -1}, "refit_steps"),
+        ({"refit_lr": 0.0}, "refit_lr"),
     ],
-    ids=["cycles", "dims", "loss", "particles", "prior"],
+    ids=["cycles", "dims", "loss", "particles", "prior", "refit", "refit_lr"],
 )
 def test_bad_config(kwargs: dict, match: str) -> None:
     with pytest.raises(ValueError, match=match):
@@ -209,3 +214,19 @@ def test_transfer_maps_are_computed_once_per_run(small_scan, monkeypatch) -> Non
     # recomputed from the forward models (another tolerance bypasses the stored)
     recomputed = r.unconstrained_coordinates(tolerance=1.0000001e-3)
     assert recomputed == r.info["unconstrained_coordinates"]
+
+
+def test_training_starts_from_an_initial_model(small_scan) -> None:
+    """``initial_model``: the refit of placed members starts from them."""
+    fwd = ScreenForwardModel.from_dataset(small_scan, blur_pixels=1.0)
+    images, sets = small_scan.mean_images(), small_scan.settings
+    guess = fit_gaussian([fwd], [images], [sets])
+    cfg = ReconstructionConfig(**{**FAST, "steps": 4, "snapshots": 1})
+    start = train_generator(fwd, images, sets, guess, cfg).model
+    # a learning rate too small to move: the result is the initial model
+    still = replace(cfg, lr_max=1e-12, lr_min=1e-12, seed=3)
+    out = train_generator(fwd, images, sets, guess, still, initial_model=start).model
+    for k, v in start.items():
+        torch.testing.assert_close(out[k], v, rtol=0, atol=1e-9)
+    fresh = train_generator(fwd, images, sets, guess, still).model
+    assert not torch.allclose(fresh["log_scale"], start["log_scale"])

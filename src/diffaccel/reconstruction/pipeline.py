@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -16,7 +17,7 @@ from diffaccel.reconstruction.ensemble import (
     unconstrained_coordinates,
 )
 from diffaccel.reconstruction.forward import ScreenForwardModel
-from diffaccel.reconstruction.initial import fit_gaussian
+from diffaccel.reconstruction.initial import GaussianGuess, fit_gaussian
 from diffaccel.reconstruction.metrics import beam_moments
 from diffaccel.reconstruction.training import (
     ReconstructionConfig,
@@ -215,6 +216,19 @@ def reconstruct(
             seed=config.seed,
             prior=config.unseen_prior,
         )
+        if config.refit_steps > 0:
+            snapshots = refit_members(
+                snapshots,
+                list(forwards.values()),
+                [m.to(device) for m in measured],
+                settings,
+                guess,
+                config,
+                maps,
+                device=device,
+            )
+            for fwd in forwards.values():
+                fwd.to("cpu")
     t_place = time.perf_counter() - t_place
     per_scan = {
         name: {
@@ -250,6 +264,73 @@ def reconstruct(
         )
         result.info["timings_s"]["uncertainty"] = time.perf_counter() - t2
     return result
+
+
+def refit_members(
+    snapshots: Sequence[dict],
+    forwards: Sequence[ScreenForwardModel],
+    measured: Sequence[torch.Tensor],
+    settings: Sequence[torch.Tensor],
+    guess: GaussianGuess,
+    config: ReconstructionConfig,
+    maps: Sequence[torch.Tensor],
+    *,
+    device: str | torch.device = "cpu",
+) -> list[dict]:
+    """Placed members fitted again to the images, then placed again.
+
+    Each member (already moved along the unseen directions) trains for
+    ``config.refit_steps`` steps (one cosine cycle from ``config.refit_lr``
+    to ``config.lr_min`` at the final image penalty), so that the image
+    shapes follow the moved second moments; the short fit drifts little along
+    the unseen directions, and :func:`place_members` then removes that drift
+    (a small move, so the images change little). Opt-in
+    (``ReconstructionConfig.refit_steps``): see its numbers there.
+
+    Args:
+        snapshots: Placed members (generator state dicts).
+        forwards: Each scan's forward model (as trained).
+        measured: Each scan's sum-normalised training images ``(K_s, H_s, W_s)``.
+        settings: Their settings ``(K_s, P_s)``.
+        guess: The Gaussian that initialised training (same prior).
+        config: The run's settings (``refit_steps``, ``refit_lr``, ``seed``).
+        maps: Each scan's affine maps of its training settings ``(K_s, 7, 7)``.
+        device: Device to refit on.
+
+    Returns:
+        The refitted and placed state dicts, one per member.
+    """
+    short = dataclasses.replace(
+        config,
+        steps=config.refit_steps,
+        snapshots=1,
+        burn_in=0,
+        lr_max=config.refit_lr,
+        penalty_start=config.penalty_end,
+        checkpoint_every=10**9,
+    )
+    out = []
+    for k, member in enumerate(snapshots):
+        state = train_generator(
+            list(forwards),
+            list(measured),
+            list(settings),
+            guess,
+            dataclasses.replace(short, seed=config.seed + 1000 * (k + 1)),
+            device=device,
+            maps=maps,
+            initial_model=member,
+        )
+        out.append(state.model)
+    return place_members(
+        out,
+        config.dims,
+        config.width,
+        config.depth,
+        maps,
+        seed=config.seed,
+        prior=config.unseen_prior,
+    )
 
 
 def psf_excess(fwd: ScreenForwardModel) -> tuple[float, float]:

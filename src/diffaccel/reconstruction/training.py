@@ -244,6 +244,18 @@ class ReconstructionConfig:
             off-diagonal part (it also weighs the seen z-pz chirp in:
             ``docs/generalisation_6d.md``, double_horn emit_z +10 to +12 %
             with it, +3 to +6 % with ``"pair"``).
+        refit_steps: With ``place_unseen``, fit each placed member to the
+            training images again for this many steps (one cosine cycle from
+            ``refit_lr`` to ``lr_min`` at ``penalty_end``) and place it again
+            (:func:`~diffaccel.reconstruction.pipeline.refit_members`). 0
+            (default): no refit. Opt-in: on the audit beams 30 steps brought
+            held-out image errors down (chirp_weak_tilted seed 2 dipole_on
+            0.194 -> 0.106, chirp_negative 0.18-0.21 -> 0.10-0.11,
+            family_draw_a seed 0 0.145 -> 0.088) but did not make the moments
+            better (chirp_negative x emittance +5.2 to +5.9 %, limit 5 %;
+            family_draw_b seed 0 emit_z -13.5 % where it met without; see
+            docs/generalisation_6d.md); ~25 % more training time.
+        refit_lr: Learning rate at the start of the refit.
         seed: Seed of the explicit ``torch.Generator`` (weights and samples).
         checkpoint_every: Steps between checkpoints (also at every snapshot).
         report_every: Steps between reads of the losses from the device (the
@@ -272,6 +284,8 @@ class ReconstructionConfig:
     prior_factor: float = 3.0
     place_unseen: bool = True
     unseen_prior: str = "pair"
+    refit_steps: int = 0
+    refit_lr: float = 1e-3
     seed: int = 0
     checkpoint_every: int = 100
     report_every: int = 10
@@ -308,6 +322,10 @@ class ReconstructionConfig:
                 f"unseen_prior must be one of {UNSEEN_PRIORS}; got "
                 f"{self.unseen_prior!r}."
             )
+        if self.refit_steps < 0:
+            raise ValueError(f"refit_steps must be >= 0; got {self.refit_steps}.")
+        if not self.refit_lr > 0:
+            raise ValueError(f"refit_lr must be > 0; got {self.refit_lr}.")
         if self.report_every < 1:
             raise ValueError(f"report_every must be >= 1; got {self.report_every}.")
         if self.n_particles < 16:
@@ -519,6 +537,7 @@ def train_generator(
     device: str | torch.device | None = None,
     distributed: bool = False,
     maps: Sequence[Tensor] | None = None,
+    initial_model: dict | None = None,
 ) -> TrainingState:
     """Fit a :class:`BeamGenerator` to screen images and collect snapshot members.
 
@@ -570,6 +589,9 @@ def train_generator(
             of the sums. Only process 0 writes checkpoints.
         maps: Each scan's :meth:`ScreenForwardModel.transfer_maps` of its
             settings when the caller has computed them (not computed again).
+        initial_model: Generator state dict to start from instead of the
+            Gaussian ``guess`` (the guess still sets the prior of the entropy
+            term); used by the refit of placed members.
 
     Shapes:
         Scan ``s``: ``measured (K_s, H_s, W_s)``, ``settings (K_s, P_s)``.
@@ -626,6 +648,8 @@ def train_generator(
     prior_mean = offset.to(device=device, dtype=torch.float64)
     state = TrainingState(history=_new_history(), fingerprint=fingerprint)
     ckpt = Path(checkpoint) if checkpoint is not None else None
+    if initial_model is not None:
+        model.load_state_dict(initial_model)  # copies into net.flat
     if resume and ckpt is not None and ckpt.exists():
         state = load_checkpoint(ckpt)
         if state.fingerprint != fingerprint:
