@@ -452,3 +452,133 @@ def test_kde_particle_chunks_gradcheck(monkeypatch) -> None:
         return kde_image(x, y, (40, 6), 1e-3, bandwidth=1e-3, weights=w)
 
     assert torch.autograd.gradcheck(f, (x, y, w), fast_mode=True)
+
+
+def _threaded_case(dtype, weighted: bool, b: int = 5):
+    g = torch.Generator().manual_seed(17)
+    n, shape, pixel, h = 300, (30, 24), 1e-3, (1.1e-3, 0.9e-3)
+    spread = torch.linspace(1.0, 4.0, b, dtype=dtype)[:, None]
+    x = torch.randn(b, n, generator=g, dtype=dtype) * 1.5e-3 * spread
+    y = torch.randn(b, n, generator=g, dtype=dtype) * 6e-3 / spread
+    x[:, :2] = torch.tensor([-0.05, 0.04], dtype=dtype)  # beyond the edges
+    if b > 1:
+        x[1] += 1.0  # the whole image off the screen
+    w = torch.rand(b, n, generator=g, dtype=dtype) + 0.5 if weighted else None
+    weight = torch.linspace(-1, 2, b * shape[0] * shape[1], dtype=dtype)
+    return x, y, shape, pixel, h, w, weight
+
+
+@pytest.mark.parametrize("weighted", [False, True], ids=["unweighted", "weighted"])
+@pytest.mark.parametrize("b", [1, 5])
+def test_kde_worker_threads_equal_calling_thread(monkeypatch, weighted, b) -> None:
+    """Images spread over worker threads (one intra-op thread each) equal,
+    bit for bit, those computed in the calling thread with one intra-op thread,
+    whatever the number of workers; the caller's thread count is unchanged."""
+    import diffaccel.dynamics.images as images
+
+    monkeypatch.setattr(images, "_THREAD_MIN_PARTICLES", 1)
+    x, y, shape, pixel, h, w, weight = _threaded_case(torch.float32, weighted, b)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        monkeypatch.setenv("DIFFACCEL_KDE_THREADS", "1")
+        reference = _kde_and_grads(x, y, shape, pixel, h, w, weight)
+        for workers in ("2", "3"):
+            monkeypatch.setenv("DIFFACCEL_KDE_THREADS", workers)
+            assert images._image_workers(x, b) == min(int(workers), b)
+            threaded = _kde_and_grads(x, y, shape, pixel, h, w, weight)
+            for a, r in zip(threaded, reference, strict=True):
+                assert torch.equal(a, r)
+            assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.get_num_threads() == threads
+
+
+@pytest.mark.parametrize("weighted", [False, True], ids=["unweighted", "weighted"])
+def test_kde_worker_threads_equal_dense_reference(monkeypatch, weighted) -> None:
+    """Threaded images and gradients (float64, images off the screen, unequal
+    windows) equal the full-screen reference computed without any window."""
+    import diffaccel.dynamics.images as images
+
+    monkeypatch.setattr(images, "_THREAD_MIN_PARTICLES", 1)
+    monkeypatch.setenv("DIFFACCEL_KDE_THREADS", "2")
+    x, y, shape, pixel, h, w, weight = _threaded_case(F64, weighted)
+    threaded = _kde_and_grads(x, y, shape, pixel, h, w, weight)
+    monkeypatch.setattr(images, "_full_screen_path", lambda t: True)
+    full = _kde_and_grads(x, y, shape, pixel, h, w, weight)
+    torch.testing.assert_close(threaded[0], full[0], rtol=1e-12, atol=1e-15)
+    for a, b in zip(threaded[1:], full[1:], strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_kde_worker_threads_gradcheck(monkeypatch) -> None:
+    import diffaccel.dynamics.images as images
+
+    monkeypatch.setattr(images, "_THREAD_MIN_PARTICLES", 1)
+    monkeypatch.setenv("DIFFACCEL_KDE_THREADS", "2")
+    g = torch.Generator().manual_seed(18)
+    x = (torch.randn(3, 7, generator=g, dtype=F64) * 1e-3).requires_grad_(True)
+    y = (torch.randn(3, 7, generator=g, dtype=F64) * 12e-3).requires_grad_(True)
+    w = (torch.rand(3, 7, generator=g, dtype=F64) + 0.5).requires_grad_(True)
+
+    def f(x, y, w):
+        return kde_image(x, y, (40, 6), 1e-3, bandwidth=(1e-3, 0.7e-3), weights=w)
+
+    assert torch.autograd.gradcheck(f, (x, y, w), fast_mode=True)
+
+
+def test_kde_worker_threads_when_and_how_many(monkeypatch) -> None:
+    import diffaccel.dynamics.images as images
+
+    big = torch.zeros(4, images._THREAD_MIN_PARTICLES)
+    small = torch.zeros(4, images._THREAD_MIN_PARTICLES - 1)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        monkeypatch.delenv("DIFFACCEL_KDE_THREADS", raising=False)
+        assert images._image_workers(big, 4) == 2
+        assert images._image_workers(big, 1) == 1
+        assert images._image_workers(small, 4) == 1
+        with torch.profiler.profile():  # the profiler would miss the workers' ops
+            assert images._image_workers(big, 4) == 1
+        for setting, workers in (("0", 1), ("1", 1), ("auto", 2), ("3", 3)):
+            monkeypatch.setenv("DIFFACCEL_KDE_THREADS", setting)
+            assert images._image_workers(big, 4) == workers
+        torch.set_num_threads(1)
+        monkeypatch.setenv("DIFFACCEL_KDE_THREADS", "auto")
+        assert images._image_workers(big, 4) == 1
+        monkeypatch.setenv("DIFFACCEL_KDE_THREADS", "two")
+        with pytest.raises(ValueError, match="DIFFACCEL_KDE_THREADS"):
+            images._image_workers(big, 4)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_kde_worker_thread_failure_names_the_image(monkeypatch) -> None:
+    import diffaccel.dynamics.images as images
+
+    monkeypatch.setattr(images, "_THREAD_MIN_PARTICLES", 1)
+    monkeypatch.setenv("DIFFACCEL_KDE_THREADS", "2")
+
+    def broken(*args):
+        raise FloatingPointError("boom")
+
+    monkeypatch.setattr(images, "_tile_forward", broken)
+    x = torch.zeros(3, 5)
+    with pytest.raises(RuntimeError, match="image 0 failed in a worker thread") as e:
+        kde_image(x, x, (8, 8), 1e-3)
+    assert isinstance(e.value.__cause__, FloatingPointError)
+
+
+def test_kde_worker_threads_under_inference_mode(monkeypatch) -> None:
+    import diffaccel.dynamics.images as images
+
+    monkeypatch.setattr(images, "_THREAD_MIN_PARTICLES", 1)
+    x, y, shape, pixel, h, w, _ = _threaded_case(torch.float32, True)
+    monkeypatch.setenv("DIFFACCEL_KDE_THREADS", "1")
+    reference = kde_image(x, y, shape, pixel, bandwidth=h, weights=w)
+    monkeypatch.setenv("DIFFACCEL_KDE_THREADS", "2")
+    with torch.inference_mode():
+        image = kde_image(x, y, shape, pixel, bandwidth=h, weights=w)
+    torch.testing.assert_close(image, reference, rtol=1e-6, atol=1e-9)

@@ -11,8 +11,11 @@ fraction of the beam that lands on the screen; images are never renormalised.
 from __future__ import annotations
 
 import math
+import os
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor, wait
+from typing import TypeVar
 
 import torch
 from torch import Tensor
@@ -28,6 +31,7 @@ _LOG2_E = 1.0 / math.log(2.0)
 # Kernel truncation radius of the KDE, in bandwidths (float64; float32).
 _KDE_CUT = 9.0
 _KDE_CUT_FLOAT32 = 6.0
+_T = TypeVar("_T")
 
 
 def _pair(value: Sequence[float] | float | Tensor, what: str) -> tuple[float, float]:
@@ -343,6 +347,20 @@ def kde_image(
     between their passes), in a reused workspace (fresh memory costs a page
     fault per 4 KiB on first touch), and the backward recomputes them.
 
+    CPU worker threads: with ``torch.get_num_threads() >= 2``, at least 2 images
+    and at least 2^15 particles per image, the images (forward and backward) are
+    spread over a reused pool of worker threads, each running torch with one
+    intra-op thread, instead of using torch's intra-op threads: the many small
+    ops of an image wake the OpenMP team on every call, which costs more than it
+    gains (2-core AMD EPYC KVM guest: aten::sub 5x and aten::mm 2.4x slower per
+    call at 2 threads than at 1). Each image is computed by the same code with one
+    intra-op thread, so results do not depend on the number of workers (they
+    equal a 1-thread run bit for bit). The environment variable
+    ``DIFFACCEL_KDE_THREADS`` sets it: ``auto`` (default: up to
+    ``torch.get_num_threads()`` workers), ``0`` or ``1`` (none: the calling
+    thread, with its intra-op threads), or a number of workers. Never used
+    under the autograd profiler, while compiling, or for tensor subclasses.
+
     Args:
         x: Horizontal positions [m], shape ``(*K, N)``.
         y: Vertical positions [m], shape ``(*K, N)``.
@@ -386,12 +404,8 @@ def kde_image(
     cut = _KDE_CUT if x.dtype == torch.float64 else _KDE_CUT_FLOAT32
     lo_x, hi_x = _reach(x, hx * cut, psx, cx, w)
     lo_y, hi_y = _reach(y, hy * cut, psy, cy, h)
-    image = x.new_zeros(b, h, w)
-    # unbind once: indexing x[i] in the loop would give each image a backward
-    # that zero-fills a full (B, N) gradient
-    x_rows, y_rows = x.unbind(0), y.unbind(0)
-    w_rows = (None,) * b if weights is None else weights.unbind(0)
     x0, y0 = cx - (w - 1) / 2 * psx, cy - (h - 1) / 2 * psy  # first pixel centres
+    plans = []
     for i in range(b):
         rows, cols = hi_y[i] - lo_y[i], hi_x[i] - lo_x[i]
         if rows <= 0 or cols <= 0:
@@ -399,21 +413,13 @@ def kde_image(
         # tiles along the longer side of the window, the kernel matrix along the
         # shorter one (it costs one kernel value per window pixel and particle)
         if cols < rows:
-            image[i, :, lo_x[i] : hi_x[i]] = _TileKDE.apply(
-                y_rows[i],
-                x_rows[i],
-                xs[lo_x[i] : hi_x[i]],
-                (y0, psy, h, hy, hx, cut),
-                w_rows[i],
-            )
+            plans.append((i, True, lo_x[i], hi_x[i], (y0, psy, h, hy, hx, cut)))
         else:
-            image[i, lo_y[i] : hi_y[i], :] = _TileKDE.apply(
-                x_rows[i],
-                y_rows[i],
-                ys[lo_y[i] : hi_y[i]],
-                (x0, psx, w, hx, hy, cut),
-                w_rows[i],
-            ).transpose(0, 1)
+            plans.append((i, False, lo_y[i], hi_y[i], (x0, psx, w, hx, hy, cut)))
+    # widest windows first: the most work, so worker threads finish together
+    plans.sort(key=lambda plan: plan[3] - plan[2], reverse=True)
+    workers = _image_workers(x, len(plans))
+    image = _TileKDE.apply(x, y, xs, ys, plans, weights, workers)
     image = image * (norm / total.reshape(b, 1, 1))
     return image.reshape(*batch, h, w)
 
@@ -520,7 +526,96 @@ class _FullScreenKDE(torch.autograd.Function):
         return gx, gy, None, None, None, gw
 
 
+# (t0, pt, nt, ht, hd, cut) of _tile_forward; (image, tall, lo, hi, geometry)
+_TileGeometry = tuple[float, float, int, float, float, float]
+_TilePlan = tuple[int, bool, int, int, _TileGeometry]
+
+
 class _TileKDE(torch.autograd.Function):
+    """All ``B`` windowed images of the CPU path (see :func:`_tile_forward`).
+
+    One autograd node for the batch: the forward computes each image's window
+    by :func:`_tile_forward` and writes it into the ``(B, H, W)`` image; the
+    backward gives each image's gradients by :func:`_tile_backward`. Images are
+    independent, so they may be computed by worker threads (see
+    :func:`_map_images`); each image is computed by the same code whatever the
+    number of workers.
+
+    ``plans`` holds, per non-empty image, ``(i, tall, lo, hi, geometry)``:
+    image ``i``, whose window is the pixels ``[lo, hi)`` along x (``tall``: the
+    tiles run along y, the whole screen height) or along y (tiles along x), and
+    the ``geometry`` of :func:`_tile_forward`.
+
+    Shapes:
+        ``x, y, weights (B, N)``, ``xs (W,)``, ``ys (H,)`` -> ``(B, H, W)``.
+    """
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx,
+        x: Tensor,
+        y: Tensor,
+        xs: Tensor,
+        ys: Tensor,
+        plans: list[_TilePlan],
+        weights: Tensor | None,
+        workers: int,
+    ) -> Tensor:
+        b, n = x.shape
+        image = x.new_zeros(b, ys.shape[0], xs.shape[0])
+
+        def one(k: int) -> tuple:
+            i, tall, lo, hi, geometry = plans[k]
+            wi = None if weights is None else weights[i]
+            if tall:
+                window = _tile_forward(y[i], x[i], xs[lo:hi], geometry, wi)
+                image[i, :, lo:hi].copy_(window[0])
+            else:
+                window = _tile_forward(x[i], y[i], ys[lo:hi], geometry, wi)
+                image[i, lo:hi, :].copy_(window[0].t())
+            return window[1:]
+
+        states = _map_images(one, [plan[0] for plan in plans], workers)
+        ctx.plans, ctx.workers, ctx.n = plans, workers, n
+        ctx.states = [(geometry, bands) for _, geometry, bands in states]
+        ctx.save_for_backward(*(t for tensors, _, _ in states for t in tensors))
+        return image
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
+        saved = ctx.saved_tensors
+        need_w = ctx.needs_input_grad[5]
+        b, n = grad.shape[0], ctx.n
+        gx = grad.new_zeros(b, n)
+        gy = grad.new_zeros(b, n)
+        gw = grad.new_zeros(b, n) if need_w else None
+
+        def one(k: int) -> None:
+            i, tall, lo, hi, _ = ctx.plans[k]
+            geometry, bands = ctx.states[k]
+            tensors = saved[5 * k : 5 * k + 5]
+            wi = None if gw is None else gw[i]
+            if tall:
+                g = grad[i, :, lo:hi]
+                _tile_backward(g, tensors, geometry, bands, gy[i], gx[i], wi)
+            else:
+                g = grad[i, lo:hi, :].t()
+                _tile_backward(g, tensors, geometry, bands, gx[i], gy[i], wi)
+
+        workers = ctx.workers if not torch.is_grad_enabled() else 1
+        _map_images(one, [plan[0] for plan in ctx.plans], workers)
+        gx = gx if ctx.needs_input_grad[0] else None
+        gy = gy if ctx.needs_input_grad[1] else None
+        return gx, gy, None, None, None, gw, None
+
+
+def _tile_forward(
+    t: Tensor,
+    d: Tensor,
+    centers: Tensor,
+    geometry: _TileGeometry,
+    weights: Tensor | None,
+) -> tuple[Tensor, tuple[Tensor | None, ...], tuple, list[tuple[int, int, int]]]:
     """One image ``sum_n w_n g_t(t_i - t_n) g_d(d_j - d_n)`` (unnormalised Gaussians).
 
     ``t`` is the tiled axis (the whole screen side of ``nt`` pixels), ``d`` the
@@ -536,115 +631,124 @@ class _TileKDE(torch.autograd.Function):
     evaluated and used in chunks of particles (see :func:`_chunk_particles`) in a
     reused buffer (see :func:`_workspace`); the backward recomputes them.
 
-    Backward (analytic): with ``T = G_band Kd`` and ``X = (G_band diag(d_j)) Kd``
-    (one product per band), ``dL/dt_n = w_n sum_k tile_nk T_nk (k - r - f_n) p / h_t^2``
-    and ``dL/dd_n = w_n sum_k tile_nk (X_nk - d_n T_nk) / h_d^2`` (``f_n`` the
-    offset from the nearest pixel in pixels, ``p`` the pixel size).
+    ``geometry`` is ``(t0, pt, nt, ht, hd, cut)``: first pixel centre and pixel
+    size along ``t`` [m], pixels along ``t``, bandwidths along ``t`` and ``d``
+    [m], cut in bandwidths. Inputs are not differentiated through (detached).
+
+    Returns:
+        The window ``(nt, nd)``, then what :func:`_tile_backward` needs: the
+        saved tensors ``(f, d_rel, c_rel, w, order)``, the geometry
+        ``(r, n_bands, pt, ht, hd)`` and the bands.
 
     Shapes:
         ``t, d, weights (N,)``, ``centers (nd,)`` -> ``(nt, nd)``.
     """
+    t0, pt, nt, ht, hd, cut = geometry
+    r = math.floor(cut * ht / pt + 0.5)
+    nk, n_bands = 2 * r + 1, nt + 2 * r
+    n = t.shape[0]
+    # pixel coordinate along t; band (row + r) of the nearest pixel
+    v = (t.detach() - t0) / pt
+    band = torch.round(v)
+    f = v - band  # offset from the nearest pixel centre, [-1/2, 1/2] pixel
+    # off the screen (band < 0 or >= n_bands) -> n_bands
+    band = band.add_(r).clamp_(-1, n_bands).remainder_(n_bands + 1)
+    # small integer keys: radix sort (int16 is 5x faster than int32, uint8
+    # another 1.4x faster than int16)
+    itype = _key_dtype(n_bands)
+    band = band.to(itype)
+    order = torch.argsort(band)
+    counts = torch.bincount(band, minlength=n_bands + 1).tolist()
+    nv = n - counts[-1]  # particles whose tile reaches the screen
+    order = order[:nv]
+    bands = _band_ranges(counts[:-1])
+    f = f.index_select(0, order)
+    # d relative to the first window pixel: smaller numbers, less cancellation
+    d_rel = d.detach().index_select(0, order).sub_(centers[0])
+    c_rel = centers - centers[0]
+    w = None if weights is None else weights.detach().index_select(0, order)
+    nd = centers.shape[0]
+    chunk = _chunk_particles(nv, nd)
+    buf = _workspace(nk * nv + max(nd * chunk, 2 * nv), t)
+    spare = buf[nk * nv :]
+    tiles = buf[: nk * nv].view(nk, nv)
+    _tile_kernel(f, ht / pt, r, tiles, w, spare[: 2 * nv].view(2, nv))
+    out = t.new_zeros(n_bands + 2 * r, nd)
+    for s0, e0 in _particle_chunks(nv, chunk):
+        m = e0 - s0
+        kd = _window_kernel(d_rel[s0:e0], c_rel, hd, spare[: nd * m].view(nd, m))
+        for s, e, row in _bands_in(bands, s0, e0):
+            out[row : row + nk].addmm_(tiles[:, s0 + s : s0 + e], kd[:, s:e].t())
+    saved = (f, d_rel, c_rel, w, order)
+    return out[2 * r : 2 * r + nt], saved, (r, n_bands, pt, ht, hd), bands
 
-    @staticmethod
-    def forward(  # type: ignore[override]
-        ctx,
-        t: Tensor,
-        d: Tensor,
-        centers: Tensor,
-        geometry: tuple[float, float, int, float, float, float],
-        weights: Tensor | None,
-    ) -> Tensor:
-        t0, pt, nt, ht, hd, cut = geometry
-        r = math.floor(cut * ht / pt + 0.5)
-        nk, n_bands = 2 * r + 1, nt + 2 * r
-        n = t.shape[0]
-        # pixel coordinate along t; band (row + r) of the nearest pixel
-        v = (t.detach() - t0) / pt
-        band = torch.round(v)
-        f = v - band  # offset from the nearest pixel centre, [-1/2, 1/2] pixel
-        # off the screen (band < 0 or >= n_bands) -> n_bands
-        band = band.add_(r).clamp_(-1, n_bands).remainder_(n_bands + 1)
-        # small integer keys: radix sort (int16 is 5x faster than int32, uint8
-        # another 1.4x faster than int16)
-        itype = _key_dtype(n_bands)
-        band = band.to(itype)
-        order = torch.argsort(band)
-        counts = torch.bincount(band, minlength=n_bands + 1).tolist()
-        nv = n - counts[-1]  # particles whose tile reaches the screen
-        order = order[:nv]
-        bands = _band_ranges(counts[:-1])
-        f = f.index_select(0, order)
-        # d relative to the first window pixel: smaller numbers, less cancellation
-        d_rel = d.detach().index_select(0, order).sub_(centers[0])
-        c_rel = centers - centers[0]
-        w = None if weights is None else weights.detach().index_select(0, order)
-        nd = centers.shape[0]
-        chunk = _chunk_particles(nv, nd)
-        buf = _workspace(nk * nv + max(nd * chunk, 2 * nv), t)
-        spare = buf[nk * nv :]
-        tiles = buf[: nk * nv].view(nk, nv)
-        _tile_kernel(f, ht / pt, r, tiles, w, spare[: 2 * nv].view(2, nv))
-        out = t.new_zeros(n_bands + 2 * r, nd)
-        for s0, e0 in _particle_chunks(nv, chunk):
-            m = e0 - s0
-            kd = _window_kernel(d_rel[s0:e0], c_rel, hd, spare[: nd * m].view(nd, m))
-            for s, e, row in _bands_in(bands, s0, e0):
-                out[row : row + nk].addmm_(tiles[:, s0 + s : s0 + e], kd[:, s:e].t())
-        ctx.geometry = (r, n_bands, n, pt, ht, hd)
-        ctx.bands = bands
-        ctx.save_for_backward(f, d_rel, c_rel, w, order)
-        return out[2 * r : 2 * r + nt]
 
-    @staticmethod
-    def backward(ctx, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
-        f, d_rel, c_rel, w, order = ctx.saved_tensors
-        r, n_bands, n, pt, ht, hd = ctx.geometry
-        nk, nv, nd = 2 * r + 1, f.shape[0], c_rel.shape[0]
-        # rows (i, {G, G d_j}) of the padded gradient image: one product per band
-        # gives both sum_j G_ij Kd_nj and sum_j G_ij d_j Kd_nj
-        gg = grad.new_zeros(n_bands + 2 * r, 2, nd)
-        gg[2 * r : 2 * r + grad.shape[0], 0] = grad
-        torch.mul(gg[:, 0], c_rel, out=gg[:, 1])
-        gg = gg.view(n_bands + 2 * r, 2 * nd)
-        # reducer (3, 2 nk): S0 = sum_k tile T, St = sum_k (k - r) tile T and
-        # Sd = sum_k tile X
-        red = grad.new_zeros(3, nk, 2)
-        red[0, :, 0] = 1.0
-        red[1, :, 0] = torch.arange(-r, r + 1, dtype=grad.dtype, device=grad.device)
-        red[2, :, 1] = 1.0
-        red = red.view(3, 2 * nk)
-        chunk = _chunk_particles(nv, nd)
-        # workspace: tiles (nk, nv), sums (3, nv), then per chunk the kernels
-        # and their products (the tile kernel's scratch before that)
-        buf = _workspace((nk + 3) * nv + max((nd + 2 * nk) * chunk, 2 * nv), grad)
-        tiles = buf[: nk * nv].view(nk, nv)
-        sums = buf[nk * nv : (nk + 3) * nv].view(3, nv)
-        spare = buf[(nk + 3) * nv :]
-        _tile_kernel(f, ht / pt, r, tiles, None, spare[: 2 * nv].view(2, nv))
-        for s0, e0 in _particle_chunks(nv, chunk):
-            m = e0 - s0
-            kd = _window_kernel(d_rel[s0:e0], c_rel, hd, spare[: nd * m].view(nd, m))
-            tx = spare[nd * m : (nd + 2 * nk) * m].view(2 * nk, m)
-            for s, e, row in _bands_in(ctx.bands, s0, e0):
-                torch.mm(
-                    gg[row : row + nk].view(2 * nk, nd), kd[:, s:e], out=tx[:, s:e]
-                )
-            tx.view(nk, 2, m).mul_(tiles[:, None, s0:e0])
-            torch.mm(red, tx, out=sums[:, s0:e0])
-        s_0, s_t, s_d = sums.unbind(0)
-        need_w = w is not None and ctx.needs_input_grad[4]
-        g = sums.new_empty(3 if need_w else 2, nv)
-        gt = torch.addcmul(s_t, f, s_0, value=-1.0, out=g[0]).mul_(pt / ht**2)
-        gd = torch.addcmul(s_d, d_rel, s_0, value=-1.0, out=g[1]).mul_(1 / hd**2)
-        if w is not None:
-            gt.mul_(w)
-            gd.mul_(w)
-        if need_w:
-            g[2] = s_0
-        # back to the caller's particle order; dropped particles get zero
-        g = g.new_zeros(g.shape[0], n).scatter_(1, order.expand_as(g), g)
-        gw = g[2] if need_w else None
-        return g[0], g[1], None, None, gw
+def _tile_backward(
+    grad: Tensor,
+    saved: Sequence[Tensor | None],
+    geometry: tuple,
+    bands: list[tuple[int, int, int]],
+    out_t: Tensor,
+    out_d: Tensor,
+    out_w: Tensor | None,
+) -> None:
+    """Gradients of one :func:`_tile_forward` image, written into ``out_*``.
+
+    Analytic: with ``T = G_band Kd`` and ``X = (G_band diag(d_j)) Kd`` (one
+    product per band), ``dL/dt_n = w_n sum_k tile_nk T_nk (k - r - f_n) p / h_t^2``
+    and ``dL/dd_n = w_n sum_k tile_nk (X_nk - d_n T_nk) / h_d^2`` (``f_n`` the
+    offset from the nearest pixel in pixels, ``p`` the pixel size); the weight
+    gradient is ``sum_k tile_nk T_nk``. Particles dropped by the forward keep
+    their zero gradient: ``out_t``, ``out_d`` and ``out_w`` (optional) must be
+    zero on entry.
+
+    Shapes:
+        ``grad (nt, nd)``; ``out_t, out_d, out_w (N,)``.
+    """
+    f, d_rel, c_rel, w, order = saved
+    r, n_bands, pt, ht, hd = geometry
+    nk, nv, nd = 2 * r + 1, f.shape[0], c_rel.shape[0]
+    # rows (i, {G, G d_j}) of the padded gradient image: one product per band
+    # gives both sum_j G_ij Kd_nj and sum_j G_ij d_j Kd_nj
+    gg = grad.new_zeros(n_bands + 2 * r, 2, nd)
+    gg[2 * r : 2 * r + grad.shape[0], 0] = grad
+    torch.mul(gg[:, 0], c_rel, out=gg[:, 1])
+    gg = gg.view(n_bands + 2 * r, 2 * nd)
+    # reducer (3, 2 nk): S0 = sum_k tile T, St = sum_k (k - r) tile T and
+    # Sd = sum_k tile X
+    red = grad.new_zeros(3, nk, 2)
+    red[0, :, 0] = 1.0
+    red[1, :, 0] = torch.arange(-r, r + 1, dtype=grad.dtype, device=grad.device)
+    red[2, :, 1] = 1.0
+    red = red.view(3, 2 * nk)
+    chunk = _chunk_particles(nv, nd)
+    # workspace: tiles (nk, nv), sums (3, nv), then per chunk the kernels
+    # and their products (the tile kernel's scratch before that)
+    buf = _workspace((nk + 3) * nv + max((nd + 2 * nk) * chunk, 2 * nv), grad)
+    tiles = buf[: nk * nv].view(nk, nv)
+    sums = buf[nk * nv : (nk + 3) * nv].view(3, nv)
+    spare = buf[(nk + 3) * nv :]
+    _tile_kernel(f, ht / pt, r, tiles, None, spare[: 2 * nv].view(2, nv))
+    for s0, e0 in _particle_chunks(nv, chunk):
+        m = e0 - s0
+        kd = _window_kernel(d_rel[s0:e0], c_rel, hd, spare[: nd * m].view(nd, m))
+        tx = spare[nd * m : (nd + 2 * nk) * m].view(2 * nk, m)
+        for s, e, row in _bands_in(bands, s0, e0):
+            torch.mm(gg[row : row + nk].view(2 * nk, nd), kd[:, s:e], out=tx[:, s:e])
+        tx.view(nk, 2, m).mul_(tiles[:, None, s0:e0])
+        torch.mm(red, tx, out=sums[:, s0:e0])
+    s_0, s_t, s_d = sums.unbind(0)
+    g = sums.new_empty(3 if out_w is not None else 2, nv)
+    gt = torch.addcmul(s_t, f, s_0, value=-1.0, out=g[0]).mul_(pt / ht**2)
+    gd = torch.addcmul(s_d, d_rel, s_0, value=-1.0, out=g[1]).mul_(1 / hd**2)
+    if w is not None:
+        gt.mul_(w)
+        gd.mul_(w)
+    # back to the caller's particle order; dropped particles keep zero
+    out_t.scatter_(0, order, gt)
+    out_d.scatter_(0, order, gd)
+    if out_w is not None:
+        out_w.scatter_(0, order, s_0)
 
 
 def _tile_kernel(
@@ -761,6 +865,129 @@ def _workspace(numel: int, like: Tensor) -> Tensor:
         buf = like.new_empty(numel)
         cache[key] = buf
     return buf[:numel]
+
+
+# Worker threads for the CPU tile path: images are independent, so B images are
+# spread over worker threads, each running torch with one intra-op thread. Many
+# small ops per image (window kernels and band products in cache-sized chunks)
+# parallelise badly with torch's intra-op (OpenMP) threads: on a 2-core AMD
+# EPYC KVM guest, waking the OpenMP team on every op made aten::sub 5x and
+# aten::mm 2.4x slower per call at 2 threads than at 1. Below this many
+# particles per image the images are computed in the calling thread (small
+# training steps keep their op-for-op behaviour).
+_THREAD_MIN_PARTICLES = 2**15
+_THREADS_ENV = "DIFFACCEL_KDE_THREADS"
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+_POOLS_LOCK = threading.Lock()
+
+
+def _forget_pools() -> None:
+    """After ``fork`` the child has none of the parent's threads: start afresh."""
+    global _POOLS_LOCK
+    _POOLS.clear()
+    _POOLS_LOCK = threading.Lock()
+
+
+os.register_at_fork(after_in_child=_forget_pools)
+
+
+def _image_workers(x: Tensor, images: int) -> int:
+    """Worker threads for ``images`` CPU tile images of ``x (B, N)`` (1: none).
+
+    ``DIFFACCEL_KDE_THREADS``: unset or ``auto`` -> ``torch.get_num_threads()``,
+    ``0`` or ``1`` -> no worker threads, ``n`` -> at most ``n``. Threads are used
+    only for at least 2 images of at least :data:`_THREAD_MIN_PARTICLES`
+    particles, and never while the autograd profiler records (it would not see
+    the workers' ops), while compiling, or for tensor subclasses and modes (their
+    thread-local state does not reach the workers).
+    """
+    setting = os.environ.get(_THREADS_ENV, "auto").strip().lower()
+    if setting in ("", "auto"):
+        workers = torch.get_num_threads()
+    else:
+        workers = int(setting) if setting.isdigit() else -1
+        if workers < 0:
+            raise ValueError(
+                f"{_THREADS_ENV} must be 'auto' or a number of worker threads "
+                f"(0 or 1: none); got {setting!r}."
+            )
+    if workers < 2 or images < 2 or x.shape[-1] < _THREAD_MIN_PARTICLES:
+        return 1
+    if (
+        type(x) is not Tensor
+        or torch.autograd._profiler_enabled()
+        or torch.compiler.is_compiling()
+        or torch._C._is_torch_function_mode_enabled()
+        or torch._C._len_torch_dispatch_stack() > 0
+    ):
+        return 1
+    return min(workers, images)
+
+
+def _pool(workers: int) -> ThreadPoolExecutor:
+    """A reused pool of ``workers`` threads, each with one torch intra-op thread.
+
+    ``torch.set_num_threads(1)`` in a worker sets that thread's OpenMP and MKL
+    thread counts (thread-local), but also torch's process-wide default that
+    threads started later initialise from. So each worker first initialises
+    its own count (``torch.get_num_threads()``), then sets 1; the pool is
+    started whole (a barrier holds every worker until all have done so), then
+    the calling thread restores the default with its own unchanged count.
+    Threads started meanwhile by other code would inherit 1 thread.
+    """
+    with _POOLS_LOCK:
+        pool = _POOLS.get(workers)
+        if pool is not None:
+            return pool
+        pool = ThreadPoolExecutor(workers, thread_name_prefix="diffaccel-kde")
+        caller_threads = torch.get_num_threads()
+        started = threading.Barrier(workers)
+
+        def one_intra_op_thread() -> None:
+            torch.get_num_threads()
+            torch.set_num_threads(1)
+            started.wait(timeout=60.0)
+
+        try:
+            for future in [pool.submit(one_intra_op_thread) for _ in range(workers)]:
+                future.result()
+        finally:
+            torch.set_num_threads(caller_threads)
+        _POOLS[workers] = pool
+        return pool
+
+
+def _map_images(
+    fn: Callable[[int], _T], images: Sequence[int], workers: int
+) -> list[_T]:
+    """``[fn(k) for k in range(len(images))]``, on ``workers`` threads if ``> 1``.
+
+    ``images`` names the image of each item (for errors). Every call returns (or
+    fails) before this does; the first failure is raised as a ``RuntimeError``
+    naming the image, chained to the worker's exception.
+    Workers run without gradient recording and in the caller's inference mode.
+    """
+    count = len(images)
+    if workers < 2 or count < 2:
+        return [fn(k) for k in range(count)]
+    inference = torch.is_inference_mode_enabled()
+
+    def run(k: int) -> _T:
+        with torch.inference_mode(inference), torch.no_grad():
+            return fn(k)
+
+    pool = _pool(workers)
+    futures = [pool.submit(run, k) for k in range(count)]
+    wait(futures)
+    for k, future in enumerate(futures):
+        error = future.exception()
+        if error is not None:
+            raise RuntimeError(
+                f"kde_image: image {images[k]} failed in a worker thread: "
+                f"{type(error).__name__}: {error} (set {_THREADS_ENV}=1 to compute "
+                "the images in the calling thread)"
+            ) from error
+    return [future.result() for future in futures]
 
 
 def _reach(
