@@ -149,8 +149,8 @@ def gp_fit(
             warnings.filterwarnings("ignore", message=".*not p.d.*")
 
             def progress(restart: int, mll: float) -> None:
+                bar.set_postfix(mll=f"{mll:.3f}", refresh=False)
                 bar.update(1)
-                bar.set_postfix(mll=f"{mll:.3f}")
 
             res = fit_hysteresis_gp(
                 model,

@@ -323,7 +323,7 @@ def run_reconstruction(
 
     def callback(info: StepInfo) -> None:
         bar.n = info.step
-        bar.set_postfix(image=f"{info.image_loss:.4f}", lr=f"{info.lr:.1e}")
+        bar.set_postfix(image=f"{info.image_loss:.4f}", lr=f"{info.lr:.1e}", refresh=False)
         bar.refresh()
 
     try:
