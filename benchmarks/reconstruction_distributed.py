@@ -4,7 +4,9 @@ Runs ``diffaccel reconstruct`` on the even settings of the GPSR 4D benchmark
 once as a plain process and once under ``torchrun --standalone --nproc-per-node
 2 ... --distributed`` (one thread per process), both with the same total number
 of particles, and reports the training time of each (from ``summary.json``), its
-ratio, and the rms sizes of both results with their relative difference.
+ratio, and the rms sizes of both results with their relative difference. A
+third run, ``--distributed --split members``, trains one whole-beam ensemble per
+process (``members``: twice the single run's) and reports its time and rms.
 
 Usage: ``python benchmarks/reconstruction_distributed.py [--particles 6144]
 [--steps 300]``
@@ -40,6 +42,7 @@ def _run(cmd: list[str], out: Path) -> dict:
         "training_s": s["timings_s"].get("training"),
         "rms": s["moments"]["rms"]["mean"][:4],
         "held_out_relative_l1": s["metrics"]["images_held_out"]["relative_l1"],
+        "members": s["snapshots"],
     }
 
 
@@ -60,17 +63,15 @@ def main() -> None:
         "even",
         "--no-figures",
     ]
+    torchrun = [str(bindir / "torchrun"), "--standalone", "--nproc-per-node", "2"]
     with tempfile.TemporaryDirectory() as tmp:
-        one, two = Path(tmp) / "one", Path(tmp) / "two"
+        one, two, mem = Path(tmp) / "one", Path(tmp) / "two", Path(tmp) / "mem"
         single = _run(
             [str(bindir / "diffaccel"), "reconstruct", *common, "--out", str(one)], one
         )
         dist = _run(
             [
-                str(bindir / "torchrun"),
-                "--standalone",
-                "--nproc-per-node",
-                "2",
+                *torchrun,
                 "-m",
                 "diffaccel",
                 "reconstruct",
@@ -81,6 +82,15 @@ def main() -> None:
             ],
             two,
         )
+        # members on different processes: each trains the whole beam
+        members = _run(
+            [
+                *torchrun,
+                *("-m", "diffaccel", "reconstruct", *common, "--out", str(mem)),
+                *("--distributed", "--split", "members"),
+            ],
+            mem,
+        )
     rel = [b / a - 1 for a, b in zip(single["rms"], dist["rms"], strict=True)]
     emit(
         {
@@ -90,6 +100,7 @@ def main() -> None:
             "steps": args.steps,
             "single": single,
             "torchrun_2_gloo": dist,
+            "torchrun_2_gloo_split_members": members,
             "speedup_training": single["training_s"] / dist["training_s"],
             "rms_relative_difference": rel,
             "acceptance_max_abs_rms_difference": 0.02,

@@ -518,3 +518,43 @@ def test_distributed_run_stops_every_process_when_out_is_refused(
     assert codes[1][0] == "1" and "process 0 stopped" in codes[1][1], codes[1]
     assert "mine.txt" in codes[1][1]  # the same reason, on one line
     assert (out / "mine.txt").read_text() == "a user's file"
+
+
+def test_split_members_needs_distributed(scan_file: Path, tmp_path: Path) -> None:
+    r = CliRunner().invoke(
+        main,
+        [
+            *("reconstruct", str(scan_file), "--out", str(tmp_path / "o"), *FAST),
+            *("--split", "members"),
+        ],
+    )
+    assert r.exit_code == 2 and "--split members needs --distributed" in r.output
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow  # two spawned interpreters
+def test_distributed_members_write_one_ensemble_of_both_processes(
+    scan_file: Path, tmp_path: Path
+) -> None:
+    import torch.multiprocessing as mp
+
+    from diffaccel.reconstruction import load
+
+    out = tmp_path / "out"
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    args = ["reconstruct", str(scan_file), "--out", str(out), *FAST]
+    args += ["--distributed", "--split", "members", "--no-figures"]
+    log = str(tmp_path / "rank")
+    mp.spawn(_distributed_cli_worker, args=(port, args, log), nprocs=2, join=True)
+    codes = [Path(f"{log}{r}").read_text().split("\n", 1) for r in (0, 1)]
+    assert codes[0][0] == "0" and codes[1][0] == "0", codes
+    assert "wrote" in codes[0][1] and "wrote" not in codes[1][1]
+    result = load(out)
+    assert len(result.snapshots) == 2 * 2  # --snapshots 2 on each process
+    assert result.info["member_processes"] == 2
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["member_processes"] == 2 and summary["snapshots"] == 4
+    assert {"checkpoint.pt", "checkpoint.rank1.pt"} <= {p.name for p in out.iterdir()}
+    assert summary["metrics"]["images_train"]["relative_l1"] < 0.5

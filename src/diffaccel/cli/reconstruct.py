@@ -108,7 +108,14 @@ def write_image_figures(
 
 
 #: Files a reconstruction writes (a folder of only these is an earlier result).
-OWNED = ("ensemble.pt", "summary.json", "particles.h5", CHECKPOINT, "*.png")
+OWNED = (
+    "ensemble.pt",
+    "summary.json",
+    "particles.h5",
+    CHECKPOINT,
+    "checkpoint.rank*.pt",  # the other processes' of --split members
+    "*.png",
+)
 #: Parameters of ``reconstruct`` that set the config, by their flags.
 PARAMETER_FLAGS = {
     "dims": "--dims",
@@ -298,6 +305,7 @@ def run_reconstruction(
     resume: bool,
     figures: bool = True,
     distributed: bool = False,
+    split: str = "particles",
     uncertainty: bool = True,
 ) -> dict[str, Any]:
     """Reconstruct, then write ensemble, summary.json, particles and figures.
@@ -305,7 +313,8 @@ def run_reconstruction(
     Everything is written into ``folder`` (the staging folder of an
     :func:`~diffaccel.cli.output.output_folder`), including the checkpoint.
     With ``distributed`` (an initialised ``torch.distributed`` group) every
-    process trains its share of the particles and only process 0 writes; the
+    process trains its share of the particles (``split="particles"``) or its
+    own ensemble members (``split="members"``) and only process 0 writes; the
     others return an empty dict. ``uncertainty``: attach the moment-space
     posterior (calibrated ``std`` in summary.json, per-pixel spread in the
     image figures); without it ``std`` is the ensemble scatter only.
@@ -323,7 +332,9 @@ def run_reconstruction(
 
     def callback(info: StepInfo) -> None:
         bar.n = info.step
-        bar.set_postfix(image=f"{info.image_loss:.4f}", lr=f"{info.lr:.1e}", refresh=False)
+        bar.set_postfix(
+            image=f"{info.image_loss:.4f}", lr=f"{info.lr:.1e}", refresh=False
+        )
         bar.refresh()
 
     try:
@@ -336,6 +347,7 @@ def run_reconstruction(
             callback=callback,
             device=device,
             distributed=distributed,
+            split=split,  # type: ignore[arg-type]
             uncertainty=uncertainty,
         )
     except (ValueError, FloatingPointError) as err:
@@ -490,6 +502,16 @@ def run_reconstruction(
     "(gloo on CPUs, NCCL with --device cuda: one GPU per process); process 0 "
     "writes --out. See docs/distributed.md.",
 )
+@click.option(
+    "--split",
+    type=click.Choice(["particles", "members"]),
+    default="particles",
+    show_default=True,
+    help="With --distributed: 'particles' splits every step's particles across "
+    "the processes (one ensemble, same answer as one process); 'members' trains "
+    "one independent ensemble per process (process r: seed + 7919 r) and joins "
+    "all members into one ensemble (P processes: P times the members).",
+)
 def reconstruct_command(
     dataset: Path,
     out: Path,
@@ -507,6 +529,7 @@ def reconstruct_command(
     force: bool,
     resume: bool,
     distributed: bool,
+    split: str,
 ) -> None:
     """Reconstruct a beam's phase space from the quad-scan file DATASET.
 
@@ -520,6 +543,11 @@ def reconstruct_command(
         for name, flag in PARAMETER_FLAGS.items()
         if ctx.get_parameter_source(name) in (ParameterSource.COMMANDLINE,)
     }
+    if split != "particles" and not distributed:
+        raise click.BadParameter(
+            "--split members needs --distributed (processes started by torchrun).",
+            param_hint="--split",
+        )
     dev = _init_distributed(device) if distributed else check_device(device)
     writer = not distributed or tdist.get_rank() == 0
     try:
@@ -578,6 +606,7 @@ def reconstruct_command(
                 resume,
                 figures=not no_figures,
                 distributed=distributed,
+                split=split,
                 uncertainty=uncertainty,
             )
     except (KeyboardInterrupt, click.ClickException):

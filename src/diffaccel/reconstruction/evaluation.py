@@ -225,6 +225,7 @@ def evaluate(
         "config": result.config.to_dict(),
         "scans": per_scan,
         "snapshots": result.n_snapshots,
+        "member_processes": result.info.get("member_processes", 1),
         "moments": moments,
         "rms_relative_std": rel_std,
         "rms_relative_ensemble_spread": rel_spread,

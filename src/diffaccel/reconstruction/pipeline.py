@@ -7,8 +7,10 @@ import os
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from typing import Literal
 
 import torch
+import torch.distributed as tdist
 
 from diffaccel.data.quad_scan import QuadScanDataset
 from diffaccel.data.scans import MultiScanDataset, parse_selection
@@ -19,6 +21,11 @@ from diffaccel.reconstruction.ensemble import (
 from diffaccel.reconstruction.forward import ScreenForwardModel
 from diffaccel.reconstruction.initial import GaussianGuess, fit_gaussian
 from diffaccel.reconstruction.metrics import beam_moments
+from diffaccel.reconstruction.rank_members import (
+    gather_members,
+    member_checkpoint,
+    member_seed,
+)
 from diffaccel.reconstruction.training import (
     ReconstructionConfig,
     StepInfo,
@@ -118,6 +125,7 @@ def reconstruct(
     callback: Callable[[StepInfo], None] | None = None,
     device: str | torch.device = "cpu",
     distributed: bool = False,
+    split: Literal["particles", "members"] = "particles",
     uncertainty: bool = True,
 ) -> Reconstruction:
     """Reconstruct the initial phase space of a beam from one or several scans.
@@ -143,6 +151,12 @@ def reconstruct(
             initialised ``torch.distributed`` group (see
             :func:`~diffaccel.reconstruction.training.train_generator`); every
             process returns the same reconstruction.
+        split: With ``distributed``: ``"particles"`` (default) splits every
+            step's particles across the processes; ``"members"`` trains one
+            independent ensemble per process (process ``r`` with seed
+            ``config.seed + 7919 r`` and its own checkpoint, ``<stem>.rank<r>``
+            beside ``checkpoint``) and gathers all members into one ensemble
+            (see :mod:`diffaccel.reconstruction.rank_members`).
         uncertainty: Attach the moment-space posterior of
             :func:`attach_uncertainty` (calibrated ``std`` of the moments;
             about 1 s on two CPU cores).
@@ -159,6 +173,14 @@ def reconstruct(
             Images are checked by the dataset (finite, positive sums).
     """
     config = config or ReconstructionConfig()
+    if split not in ("particles", "members"):
+        raise ValueError(f"split must be 'particles' or 'members'; got {split!r}.")
+    members = distributed and split == "members"
+    run_config = config  # the settings this process trains with
+    if members:
+        # each process trains the whole beam with its own seed and checkpoint
+        run_config = member_seed(config, tdist.get_rank())
+        checkpoint = member_checkpoint(checkpoint, tdist.get_rank())
     scans = as_scans(dataset)
     selection = training_selection(scans, train_indices)
     used = [name for name in scans.names if selection[name]]
@@ -170,7 +192,7 @@ def reconstruct(
         settings.append(scan.settings[selection[name]])
     if resume and checkpoint is not None and Path(checkpoint).exists():
         stored = checkpoint_config(checkpoint)
-        if stored != config:
+        if stored != run_config:
             raise ValueError(
                 f"checkpoint {checkpoint} was written with a different config "
                 f"({stored}); resume with the same options."
@@ -192,12 +214,12 @@ def reconstruct(
         [m.to(device) for m in measured],
         settings,
         guess,
-        config,
+        run_config,
         checkpoint=checkpoint,
         resume=resume,
         callback=callback,
         device=device,
-        distributed=distributed,
+        distributed=distributed and not members,
         maps=maps,
     )
     for fwd in forwards.values():
@@ -213,7 +235,7 @@ def reconstruct(
             config.width,
             config.depth,
             maps,
-            seed=config.seed,
+            seed=run_config.seed,
             prior=config.unseen_prior,
         )
         if config.refit_steps > 0:
@@ -223,13 +245,15 @@ def reconstruct(
                 [m.to(device) for m in measured],
                 settings,
                 guess,
-                config,
+                run_config,
                 maps,
                 device=device,
             )
             for fwd in forwards.values():
                 fwd.to("cpu")
     t_place = time.perf_counter() - t_place
+    if members:
+        snapshots = gather_members(snapshots)
     per_scan = {
         name: {
             "train_indices": selection[name],
@@ -249,6 +273,7 @@ def reconstruct(
             "place_unseen": t_place,
         },
         "device": str(device),
+        "member_processes": tdist.get_world_size() if members else 1,
         "unconstrained_coordinates": unconstrained_coordinates(maps, config.dims),
     }
     if len(scans) == 1:
