@@ -39,7 +39,7 @@ The synthetic beams have 200 000 particles (truth and images). Prints one JSON
 object (benchmarks/_meta.py). Times are in-process training times; under load
 they are inflated (``load_avg_1min_*``).
 
-Usage: ``python benchmarks/reconstruction_6d_beams.py [--beams a,b] [--seeds
+Usage: ``python benchmarks/reconstruction_6d_beams.py [--beams a,b] [--set F=V] [--seeds
 0,1,2] [--threads N]``
 """
 
@@ -270,7 +270,7 @@ def synthetic_beam(name: str, n: int, seed: int) -> torch.Tensor:
     return b - b.mean(0)
 
 
-def run_beam(name: str, seeds: list[int]) -> dict:
+def run_beam(name: str, seeds: list[int], overrides: dict | None = None) -> dict:
     if name == "shared":
         train, test = read_scans(TRAIN), None
         truth = train.ground_truth
@@ -281,7 +281,7 @@ def run_beam(name: str, seeds: list[int]) -> dict:
         test = make_synthetic_awa6d(particles=truth, k1_values=TEST_K1, seed=seed)
     runs = []
     for s in seeds:
-        config = ReconstructionConfig(dims=6, seed=s)
+        config = ReconstructionConfig(dims=6, seed=s, **(overrides or {}))
         t0 = time.perf_counter()
         result = reconstruct(train, config, uncertainty=False)
         wall = time.perf_counter() - t0
@@ -314,6 +314,21 @@ def run_beam(name: str, seeds: list[int]) -> dict:
     return {"config": config.to_dict(), "runs": runs, "stats": stats, "fails": fails}
 
 
+def _override(text: str) -> tuple[str, object]:
+    """``FIELD=VALUE`` as a config field and its value (int, float, bool or str)."""
+    field, sep, value = text.partition("=")
+    if not sep or not field:
+        raise SystemExit(f"--set {text!r}: expected FIELD=VALUE")
+    if value.lower() in ("true", "false"):
+        return field, value.lower() == "true"
+    for kind in (int, float):
+        try:
+            return field, kind(value)
+        except ValueError:
+            pass
+    return field, value
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument(
@@ -323,7 +338,16 @@ def main() -> None:
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="override a ReconstructionConfig field (experiments; a number, "
+        "true/false or text), e.g. --set penalty_end=1e5",
+    )
     args = ap.parse_args()
+    overrides = dict(_override(text) for text in args.set)
     torch.set_num_threads(args.threads)
     seeds = [int(s) for s in args.seeds.split(",")]
     out: dict = {
@@ -334,10 +358,11 @@ def main() -> None:
         "git_commit": git_commit(),
         "load_avg_1min_at_start": os.getloadavg()[0],
         "seeds": seeds,
+        "overrides": overrides,
         "beams": {},
     }
     for name in args.beams.split(","):
-        out["beams"][name] = run_beam(name, seeds)
+        out["beams"][name] = run_beam(name, seeds, overrides)
     out["fails"] = {n: b["fails"] for n, b in out["beams"].items() if b["fails"]}
     # the shared file's family (README's description) apart from the presets
     out["fails_family"] = {n: f for n, f in out["fails"].items() if n in FAMILY}
