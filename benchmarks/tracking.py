@@ -15,8 +15,16 @@ through ``Beamline.linearized`` (one affine 7x7 map per setting);
 our exact tracking against cheetah's linear one. Prints one JSON object on the
 last line.
 
+``--device cuda`` runs both codes on the GPU (the same particles, drawn on the
+CPU and copied; every timing synchronises the device before and after, so it is
+the whole forward(+backward)); ``peak_device_mb`` is torch's peak allocation.
+``--fit-n 10000000`` then also runs our linear KDE and cloud-in-cell
+forward+backward once with that many particles (x ``--k`` settings) and records
+whether it fits in the device's memory and the peak (issue 12: 10^7 x 20).
+
 Usage: python benchmarks/tracking.py [--n 100000] [--k 20] [--repeats 5]
        [--cheetah-kde-repeats 1] [--no-cheetah-kde] [--threads T]
+       [--device cpu|cuda] [--fit-n N]
 """
 
 from __future__ import annotations
@@ -40,15 +48,22 @@ SHAPE = (100, 100)
 PIXEL = 1e-3  # [m]
 
 
-def _beam(n: int) -> torch.Tensor:
+def _beam(n: int, device: torch.device) -> torch.Tensor:
     g = torch.Generator().manual_seed(0)
     scale = torch.tensor([1e-3, 1e-4, 1e-3, 1e-4, 1e-3, 1e-3])
-    return torch.randn(n, 6, generator=g) * scale
+    return (torch.randn(n, 6, generator=g) * scale).to(device)
 
 
-def _time_once(fn: Callable[[], object]) -> float:
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _time_once(fn: Callable[[], object], device: torch.device) -> float:
+    _sync(device)
     t0 = time.perf_counter()
     fn()
+    _sync(device)
     return time.perf_counter() - t0
 
 
@@ -70,6 +85,7 @@ def _ours(
         {"type": "Screen", "name": "SCREEN"},
     ]
     line = Beamline.from_spec(spec).with_screen("SCREEN", SHAPE, (PIXEL, PIXEL))
+    line = line.to(beam.device)
 
     def run() -> torch.Tensor:
         p = beam.clone().requires_grad_(backward)
@@ -93,18 +109,23 @@ def _cheetah(
 ):
     import cheetah
 
+    device = beam.device
+
     def run() -> torch.Tensor:
-        p = torch.ones(beam.shape[0], 7)
+        p = torch.ones(beam.shape[0], 7, device=device)
         p[:, :6] = beam
         p.requires_grad_(backward)
-        incoming = cheetah.ParticleBeam(p, energy=torch.tensor(P0C))
+        incoming = cheetah.ParticleBeam(
+            p, energy=torch.tensor(P0C, device=device), device=device
+        )
         screen = cheetah.Screen(
             resolution=(SHAPE[1], SHAPE[0]),
-            pixel_size=torch.tensor((PIXEL, PIXEL)),
+            pixel_size=torch.tensor((PIXEL, PIXEL), device=device),
             method=method,
-            kde_bandwidth=torch.tensor(PIXEL),
+            kde_bandwidth=torch.tensor(PIXEL, device=device),
             is_active=True,
             name="SCREEN",
+            device=device,
         )
         segment = cheetah.Segment(
             [
@@ -117,7 +138,7 @@ def _cheetah(
                 cheetah.Drift(length=torch.tensor(1.0), name="D1"),
                 screen,
             ]
-        )
+        ).to(device)
         segment.track(incoming)
         image = screen.reading
         if backward:
@@ -125,6 +146,25 @@ def _cheetah(
         return image
 
     return run
+
+
+def _fit(n: int, k1: torch.Tensor, device: torch.device) -> dict:
+    """Our linear KDE and CIC forward+backward once with ``n`` particles."""
+    out: dict = {"n_particles": n, "n_settings": int(k1.shape[0])}
+    beam = _beam(n, device)
+    for method in ("kde", "cic"):
+        if device.type == "cuda":
+            torch.cuda.empty_cache()
+            torch.cuda.reset_peak_memory_stats(device)
+        try:
+            seconds = _time_once(_ours(beam, k1, method, True, True), device)
+            entry: dict = {"fits": True, "seconds": seconds}
+        except torch.OutOfMemoryError as err:
+            entry = {"fits": False, "error": str(err).splitlines()[0]}
+        if device.type == "cuda":
+            entry["peak_device_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
+        out[method] = entry
+    return out
 
 
 def main() -> None:
@@ -143,12 +183,22 @@ def main() -> None:
         help="torch intra-op threads (default: torch's choice). On a machine shared "
         "with other jobs, 1 avoids OpenMP oversubscription stalls.",
     )
+    parser.add_argument("--device", default="cpu", help="cpu (default) or cuda")
+    parser.add_argument(
+        "--fit-n",
+        type=int,
+        default=0,
+        help="also run ours once with this many particles (does it fit?)",
+    )
     args = parser.parse_args()
     if args.threads is not None:
         torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("--device cuda: torch sees no CUDA device here")
 
-    beam = _beam(args.n)
-    k1 = torch.linspace(-25.0, 15.0, args.k)
+    beam = _beam(args.n, device)
+    k1 = torch.linspace(-25.0, 15.0, args.k, device=device)
     timings: dict[str, dict] = {}
     # warm-up (first-call allocations)
     for method in ("cic", "kde"):
@@ -186,7 +236,7 @@ def main() -> None:
                 for key, (run, limit) in runs.items():
                     if limit and rep >= limit:
                         continue
-                    samples[key].append(_time_once(run))
+                    samples[key].append(_time_once(run, device))
             for key, values in samples.items():
                 timings[key] = _summary(values)
 
@@ -204,7 +254,7 @@ def main() -> None:
         "n_settings": args.k,
         "image_shape": list(SHAPE),
         "dtype": "float32",
-        "device": "cpu",
+        "device": str(device),
         "threads": torch.get_num_threads(),
         "repeats": args.repeats,
         "cheetah_kde_repeats": args.cheetah_kde_repeats,
@@ -224,6 +274,11 @@ def main() -> None:
         "acceptance": {"min_ratio_kde": 100.0, "min_ratio_cic": 5.0},
         "load_avg_1min": os.getloadavg()[0],
     }
+    if device.type == "cuda":
+        result["device_name"] = torch.cuda.get_device_name(device)
+        result["peak_device_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
+    if args.fit_n:
+        result["fit"] = _fit(args.fit_n, k1, device)
     # issue 12: KDE >= 100x and cloud-in-cell >= 5x cheetah (like for like,
     # forward+backward), in every run: run the script several times
     kde, cic = result["ratio_vs_cheetah_kde"], result["ratio_vs_cheetah_cic"]
