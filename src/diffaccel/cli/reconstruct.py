@@ -498,9 +498,9 @@ def run_reconstruction(
 @click.option(
     "--distributed",
     is_flag=True,
-    help="Split every step's particles across the processes started by torchrun "
-    "(gloo on CPUs, NCCL with --device cuda: one GPU per process); process 0 "
-    "writes --out. See docs/distributed.md.",
+    help="Run on the processes started by torchrun (gloo on CPUs, NCCL with "
+    "--device cuda: one GPU per process), sharing the work as --split says; "
+    "process 0 writes --out. See docs/distributed.md.",
 )
 @click.option(
     "--split",
