@@ -62,39 +62,31 @@ def gather_members(snapshots: Sequence[dict]) -> list[dict]:
     if not snapshots:
         raise ValueError("gather_members: this process has no ensemble members.")
     world = tdist.get_world_size()
-    keys = list(snapshots[0])
+    template = snapshots[0]
+    keys = list(template)
+    sizes = [template[k].numel() for k in keys]
     flat = torch.cat(
-        [
-            torch.cat([m[k].detach().reshape(-1).to(torch.float64) for k in keys])
-            for m in snapshots
-        ]
+        [m[k].detach().reshape(-1).double() for m in snapshots for k in keys]
     )
     device = _collective_device()
-    sizes = [torch.zeros(1, dtype=torch.int64, device=device) for _ in range(world)]
-    tdist.all_gather(sizes, torch.tensor([flat.numel()], device=device))
-    counts = [int(s.item()) for s in sizes]
-    if len(set(counts)) != 1:
+    counts = [torch.zeros(1, dtype=torch.int64, device=device) for _ in range(world)]
+    tdist.all_gather(counts, torch.tensor([flat.numel()], device=device))
+    if len({int(c.item()) for c in counts}) != 1:
         raise ValueError(
             "ensemble members differ between processes (values per process: "
-            f"{counts}); every process must train the same settings."
+            f"{[int(c.item()) for c in counts]}); every process must train the "
+            "same settings."
         )
     parts = [torch.empty_like(flat, device=device) for _ in range(world)]
     tdist.all_gather(parts, flat.to(device))
-    template = snapshots[0]
-    per_member = flat.numel() // len(snapshots)
-    out = []
-    for part in parts:
-        for j in range(len(snapshots)):
-            values = part[j * per_member : (j + 1) * per_member].cpu()
-            member, start = {}, 0
-            for k in keys:
-                t = template[k]
-                member[k] = (
-                    values[start : start + t.numel()].reshape(t.shape).to(t.dtype)
-                )
-                start += t.numel()
-            out.append(member)
-    return out
+    return [
+        {
+            k: v.view(template[k].shape).to(template[k].dtype)
+            for k, v in zip(keys, row.split(sizes), strict=True)
+        }
+        for part in parts
+        for row in part.cpu().view(len(snapshots), -1)
+    ]
 
 
 def _collective_device() -> torch.device:
