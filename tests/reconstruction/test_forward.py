@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -216,3 +218,26 @@ def test_shared_upstream_none_when_nothing_is_shared() -> None:
     assert SharedUpstream.build(forwards, [settings[0][:2], settings[1][2:]]) is None
     other = ScreenForwardModel(Beamline.from_spec(SPEC), ["Q1.k1"], 43.36e6)
     assert SharedUpstream.build([forwards[0], other], [settings[0], K1]) is None
+
+
+def test_pixel_kernel_sum_sq_limits() -> None:
+    # bare cloud-in-cell: (integral of the hat squared)^2 = (2/3)^2 per particle
+    assert _model(blur=0.2).pixel_kernel_sum_sq() == pytest.approx(4 / 9, abs=1e-3)
+    # a wide Gaussian point spread of rms b pixels: 1 / (4 pi b^2)
+    wide = _model(blur=3.0).pixel_kernel_sum_sq()
+    assert wide == pytest.approx(1 / (4 * math.pi * 9.0), rel=2e-3)
+
+
+@pytest.mark.parametrize("blur", [0.5, 1.0, 2.0])
+def test_pixel_kernel_sum_sq_is_the_image_noise(blur: float) -> None:
+    # images of N i.i.d. particles: sum_p Var(s_p) = (kappa - sum_p s_p^2) / N
+    fwd = _model(blur=blur)
+    g = torch.Generator().manual_seed(1)
+    n, repeats = 500, 400
+    sig = torch.tensor([3e-3, 0, 2e-3, 0, 0, 0], dtype=torch.float64)  # 3, 2 px
+    x = torch.randn(repeats * n, 6, generator=g, dtype=torch.float64) * sig
+    imgs = torch.cat([fwd.images(b, K1[1:2]) for b in x.split(n)])  # (R, H, W)
+    s = imgs.mean(0)
+    noise = imgs.var(0).sum() * n + s.square().sum()
+    # relative standard error of the variance estimate ~ sqrt(2 / R) / few px
+    assert float(noise) == pytest.approx(fwd.pixel_kernel_sum_sq(), rel=0.03)

@@ -107,8 +107,26 @@ def test_corrupt_checkpoint(tmp_path: Path) -> None:
         ({"unseen_prior": "quadratic"}, "unseen_prior"),
         ({"refit_steps": -1}, "refit_steps"),
         ({"refit_lr": 0.0}, "refit_lr"),
+        ({"sampling_offset": -0.1}, "sampling_offset must be finite and >= 0"),
+        ({"sampling_offset": math.inf}, "sampling_offset must be finite"),
+        ({"image_loss": "l1", "sampling_offset": 0.25}, "'kl' only"),
+        ({"penalty_end": 0.0}, "penalty_start and penalty_end must be > 0"),
+        ({"penalty_start": math.nan}, "penalty_start and penalty_end"),
     ],
-    ids=["cycles", "dims", "loss", "particles", "prior", "refit", "refit_lr"],
+    ids=[
+        "cycles",
+        "dims",
+        "loss",
+        "particles",
+        "prior",
+        "refit",
+        "refit_lr",
+        "offset-negative",
+        "offset-inf",
+        "offset-not-kl",
+        "penalty-zero",
+        "penalty-nan",
+    ],
 )
 def test_bad_config(kwargs: dict, match: str) -> None:
     with pytest.raises(ValueError, match=match):
@@ -167,6 +185,39 @@ def test_defaults_depend_on_dims_and_explicit_values_win() -> None:
     assert ReconstructionConfig(dims=6, steps=10, snapshots=1).burn_in == 0
     # a saved config is the resolved one
     assert ReconstructionConfig.from_dict(six.to_dict()) == six
+
+
+def test_sampling_offset_and_penalty_defaults() -> None:
+    assert ReconstructionConfig(dims=6).sampling_offset == 0.25
+    assert ReconstructionConfig(dims=4).sampling_offset == 0.0
+    # 6D: the images weigh more against the entropy (with the offset)
+    assert ReconstructionConfig(dims=6).penalty_end == 3e4
+    assert ReconstructionConfig(dims=4).penalty_end == 1e4
+    assert ReconstructionConfig(dims=6, penalty_end=5e3).penalty_end == 5e3
+    # an offset of the KL distance: none by default for the other distances
+    assert ReconstructionConfig(dims=6, image_loss="l2").sampling_offset == 0.0
+    assert ReconstructionConfig(dims=4, sampling_offset=0.5).sampling_offset == 0.5
+    # runs saved before the option trained without it
+    d = ReconstructionConfig(dims=6).to_dict()
+    del d["sampling_offset"]
+    assert ReconstructionConfig.from_dict(d).sampling_offset == 0.0
+
+
+def test_sampling_offset_reaches_the_image_penalty(small_scan, monkeypatch) -> None:
+    from diffaccel.reconstruction import losses
+
+    seen: list[float] = []
+    init = losses.ImagePenalty.__init__
+
+    def spy(self, *args, **kwargs) -> None:
+        init(self, *args, **kwargs)
+        seen.append(self.offset)
+
+    monkeypatch.setattr(losses.ImagePenalty, "__init__", spy)
+    cfg = ReconstructionConfig(**{**FAST, "sampling_offset": 0.5})
+    r = reconstruct(small_scan, cfg, uncertainty=False)
+    kappa = r.forward.pixel_kernel_sum_sq()  # the file's 1-pixel screens
+    assert seen == [pytest.approx(0.5 * kappa / cfg.n_particles, rel=1e-12)]
 
 
 def test_config_files_from_before_the_steps_rename_are_read() -> None:
