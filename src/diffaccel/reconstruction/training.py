@@ -227,7 +227,7 @@ class ReconstructionConfig:
             benchmark, 6144 truth particles imaged at 0.5 pixel scored better
             10 % wider than true. Smoothing by one pixel averages the noise over
             ~12 pixels and puts the minimum back near the true size (within
-            0.4-1.5 % at 16 384 particles; ``sampling_offset`` removes that). 0 compares
+            0.4-1.4 % at 16 384 particles; ``sampling_offset`` removes that). 0 compares
             the images as they are. None: 0 for ``dims = 4``, 1 for ``dims = 6``.
         sampling_offset: Offset ``c`` of the KL image distance against the
             sampling noise of the simulated images: ``eps = c kappa / N`` is
@@ -236,13 +236,12 @@ class ReconstructionConfig:
             pixels, :meth:`ScreenForwardModel.pixel_kernel_sum_sq`; ``N``:
             ``n_particles``); see :class:`.losses.ImagePenalty`.
             Without it the KL distance of ``N`` sampled particles is lowest for
-            a beam wider than the one they were drawn from. Measured offline on
-            six AWA 6D audit beams (truth particles scaled by 0.985-1.025, 8
-            draws of 16 384; ``docs/generalisation_6d.md``): the scale of least
-            expected distance was 1.004-1.015 with ``c = 0``, 0.9995-1.0003 with
-            ``c = 0.24`` (half the first-order Poisson value 1/2, which
-            over-corrects to 0.995-0.998), 0.998 / 1.000 at 8192 / 32 768
-            particles. None: 0 for ``dims = 4`` (its benchmark was tuned
+            a beam wider than the one they were drawn from:
+            ``benchmarks/kl_sampling_bias.py`` (six AWA 6D audit beams, truth
+            scaled by 0.985-1.025, 8 draws of 16 384) puts the least expected
+            distance at a scale of 1.004-1.014 with ``c = 0``, 1.000-1.002 with
+            0.125, 0.997-1.000 with 0.25 and 0.993-0.998 with the first-order
+            value 1/2. None: 0 for ``dims = 4`` (its benchmark was tuned
             without), 0.25 for ``dims = 6``.
         burn_in: Cycles whose end is not kept as an ensemble member (the first
             cycle ramps the image penalty). None: 0 for ``dims = 4``, 3 for
