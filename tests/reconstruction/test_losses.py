@@ -113,7 +113,8 @@ def _offset_kl(sim: torch.Tensor, meas: torch.Tensor, eps: float) -> torch.Tenso
     total = sim.sum((-2, -1))
     s = sim / total.clamp_min(1e-6)[..., None, None] + eps
     m = meas.clamp_min(1e-12)
-    return (m * (m / s).log()).sum((-2, -1)) + (1.0 - total).clamp_min(0.0)
+    shift = m.sum((-2, -1)) * math.log1p(m.shape[-2] * m.shape[-1] * eps)
+    return (m * (m / s).log()).sum((-2, -1)) + shift + (1.0 - total).clamp_min(0.0)
 
 
 def test_image_penalty_offset_value_and_gradient() -> None:
@@ -135,6 +136,11 @@ def test_image_penalty_offset_value_and_gradient() -> None:
     assert float(ours.detach()) == pytest.approx(float(ref.detach()), rel=1e-12)
     torch.testing.assert_close(sb.grad, sa.grad, rtol=1e-10, atol=1e-14)
     assert (sb.grad[:, :, :4] != 0).all()  # no dead zeros with an offset
+    # the shifted value stays >= 0 (Gibbs' inequality: s + eps sums to
+    # 1 + H W eps) and is 0 where s + eps is proportional to m
+    assert float(ImagePenalty(meas, "kl", offset=eps)(meas)) > 0.0
+    flat = torch.full((1, 12, 10), 1 / 120, dtype=torch.float64)
+    assert abs(float(ImagePenalty(flat, "kl", offset=eps)(flat))) < 1e-14
 
 
 @pytest.mark.parametrize(

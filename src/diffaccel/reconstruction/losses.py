@@ -261,7 +261,9 @@ class ImagePenalty:
             and ``E[log s_hat] < log s``: without the offset the KL distance is
             lowest for a beam ~0.4-1.5 % wider than the one it was sampled
             from (AWA 6D, 16 384 particles). An offset of order ``kappa / N``
-            cancels that bias (``ReconstructionConfig.sampling_offset``).
+            cancels that bias (``ReconstructionConfig.sampling_offset``). The
+            constant ``sum m log(1 + H W eps)`` is added so that the value stays
+            >= 0 for unit-sum images (the gradient is that of the formula).
 
     Shapes:
         ``__call__(simulated (K, H, W))`` -> ``()``.
@@ -303,6 +305,12 @@ class ImagePenalty:
                 ("offset", self.offset),
             )
         }
+        # with an offset the compared image sums to 1 + H W eps per unit of
+        # m: adding sum_k M_k log(1 + H W eps) (M_k = sum m_k) keeps the value
+        # >= the plain distance's floor (0 for unit-sum m), a constant
+        h, w = measured.shape[-2:]
+        shift = self.m.sum((-2, -1)).sum() * math.log1p(h * w * self.offset)
+        self.constants["kl_shift"] = shift.to(**kw)
 
     def __call__(self, simulated: Tensor) -> Tensor:
         if simulated.shape != self.measured.shape:
@@ -335,6 +343,8 @@ class _KLPenaltyFn(torch.autograd.Function):
         else:
             q = torch.div(spec.m, s_raw.clamp_min(1e-12))  # m / s
         kl = torch.mul(spec.m, q.log()).sum()
+        if spec.offset > 0.0:
+            kl = torch.add(kl, spec.constants["kl_shift"])
         off = torch.sub(spec.one_minus_allowance, total)
         value = torch.add(kl, off.clamp_min(0.0).sum()).mul_(spec.constants["weight"])
         ctx.save_for_backward(total, t, s_raw, q, off)
