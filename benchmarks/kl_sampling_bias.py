@@ -20,7 +20,6 @@ Usage: ``python benchmarks/kl_sampling_bias.py [--beams a,b] [--particles 16384]
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 
 import numpy as np
@@ -29,8 +28,8 @@ from _meta import emit, git_commit
 from reconstruction_6d_beams import BEAM_SEEDS, TRAIN_K1, synthetic_beam
 
 from diffaccel.data import make_synthetic_awa6d
-from diffaccel.dynamics.images import gaussian_blur
 from diffaccel.reconstruction import ReconstructionConfig, ScreenForwardModel
+from diffaccel.reconstruction.training import _smoothed  # training's smoothing
 
 SCALES = np.linspace(0.985, 1.025, 9)
 DEFAULT_BEAMS = (
@@ -44,18 +43,25 @@ DEFAULT_BEAMS = (
 
 
 def training_views(truth: torch.Tensor, seed: int) -> list[tuple]:
-    """``(forward, smoothed measured images, settings)`` of each training scan."""
+    """``(forward, smoothed measured images, settings, kappa)`` per training scan.
+
+    The forward models and measured images are smoothed as training smooths them
+    (``training._smoothed``); ``kappa`` is the forward model's
+    :meth:`~diffaccel.reconstruction.ScreenForwardModel.pixel_kernel_sum_sq`.
+    """
     config = ReconstructionConfig(dims=6)
     data = make_synthetic_awa6d(particles=truth, k1_values=TRAIN_K1, seed=seed)
-    views = []
-    for _, scan in data:
-        blur = math.hypot(config.blur_for(scan), config.loss_smoothing)
-        fwd = ScreenForwardModel.from_dataset(scan, blur_pixels=blur)
-        ps = fwd.screen.pixel_size
-        sigma = (config.loss_smoothing * ps[0], config.loss_smoothing * ps[1])
-        meas = gaussian_blur(scan.mean_images().float(), sigma, ps)
-        views.append((fwd, meas, scan.settings))
-    return views
+    scans = [scan for _, scan in data]
+    forwards = [
+        ScreenForwardModel.from_dataset(scan, blur_pixels=config.blur_for(scan))
+        for scan in scans
+    ]
+    measured = [scan.mean_images().float() for scan in scans]
+    forwards, measured = _smoothed(forwards, measured, config.loss_smoothing)
+    return [
+        (f, m.clamp_min(1e-12), scan.settings, f.pixel_kernel_sum_sq())
+        for f, m, scan in zip(forwards, measured, scans, strict=True)
+    ]
 
 
 def best_scales(
@@ -72,11 +78,9 @@ def best_scales(
     for i, r in enumerate(SCALES):
         scaled = mean + r * (truth - mean)
         for idx in subsets:
-            for fwd, meas, settings in views:
+            for fwd, m, settings, kappa in views:
                 sim = fwd.images(scaled[idx].float(), settings)
                 s = sim / sim.sum((-2, -1), keepdim=True).clamp_min(1e-6)
-                m = meas.clamp_min(1e-12)
-                kappa = fwd.pixel_kernel_sum_sq()
                 for c in offsets:
                     q = s + c * kappa / n if c > 0 else s.clamp_min(1e-12)
                     totals[c][i] += float((m * (m / q).log()).sum()) / draws
