@@ -112,6 +112,8 @@ def test_corrupt_checkpoint(tmp_path: Path) -> None:
         ({"image_loss": "l1", "sampling_offset": 0.25}, "'kl' only"),
         ({"penalty_end": 0.0}, "penalty_start and penalty_end must be > 0"),
         ({"penalty_start": math.nan}, "penalty_start and penalty_end"),
+        ({"hold_unseen": -1.0}, "hold_unseen must be finite and >= 0"),
+        ({"hold_unseen": math.nan}, "hold_unseen must be finite"),
     ],
     ids=[
         "cycles",
@@ -126,6 +128,8 @@ def test_corrupt_checkpoint(tmp_path: Path) -> None:
         "offset-not-kl",
         "penalty-zero",
         "penalty-nan",
+        "hold-negative",
+        "hold-nan",
     ],
 )
 def test_bad_config(kwargs: dict, match: str) -> None:
@@ -201,6 +205,12 @@ def test_sampling_offset_and_penalty_defaults() -> None:
     d = ReconstructionConfig(dims=6).to_dict()
     del d["sampling_offset"]
     assert ReconstructionConfig.from_dict(d).sampling_offset == 0.0
+    # the hold of the unseen directions likewise
+    assert ReconstructionConfig(dims=6).hold_unseen == 0.0  # opt-in
+    d = ReconstructionConfig(dims=6, hold_unseen=1e3).to_dict()
+    assert ReconstructionConfig.from_dict(d).hold_unseen == 1e3
+    del d["hold_unseen"]
+    assert ReconstructionConfig.from_dict(d).hold_unseen == 0.0
 
 
 def test_sampling_offset_reaches_the_image_penalty(small_scan, monkeypatch) -> None:

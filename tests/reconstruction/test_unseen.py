@@ -10,6 +10,7 @@ from diffaccel.dynamics import Beamline
 from diffaccel.reconstruction import ScreenForwardModel
 from diffaccel.reconstruction.generator import BeamGenerator
 from diffaccel.reconstruction.unseen import (
+    UnseenHold,
     _fold,
     place_members,
     place_unseen,
@@ -218,3 +219,66 @@ def test_place_members_leaves_4d_alone() -> None:
     state = gen.state_dict()
     out = place_members([state], 4, 8, 2, _maps())
     assert all(torch.equal(out[0][k], state[k]) for k in state)
+
+
+def _moments(x: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    z1 = torch.cat([x / scale, torch.ones(x.shape[0], 1, dtype=x.dtype)], 1)
+    return z1.T @ z1 / x.shape[0]
+
+
+def test_unseen_hold_is_zero_at_the_prior_and_measures_the_displacement() -> None:
+    maps = _maps()
+    cov = _beam_cov()
+    directions = unseen_directions(maps, cov)
+    prior = place_unseen(cov, directions)
+    scale = cov.diagonal().sqrt()
+    g = torch.Generator().manual_seed(2)
+    n = 20000
+    white = torch.randn(n, 6, generator=g, dtype=torch.float64)
+    white = (white - white.mean(0)) @ torch.linalg.cholesky(
+        torch.cov(white.T)
+    ).inverse().T  # exactly unit covariance (N - 1)
+    x = white @ torch.linalg.cholesky(prior).T
+    hold = UnseenHold(maps, 100.0, scale, n)
+    hold.update(_moments(x, scale))
+    assert hold.q.shape[0] == 2
+    assert float(hold.penalty(_moments(x, scale))) < 1e-16
+    # a move of 0.05 (correlation units) along one of the prior's directions
+    moved = prior + 0.05 * unseen_directions(maps, prior)[0]
+    y = white @ torch.linalg.cholesky(moved).T
+    assert float(hold.penalty(_moments(y, scale))) == pytest.approx(
+        100.0 * 0.05**2, rel=1e-6
+    )
+
+
+def test_unseen_hold_surrogate_has_the_penalty_gradient() -> None:
+    maps = _maps()
+    cov = _beam_cov()
+    scale = cov.diagonal().sqrt()
+    g = torch.Generator().manual_seed(3)
+    n = 3000
+    x = (
+        torch.randn(n, 6, generator=g, dtype=torch.float64)
+        @ torch.linalg.cholesky(cov).T
+    )
+    hold = UnseenHold(maps, 50.0, scale, n)
+    hold.update(_moments(x, scale) * 1.01)  # some other prior point
+    x.requires_grad_(True)
+    (exact,) = torch.autograd.grad(hold.penalty(_moments(x, scale)), x)
+    (grad,) = torch.autograd.grad(hold.surrogate(x, _moments(x, scale)), x)
+    assert float(exact.abs().max()) > 0
+    assert torch.allclose(grad, exact, rtol=1e-8, atol=1e-10 * float(exact.abs().max()))
+    # split across two "processes": the shares' gradients are the whole one's
+    m = _moments(x.detach(), scale)
+    parts = [
+        torch.autograd.grad(hold.surrogate(x[s], m), x)[0]
+        for s in (slice(0, 1200), slice(1200, n))
+    ]
+    tol = 1e-10 * float(exact.abs().max())
+    assert torch.allclose(parts[0] + parts[1], exact, rtol=1e-8, atol=tol)
+
+
+def test_unseen_hold_refuses_a_bad_weight() -> None:
+    for w in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match="weight"):
+            UnseenHold(_maps(), w, torch.ones(6), 100)
