@@ -11,7 +11,7 @@ from diffaccel.data import make_synthetic_awa6d
 from diffaccel.reconstruction import ReconstructionConfig, reconstruct
 from diffaccel.reconstruction.generator import BeamGenerator
 from diffaccel.reconstruction.training import load_checkpoint
-from diffaccel.reconstruction.unseen import place_unseen, unseen_directions
+from diffaccel.reconstruction.unseen import UnseenHold
 
 
 class _Stop(Exception):
@@ -40,12 +40,11 @@ def _displacement(state: dict, maps: list[torch.Tensor]) -> float:
     gen.load_state_dict(state)
     with torch.no_grad():
         x = gen(20000, generator=torch.Generator().manual_seed(0), quasi_random=True)
-    cov = torch.cov(x.double().T)
-    v = unseen_directions(maps, cov)
-    target = place_unseen(cov, v)
-    sig = cov.diagonal().sqrt()
-    q = torch.triu(v / (sig[:, None] * sig[None, :]) ** 2)
-    return float(((q * (cov - target)).sum((1, 2))).abs().max())
+    z1 = torch.cat([x.double(), torch.ones(x.shape[0], 1, dtype=torch.float64)], 1)
+    moments = z1.T @ z1 / x.shape[0]
+    hold = UnseenHold(maps, 1.0, torch.ones(6, dtype=torch.float64), x.shape[0])
+    hold.update(moments)
+    return float(hold.displacement(moments).abs().max())
 
 
 def test_the_hold_keeps_training_near_the_prior_point(data, tmp_path: Path) -> None:

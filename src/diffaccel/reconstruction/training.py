@@ -835,11 +835,11 @@ def train_generator(
             dist = d if dist is None else dist + d
         rel, moments = relative_entropy(x)  # H - C; plain moments
         objective = torch.sub(rel, dist, alpha=lam)
-        if hold is not None:  # the hold's gradient; its prior point is read
-            if state.hold_moments is None:  # the first from this sample,
-                state.hold_moments = moments.detach().cpu()
-            if not hold.ready:  # then every HOLD_EVERY steps (below)
-                hold.update(state.hold_moments)
+        if hold is not None:  # the hold's gradient
+            if not hold.ready:  # its prior point: the checkpoint's or this
+                if state.hold_moments is None:  # sample's, then every
+                    state.hold_moments = moments.detach().cpu()  # HOLD_EVERY
+                hold.update(state.hold_moments)  # steps (below)
             objective = objective - hold.surrogate(x, moments)
         # loss lam D - (H - C): the gradient of (H - C) - lam D, negated. One
         # scalar with the implicit seed: explicit seed tensors made

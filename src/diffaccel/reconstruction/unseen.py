@@ -326,9 +326,14 @@ class UnseenHold:
         self.q = q.to(device)
         self.b = (q * target).sum((1, 2)).to(device)
 
+    def displacement(self, moments: Tensor) -> Tensor:
+        """``t (F,)``: the beam's displacement from the prior point along each
+        direction (correlation units), from its plain moments."""
+        return (self.q * self.covariance(moments)).sum((1, 2)) - self.b
+
     def penalty(self, moments: Tensor) -> Tensor:
         """``w sum_k t_k^2`` of the beam with these plain moments (a scalar)."""
-        t = (self.q * self.covariance(moments)).sum((1, 2)) - self.b
+        t = self.displacement(moments)
         return self.weight * (t * t).sum()
 
     def surrogate(self, particles: Tensor, moments: Tensor) -> Tensor:
@@ -344,7 +349,7 @@ class UnseenHold:
             return torch.zeros((), dtype=torch.float64, device=particles.device)
         m = moments.detach().to(self.scale.device, torch.float64).reshape(7, 7)
         mu = m[6, :6] * self.scale
-        t = (self.q * self.covariance(m)).sum((1, 2)) - self.b
+        t = self.displacement(m)
         xc = particles.to(torch.float64) - mu
         s = xc.T @ xc / (self.n - 1)  # this share's part of the covariance
         return 2.0 * self.weight * ((t[:, None, None] * self.q).sum(0) * s).sum()
