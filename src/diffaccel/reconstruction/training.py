@@ -836,11 +836,15 @@ def train_generator(
         rel, moments = relative_entropy(x)  # H - C; plain moments
         objective = torch.sub(rel, dist, alpha=lam)
         if hold is not None:  # the hold's gradient
+            # the moments rounded to float32: threaded float64 sums scatter
+            # in the last bits from run to run, and the hold feeds them back
+            # into the step (without rounding a resume was not bit for bit)
+            held = moments.detach().float().double()
             if not hold.ready:  # its prior point: the checkpoint's or this
                 if state.hold_moments is None:  # sample's, then every
-                    state.hold_moments = moments.detach().cpu()  # HOLD_EVERY
-                hold.update(state.hold_moments)  # steps (below)
-            objective = objective - hold.surrogate(x, moments)
+                    state.hold_moments = held.cpu()  # HOLD_EVERY steps
+                hold.update(state.hold_moments)  # (below)
+            objective = objective - hold.surrogate(x, held)
         # loss lam D - (H - C): the gradient of (H - C) - lam D, negated. One
         # scalar with the implicit seed: explicit seed tensors made
         # torch.autograd import torch.fx.experimental.symbolic_shapes and
@@ -860,7 +864,7 @@ def train_generator(
         if hold is not None and state.step % HOLD_EVERY == 0:
             # the prior point of the latest beam (a host read; with the
             # default report_every it coincides with the losses' read)
-            state.hold_moments = moments.detach().cpu()
+            state.hold_moments = held.cpu()
             hold.update(state.hold_moments)
         cycle_end = state.step % cyc == 0
         # members: ends of cycles after the burn-in (the first cycle ramps lambda)
