@@ -150,13 +150,16 @@ def test_training_selection_errors_name_the_scan(two_scans, selection, message):
 
 
 def test_refit_of_placed_members_changes_them(two_scans, result) -> None:
-    """``refit_steps`` (opt-in): every member is trained again after placement."""
-    refit = reconstruct(
+    """``refit_steps`` (6D default 30): every member is trained again after
+    placement; 0 leaves the placed members as they are."""
+    assert CONFIG.refit_steps == 30
+    assert replace(CONFIG, dims=4, refit_steps=None).refit_steps == 0
+    placed_only = reconstruct(
         two_scans,
-        replace(CONFIG, refit_steps=2),
+        replace(CONFIG, refit_steps=0),
         train_indices={"straight": [0, 2, 4], "bent": [0, 1, 2]},
         uncertainty=False,
     )
-    assert refit.n_snapshots == result.n_snapshots
-    for a, b in zip(refit.snapshots, result.snapshots, strict=True):
+    assert placed_only.n_snapshots == result.n_snapshots
+    for a, b in zip(placed_only.snapshots, result.snapshots, strict=True):
         assert not torch.equal(a["offset"], b["offset"])

@@ -114,6 +114,8 @@ def test_corrupt_checkpoint(tmp_path: Path) -> None:
         ({"penalty_start": math.nan}, "penalty_start and penalty_end"),
         ({"hold_unseen": -1.0}, "hold_unseen must be finite and >= 0"),
         ({"hold_unseen": math.nan}, "hold_unseen must be finite"),
+        ({"refit_hold": -1.0}, "refit_hold must be finite and >= 0"),
+        ({"refit_hold": math.inf}, "refit_hold must be finite"),
     ],
     ids=[
         "cycles",
@@ -130,6 +132,8 @@ def test_corrupt_checkpoint(tmp_path: Path) -> None:
         "penalty-nan",
         "hold-negative",
         "hold-nan",
+        "refit-hold-negative",
+        "refit-hold-inf",
     ],
 )
 def test_bad_config(kwargs: dict, match: str) -> None:
@@ -211,6 +215,16 @@ def test_sampling_offset_and_penalty_defaults() -> None:
     assert ReconstructionConfig.from_dict(d).hold_unseen == 1e3
     del d["hold_unseen"]
     assert ReconstructionConfig.from_dict(d).hold_unseen == 0.0
+    # the refit of the placed members: 30 held steps in 6D, none in 4D; runs
+    # saved before the covariance hold refitted freely (or not at all)
+    assert ReconstructionConfig(dims=6).refit_steps == 30
+    assert ReconstructionConfig(dims=6).refit_hold == 1e4
+    assert ReconstructionConfig(dims=4).refit_steps == 0
+    d = ReconstructionConfig(dims=6, refit_steps=30).to_dict()
+    del d["refit_hold"]
+    assert ReconstructionConfig.from_dict(d).refit_hold == 0.0
+    del d["refit_steps"]
+    assert ReconstructionConfig.from_dict(d).refit_steps == 0
 
 
 def test_sampling_offset_reaches_the_image_penalty(small_scan, monkeypatch) -> None:

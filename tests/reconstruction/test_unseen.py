@@ -231,7 +231,7 @@ def test_unseen_hold_is_zero_at_the_prior_and_measures_the_displacement() -> Non
     cov = _beam_cov()
     directions = unseen_directions(maps, cov)
     prior = place_unseen(cov, directions)
-    scale = cov.diagonal().sqrt()
+    scale = cov.diagonal().sqrt().float().double()  # the hold keeps float32
     g = torch.Generator().manual_seed(2)
     n = 20000
     white = torch.randn(n, 6, generator=g, dtype=torch.float64)
@@ -254,7 +254,7 @@ def test_unseen_hold_is_zero_at_the_prior_and_measures_the_displacement() -> Non
 def test_unseen_hold_surrogate_has_the_penalty_gradient() -> None:
     maps = _maps()
     cov = _beam_cov()
-    scale = cov.diagonal().sqrt()
+    scale = cov.diagonal().sqrt().float().double()
     g = torch.Generator().manual_seed(3)
     n = 3000
     x = (

@@ -33,7 +33,11 @@ from diffaccel.reconstruction.training import (
     train_generator,
 )
 from diffaccel.reconstruction.uncertainty import analyse_moments
-from diffaccel.reconstruction.unseen import place_members
+from diffaccel.reconstruction.unseen import (
+    PLACEMENT_PARTICLES,
+    member_moments,
+    place_members,
+)
 
 TrainIndices = Sequence[int] | Mapping[str, Sequence[int]] | str | None
 
@@ -302,15 +306,18 @@ def refit_members(
     *,
     device: str | torch.device = "cpu",
 ) -> list[dict]:
-    """Placed members fitted again to the images, then placed again.
+    """Placed members' shapes fitted again to the images, then placed again.
 
-    Each member (already moved along the unseen directions) trains for
-    ``config.refit_steps`` steps (one cosine cycle from ``config.refit_lr``
-    to ``config.lr_min`` at the final image penalty), so that the image
-    shapes follow the moved second moments; the short fit drifts little along
-    the unseen directions, and :func:`place_members` then removes that drift
-    (a small move, so the images change little). Opt-in
-    (``ReconstructionConfig.refit_steps``): see its numbers there.
+    Each member (already moved along the unseen directions by a linear map,
+    which keeps the screens' second moments but not the shapes of non-Gaussian
+    images) trains for ``config.refit_steps`` steps (one cosine cycle from
+    ``config.refit_lr`` to ``config.lr_min`` at the final image penalty) with
+    its covariance held at the placed one
+    (:class:`~diffaccel.reconstruction.hold.CovarianceHold`, weight
+    ``config.refit_hold``; 0 refits freely), so that the image shapes follow
+    while the second moments stay; :func:`place_members` then removes what
+    drift is left along the unseen directions (a small move). See
+    ``ReconstructionConfig.refit_steps`` for the numbers.
 
     Args:
         snapshots: Placed members (generator state dicts).
@@ -336,6 +343,20 @@ def refit_members(
     )
     out = []
     for k, member in enumerate(snapshots):
+        # the placed covariance, held while the shape fits the images
+        hold = None
+        if config.refit_hold > 0:
+            _, cov = member_moments(
+                member,
+                config.dims,
+                config.width,
+                config.depth,
+                PLACEMENT_PARTICLES,
+                config.seed,
+            )
+            # rounded to float32: threaded float64 sums scatter in the last
+            # bits from run to run, and the refit would carry that forward
+            hold = cov.float().double()
         state = train_generator(
             list(forwards),
             list(measured),
@@ -345,6 +366,7 @@ def refit_members(
             device=device,
             maps=maps,
             initial_model=member,
+            hold_covariance=hold,
         )
         out.append(state.model)
     return place_members(

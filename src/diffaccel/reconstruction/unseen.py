@@ -24,11 +24,14 @@ optimal-transport map between the two Gaussians), folded into the generator's
 last linear layers, so the screens' second moments do not change. The shapes
 of non-Gaussian images can: a member that training had widened along a
 direction loses part of its fit (audit beam ``chirp_weak_tilted``, seed 2:
-held-out dipole-on relative L1 0.075 before the move, 0.199 after it).
-:class:`UnseenHold` (opt-in: the config's ``hold_unseen``) holds the beam at
-the prior point during training instead, so that the generator fits the image
-shapes there (0.079); on the generalisation audit it traded those image misses
-for moment misses elsewhere.
+held-out dipole-on relative L1 0.075 before the move, 0.199 after it). The
+default therefore refits each placed member's shape with its covariance held
+at the placed one (``ReconstructionConfig.refit_steps``, ``refit_hold``;
+:func:`~diffaccel.reconstruction.pipeline.refit_members`). :class:`UnseenHold`
+(opt-in: the config's ``hold_unseen``) holds the beam at the prior point
+during training instead, so that the generator fits the image shapes there
+(0.079); on the generalisation audit it traded those image misses for moment
+misses elsewhere.
 
 The earlier criterion (``prior="gaussian"``, 61bf7aa..36d32b8) solved
 ``tr(P V_off) = 0`` over the direction's whole off-diagonal part: the
@@ -56,13 +59,13 @@ shared file's y emittance; applied after training with a 30-step refit it gave
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import torch
 from torch import Tensor
 
 from diffaccel.reconstruction.generator import BeamGenerator
+from diffaccel.reconstruction.hold import MomentHold
 
 #: Covariance entries (i <= j) that involve z or pz: the unknowns.
 _LONGITUDINAL = [(i, j) for i in range(6) for j in range(i, 6) if j >= 4]
@@ -125,6 +128,10 @@ def unseen_directions(
         out[k] = m + m.T - torch.diag(m.diagonal())
     return out
 
+
+#: Quasi-random particles per member for the covariance the placement moves
+#: (and the refit holds).
+PLACEMENT_PARTICLES = 65536
 
 #: Priors of :func:`place_unseen` (see there).
 UNSEEN_PRIORS = ("pair", "gaussian")
@@ -241,7 +248,7 @@ def transport_map(cov: Tensor, target: Tensor) -> Tensor:
     return a * (d[:, None] / d[None, :])
 
 
-class UnseenHold:
+class UnseenHold(MomentHold):
     """Penalty that holds the beam at the prior point along unseen directions.
 
     ``w sum_k t_k^2``, with ``t_k`` the displacement of the beam's covariance
@@ -275,6 +282,8 @@ class UnseenHold:
         prior: ``"pair"`` or ``"gaussian"`` (:func:`place_unseen`).
     """
 
+    refreshes = True
+
     def __init__(
         self,
         maps: Sequence[Tensor],
@@ -283,30 +292,9 @@ class UnseenHold:
         n: int,
         prior: str = "pair",
     ) -> None:
-        if not (math.isfinite(weight) and weight >= 0):
-            raise ValueError(f"weight must be finite and >= 0; got {weight}.")
+        super().__init__(weight, scale, n)
         self.maps = [m.detach().to("cpu", torch.float64) for m in maps]
-        self.weight = weight
-        self.scale = scale.detach().to(torch.float64)
-        self.n = n
         self.prior = prior
-        self.ready = False
-        device = scale.device
-        # (F, 6, 6) coefficients of t on the scaled moment matrix, (F,) offsets
-        self.q = torch.zeros(0, 6, 6, dtype=torch.float64, device=device)
-        self.b = torch.zeros(0, dtype=torch.float64, device=device)
-
-    def covariance(self, moments: Tensor) -> Tensor:
-        """Covariance ``(6, 6)`` [Bmad units] from the plain moment matrix.
-
-        ``moments`` is ``M0 = mean(z1 z1^T)`` of ``z1 = (x / scale, 1)``
-        ``(7, 7)`` (or flattened), as :class:`~.losses.RelativeEntropy`
-        returns it; ``N - 1`` normalisation.
-        """
-        m = moments.to(self.scale.device, torch.float64).reshape(7, 7)
-        mean = m[6, :6]
-        cov = (m[:6, :6] - mean[:, None] * mean[None, :]) * (self.n / (self.n - 1))
-        return cov * self.scale[:, None] * self.scale[None, :]
 
     def update(self, moments: Tensor) -> None:
         """Directions and prior point of the beam whose moments are given (host)."""
@@ -326,34 +314,6 @@ class UnseenHold:
         self.q = q.to(device)
         self.b = (q * target).sum((1, 2)).to(device)
 
-    def displacement(self, moments: Tensor) -> Tensor:
-        """``t (F,)``: the beam's displacement from the prior point along each
-        direction (correlation units), from its plain moments."""
-        return (self.q * self.covariance(moments)).sum((1, 2)) - self.b
-
-    def penalty(self, moments: Tensor) -> Tensor:
-        """``w sum_k t_k^2`` of the beam with these plain moments (a scalar)."""
-        t = self.displacement(moments)
-        return self.weight * (t * t).sum()
-
-    def surrogate(self, particles: Tensor, moments: Tensor) -> Tensor:
-        """A scalar whose gradient with respect to ``particles`` is the penalty's.
-
-        ``t`` comes from ``moments`` (the whole beam's, detached), the gradient
-        through this process's particles ``(N_local, 6)`` [Bmad units]:
-        ``d/dx_i = 2 w sum_k t_k (Q_k + Q_k^T)(x_i - mu) / (N - 1)``, exactly
-        the penalty's gradient also when the particles are split across
-        processes (each holds its share's part). Its value is not the penalty.
-        """
-        if self.q.shape[0] == 0:
-            return torch.zeros((), dtype=torch.float64, device=particles.device)
-        m = moments.detach().to(self.scale.device, torch.float64).reshape(7, 7)
-        mu = m[6, :6] * self.scale
-        t = self.displacement(m)
-        xc = particles.to(torch.float64) - mu
-        s = xc.T @ xc / (self.n - 1)  # this share's part of the covariance
-        return 2.0 * self.weight * ((t[:, None, None] * self.q).sum(0) * s).sum()
-
 
 def place_members(
     snapshots: Sequence[dict],
@@ -362,7 +322,7 @@ def place_members(
     depth: int,
     maps: Sequence[Tensor],
     *,
-    n_particles: int = 65536,
+    n_particles: int = PLACEMENT_PARTICLES,
     seed: int = 0,
     prior: str = "pair",
 ) -> list[dict]:
@@ -390,13 +350,7 @@ def place_members(
         return [dict(s) for s in snapshots]
     out = []
     for state in snapshots:
-        gen = BeamGenerator(dims, width=width, depth=depth, scale=torch.ones(dims))
-        gen.load_state_dict(state)
-        gen.requires_grad_(False)
-        g = torch.Generator().manual_seed(seed)
-        x = gen(n_particles, generator=g, quasi_random=True).to(torch.float64)
-        mu = x.mean(0)
-        cov = torch.cov(x.T)
+        mu, cov = member_moments(state, dims, width, depth, n_particles, seed)
         directions = unseen_directions(maps, cov)
         if directions.shape[0] == 0:
             out.append(dict(state))
@@ -404,6 +358,20 @@ def place_members(
         a = transport_map(cov, place_unseen(cov, directions, prior=prior))
         out.append(_fold(state, a, mu))
     return out
+
+
+def member_moments(
+    state: dict, dims: int, width: int, depth: int, n_particles: int, seed: int
+) -> tuple[Tensor, Tensor]:
+    """Centroid ``(dims,)`` and covariance ``(dims, dims)`` (float64, Bmad
+    units) of one member, from ``n_particles`` quasi-random particles drawn
+    with ``seed`` (the same particles every call)."""
+    gen = BeamGenerator(dims, width=width, depth=depth, scale=torch.ones(dims))
+    gen.load_state_dict(state)
+    gen.requires_grad_(False)
+    g = torch.Generator().manual_seed(seed)
+    x = gen(n_particles, generator=g, quasi_random=True).to(torch.float64)
+    return x.mean(0), torch.cov(x.T)
 
 
 def _fold(state: dict, a: Tensor, mu: Tensor) -> dict:

@@ -1,0 +1,146 @@
+"""Quadratic holds on the beam's covariance during training.
+
+A hold adds ``w sum_k t_k^2`` to the training loss, each ``t_k`` a linear
+function of the beam's covariance ``S``: ``t_k = sum_ij Q_k,ij S_ij - b_k``.
+Training computes the plain moment matrix of every step's particles anyway
+(for the entropy), so the hold needs no extra pass over the particles: its
+gradient enters through :meth:`MomentHold.surrogate`, exact also when the
+particles are split across processes.
+
+Two holds use this:
+
+- :class:`~diffaccel.reconstruction.unseen.UnseenHold` (opt-in,
+  ``ReconstructionConfig.hold_unseen``) holds the directions the scans cannot
+  see at their prior point during the main training;
+- :class:`CovarianceHold` holds the whole covariance at the placed one while
+  the refit after the placement fits the members' *shapes* to the images
+  (``ReconstructionConfig.refit_steps`` and ``refit_hold``; see
+  :func:`~diffaccel.reconstruction.pipeline.refit_members`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+
+class MomentHold:
+    """Penalty ``w sum_k t_k^2`` with ``t = sum_ij Q_k,ij S_ij - b_k``.
+
+    Args:
+        weight: ``w``.
+        scale: Per-coordinate scale ``(6,)`` of the moments [Bmad units]
+            (``RelativeEntropy.scale``).
+        n: Particles of the beam (all processes together).
+
+    Attributes:
+        q: ``(F, 6, 6)`` coefficients of ``t`` on the covariance [Bmad units].
+        b: ``(F,)`` offsets.
+        ready: Whether ``q`` and ``b`` are set (else training calls
+            :meth:`update` with the first step's moments).
+        refreshes: Whether training calls :meth:`update` every
+            ``HOLD_EVERY`` steps (a host read of the moments).
+    """
+
+    refreshes = False
+
+    def __init__(self, weight: float, scale: Tensor, n: int) -> None:
+        if not (math.isfinite(weight) and weight >= 0):
+            raise ValueError(f"weight must be finite and >= 0; got {weight}.")
+        self.weight = weight
+        # rounded to float32: the scale comes from the Gaussian fit to the
+        # image moments, whose float64 least squares scatter in the last bits
+        # from call to call (MKL), and the hold would carry that into the
+        # step (a resume differed from the uninterrupted run)
+        self.scale = scale.detach().float().double()
+        self.n = n
+        self.ready = False
+        device = scale.device
+        self.q = torch.zeros(0, 6, 6, dtype=torch.float64, device=device)
+        self.b = torch.zeros(0, dtype=torch.float64, device=device)
+
+    def covariance(self, moments: Tensor) -> Tensor:
+        """Covariance ``(6, 6)`` [Bmad units] from the plain moment matrix.
+
+        ``moments`` is ``M0 = mean(z1 z1^T)`` of ``z1 = (x / scale, 1)``
+        ``(7, 7)`` (or flattened), as :class:`~.losses.RelativeEntropy`
+        returns it; ``N - 1`` normalisation.
+        """
+        m = moments.to(self.scale.device, torch.float64).reshape(7, 7)
+        mean = m[6, :6]
+        cov = (m[:6, :6] - mean[:, None] * mean[None, :]) * (self.n / (self.n - 1))
+        return cov * self.scale[:, None] * self.scale[None, :]
+
+    def update(self, moments: Tensor) -> None:
+        """Refresh ``q`` and ``b`` from the beam's plain moments (host)."""
+        self.ready = True
+
+    def displacement(self, moments: Tensor) -> Tensor:
+        """``t (F,)`` of the beam with these plain moments."""
+        return (self.q * self.covariance(moments)).sum((1, 2)) - self.b
+
+    def penalty(self, moments: Tensor) -> Tensor:
+        """``w sum_k t_k^2`` of the beam with these plain moments (a scalar)."""
+        t = self.displacement(moments)
+        return self.weight * (t * t).sum()
+
+    def surrogate(self, particles: Tensor, moments: Tensor) -> Tensor:
+        """A scalar whose gradient with respect to ``particles`` is the penalty's.
+
+        ``t`` comes from ``moments`` (the whole beam's, detached), the gradient
+        through this process's particles ``(N_local, 6)`` [Bmad units]:
+        ``d/dx_i = 2 w sum_k t_k (Q_k + Q_k^T)(x_i - mu) / (N - 1)``, exactly
+        the penalty's gradient also when the particles are split across
+        processes (each holds its share's part). Its value is not the penalty.
+        """
+        if self.q.shape[0] == 0:
+            return torch.zeros((), dtype=torch.float64, device=particles.device)
+        m = moments.detach().to(self.scale.device, torch.float64).reshape(7, 7)
+        mu = m[6, :6] * self.scale
+        t = self.displacement(m)
+        xc = particles.to(torch.float64) - mu
+        s = xc.T @ xc / (self.n - 1)  # this share's part of the covariance
+        return 2.0 * self.weight * ((t[:, None, None] * self.q).sum(0) * s).sum()
+
+
+class CovarianceHold(MomentHold):
+    """Holds the whole covariance at ``target``, deviations whitened by it.
+
+    ``t`` is the upper triangle of ``W (S - T) W`` with ``W = T^(-1/2)``: the
+    covariance's deviation in the beam's own normal coordinates, so that a
+    change along a thin direction of a strongly correlated beam (the z-pz
+    chirp: emit_z changes by ``d(r_zpz) r / (1 - r^2)`` per unit correlation)
+    weighs by what it does to the emittances, not by its size in correlation
+    units. ``S = T (1 + e)`` gives ``t = e`` on the diagonal: penalty ``6 w e^2``.
+
+    Args:
+        target: ``T (6, 6)`` [Bmad units], positive definite.
+        weight: ``w``.
+        scale: Per-coordinate scale ``(6,)`` of the moments [Bmad units].
+        n: Particles of the beam (all processes together).
+
+    Raises:
+        ValueError: if ``target`` is not a finite, symmetric positive-definite
+            6x6 matrix.
+    """
+
+    def __init__(self, target: Tensor, weight: float, scale: Tensor, n: int) -> None:
+        super().__init__(weight, scale, n)
+        t = target.detach().to("cpu", torch.float64)
+        if t.shape != (6, 6) or not bool(torch.isfinite(t).all()):
+            raise ValueError(
+                f"target must be a finite (6, 6) covariance; got {tuple(t.shape)}."
+            )
+        t = 0.5 * (t + t.T)
+        w, v = torch.linalg.eigh(t)
+        if float(w.min()) <= 0:
+            raise ValueError("target covariance must be positive definite.")
+        root = v @ torch.diag(w.rsqrt()) @ v.T  # W = T^-1/2
+        iu = torch.triu_indices(6, 6)
+        q = root[iu[0]][:, :, None] * root[iu[1]][:, None, :]  # (W S W)_ab
+        device = self.scale.device
+        self.q = q.to(device)
+        self.b = (q * t).sum((1, 2)).to(device)
+        self.ready = True
