@@ -5,7 +5,12 @@ from __future__ import annotations
 import pytest
 import torch
 
-from diffaccel.data import QuadScanDataset, make_synthetic_quad_scan
+from diffaccel.data import (
+    MultiScanDataset,
+    QuadScanDataset,
+    make_synthetic_awa6d,
+    make_synthetic_quad_scan,
+)
 
 
 @pytest.fixture(scope="session")
@@ -19,6 +24,19 @@ def small_scan() -> QuadScanDataset:
         screen_shape=(32, 32),
         pixel_size=(1e-3, 1e-3),
         seed=1,
+    )
+
+
+@pytest.fixture(scope="session")
+def small_awa6d() -> MultiScanDataset:
+    """The AWA 6D layout (5 quadrupole settings x TDC off/on, dipole off/on)
+    of a correlated beam on 32 x 32 pixel screens."""
+    return make_synthetic_awa6d(
+        "correlated",
+        n_particles=4000,
+        k1_values=torch.linspace(-12.0, 12.0, 5),
+        screen_shape=(32, 32),
+        seed=2,
     )
 
 

@@ -7,7 +7,6 @@ from dataclasses import replace
 import pytest
 import torch
 
-from diffaccel.data import make_synthetic_awa6d
 from diffaccel.reconstruction import ReconstructionConfig, reconstruct
 from diffaccel.reconstruction.hold import CovarianceHold
 from diffaccel.reconstruction.initial import fit_gaussian
@@ -116,15 +115,9 @@ def test_covariance_hold_refuses_bad_input(target, weight, message) -> None:
 
 
 @pytest.fixture(scope="module")
-def placed():
+def placed(small_awa6d):
     """A small AWA 6D run's placed members (no refit) and its training inputs."""
-    data = make_synthetic_awa6d(
-        "correlated",
-        n_particles=4000,
-        k1_values=torch.linspace(-12.0, 12.0, 5),
-        screen_shape=(32, 32),
-        seed=2,
-    )
+    data = small_awa6d
     cfg = ReconstructionConfig(
         dims=6, n_particles=1024, steps=60, snapshots=1, burn_in=0, refit_steps=0
     )

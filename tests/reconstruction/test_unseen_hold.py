@@ -7,7 +7,6 @@ from pathlib import Path
 import pytest
 import torch
 
-from diffaccel.data import make_synthetic_awa6d
 from diffaccel.reconstruction import ReconstructionConfig, reconstruct
 from diffaccel.reconstruction.generator import BeamGenerator
 from diffaccel.reconstruction.training import load_checkpoint
@@ -19,14 +18,8 @@ class _Stop(Exception):
 
 
 @pytest.fixture(scope="module")
-def data():
-    return make_synthetic_awa6d(
-        "correlated",
-        n_particles=4000,
-        k1_values=torch.linspace(-12.0, 12.0, 5),
-        screen_shape=(32, 32),
-        seed=2,
-    )
+def data(small_awa6d):
+    return small_awa6d
 
 
 def _config(**kw) -> ReconstructionConfig:
