@@ -163,3 +163,23 @@ def test_refit_of_placed_members_changes_them(two_scans, result) -> None:
     assert placed_only.n_snapshots == result.n_snapshots
     for a, b in zip(placed_only.snapshots, result.snapshots, strict=True):
         assert not torch.equal(a["offset"], b["offset"])
+
+
+def test_progress_counts_training_and_refit(two_scans) -> None:
+    """The callback's steps run on through the refit of the placed members."""
+    seen: list[tuple[int, int]] = []
+    config = replace(CONFIG, refit_steps=4, report_every=2)
+    reconstruct(
+        two_scans,
+        config,
+        train_indices={"straight": [0, 2, 4], "bent": [0, 1, 2]},
+        callback=lambda info: seen.append((info.step, info.total)),
+        uncertainty=False,
+    )
+    # 6 training steps, then 4 refit steps of the one member (burn_in 1 of 2)
+    assert config.total_steps == 6 + 4
+    assert {t for _, t in seen} == {10}
+    steps = [s for s, _ in seen]
+    assert steps == sorted(steps)
+    assert steps[-1] == 10
+    assert any(s > 6 for s in steps)

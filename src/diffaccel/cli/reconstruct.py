@@ -323,7 +323,7 @@ def run_reconstruction(
     t0 = time.perf_counter()
     ck = folder / CHECKPOINT
     bar = tqdm(
-        total=config.steps,
+        total=config.total_steps,  # training and the refit of placed members
         desc="reconstruct",
         unit="step",
         leave=False,

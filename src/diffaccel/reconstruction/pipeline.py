@@ -213,6 +213,14 @@ def reconstruct(
     ]
     guess = fit_gaussian(list(forwards.values()), measured, settings, maps=maps)
     t1 = time.perf_counter()
+    # progress over training and the refit of the placed members together
+    total = run_config.total_steps
+    report = None
+    if callback is not None:
+
+        def report(info: StepInfo) -> None:
+            callback(dataclasses.replace(info, total=total))
+
     state = train_generator(
         list(forwards.values()),
         [m.to(device) for m in measured],
@@ -221,7 +229,7 @@ def reconstruct(
         run_config,
         checkpoint=checkpoint,
         resume=resume,
-        callback=callback,
+        callback=report,
         device=device,
         distributed=distributed and not members,
         maps=maps,
@@ -252,6 +260,7 @@ def reconstruct(
                 run_config,
                 maps,
                 device=device,
+                callback=callback,
             )
             for fwd in forwards.values():
                 fwd.to("cpu")
@@ -305,6 +314,7 @@ def refit_members(
     maps: Sequence[torch.Tensor],
     *,
     device: str | torch.device = "cpu",
+    callback: Callable[[StepInfo], None] | None = None,
 ) -> list[dict]:
     """Placed members' shapes fitted again to the images, then placed again.
 
@@ -328,6 +338,9 @@ def refit_members(
         config: The run's settings (``refit_steps``, ``refit_lr``, ``seed``).
         maps: Each scan's affine maps of its training settings ``(K_s, 7, 7)``.
         device: Device to refit on.
+        callback: Progress callback: :class:`StepInfo` with ``step`` counted on
+            from the end of training (``config.steps``, then each member's
+            refit in turn) and ``total = config.total_steps``.
 
     Returns:
         The refitted and placed state dicts, one per member.
@@ -343,6 +356,17 @@ def refit_members(
     )
     out = []
     for k, member in enumerate(snapshots):
+        report = None
+        if callback is not None:
+            done = config.steps + k * config.refit_steps
+
+            def report(info: StepInfo, done: int = done) -> None:
+                callback(
+                    dataclasses.replace(
+                        info, step=done + info.step, total=config.total_steps
+                    )
+                )
+
         # the placed covariance, held while the shape fits the images
         hold = None
         if config.refit_hold > 0:
@@ -367,6 +391,7 @@ def refit_members(
             maps=maps,
             initial_model=member,
             hold_covariance=hold,
+            callback=report,
         )
         out.append(state.model)
     return place_members(

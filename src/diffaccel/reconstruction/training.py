@@ -461,6 +461,22 @@ class ReconstructionConfig:
         return int(self.n_particles) * per_particle
 
     @property
+    def total_steps(self) -> int:
+        """Optimiser steps of a run: training, plus in 6D with ``place_unseen``
+        the refit of every member (``refit_steps`` each).
+
+        Example:
+            >>> ReconstructionConfig(dims=6).total_steps  # 360 + 3 x 30
+            450
+            >>> ReconstructionConfig(dims=4).total_steps
+            300
+        """
+        refit = 0
+        if self.dims == 6 and self.place_unseen:
+            refit = self.refit_steps * (self.snapshots - self.burn_in)
+        return self.steps + refit
+
+    @property
     def cycle_length(self) -> int:
         """Steps per learning-rate cycle."""
         return self.steps // self.snapshots
