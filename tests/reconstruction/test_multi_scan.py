@@ -149,30 +149,28 @@ def test_training_selection_errors_name_the_scan(two_scans, selection, message):
         training_selection(two_scans, selection)
 
 
-def test_refit_of_placed_members_changes_them(two_scans, result) -> None:
-    """``refit_steps`` (6D default 30): every member is trained again after
-    placement; 0 leaves the placed members as they are."""
+def test_refit_of_placed_members_changes_them(small_awa6d) -> None:
+    """``refit_steps`` (6D default 30): every placed member is trained again;
+    0 leaves the placed members as they are."""
     assert CONFIG.refit_steps == 30
     assert replace(CONFIG, dims=4, refit_steps=None).refit_steps == 0
+    config = replace(CONFIG, refit_steps=4)
+    refit = reconstruct(small_awa6d, config, uncertainty=False)
     placed_only = reconstruct(
-        two_scans,
-        replace(CONFIG, refit_steps=0),
-        train_indices={"straight": [0, 2, 4], "bent": [0, 1, 2]},
-        uncertainty=False,
+        small_awa6d, replace(config, refit_steps=0), uncertainty=False
     )
-    assert placed_only.n_snapshots == result.n_snapshots
-    for a, b in zip(placed_only.snapshots, result.snapshots, strict=True):
+    assert refit.n_snapshots == placed_only.n_snapshots == 1
+    for a, b in zip(refit.snapshots, placed_only.snapshots, strict=True):
         assert not torch.equal(a["offset"], b["offset"])
 
 
-def test_progress_counts_training_and_refit(two_scans) -> None:
+def test_progress_counts_training_and_refit(small_awa6d) -> None:
     """The callback's steps run on through the refit of the placed members."""
     seen: list[tuple[int, int]] = []
     config = replace(CONFIG, refit_steps=4, report_every=2)
     reconstruct(
-        two_scans,
+        small_awa6d,
         config,
-        train_indices={"straight": [0, 2, 4], "bent": [0, 1, 2]},
         callback=lambda info: seen.append((info.step, info.total)),
         uncertainty=False,
     )
@@ -183,3 +181,21 @@ def test_progress_counts_training_and_refit(two_scans) -> None:
     assert steps == sorted(steps)
     assert steps[-1] == 10
     assert any(s > 6 for s in steps)
+
+
+def test_a_quadrupole_scan_alone_is_not_refitted(small_scan) -> None:
+    """6D on a quad scan: z and pz are not seen at all, nothing is placed, so
+    nothing is refitted (the same members as with ``refit_steps=0``; likewise
+    ``two_scans``, which has a dipole but no cavity: z unseen)."""
+    seen: list[tuple[int, int]] = []
+    config = ReconstructionConfig(dims=6, n_particles=512, steps=4, snapshots=2)
+    result = reconstruct(
+        small_scan,
+        config,
+        callback=lambda info: seen.append((info.step, info.total)),
+        uncertainty=False,
+    )
+    plain = reconstruct(small_scan, replace(config, refit_steps=0), uncertainty=False)
+    assert {t for _, t in seen} == {4}
+    for a, b in zip(result.snapshots, plain.snapshots, strict=True):
+        assert all(torch.equal(a[k], b[k]) for k in a)

@@ -37,6 +37,7 @@ from diffaccel.reconstruction.unseen import (
     PLACEMENT_PARTICLES,
     member_moments,
     place_members,
+    unseen_directions,
 )
 
 TrainIndices = Sequence[int] | Mapping[str, Sequence[int]] | str | None
@@ -213,8 +214,16 @@ def reconstruct(
     ]
     guess = fit_gaussian(list(forwards.values()), measured, settings, maps=maps)
     t1 = time.perf_counter()
-    # progress over training and the refit of the placed members together
-    total = run_config.total_steps
+    # the placed members' refit runs where the scans leave longitudinal
+    # directions unseen (not when they see z or pz not at all: quad-only 6D);
+    # progress counts training and refit together
+    refit = (
+        config.dims == 6
+        and config.place_unseen
+        and config.refit_steps > 0
+        and unseen_directions(maps, guess.cov).shape[0] > 0
+    )
+    total = run_config.total_steps if refit else run_config.steps
     report = None
     if callback is not None:
 
@@ -250,7 +259,7 @@ def reconstruct(
             seed=run_config.seed,
             prior=config.unseen_prior,
         )
-        if config.refit_steps > 0:
+        if refit:
             snapshots = refit_members(
                 snapshots,
                 list(forwards.values()),

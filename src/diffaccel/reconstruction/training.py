@@ -280,7 +280,8 @@ class ReconstructionConfig:
             (chirp_weak_tilted seed 2: held-out dipole-on relative L1 0.074
             before the move, 0.199 after it); the refit restores them at the
             placed moments. None: 30 for ``dims = 6`` (0 for 4D, which places
-            nothing). Generalisation audit (docs/generalisation_6d.md): 31 of
+            nothing; a 6D run whose scans do not see z or pz at all, a
+            quadrupole scan alone, places and refits nothing either). Generalisation audit (docs/generalisation_6d.md): 31 of
             33 runs met (28 without the refit; the misses are family_draw_b's
             prior-limited z emittance), every held-out image within 0.117
             (0.199 without), moments as before; training time +38 % (1
@@ -463,7 +464,9 @@ class ReconstructionConfig:
     @property
     def total_steps(self) -> int:
         """Optimiser steps of a run: training, plus in 6D with ``place_unseen``
-        the refit of every member (``refit_steps`` each).
+        the refit of every member (``refit_steps`` each; run only where the
+        scans leave longitudinal directions unseen, not for a quadrupole scan
+        alone).
 
         Example:
             >>> ReconstructionConfig(dims=6).total_steps  # 360 + 3 x 30
