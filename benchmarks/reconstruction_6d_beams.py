@@ -29,7 +29,10 @@ held-out images on the odd ones):
   ``family_draw_b``: z-pz -0.95, x-z -0.48, px-pz 0.27), see :data:`FAMILY`;
 - beams of other kinds (:data:`OTHER_KINDS`): ``double_horn`` (double-horn
   current profile of a compressed bunch) and ``wide`` (2x the shared file's rms
-  x, 1.6x its rms y, a third of its energy spread).
+  x, 1.6x its rms y, a third of its energy spread);
+- ``draw<R>_<K>`` (not in the default list): the K-th random README-family beam
+  of numpy seed R (:func:`family_draw`, the ranges of ``family_draw_a/b``;
+  ``draw2026_0`` ... ``draw2026_5``: beams no default was chosen on).
 
 Their fails are listed apart (``fails_family``, ``fails_other_kinds``,
 ``fails_presets``); a run fails where any seed exceeds a limit, the held-out
@@ -48,9 +51,11 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 from _meta import emit, git_commit
 from _sixd import HELD_OUT_L1, KEYS, LIMITS, TRAIN
@@ -240,9 +245,57 @@ def double_horn_beam(params: dict, n: int, g: torch.Generator) -> torch.Tensor:
     return torch.stack([x, px, y, py, z, pz], -1)
 
 
+def family_draw(rng: np.random.Generator) -> dict:
+    """Parameters of one README-family beam (ranges of the audit's draws)."""
+
+    def sign() -> float:
+        return 1.0 if rng.random() < 0.5 else -1.0
+
+    return {
+        "h": sign() * rng.uniform(0.5, 4.0),
+        "c": sign() * rng.uniform(300.0, 3000.0),
+        "spread": rng.uniform(0.3e-3, 2e-3),
+        "tilt": sign() * rng.uniform(0.1, 0.7),
+        "xpx": rng.uniform(-0.95, 0.95),
+        "ypy": rng.uniform(-0.95, 0.95),
+        "kappa": rng.uniform(-400.0, 400.0),
+        "ypz": rng.uniform(-0.5, 0.5),
+        "sx": rng.uniform(3.5e-4, 7e-4),
+        "spx": rng.uniform(1.8e-4, 3.5e-4),
+        "sy": rng.uniform(3.5e-4, 7e-4),
+        "spy": rng.uniform(1.8e-4, 3.5e-4),
+        "sz": rng.uniform(5e-4, 9e-4),
+    }
+
+
+def drawn_params(name: str) -> tuple[dict, int]:
+    """``draw<R>_<K>``: the K-th (from 0) random README-family beam of numpy
+    seed R (:func:`family_draw`), and its sampling and data seed ``R + K``.
+
+    Beams no session tuned on (issue 9's "other beams"): e.g. ``--beams
+    draw2026_0,draw2026_1``.
+    """
+    m = re.fullmatch(r"draw(\d+)_(\d+)", name)
+    if m is None:
+        raise ValueError(f"unknown beam {name!r}")
+    base, k = int(m.group(1)), int(m.group(2))
+    rng = np.random.default_rng(base)
+    for _ in range(k + 1):
+        params = family_draw(rng)
+    return params, base + k
+
+
+def beam_seed(name: str) -> int:
+    """Sampling and data seed of a benchmark beam."""
+    return BEAM_SEEDS[name] if name in BEAM_SEEDS else drawn_params(name)[1]
+
+
 def synthetic_beam(name: str, n: int, seed: int) -> torch.Tensor:
     """One of the benchmark's synthetic beams, Bmad coordinates ``(n, 6)``."""
     g = torch.Generator().manual_seed(seed)
+    if name.startswith("draw"):
+        b = family_beam(drawn_params(name)[0], n, g)
+        return b - b.mean(0)
     if name in FAMILY:
         b = family_beam(FAMILY[name], n, g)
         return b - b.mean(0)
@@ -275,7 +328,7 @@ def run_beam(name: str, seeds: list[int], overrides: dict | None = None) -> dict
         train, test = read_scans(TRAIN), None
         truth = train.ground_truth
     else:
-        seed = BEAM_SEEDS[name]
+        seed = beam_seed(name)
         truth = synthetic_beam(name, 200_000, seed)
         train = make_synthetic_awa6d(particles=truth, k1_values=TRAIN_K1, seed=seed)
         test = make_synthetic_awa6d(particles=truth, k1_values=TEST_K1, seed=seed)
@@ -365,14 +418,15 @@ def main() -> None:
         out["beams"][name] = run_beam(name, seeds, overrides)
     out["fails"] = {n: b["fails"] for n, b in out["beams"].items() if b["fails"]}
     # the shared file's family (README's description) apart from the presets
-    out["fails_family"] = {n: f for n, f in out["fails"].items() if n in FAMILY}
+    family = [n for n in out["fails"] if n in FAMILY or n.startswith("draw")]
+    out["fails_family"] = {n: out["fails"][n] for n in family}
     out["fails_other_kinds"] = {
         n: f for n, f in out["fails"].items() if n in OTHER_KINDS
     }
     out["fails_presets"] = {
         n: f
         for n, f in out["fails"].items()
-        if n not in FAMILY and n not in OTHER_KINDS
+        if n not in family and n not in OTHER_KINDS
     }
     out["load_avg_1min_at_end"] = os.getloadavg()[0]
     emit(out, args.out)

@@ -27,6 +27,7 @@ from reconstruction_6d_beams import (
     BEAM_SEEDS,
     TRAIN_K1,
     family_beam,
+    family_draw,
     synthetic_beam,
 )
 
@@ -40,29 +41,6 @@ from diffaccel.reconstruction.unseen import (
 )
 
 KEYS = ("rms_z", "rms_pz", "emit_z", "emit_6d", "corr_diff_z_pz")
-
-
-def family_draw(rng: np.random.Generator) -> dict:
-    """Parameters of one README-family beam (ranges of the audit's draws)."""
-
-    def sign() -> float:
-        return 1.0 if rng.random() < 0.5 else -1.0
-
-    return {
-        "h": sign() * rng.uniform(0.5, 4.0),
-        "c": sign() * rng.uniform(300.0, 3000.0),
-        "spread": rng.uniform(0.3e-3, 2e-3),
-        "tilt": sign() * rng.uniform(0.1, 0.7),
-        "xpx": rng.uniform(-0.95, 0.95),
-        "ypy": rng.uniform(-0.95, 0.95),
-        "kappa": rng.uniform(-400.0, 400.0),
-        "ypz": rng.uniform(-0.5, 0.5),
-        "sx": rng.uniform(3.5e-4, 7e-4),
-        "spx": rng.uniform(1.8e-4, 3.5e-4),
-        "sy": rng.uniform(3.5e-4, 7e-4),
-        "spy": rng.uniform(1.8e-4, 3.5e-4),
-        "sz": rng.uniform(5e-4, 9e-4),
-    }
 
 
 def placed_errors(truth: torch.Tensor, maps: list[torch.Tensor]) -> dict:
