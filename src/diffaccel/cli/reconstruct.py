@@ -331,6 +331,7 @@ def run_reconstruction(
     )
 
     def callback(info: StepInfo) -> None:
+        bar.total = info.total  # the refit's steps only where it runs
         bar.n = info.step
         bar.set_postfix(
             image=f"{info.image_loss:.4f}", lr=f"{info.lr:.1e}", refresh=False
