@@ -281,11 +281,12 @@ class ReconstructionConfig:
             before the move, 0.199 after it); the refit restores them at the
             placed moments. None: 30 for ``dims = 6`` (0 for 4D, which places
             nothing; a 6D run whose scans do not see z or pz at all, a
-            quadrupole scan alone, places and refits nothing either). Generalisation audit (docs/generalisation_6d.md): 31 of
-            33 runs met (28 without the refit; the misses are family_draw_b's
+            quadrupole scan alone, places and refits nothing either).
+            Generalisation audit (docs/generalisation_6d.md): 31 of 33 runs
+            met (28 without the refit; the misses are family_draw_b's
             prior-limited z emittance), every held-out image within 0.117
-            (0.199 without), moments as before; training time +38 % (1
-            thread).
+            (0.199 without), moments as before; six fresh README-family
+            draws: 6 of 6 (4 without); training time +38 % (1 thread).
         refit_lr: Learning rate at the start of the refit.
         refit_hold: Weight ``w`` of the refit's hold on the covariance,
             ``w sum (W (S - T) W)_ab^2`` over the upper triangle, ``T`` the
