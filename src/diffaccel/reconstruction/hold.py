@@ -56,10 +56,17 @@ class MomentHold:
         # step (a resume differed from the uninterrupted run)
         self.scale = scale.detach().float().double()
         self.n = n
-        self.ready = False
-        device = scale.device
-        self.q = torch.zeros(0, 6, 6, dtype=torch.float64, device=device)
-        self.b = torch.zeros(0, dtype=torch.float64, device=device)
+        self.set(torch.zeros(0, 6, 6, dtype=torch.float64), torch.zeros(6, 6))
+        self.ready = False  # until a subclass or update() sets what to hold
+
+    def set(self, q: Tensor, target: Tensor) -> None:
+        """Hold ``t = sum_ij Q_k,ij (S - target)_ij`` from now on (``q``
+        ``(F, 6, 6)``, ``target`` ``(6, 6)``, both Bmad units, host)."""
+        device = self.scale.device
+        q = q.to(torch.float64)
+        self.q = q.to(device)
+        self.b = (q * target.to(torch.float64)).sum((1, 2)).to(device)
+        self.ready = True
 
     def covariance(self, moments: Tensor) -> Tensor:
         """Covariance ``(6, 6)`` [Bmad units] from the plain moment matrix.
@@ -139,8 +146,4 @@ class CovarianceHold(MomentHold):
             raise ValueError("target covariance must be positive definite.")
         root = v @ torch.diag(w.rsqrt()) @ v.T  # W = T^-1/2
         iu = torch.triu_indices(6, 6)
-        q = root[iu[0]][:, :, None] * root[iu[1]][:, None, :]  # (W S W)_ab
-        device = self.scale.device
-        self.q = q.to(device)
-        self.b = (q * t).sum((1, 2)).to(device)
-        self.ready = True
+        self.set(root[iu[0]][:, :, None] * root[iu[1]][:, None, :], t)  # (W S W)_ab

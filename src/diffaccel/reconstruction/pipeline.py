@@ -224,12 +224,7 @@ def reconstruct(
         and unseen_directions(maps, guess.cov).shape[0] > 0
     )
     total = run_config.total_steps if refit else run_config.steps
-    report = None
-    if callback is not None:
-
-        def report(info: StepInfo) -> None:
-            callback(dataclasses.replace(info, total=total))
-
+    report = _progress(callback, 0, total)
     state = train_generator(
         list(forwards.values()),
         [m.to(device) for m in measured],
@@ -365,17 +360,8 @@ def refit_members(
     )
     out = []
     for k, member in enumerate(snapshots):
-        report = None
-        if callback is not None:
-            done = config.steps + k * config.refit_steps
-
-            def report(info: StepInfo, done: int = done) -> None:
-                callback(
-                    dataclasses.replace(
-                        info, step=done + info.step, total=config.total_steps
-                    )
-                )
-
+        done = config.steps + k * config.refit_steps
+        report = _progress(callback, done, config.total_steps)
         # the placed covariance, held while the shape fits the images
         hold = None
         if config.refit_hold > 0:
@@ -412,6 +398,19 @@ def refit_members(
         seed=config.seed,
         prior=config.unseen_prior,
     )
+
+
+def _progress(
+    callback: Callable[[StepInfo], None] | None, done: int, total: int
+) -> Callable[[StepInfo], None] | None:
+    """``callback`` seeing one stage's steps as ``done + step`` of ``total``."""
+    if callback is None:
+        return None
+
+    def report(info: StepInfo) -> None:
+        callback(dataclasses.replace(info, step=done + info.step, total=total))
+
+    return report
 
 
 def psf_excess(fwd: ScreenForwardModel) -> tuple[float, float]:

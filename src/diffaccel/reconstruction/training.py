@@ -123,6 +123,7 @@ class _DimsDefaults:
     burn_in: int
     sampling_offset: float
     penalty_end: float
+    refit_steps: int
 
 
 #: 4D: tuned on the GPSR 4D benchmark (KDE images of one-pixel bandwidth).
@@ -144,12 +145,9 @@ class _DimsDefaults:
 _BYTES_PER_PARTICLE = 1536
 _BYTES_PER_PARTICLE_IMAGE_6D = 512
 
-#: Refit steps of the placed members in 6D (``ReconstructionConfig.refit_steps``).
-REFIT_STEPS_6D = 30
-
 _DIMS_DEFAULTS: dict[int, _DimsDefaults] = {
-    4: _DimsDefaults(6144, 300, 5, 1.0, 0.0, 0, 0.0, 1e4),
-    6: _DimsDefaults(16384, 360, 6, math.sqrt(1.0 / 12.0), 1.0, 3, 0.25, 3e4),
+    4: _DimsDefaults(6144, 300, 5, 1.0, 0.0, 0, 0.0, 1e4, 0),
+    6: _DimsDefaults(16384, 360, 6, math.sqrt(1.0 / 12.0), 1.0, 3, 0.25, 3e4, 30),
 }
 
 
@@ -358,7 +356,7 @@ class ReconstructionConfig:
         if self.dims not in (4, 6):
             raise ValueError(f"dims must be 4 or 6; got {self.dims}.")
         defaults = _DIMS_DEFAULTS[self.dims]
-        for name in ("n_particles", "steps", "snapshots"):
+        for name in ("n_particles", "steps", "snapshots", "refit_steps"):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, getattr(defaults, name))
         if self.loss_smoothing is None:
@@ -405,9 +403,6 @@ class ReconstructionConfig:
                 f"unseen_prior must be one of {UNSEEN_PRIORS}; got "
                 f"{self.unseen_prior!r}."
             )
-        if self.refit_steps is None:  # the refit is a step of the 6D placement
-            steps = REFIT_STEPS_6D if self.dims == 6 else 0
-            object.__setattr__(self, "refit_steps", steps)
         if self.refit_steps < 0:
             raise ValueError(f"refit_steps must be >= 0; got {self.refit_steps}.")
         if not self.refit_lr > 0:

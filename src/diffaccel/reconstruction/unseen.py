@@ -299,20 +299,15 @@ class UnseenHold(MomentHold):
     def update(self, moments: Tensor) -> None:
         """Directions and prior point of the beam whose moments are given (host)."""
         cov = self.covariance(moments).cpu()
-        self.ready = True
         v = unseen_directions(self.maps, cov)
-        device = self.scale.device
         if v.shape[0] == 0 or not bool(torch.isfinite(cov).all()):
-            self.q = torch.zeros(0, 6, 6, dtype=torch.float64, device=device)
-            self.b = torch.zeros(0, dtype=torch.float64, device=device)
+            self.set(torch.zeros(0, 6, 6), cov)  # nothing to hold
             return
-        target = place_unseen(cov, v, prior=self.prior)
         sig = cov.diagonal().clamp_min(1e-300).sqrt()
         # V_k = sum_e u_e sig_i sig_j (E_ij + E_ji), so
         # t_k = sum_e u_e S_ij / (sig_i sig_j) over the upper triangle
         q = torch.triu(v / (sig[:, None] * sig[None, :]) ** 2)
-        self.q = q.to(device)
-        self.b = (q * target).sum((1, 2)).to(device)
+        self.set(q, place_unseen(cov, v, prior=self.prior))
 
 
 def place_members(
