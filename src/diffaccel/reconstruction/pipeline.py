@@ -265,6 +265,7 @@ def reconstruct(
                 maps,
                 device=device,
                 callback=callback,
+                distributed=distributed and not members,
             )
             for fwd in forwards.values():
                 fwd.to("cpu")
@@ -319,6 +320,7 @@ def refit_members(
     *,
     device: str | torch.device = "cpu",
     callback: Callable[[StepInfo], None] | None = None,
+    distributed: bool = False,
 ) -> list[dict]:
     """Placed members' shapes fitted again to the images, then placed again.
 
@@ -345,6 +347,10 @@ def refit_members(
         callback: Progress callback: :class:`StepInfo` with ``step`` counted on
             from the end of training (``config.steps``, then each member's
             refit in turn) and ``total = config.total_steps``.
+        distributed: Split every refit step's particles across the processes
+            of the initialised ``torch.distributed`` group, as the training
+            does (:func:`~diffaccel.reconstruction.training.train_generator`);
+            every process returns the same members.
 
     Returns:
         The refitted and placed state dicts, one per member.
@@ -387,6 +393,7 @@ def refit_members(
             initial_model=member,
             hold_covariance=hold,
             callback=report,
+            distributed=distributed,
         )
         out.append(state.model)
     return place_members(
