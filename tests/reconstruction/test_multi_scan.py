@@ -150,9 +150,9 @@ def test_training_selection_errors_name_the_scan(two_scans, selection, message):
 
 
 def test_refit_of_placed_members_changes_them(small_awa6d) -> None:
-    """``refit_steps`` (6D default 30): every placed member is trained again;
+    """``refit_steps`` (6D default 60): every placed member is trained again;
     0 leaves the placed members as they are."""
-    assert CONFIG.refit_steps == 30
+    assert CONFIG.refit_steps == 60
     assert replace(CONFIG, dims=4, refit_steps=None).refit_steps == 0
     config = replace(CONFIG, refit_steps=4)
     refit = reconstruct(small_awa6d, config, uncertainty=False)

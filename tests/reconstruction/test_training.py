@@ -215,9 +215,9 @@ def test_sampling_offset_and_penalty_defaults() -> None:
     assert ReconstructionConfig.from_dict(d).hold_unseen == 1e3
     del d["hold_unseen"]
     assert ReconstructionConfig.from_dict(d).hold_unseen == 0.0
-    # the refit of the placed members: 30 held steps in 6D, none in 4D; runs
+    # the refit of the placed members: 60 held steps in 6D, none in 4D; runs
     # saved before the covariance hold refitted freely (or not at all)
-    assert ReconstructionConfig(dims=6).refit_steps == 30
+    assert ReconstructionConfig(dims=6).refit_steps == 60
     assert ReconstructionConfig(dims=6).refit_hold == 1e4
     assert ReconstructionConfig(dims=4).refit_steps == 0
     d = ReconstructionConfig(dims=6, refit_steps=30).to_dict()

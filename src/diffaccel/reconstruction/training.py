@@ -147,7 +147,7 @@ _BYTES_PER_PARTICLE_IMAGE_6D = 512
 
 _DIMS_DEFAULTS: dict[int, _DimsDefaults] = {
     4: _DimsDefaults(6144, 300, 5, 1.0, 0.0, 0, 0.0, 1e4, 0),
-    6: _DimsDefaults(16384, 360, 6, math.sqrt(1.0 / 12.0), 1.0, 3, 0.25, 3e4, 30),
+    6: _DimsDefaults(16384, 360, 6, math.sqrt(1.0 / 12.0), 1.0, 3, 0.25, 3e4, 60),
 }
 
 
@@ -277,14 +277,19 @@ class ReconstructionConfig:
             screens' second moments but not the shapes of non-Gaussian images
             (chirp_weak_tilted seed 2: held-out dipole-on relative L1 0.074
             before the move, 0.199 after it); the refit restores them at the
-            placed moments. None: 30 for ``dims = 6`` (0 for 4D, which places
+            placed moments. None: 60 for ``dims = 6`` (0 for 4D, which places
             nothing; a 6D run whose scans do not see z or pz at all, a
             quadrupole scan alone, places and refits nothing either).
-            Generalisation audit (docs/generalisation_6d.md): 31 of 33 runs
-            met (28 without the refit; the misses are family_draw_b's
-            prior-limited z emittance), every held-out image within 0.117
-            (0.199 without), moments as before; six fresh README-family
-            draws: 6 of 6 (4 without); training time +38 % (1 thread).
+            Generalisation audit (docs/generalisation_6d.md): 60 steps: 32 of
+            33 runs met, every held-out image within 0.105, 18 random
+            README-family draws 18 of 18 within 0.119 (training +11 % against
+            30 steps). 30 steps (the default until 2026-11-27): 31 of 33,
+            held-out within 0.117, but one draw at 0.150 (draw2027_2: a large
+            placement the shorter refit did not undo). Without the refit: 28
+            of 33, held-out up to 0.199. The misses are family_draw_b's
+            prior-limited z emittance. The moments do not depend on the
+            length (the hold): mean |change| 30 -> 60 below 0.1 % but where a
+            -0.95 chirp amplifies rounding (family_draw_b).
         refit_lr: Learning rate at the start of the refit.
         refit_hold: Weight ``w`` of the refit's hold on the covariance,
             ``w sum (W (S - T) W)_ab^2`` over the upper triangle, ``T`` the
@@ -465,8 +470,8 @@ class ReconstructionConfig:
         alone).
 
         Example:
-            >>> ReconstructionConfig(dims=6).total_steps  # 360 + 3 x 30
-            450
+            >>> ReconstructionConfig(dims=6).total_steps  # 360 + 3 x 60
+            540
             >>> ReconstructionConfig(dims=4).total_steps
             300
         """
