@@ -286,10 +286,12 @@ class ReconstructionConfig:
             30 steps). 30 steps (the default until 2026-11-27): 31 of 33,
             held-out within 0.117, but one draw at 0.150 (draw2027_2: a large
             placement the shorter refit did not undo). Without the refit: 28
-            of 33, held-out up to 0.199. The misses are family_draw_b's
-            prior-limited z emittance. The moments do not depend on the
-            length (the hold): mean |change| 30 -> 60 below 0.1 % but where a
-            -0.95 chirp amplifies rounding (family_draw_b).
+            of 33, held-out up to 0.199. Six fresh draws after the change: 5
+            of 6. The misses (family_draw_b, draw2028_3) are the prior's: a
+            px-pz partial correlation the scans cannot see. The moments do not
+            depend on the length (the hold): mean |change| 30 -> 60 below
+            0.1 %, except where a -0.95 chirp amplifies rounding
+            (family_draw_b).
         refit_lr: Learning rate at the start of the refit.
         refit_hold: Weight ``w`` of the refit's hold on the covariance,
             ``w sum (W (S - T) W)_ab^2`` over the upper triangle, ``T`` the
