@@ -133,3 +133,55 @@ def test_tanh_layer_is_tanh(dtype: torch.dtype) -> None:
     assert (gw - gw_ref).abs().max() < tol * 100 * gw_ref.abs().max()
     with torch.no_grad():  # in place on its own buffer: the same values
         assert torch.equal(tanh_layer(h, w, b), ours.detach())
+
+
+def test_quadratic_features_are_unit_hermite_products() -> None:
+    from diffaccel.reconstruction.generator import quadratic_features
+
+    u = standard_normal_samples(1 << 16, 3, torch.Generator().manual_seed(0), True)
+    q = quadratic_features(u.double())
+    assert q.shape == (1 << 16, 6)
+    # zero mean and unit variance to the Sobol sample's accuracy (~1e-3);
+    # uncorrelated with each other and with the base (odd moments vanish)
+    assert q.mean(0).abs().max() < 0.01
+    assert (q.std(0) - 1).abs().max() < 0.01
+    c = torch.cov(torch.cat([u.double(), q], 1).T)
+    assert (c - torch.diag(c.diagonal())).abs().max() < 0.01
+
+
+def test_6d_quadratic_term_gives_an_unbounded_curved_chirp() -> None:
+    """pz = c (z^2 - 1)/sqrt(2) in base units, exactly, far into the tails,
+    where the bounded tanh MLP cannot follow (session stop 18); 4D has none."""
+    from diffaccel.reconstruction.generator import quadratic_features
+
+    gen = BeamGenerator(6, scale=torch.ones(6), generator=torch.Generator())
+    assert gen.quad.shape == (6, 21) and not gen.quad.any()  # starts at zero
+    zz = [(int(i), int(j)) for i, j in zip(*torch.triu_indices(6, 6), strict=True)]
+    with torch.no_grad():
+        gen.quad[5, zz.index((4, 4))] = 0.8
+    base = torch.zeros(5, 6)
+    base[:, 4] = torch.tensor([-5.0, -3.0, 0.0, 3.0, 5.0])
+    with torch.no_grad():
+        x = gen.transform(base)
+    expect = 0.8 * (base[:, 4] ** 2 - 1) / 2**0.5 + base[:, 5]
+    torch.testing.assert_close(x[:, 5], expect)  # 13.6 at |z| = 5
+    torch.testing.assert_close(
+        quadratic_features(base)[:, zz.index((4, 4))], (base[:, 4] ** 2 - 1) / 2**0.5
+    )
+    assert not hasattr(BeamGenerator(4, scale=SCALE4), "quad")
+
+
+def test_6d_generator_saved_before_the_quadratic_term_loads_as_the_same_beam() -> None:
+    g = torch.Generator().manual_seed(3)
+    gen = BeamGenerator(6, width=8, scale=torch.ones(6), generator=g)
+    with torch.no_grad():
+        gen.mlp[-1].weight.normal_(generator=g)
+    old = {k: v for k, v in gen.state_dict().items() if k != "quad"}
+    other = BeamGenerator(6, width=8, scale=torch.ones(6))
+    other.load_state_dict(old)  # strict: the missing Q is filled with zeros
+    assert not other.quad.any()
+    s = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        assert torch.equal(
+            gen(100, generator=s), other(100, generator=s.manual_seed(0))
+        )

@@ -90,6 +90,30 @@ def test_resume_with_other_config_is_refused(small_scan, tmp_path: Path) -> None
         )
 
 
+def test_resume_of_a_6d_checkpoint_without_the_quadratic_term_is_refused(
+    small_awa6d, tmp_path: Path
+) -> None:
+    """A 6D run checkpointed before the generator's quadratic term (session
+    stop 18): its optimiser state is shorter than the parameters; a clear
+    error, not a size mismatch from inside Adam."""
+    ck = tmp_path / "ck.pt"
+    cfg = ReconstructionConfig(
+        dims=6,
+        n_particles=512,
+        steps=4,
+        snapshots=1,
+        burn_in=0,
+        checkpoint_every=2,
+        refit_steps=0,
+    )
+    reconstruct(small_awa6d, cfg, checkpoint=ck, uncertainty=False)
+    d = torch.load(ck, weights_only=True)
+    del d["model"]["quad"]
+    torch.save(d, ck)
+    with pytest.raises(ValueError, match=r"earlier diffaccel.*\['quad'\]"):
+        reconstruct(small_awa6d, cfg, checkpoint=ck, resume=True, uncertainty=False)
+
+
 def test_corrupt_checkpoint(tmp_path: Path) -> None:
     bad = tmp_path / "ck.pt"
     bad.write_bytes(b"not a checkpoint")

@@ -16,15 +16,23 @@ class BeamGenerator(nn.Module):
     """Generative model of a beam's phase-space distribution.
 
     A ``dims``-dimensional standard-normal base sample ``u`` is mapped to
-    particles by ``x = s0 * (b + exp(a) * (L u + f(u)))`` where ``s0`` is the
-    fixed reference scale (the initial ``scale``), ``b`` the learnable offset and
-    ``exp(a)`` the learnable scale, both in units of ``s0`` (so that every
-    trainable number is of order one and one learning rate suits all), ``L`` a
-    learnable ``dims x dims`` mixing matrix (initialised from a guessed
+    particles by ``x = s0 * (b + exp(a) * (L u + Q q(u) + f(u)))`` where ``s0``
+    is the fixed reference scale (the initial ``scale``), ``b`` the learnable
+    offset and ``exp(a)`` the learnable scale, both in units of ``s0`` (so that
+    every trainable number is of order one and one learning rate suits all),
+    ``L`` a learnable ``dims x dims`` mixing matrix (initialised from a guessed
     correlation matrix) and ``f`` a tanh MLP whose last layer starts at zero (so
     the initial beam is the Gaussian ``offset, scale, L``). Every call draws
-    *fresh* base samples: a fixed sample
-    over-fits its own shot noise.
+    *fresh* base samples: a fixed sample over-fits its own shot noise.
+
+    In 6D a learnable ``6 x 21`` matrix ``Q`` (starting at zero) also weighs the
+    second-order products ``q(u)`` of the base (:func:`quadratic_features`).
+    The tanh MLP is bounded, so without it a coordinate that grows with the
+    square of another (the energy of a curved chirp, ``pz ~ c z^2``) has its
+    tails cut where ``f`` saturates: the tips of the chirp's curve go missing
+    from the dipole-screen images, and on strongly curved beams rms pz came out
+    3-4 % low (``docs/generalisation_6d.md``, session stop 18). 4D generators
+    have no ``Q``; 6D runs saved before it load with ``Q = 0``.
 
     Args:
         dims: 6 for the full phase space, 4 for transverse only (``z = pz = 0``).
@@ -93,6 +101,18 @@ class BeamGenerator(nn.Module):
         layers.append(nn.Linear(width, dims))
         self.mlp = nn.Sequential(*layers)
         self._init_weights(generator)
+        if dims == 6:
+            n_products = dims * (dims + 1) // 2
+            self.quad = nn.Parameter(torch.zeros(dims, n_products, dtype=scale.dtype))
+
+    def _load_from_state_dict(  # type: ignore[override]
+        self, state_dict: dict, prefix: str, *args: object, **kwargs: object
+    ) -> None:
+        key = prefix + "quad"
+        if self.dims == 6 and key not in state_dict:
+            # a 6D generator saved before the quadratic term: Q = 0 is the same beam
+            state_dict[key] = torch.zeros_like(self.quad)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def _init_weights(self, generator: torch.Generator | None) -> None:
         linears = [m for m in self.mlp if isinstance(m, nn.Linear)]
@@ -117,6 +137,8 @@ class BeamGenerator(nn.Module):
         for lin in hidden:
             h = _hidden_layer(h, lin.weight.T, lin.bias, self.dims)
         u = torch.addmm(last.bias, h, last.weight.T).addmm_(base, self.mix.T)
+        if self.dims == 6:
+            u = u.addmm_(quadratic_features(base), self.quad.T)
         # s0 * (b + exp(a) * u) with the (dims,) factors formed first: one
         # fused multiply-add over the particles
         x = torch.addcmul(
@@ -242,6 +264,24 @@ def standard_normal_samples(
     return shifted_sobol_normals(points, generator).to(dtype=dtype, device=device)
 
 
+def quadratic_features(base: Tensor) -> Tensor:
+    """Second-order products of standard-normal base samples, each of zero mean
+    and unit variance: ``(u_i^2 - 1) / sqrt(2)`` and ``u_i u_j`` for ``i < j``
+    (the second-order Hermite polynomials), ordered as ``torch.triu_indices``.
+
+    Shapes:
+        ``(n, d)`` -> ``(n, d (d + 1) / 2)``.
+
+    Example:
+        >>> quadratic_features(torch.tensor([[1.0, 2.0]]))
+        tensor([[0.0000, 2.0000, 2.1213]])
+    """
+    d = base.shape[-1]
+    i, j = torch.triu_indices(d, d, device=base.device)
+    q = base[:, i] * base[:, j]
+    return torch.where(i == j, (q - 1) * math.sqrt(0.5), q)
+
+
 def tanh_layer(h: Tensor, weight_t: Tensor, bias: Tensor) -> Tensor:
     """``tanh(h @ weight_t + bias)``, computed as ``2 sigmoid(2 z) - 1``.
 
@@ -357,6 +397,7 @@ class FlatGenerator:
         self._weights_t = [_transposed(lay.weight) for lay in linears]
         self._biases = [lay.bias.expand(self.n, lay.out_features) for lay in linears]
         self._mix_t = _transposed(model.mix)
+        self._quad_t = _transposed(model.quad) if model.dims == 6 else None
         self._ones = torch.ones(self.n, dtype=p.dtype, device=p.device)
         self._names = [
             name[: -len(".weight")]
@@ -414,15 +455,19 @@ class _GeneratorFn(torch.autograd.Function):
             h = _hidden_layer(h, wts[i], biases[i], m.dims)
             hidden.append(h)
         u = torch.addmm(biases[-1], h, wts[-1]).addmm_(base, net._mix_t)
+        q = base.new_zeros(0)
+        if m.dims == 6:
+            q = quadratic_features(base)
+            u = u.addmm_(q, net._quad_t)
         factor = m.ref_scale * m.log_scale.exp()
         x = torch.addcmul(m.ref_scale * m.offset, u, factor)
-        ctx.save_for_backward(u, factor, *hidden)
+        ctx.save_for_backward(u, factor, q, *hidden)
         ctx.net = net
         return x
 
     @staticmethod
     def backward(ctx, gx: Tensor) -> tuple[Tensor, None, None]:  # type: ignore[override]
-        u, factor, *hidden = ctx.saved_tensors
+        u, factor, q, *hidden = ctx.saved_tensors
         net = ctx.net
         m = net.model
         g = net._grads
@@ -432,6 +477,8 @@ class _GeneratorFn(torch.autograd.Function):
         torch.mul(gx_sum, m.ref_scale, out=g["offset"])
         gu_t = _transposed(gu)
         torch.mm(gu_t, hidden[0], out=g["mix"])
+        if m.dims == 6:
+            torch.mm(gu_t, q, out=g["quad"])
         names = net._names
         linears = net._linears
         ga, ga_t = gu, gu_t

@@ -792,6 +792,13 @@ def train_generator(
                 "file, other training settings or another screen calibration); "
                 "resume with the same data, or start a new run."
             )
+        missing = sorted(set(model.state_dict()) - set(state.model))
+        if missing:  # e.g. a 6D run checkpointed before the quadratic term
+            raise ValueError(
+                f"checkpoint {ckpt} was written by an earlier diffaccel: its "
+                f"generator lacks {missing}, so its optimiser state does not fit; "
+                "start a new run."
+            )
         model.load_state_dict(state.model)  # copies into net.flat
         opt.load_state_dict(state.optimizer)
         gen_rng.set_state(state.rng)

@@ -57,8 +57,14 @@ shared file's y emittance; applied after training with a 30-step refit it gave
 (seed 0). Conditioning on x^2 and y^2 alone (session stop 17) puts every
 audit truth within 0.3 % and 30 random family draws within 1.4 %, but in the
 pipeline (placement, the covariance-held refit, placement again) it met 31 of
-36 audit runs against the pair prior's 32 of 33 (family_draw_b +47 / +104 %):
-the refit holds the covariance, not the third moments the criterion rests on.
+36 audit runs against the pair prior's 32 of 33 (family_draw_b +47 / +104 %).
+That criterion is not even consistent on the reconstruction's own particles:
+the move changes pz's moments with x^2 too, and placing again on the moved
+particles goes elsewhere (draw2028_3, seed 0: -5.9 % after one placement,
+-20.7 % when iterated to its fixed point; pair -15.4 %; session stop 18), so
+the images do not pin the third moments it rests on. With the generator's
+quadratic term (stop 18) the reconstructions land where the pair prior puts
+the truth: family_draw_b emit_z -38 / -39 / -19 % on seeds 0-2.
 """
 
 from __future__ import annotations
@@ -376,9 +382,10 @@ def member_moments(
 def _fold(state: dict, a: Tensor, mu: Tensor) -> dict:
     """State dict of the generator whose particles are ``mu + A (x - mu)``.
 
-    ``x = s0 (b + e^l u)`` with ``u = mix base + W h + c``: with
-    ``D = diag(s0 e^l)`` the new ``u' = D^-1 A D u`` (mixing matrix and last
-    layer multiplied by ``M = D^-1 A D``) and ``b' = (A s0 b + (I - A) mu) / s0``.
+    ``x = s0 (b + e^l u)`` with ``u = mix base + Q q + W h + c``: with
+    ``D = diag(s0 e^l)`` the new ``u' = D^-1 A D u`` (mixing matrix, quadratic
+    term and last layer multiplied by ``M = D^-1 A D``) and
+    ``b' = (A s0 b + (I - A) mu) / s0``.
     """
     new = {k: v.clone() for k, v in state.items()}
     dtype = state["mix"].dtype
@@ -386,6 +393,8 @@ def _fold(state: dict, a: Tensor, mu: Tensor) -> dict:
     d = s0 * state["log_scale"].to(torch.float64).exp()
     m = a / d[:, None] * d[None, :]
     new["mix"] = (m @ state["mix"].to(torch.float64)).to(dtype)
+    if "quad" in state:  # the quadratic term, like the mixing matrix
+        new["quad"] = (m @ state["quad"].to(torch.float64)).to(dtype)
     last = max(
         (k for k in state if k.startswith("mlp.") and k.endswith(".weight")),
         key=lambda k: int(k.split(".")[1]),
