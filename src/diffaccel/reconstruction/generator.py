@@ -276,10 +276,23 @@ def quadratic_features(base: Tensor) -> Tensor:
         >>> quadratic_features(torch.tensor([[1.0, 2.0]]))
         tensor([[0.0000, 2.0000, 2.1213]])
     """
-    d = base.shape[-1]
-    i, j = torch.triu_indices(d, d, device=base.device)
+    i, j, diagonal = _product_indices(base.shape[-1], base.device)
     q = base[:, i] * base[:, j]
-    return torch.where(i == j, (q - 1) * math.sqrt(0.5), q)
+    return torch.where(diagonal, (q - 1) * math.sqrt(0.5), q)
+
+
+#: ``(i, j, i == j)`` of :func:`quadratic_features` per dimension and device,
+#: made once (every training step calls it)
+_PRODUCT_INDICES: dict[tuple[int, torch.device], tuple[Tensor, Tensor, Tensor]] = {}
+
+
+def _product_indices(d: int, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+    key = (d, device)
+    out = _PRODUCT_INDICES.get(key)
+    if out is None:
+        i, j = torch.triu_indices(d, d, device=device)
+        out = _PRODUCT_INDICES[key] = (i, j, i == j)
+    return out
 
 
 def tanh_layer(h: Tensor, weight_t: Tensor, bias: Tensor) -> Tensor:
