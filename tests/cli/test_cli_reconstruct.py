@@ -351,6 +351,15 @@ def two_scan_file(tmp_path_factory) -> Path:
     return path
 
 
+def test_uncoupled_is_a_6d_option(scan_file: Path, tmp_path: Path) -> None:
+    out = tmp_path / "o"
+    r = CliRunner().invoke(
+        main, ["reconstruct", str(scan_file), "--out", str(out), "--uncoupled", *FAST]
+    )
+    assert r.exit_code == 1 and "--uncoupled" in r.output and "dims=4" in r.output
+    assert "Traceback" not in r.output and not out.exists()
+
+
 def test_reconstruct_and_predict_version_2(two_scan_file: Path, tmp_path) -> None:
     out = tmp_path / "out"
     r = CliRunner().invoke(

@@ -140,6 +140,11 @@ def test_corrupt_checkpoint(tmp_path: Path) -> None:
         ({"hold_unseen": math.nan}, "hold_unseen must be finite"),
         ({"refit_hold": -1.0}, "refit_hold must be finite and >= 0"),
         ({"refit_hold": math.inf}, "refit_hold must be finite"),
+        ({"dims": 4, "place_coupling": True}, r"place_coupling.*dims=4"),
+        (
+            {"dims": 6, "place_unseen": False, "place_coupling": True},
+            "place_coupling.*place_unseen=False",
+        ),
     ],
     ids=[
         "cycles",
@@ -158,6 +163,8 @@ def test_corrupt_checkpoint(tmp_path: Path) -> None:
         "hold-nan",
         "refit-hold-negative",
         "refit-hold-inf",
+        "coupling-4d",
+        "coupling-unplaced",
     ],
 )
 def test_bad_config(kwargs: dict, match: str) -> None:

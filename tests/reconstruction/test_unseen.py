@@ -12,6 +12,8 @@ from diffaccel.reconstruction.generator import BeamGenerator
 from diffaccel.reconstruction.unseen import (
     UnseenHold,
     _fold,
+    coupling_directions,
+    member_moments,
     place_members,
     place_unseen,
     traded_pairs,
@@ -176,6 +178,80 @@ def test_no_directions_without_dispersion_or_cavity() -> None:
     fwd = ScreenForwardModel(Beamline.from_spec(spec), ["Q.k1"], 43e6)
     maps = [fwd.transfer_maps(torch.linspace(-10, 10, 5, dtype=torch.float64)[:, None])]
     assert unseen_directions(maps, _beam_cov()).shape[0] == 0
+
+
+def test_awa6d_has_one_barely_seen_xy_coupling_direction() -> None:
+    maps, cov = _maps(), _beam_cov()
+    v = coupling_directions(maps, cov)
+    assert v.shape == (1, 6, 6)
+    sig = cov.diagonal().sqrt()
+    c = v[0] / (sig[:, None] * sig[None, :])
+    # cross-plane entries only
+    mask = torch.zeros(6, 6, dtype=torch.bool)
+    for i, j in ((0, 2), (0, 3), (1, 2), (1, 3)):
+        mask[i, j] = mask[j, i] = True
+    assert float(c[~mask].abs().max()) == 0.0
+    # one quadrupole and a drift L: <x y> at the screen weighs S_x,py and S_px,y
+    # alike and S_px,py by L, so they trade as (t, t, -2t/L): same sign for
+    # x-py and px-y, the opposite for px-py, x-y barely involved
+    assert float(c[0, 3] * c[1, 2]) > 0 and float(c[0, 3] * c[1, 3]) < 0
+    assert abs(float(c[0, 2])) < 0.1 * float(c.abs().max())
+    before = _screen_moments(maps, cov)
+    step = 0.2 / float(c.abs().max())
+    # 0.2 in correlation units: 3.0 % of a spot size^2 at most (measured)
+    assert _change(_screen_moments(maps, cov + step * v[0]), before) < 0.05
+    # the same change of px-py alone is seen 4.7x more (0.14)
+    e = torch.zeros(6, 6, dtype=torch.float64)
+    e[1, 3] = e[3, 1] = 0.2 * float(sig[1] * sig[3])
+    assert _change(_screen_moments(maps, cov + e), before) > 0.1
+
+
+def test_coupling_placement_goes_to_the_largest_determinant() -> None:
+    maps, cov = _maps(), _beam_cov()
+    v = unseen_directions(maps, cov)
+    c = coupling_directions(maps, cov)
+    sig = cov.diagonal().sqrt()
+    unit = sig[:, None] * sig[None, :]
+    # a beam without x-y coupling: the largest determinant along c is itself
+    moved = cov + 0.1 * c[0] + 0.1 * v[0]
+    placed = place_unseen(moved, v, coupling=c)
+    p = torch.linalg.inv(placed)
+    assert abs(float(torch.einsum("ij,ji->", p, c[0]))) < 1e-8
+    assert float(((placed - cov) / unit)[:4, :4].abs().max()) < 1e-6
+    # the longitudinal pair prior holds beside it
+    for i, j in traded_pairs(v, placed):
+        assert abs(_partial(placed, i, j)) < 1e-8
+    # the determinant is the largest along c: smaller on either side
+    for dt in (-0.01, 0.01):
+        assert torch.logdet(placed + dt * c[0]) < torch.logdet(placed)
+    # without coupling directions: the pair placement alone, as before
+    assert torch.allclose(
+        place_unseen(moved, v, coupling=torch.zeros(0, 6, 6)), place_unseen(moved, v)
+    )
+
+
+def test_place_members_moves_the_coupling_only_when_asked() -> None:
+    g = torch.Generator().manual_seed(4)
+    maps, cov = _maps(), _beam_cov()
+    c = coupling_directions(maps, cov)[0]
+    # a member whose covariance is cov moved 0.15 along the coupling direction
+    target = cov + 0.15 * c
+    gen = BeamGenerator(6, width=8, depth=2, scale=torch.ones(6), generator=g)
+    state = {k: v.detach().clone() for k, v in gen.state_dict().items()}
+    mu, own = member_moments(state, 6, 8, 2, 4096, 0)
+    state = _fold(state, transport_map(own, target), mu)
+    sig = cov.diagonal().sqrt()
+    unit = (sig[:, None] * sig[None, :])[:4, :4]
+
+    def cross(s: dict) -> float:
+        _, m = member_moments(s, 6, 8, 2, 4096, 0)
+        return float(((m[:4, :4] - cov[:4, :4]) / unit).abs().max())
+
+    assert cross(state) > 0.05
+    kept = place_members([state], 6, 8, 2, maps, n_particles=4096)[0]
+    assert cross(kept) > 0.05  # the default leaves the coupling alone
+    moved = place_members([state], 6, 8, 2, maps, n_particles=4096, coupling=True)[0]
+    assert cross(moved) < 5e-3
 
 
 def test_transport_map_reaches_the_target() -> None:

@@ -125,6 +125,7 @@ PARAMETER_FLAGS = {
     "seed": "--seed",
     "image_loss": "--image-loss",
     "blur": "--blur",
+    "uncoupled": "--uncoupled",
 }
 #: Config fields set by ``reconstruct`` options, and those options.
 CONFIG_OPTIONS = {
@@ -135,6 +136,7 @@ CONFIG_OPTIONS = {
     "seed": "--seed",
     "image_loss": "--image-loss",
     "blur_pixels": "--blur",
+    "place_coupling": "--uncoupled",
 }
 
 
@@ -478,6 +480,15 @@ def run_reconstruction(
     "screen resolution_pixels where recorded, else 1.0 for --dims 4, sqrt(1/12) "
     "for --dims 6].",
 )
+@click.option(
+    "--uncoupled",
+    is_flag=True,
+    help="--dims 6: take x-y coupling that the screens barely see (x-py, px-y "
+    "against px-py) to be absent, as for a beam known to be uncoupled: the 4D "
+    "and 6D emittances then do not depend on where training settled along it. "
+    "Wrong for x-y coupled beams (e.g. after a solenoid); see "
+    "docs/generalisation_6d.md.",
+)
 @click.option("--no-figures", is_flag=True, help="Skip the PNG figures.")
 @click.option(
     "--uncertainty/--no-uncertainty",
@@ -525,6 +536,7 @@ def reconstruct_command(
     dims: str,
     image_loss: str,
     blur: float | None,
+    uncoupled: bool,
     no_figures: bool,
     uncertainty: bool,
     force: bool,
@@ -560,6 +572,7 @@ def reconstruct_command(
             seed=seed,
             image_loss=image_loss,  # type: ignore[arg-type]
             blur_pixels=blur,
+            place_coupling=uncoupled,
         )
     except ValueError as err:
         raise click.ClickException(str(err)) from err

@@ -253,6 +253,7 @@ def reconstruct(
             maps,
             seed=run_config.seed,
             prior=config.unseen_prior,
+            coupling=config.place_coupling,
         )
         if refit:
             snapshots = refit_members(
@@ -404,6 +405,7 @@ def refit_members(
         maps,
         seed=config.seed,
         prior=config.unseen_prior,
+        coupling=config.place_coupling,
     )
 
 

@@ -268,6 +268,22 @@ class ReconstructionConfig:
             off-diagonal part (it also weighs the seen z-pz chirp in:
             ``docs/generalisation_6d.md``, double_horn emit_z +10 to +12 %
             with it, +3 to +6 % with ``"pair"``).
+        place_coupling: With ``place_unseen`` (6D scans that leave
+            longitudinal directions unseen), also move each member along the
+            transverse x-y coupling direction the screens barely see (x-py and
+            px-y against px-py after one quadrupole and a drift,
+            :func:`~diffaccel.reconstruction.unseen.coupling_directions`) to
+            the largest determinant there: x-y coupling the images barely
+            show is taken to be absent. Off by default. On the
+            generalisation audit (docs/generalisation_6d.md, seeds 0-2) it put
+            ``nonlinear_ypy``'s 6D emittance at -2.1 to -2.6 % (off: -6.5 to
+            -14.2 %, its 4D emittance as low: training settles off along that
+            direction); no other error grew by more than a point (family_draw_b
+            aside, whose emit_z its longitudinal prior sets: seed 2 -19 ->
+            -28 %), held-out images within +0.004. On beams with real x-y
+            coupling (rotated in x-y, as after a solenoid) it throws away
+            what the image shapes say: 6D emittance -3.9 -> +11.7 %, 4D -0.4
+            -> +15.3 %, x-y correlations off by up to 0.36.
         refit_steps: With ``place_unseen``, fit each placed member's *shape*
             to the training images again for this many steps (one cosine cycle
             from ``refit_lr`` to ``lr_min`` at ``penalty_end``), its covariance
@@ -354,6 +370,7 @@ class ReconstructionConfig:
     prior_factor: float = 3.0
     place_unseen: bool = True
     unseen_prior: str = "pair"
+    place_coupling: bool = False
     refit_steps: int | None = None
     refit_lr: float = 1e-3
     refit_hold: float = 1e4
@@ -412,6 +429,12 @@ class ReconstructionConfig:
             raise ValueError(
                 f"unseen_prior must be one of {UNSEEN_PRIORS}; got "
                 f"{self.unseen_prior!r}."
+            )
+        if self.place_coupling and not (self.dims == 6 and self.place_unseen):
+            raise ValueError(
+                "place_coupling (--uncoupled) applies to 6D reconstructions with "
+                f"place_unseen; got dims={self.dims}, "
+                f"place_unseen={self.place_unseen}."
             )
         if self.refit_steps < 0:
             raise ValueError(f"refit_steps must be >= 0; got {self.refit_steps}.")

@@ -65,6 +65,20 @@ particles goes elsewhere (draw2028_3, seed 0: -5.9 % after one placement,
 the images do not pin the third moments it rests on. With the generator's
 quadratic term (stop 18) the reconstructions land where the pair prior puts
 the truth: family_draw_b emit_z -38 / -39 / -19 % on seeds 0-2.
+
+The transverse plane has a barely seen direction too: x-y coupling
+(:func:`coupling_directions`; x-py and px-y against px-py, singular value
+0.03-0.07 of the largest where the longitudinal ones are below 0.005).
+Training settles along it where the image shapes pull: ``nonlinear_ypy``
+(three modes in x-y) came out with 4D and 6D emittances 10-16 % low while each
+plane's emittance was within 1 %. Where a beam has no x-y coupling the largest
+determinant along the direction is its truth (every audit beam within 0.2 % of
+6D emittance), and :func:`place_members` with ``coupling=True`` moves each
+member there (``ReconstructionConfig.place_coupling``, ``reconstruct
+--uncoupled``). It is off by default: a beam rotated in x-y (after a solenoid)
+is not at that point, and its training had found the coupling from the image
+shapes (6D emittance -3.9 %, +11.7 % placed; session stop 19,
+docs/generalisation_6d.md).
 """
 
 from __future__ import annotations
@@ -85,6 +99,52 @@ _LONGITUDINAL = [(i, j) for i in range(6) for j in range(i, 6) if j >= 4]
 UNSEEN_TOLERANCE = 0.02
 
 
+def _moment_design(
+    maps: Sequence[Tensor], cov: Tensor, entries: Sequence[tuple[int, int]]
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Linear map from covariance ``entries`` to every screen's second moments.
+
+    Unknowns in correlation units (``S_ij / (sig_i sig_j)``), rows relative to
+    the screen sizes of ``cov``: rows ``<xx>, <yy>, <xy>`` of every setting.
+
+    Returns:
+        ``(design (3K, E), sig (6,), ii (E,), jj (E,))`` float64.
+    """
+    s = cov.to(torch.float64)
+    sig = s.diagonal().clamp_min(1e-300).sqrt()
+    r = torch.cat([m.to(torch.float64)[:, :6, :6] for m in maps])
+    ii = torch.tensor([e[0] for e in entries])
+    jj = torch.tensor([e[1] for e in entries])
+    mult = torch.where(ii == jj, 1.0, 2.0).to(torch.float64)
+    rows = []
+    for a, b in ((0, 0), (2, 2), (0, 2)):
+        u, v = r[:, a], r[:, b]  # (K, 6)
+        # <(u.x)(v.x)> = sum_ij u_i v_j S_ij, symmetrised, in correlation units
+        coef = 0.5 * (u[:, ii] * v[:, jj] + v[:, ii] * u[:, jj]) * mult
+        coef = coef * (sig[ii] * sig[jj])
+        su = torch.einsum("ki,ij,kj->k", u, s, u).clamp_min(1e-300)
+        sv = torch.einsum("ki,ij,kj->k", v, s, v).clamp_min(1e-300)
+        rows.append(coef / (su * sv).sqrt()[:, None])  # relative to the sizes
+    return torch.cat(rows), sig, ii, jj
+
+
+def _directions(
+    design: Tensor, sig: Tensor, ii: Tensor, jj: Tensor, tolerance: float
+) -> Tensor:
+    """Null-space directions (singular value below ``tolerance`` of the largest)
+    of ``design`` as symmetric ``(F, 6, 6)`` matrices in Bmad units."""
+    _, sv, vh = torch.linalg.svd(design, full_matrices=True)
+    full = torch.zeros(vh.shape[0], dtype=torch.float64)
+    full[: sv.shape[0]] = sv
+    flat = vh[full < tolerance * float(sv[0])]
+    out = torch.zeros(flat.shape[0], 6, 6, dtype=torch.float64)
+    for k, vec in enumerate(flat):
+        m = torch.zeros(6, 6, dtype=torch.float64)
+        m[ii, jj] = vec * sig[ii] * sig[jj]
+        out[k] = m + m.T - torch.diag(m.diagonal())
+    return out
+
+
 def unseen_directions(
     maps: Sequence[Tensor], cov: Tensor, tolerance: float = UNSEEN_TOLERANCE
 ) -> Tensor:
@@ -103,22 +163,7 @@ def unseen_directions(
         longitudinal entry, or do not see z or pz at all (no dispersion or no
         deflecting cavity: then the prior sets that coordinate).
     """
-    s = cov.to(torch.float64)
-    sig = s.diagonal().clamp_min(1e-300).sqrt()
-    r = torch.cat([m.to(torch.float64)[:, :6, :6] for m in maps])
-    ii = torch.tensor([e[0] for e in _LONGITUDINAL])
-    jj = torch.tensor([e[1] for e in _LONGITUDINAL])
-    mult = torch.where(ii == jj, 1.0, 2.0).to(torch.float64)
-    rows = []
-    for a, b in ((0, 0), (2, 2), (0, 2)):
-        u, v = r[:, a], r[:, b]  # (K, 6)
-        # <(u.x)(v.x)> = sum_ij u_i v_j S_ij, symmetrised, in correlation units
-        coef = 0.5 * (u[:, ii] * v[:, jj] + v[:, ii] * u[:, jj]) * mult
-        coef = coef * (sig[ii] * sig[jj])
-        su = torch.einsum("ki,ij,kj->k", u, s, u).clamp_min(1e-300)
-        sv = torch.einsum("ki,ij,kj->k", v, s, v).clamp_min(1e-300)
-        rows.append(coef / (su * sv).sqrt()[:, None])  # relative to the sizes
-    design = torch.cat(rows)
+    design, sig, ii, jj = _moment_design(maps, cov, _LONGITUDINAL)
     scale = design.abs().amax(0)
     if any(
         float(scale[_LONGITUDINAL.index((i, i))]) <= 1e-9 * float(scale.max())
@@ -127,16 +172,46 @@ def unseen_directions(
         # z or pz not seen at all (e.g. a quadrupole scan alone): nothing is
         # traded against a correlation; their prior sets them
         return torch.zeros(0, 6, 6, dtype=torch.float64)
-    _, sv, vh = torch.linalg.svd(design, full_matrices=True)
-    full = torch.zeros(vh.shape[0], dtype=torch.float64)
-    full[: sv.shape[0]] = sv
-    flat = vh[full < tolerance * float(sv[0])]
-    out = torch.zeros(flat.shape[0], 6, 6, dtype=torch.float64)
-    for k, vec in enumerate(flat):
-        m = torch.zeros(6, 6, dtype=torch.float64)
-        m[ii, jj] = vec * sig[ii] * sig[jj]
-        out[k] = m + m.T - torch.diag(m.diagonal())
-    return out
+    return _directions(design, sig, ii, jj, tolerance)
+
+
+#: Transverse cross-plane covariance entries: x-y, x-py, px-y, px-py.
+_COUPLING = [(0, 2), (0, 3), (1, 2), (1, 3)]
+#: A cross-plane direction is barely seen when its singular value of the
+#: scaled moment design (the other entries held) is below this fraction of the
+#: largest. AWA 6D layout, the 11 audit beams and x-y rotated ones: 0.028-0.072
+#: for one direction (x-py and px-y against px-py), the next 0.175 or more.
+COUPLING_TOLERANCE = 0.1
+
+
+def coupling_directions(
+    maps: Sequence[Tensor], cov: Tensor, tolerance: float = COUPLING_TOLERANCE
+) -> Tensor:
+    """Transverse x-y coupling directions that the screens barely see.
+
+    After one quadrupole and a drift of length ``L`` to the screen
+    (``R12 = R34 = L`` to first order in the quadrupole's length) the
+    cross-plane second moment ``<x y>`` at the screen weighs the beam's
+    ``S_x,py`` and ``S_px,y`` alike and ``S_px,py`` by ``L``: moving the first
+    two by ``t`` and the third by ``-2 t / L`` leaves every image's second
+    moments nearly unchanged (a second screen at another distance, and the
+    quadrupole's length, see it weakly: singular value 0.03-0.07 of the
+    largest on the AWA 6D layout). Training then settles along it where the
+    image shapes and the robust entropy bound pull, not at the largest
+    entropy: the audit beam ``nonlinear_ypy`` came out with 4D and 6D
+    emittances 10-16 % low while each plane's emittance was within 1 %.
+
+    Args:
+        maps: Each scan's affine maps to its screen ``(K_s, 7, 7)``.
+        cov: Covariance of the beam ``(6, 6)`` [Bmad units].
+        tolerance: See :data:`COUPLING_TOLERANCE`.
+
+    Returns:
+        ``(F, 6, 6)`` float64 symmetric directions in Bmad units, with only
+        cross-plane entries (each of unit norm in correlation units).
+    """
+    design, sig, ii, jj = _moment_design(maps, cov, _COUPLING)
+    return _directions(design, sig, ii, jj, tolerance)
 
 
 #: Quasi-random particles per member for the covariance the placement moves
@@ -169,7 +244,11 @@ def traded_pairs(directions: Tensor, cov: Tensor) -> list[tuple[int, int]]:
 
 
 def place_unseen(
-    cov: Tensor, directions: Tensor, iterations: int = 30, prior: str = "pair"
+    cov: Tensor,
+    directions: Tensor,
+    iterations: int = 30,
+    prior: str = "pair",
+    coupling: Tensor | None = None,
 ) -> Tensor:
     """``cov`` moved along ``directions`` to zero partial correlation of their trade.
 
@@ -180,11 +259,15 @@ def place_unseen(
     ``tr(P V_k,off) = 0`` with ``V_off`` the direction's whole off-diagonal
     part instead, which also weighs in the partial correlations of the seen
     entries the direction touches (z-pz: a strongly chirped beam's truth is
-    placed off, see the module). Damped Newton steps that keep the covariance
-    positive definite.
+    placed off, see the module). ``coupling`` directions
+    (:func:`coupling_directions`, cross-plane entries only) are moved at the
+    same time to the largest determinant along them (``tr(P V_k) = 0``): the
+    largest entropy of a Gaussian, the point of the issue's maximum-entropy
+    loss. Damped Newton steps that keep the covariance positive definite.
 
     Shapes:
-        ``cov (6, 6)``, ``directions (F, 6, 6)`` -> ``(6, 6)`` float64.
+        ``cov (6, 6)``, ``directions (F, 6, 6)``, ``coupling (G, 6, 6)`` ->
+        ``(6, 6)`` float64.
 
     Raises:
         ValueError: for a ``prior`` other than those of :data:`UNSEEN_PRIORS`.
@@ -192,19 +275,35 @@ def place_unseen(
     if prior not in UNSEEN_PRIORS:
         raise ValueError(f"prior must be one of {UNSEEN_PRIORS}; got {prior!r}.")
     s0 = cov.to(torch.float64)
-    if directions.shape[0] == 0:
+    extra = (
+        torch.zeros(0, 6, 6, dtype=torch.float64)
+        if coupling is None
+        else coupling.to(torch.float64)
+    )
+    if directions.shape[0] + extra.shape[0] == 0:
         return s0
     v = directions.to(torch.float64)
-    t = torch.zeros(v.shape[0], dtype=torch.float64)
     if prior == "pair":
         pairs = traded_pairs(v, s0)
         ii = torch.tensor([p[0] for p in pairs])
         jj = torch.tensor([p[1] for p in pairs])
         sel = torch.zeros(len(pairs), 6, 6, dtype=torch.float64)
-        sel[torch.arange(len(pairs)), ii, jj] = 1.0
+        if extra.shape[0]:
+            # P_ij sig_i sig_j, in correlation units like the coupling
+            # criteria beside it (the damped steps compare their norm)
+            sig = s0.diagonal().clamp_min(1e-300).sqrt()
+            sel[torch.arange(len(pairs)), ii, jj] = sig[ii] * sig[jj]
+        else:
+            sel[torch.arange(len(pairs)), ii, jj] = 1.0
         sel = 0.5 * (sel + sel.transpose(1, 2))  # P_ij = tr(P E), E symmetric
     else:
         sel = v - torch.diag_embed(v.diagonal(dim1=-2, dim2=-1))
+    # the coupling directions: largest determinant, tr(P V) = 0
+    v = torch.cat([v, extra])
+    sel = torch.cat([sel, extra])
+    t = torch.zeros(v.shape[0], dtype=torch.float64)
+    # scale of the stopping test: the criteria's units
+    unit = s0.diagonal() if extra.shape[0] else torch.ones(6, dtype=torch.float64)
 
     def precision(t: Tensor) -> Tensor | None:
         s = s0 + torch.einsum("k,kij->ij", t, v)
@@ -217,7 +316,7 @@ def place_unseen(
         if p is None:  # cov itself not positive definite: nothing to place
             break
         g = torch.einsum("ij,kji->k", p, sel)
-        if float(g.abs().max()) < 1e-12 * float(p.diagonal().max()):
+        if float(g.abs().max()) < 1e-12 * float((p.diagonal() * unit).max()):
             break
         # d tr(P E_j) / d t_k = -tr(P V_k P E_j)
         jac = -torch.einsum("ab,kbc,cd,jda->jk", p, v, p, sel)
@@ -330,6 +429,7 @@ def place_members(
     n_particles: int = PLACEMENT_PARTICLES,
     seed: int = 0,
     prior: str = "pair",
+    coupling: bool = False,
 ) -> list[dict]:
     """Each member's generator moved along the unseen directions (see the module).
 
@@ -344,6 +444,9 @@ def place_members(
         seed: Seed of those samples.
         prior: Prior point of :func:`place_unseen` (``"pair"`` or
             ``"gaussian"``).
+        coupling: Where a member has unseen longitudinal directions, also
+            move it along the barely seen x-y coupling directions
+            (:func:`coupling_directions`) to the largest determinant.
 
     Returns:
         New state dicts (the inputs are not changed): with ``A`` the transport
@@ -360,8 +463,9 @@ def place_members(
         if directions.shape[0] == 0:
             out.append(dict(state))
             continue
-        a = transport_map(cov, place_unseen(cov, directions, prior=prior))
-        out.append(_fold(state, a, mu))
+        extra = coupling_directions(maps, cov) if coupling else None
+        target = place_unseen(cov, directions, prior=prior, coupling=extra)
+        out.append(_fold(state, transport_map(cov, target), mu))
     return out
 
 
