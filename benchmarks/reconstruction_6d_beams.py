@@ -32,7 +32,10 @@ held-out images on the odd ones):
   x, 1.6x its rms y, a third of its energy spread);
 - ``draw<R>_<K>`` (not in the default list): the K-th random README-family beam
   of numpy seed R (:func:`family_draw`, the ranges of ``family_draw_a/b``;
-  ``draw2026_0`` ... ``draw2026_5``: beams no default was chosen on).
+  ``draw2026_0`` ... ``draw2026_5``: beams no default was chosen on);
+- ``xyrot<D>_<beam>`` (not in the default list): any of the above turned in
+  x-y by D degrees (x, px and y, py rotated together, as a solenoid leaves a
+  beam): a beam with real x-y coupling, e.g. ``xyrot45_correlated``.
 
 Their fails are listed apart (``fails_family``, ``fails_other_kinds``,
 ``fails_presets``); a run fails where any seed exceeds a limit, the held-out
@@ -285,13 +288,30 @@ def drawn_params(name: str) -> tuple[dict, int]:
     return params, base + k
 
 
+def _rotated(name: str) -> tuple[float, str] | None:
+    """``xyrot<D>_<beam>``: the angle [deg] and the beam turned; else None."""
+    m = re.fullmatch(r"xyrot(-?\d+(?:\.\d+)?)_(.+)", name)
+    return (float(m.group(1)), m.group(2)) if m else None
+
+
 def beam_seed(name: str) -> int:
     """Sampling and data seed of a benchmark beam."""
+    rot = _rotated(name)
+    if rot is not None:
+        return beam_seed(rot[1])
     return BEAM_SEEDS[name] if name in BEAM_SEEDS else drawn_params(name)[1]
 
 
 def synthetic_beam(name: str, n: int, seed: int) -> torch.Tensor:
     """One of the benchmark's synthetic beams, Bmad coordinates ``(n, 6)``."""
+    rot = _rotated(name)
+    if rot is not None:  # x-y coupling: turn (x, y) and (px, py) together
+        b = synthetic_beam(rot[1], n, seed).clone()
+        c, s = math.cos(math.radians(rot[0])), math.sin(math.radians(rot[0]))
+        turn = torch.tensor([[c, -s], [s, c]], dtype=b.dtype)
+        b[:, [0, 2]] = b[:, [0, 2]] @ turn.T
+        b[:, [1, 3]] = b[:, [1, 3]] @ turn.T
+        return b
     g = torch.Generator().manual_seed(seed)
     if name.startswith("draw"):
         b = family_beam(drawn_params(name)[0], n, g)
@@ -420,13 +440,10 @@ def main() -> None:
     # the shared file's family (README's description) apart from the presets
     family = [n for n in out["fails"] if n in FAMILY or n.startswith("draw")]
     out["fails_family"] = {n: out["fails"][n] for n in family}
-    out["fails_other_kinds"] = {
-        n: f for n, f in out["fails"].items() if n in OTHER_KINDS
-    }
+    other = [n for n in out["fails"] if n in OTHER_KINDS or _rotated(n)]
+    out["fails_other_kinds"] = {n: out["fails"][n] for n in other}
     out["fails_presets"] = {
-        n: f
-        for n, f in out["fails"].items()
-        if n not in family and n not in OTHER_KINDS
+        n: f for n, f in out["fails"].items() if n not in family and n not in other
     }
     out["load_avg_1min_at_end"] = os.getloadavg()[0]
     emit(out, args.out)

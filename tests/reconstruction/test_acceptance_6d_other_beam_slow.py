@@ -143,3 +143,30 @@ def test_correlations_within_0_05(run, key: str) -> None:
 def test_held_out_images_relative_l1_at_most_0_15(run, scan: str) -> None:
     _, held = run
     assert held[scan] <= 0.15, held[scan]
+
+
+def _emittance_4d(x: torch.Tensor) -> float:
+    """sqrt det of the (x, px, y, py) covariance."""
+    return float(torch.linalg.det(torch.cov(x[:, :4].double().T)).sqrt())
+
+
+def test_uncoupled_option_recovers_the_three_mode_beams_4d_and_6d_emittance() -> None:
+    """``place_coupling`` (``--uncoupled``) on a beam without x-y coupling.
+
+    The three-mode beam's x-y coupling settles off in training along the
+    direction the screens barely see (docs/generalisation_6d.md, session stop
+    19): 6D emittance -6.5 % (seed 0) to -14.7 % (seed 4) by default, its 4D
+    emittance as low. With the option: -1.5 to -2.7 % over seeds 0-6 (-2.5 %
+    on seed 0), so 5 % would have failed the default.
+    """
+    make, seed = BEAMS["nonlinear_ypy"]
+    beam = make(200_000, seed=seed)
+    train = make_synthetic_awa6d(particles=beam, k1_values=TRAIN_K1, seed=seed)
+    config = ReconstructionConfig(dims=6, place_coupling=True)
+    x = reconstruct(train, config, uncertainty=False).sample(200_000)
+    errors = moment_errors(x, beam)
+    assert abs(errors["emit_6d"]) <= 0.05, errors["emit_6d"]
+    e4 = _emittance_4d(x) / _emittance_4d(beam) - 1
+    assert abs(e4) <= 0.05, e4
+    for key in ("emit_x", "emit_y", "emit_z"):
+        assert abs(errors[key]) <= LIMITS[key], (key, errors[key])
