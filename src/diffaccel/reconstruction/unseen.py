@@ -197,9 +197,9 @@ def coupling_directions(
     moments nearly unchanged (a second screen at another distance, and the
     quadrupole's length, see it weakly: singular value 0.03-0.07 of the
     largest on the AWA 6D layout). Training then settles along it where the
-    image shapes and the robust entropy bound pull, not at the largest
-    entropy: the audit beam ``nonlinear_ypy`` came out with 4D and 6D
-    emittances 10-16 % low while each plane's emittance was within 1 %.
+    fit of the image shapes pulls, not at the largest entropy: the audit beam
+    ``nonlinear_ypy`` came out with 4D and 6D emittances 10-16 % low while
+    each plane's emittance was within 1 %.
 
     Args:
         maps: Each scan's affine maps to its screen ``(K_s, 7, 7)``.
