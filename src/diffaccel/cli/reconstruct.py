@@ -325,7 +325,9 @@ def run_reconstruction(
     t0 = time.perf_counter()
     ck = folder / CHECKPOINT
     bar = tqdm(
-        total=config.total_steps,  # training and the refit of placed members
+        # set by the first report: training, plus the refit of placed members
+        # where the scans leave directions unseen (not known before the fit)
+        total=None,
         desc="reconstruct",
         unit="step",
         leave=False,
