@@ -22,6 +22,11 @@ from diffaccel.reconstruction import (
     reconstruct,
     training_selection,
 )
+from diffaccel.reconstruction.unseen import (
+    PLACEMENT_PARTICLES,
+    coupling_directions,
+    member_moments,
+)
 
 BENT = [
     {"type": "Quadrupole", "name": "Q1", "length": 0.1, "k1": 0.0},
@@ -168,8 +173,6 @@ def test_uncoupled_members_end_at_the_largest_determinant(small_awa6d) -> None:
     """``place_coupling``: after training, placement and refit every member sits
     where its determinant along the barely seen x-y coupling direction is
     largest; by default training leaves it wherever it settled."""
-    from diffaccel.reconstruction.unseen import coupling_directions, member_moments
-
     config = replace(CONFIG, refit_steps=4)
 
     def slopes(result) -> list[float]:
@@ -179,7 +182,9 @@ def test_uncoupled_members_end_at_the_largest_determinant(small_awa6d) -> None:
         ]
         out = []
         for state in result.snapshots:
-            _, cov = member_moments(state, 6, config.width, config.depth, 65536, 0)
+            _, cov = member_moments(
+                state, 6, config.width, config.depth, PLACEMENT_PARTICLES, config.seed
+            )
             v = coupling_directions(maps, cov)
             assert v.shape[0] == 1
             # d log det / dt along the unit direction: 0 at the largest

@@ -283,18 +283,20 @@ def place_unseen(
     if directions.shape[0] + extra.shape[0] == 0:
         return s0
     v = directions.to(torch.float64)
+    # units of the pair criteria P_ij sig_i sig_j and of the stopping test:
+    # correlation units beside coupling criteria (the damped steps compare
+    # the norm of all of them), precision units alone
+    sig = (
+        s0.diagonal().clamp_min(1e-300).sqrt()
+        if extra.shape[0]
+        else torch.ones(6, dtype=torch.float64)
+    )
     if prior == "pair":
         pairs = traded_pairs(v, s0)
         ii = torch.tensor([p[0] for p in pairs])
         jj = torch.tensor([p[1] for p in pairs])
         sel = torch.zeros(len(pairs), 6, 6, dtype=torch.float64)
-        if extra.shape[0]:
-            # P_ij sig_i sig_j, in correlation units like the coupling
-            # criteria beside it (the damped steps compare their norm)
-            sig = s0.diagonal().clamp_min(1e-300).sqrt()
-            sel[torch.arange(len(pairs)), ii, jj] = sig[ii] * sig[jj]
-        else:
-            sel[torch.arange(len(pairs)), ii, jj] = 1.0
+        sel[torch.arange(len(pairs)), ii, jj] = sig[ii] * sig[jj]
         sel = 0.5 * (sel + sel.transpose(1, 2))  # P_ij = tr(P E), E symmetric
     else:
         sel = v - torch.diag_embed(v.diagonal(dim1=-2, dim2=-1))
@@ -302,8 +304,6 @@ def place_unseen(
     v = torch.cat([v, extra])
     sel = torch.cat([sel, extra])
     t = torch.zeros(v.shape[0], dtype=torch.float64)
-    # scale of the stopping test: the criteria's units
-    unit = s0.diagonal() if extra.shape[0] else torch.ones(6, dtype=torch.float64)
 
     def precision(t: Tensor) -> Tensor | None:
         s = s0 + torch.einsum("k,kij->ij", t, v)
@@ -316,7 +316,7 @@ def place_unseen(
         if p is None:  # cov itself not positive definite: nothing to place
             break
         g = torch.einsum("ij,kji->k", p, sel)
-        if float(g.abs().max()) < 1e-12 * float((p.diagonal() * unit).max()):
+        if float(g.abs().max()) < 1e-12 * float((p.diagonal() * sig.square()).max()):
             break
         # d tr(P E_j) / d t_k = -tr(P V_k P E_j)
         jac = -torch.einsum("ab,kbc,cd,jda->jk", p, v, p, sel)
