@@ -230,6 +230,15 @@ def test_coupling_placement_goes_to_the_largest_determinant() -> None:
     )
 
 
+def test_coupling_placement_alone_goes_to_the_largest_determinant() -> None:
+    # no longitudinal direction (no pair criterion): the coupling alone
+    maps, cov = _maps(), _beam_cov()
+    c = coupling_directions(maps, cov)
+    placed = place_unseen(cov + 0.1 * c[0], torch.zeros(0, 6, 6), coupling=c)
+    sig = cov.diagonal().sqrt()
+    assert float(((placed - cov) / (sig[:, None] * sig[None, :])).abs().max()) < 1e-6
+
+
 def test_place_members_moves_the_coupling_only_when_asked() -> None:
     g = torch.Generator().manual_seed(4)
     maps, cov = _maps(), _beam_cov()

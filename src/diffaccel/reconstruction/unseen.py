@@ -293,8 +293,8 @@ def place_unseen(
     )
     if prior == "pair":
         pairs = traded_pairs(v, s0)
-        ii = torch.tensor([p[0] for p in pairs])
-        jj = torch.tensor([p[1] for p in pairs])
+        ii = torch.tensor([p[0] for p in pairs], dtype=torch.long)
+        jj = torch.tensor([p[1] for p in pairs], dtype=torch.long)
         sel = torch.zeros(len(pairs), 6, 6, dtype=torch.float64)
         sel[torch.arange(len(pairs)), ii, jj] = sig[ii] * sig[jj]
         sel = 0.5 * (sel + sel.transpose(1, 2))  # P_ij = tr(P E), E symmetric
