@@ -485,11 +485,11 @@ def run_reconstruction(
 @click.option(
     "--uncoupled",
     is_flag=True,
-    help="--dims 6: take x-y coupling that the screens barely see (x-py, px-y "
-    "against px-py) to be absent, as for a beam known to be uncoupled: the 4D "
-    "and 6D emittances then do not depend on where training settled along it. "
-    "Wrong for x-y coupled beams (e.g. after a solenoid); see "
-    "docs/generalisation_6d.md.",
+    help="--dims 6: put the x-y coupling that the screens barely see (x-py, "
+    "px-y against px-py) at the largest entropy instead of where training "
+    "settled: the 4D and 6D emittances then do not depend on training there. "
+    "Right for beams not turned in x-y; wrong for beams turned in x-y (e.g. "
+    "by a solenoid); see docs/generalisation_6d.md.",
 )
 @click.option("--no-figures", is_flag=True, help="Skip the PNG figures.")
 @click.option(

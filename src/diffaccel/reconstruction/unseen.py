@@ -71,14 +71,14 @@ The transverse plane has a barely seen direction too: x-y coupling
 0.03-0.07 of the largest where the longitudinal ones are below 0.005).
 Training settles along it where the image shapes pull: ``nonlinear_ypy``
 (three modes in x-y) came out with 4D and 6D emittances 10-16 % low while each
-plane's emittance was within 1 %. Where a beam has no x-y coupling the largest
-determinant along the direction is its truth (every audit beam within 0.2 % of
-6D emittance), and :func:`place_members` with ``coupling=True`` moves each
-member there (``ReconstructionConfig.place_coupling``, ``reconstruct
---uncoupled``). It is off by default: a beam rotated in x-y (after a solenoid)
-is not at that point, and its training had found the coupling from the image
-shapes (6D emittance -3.9 %, +11.7 % placed; session stop 19,
-docs/generalisation_6d.md).
+plane's emittance was within 1 %. On every audit beam the largest determinant
+along the direction is the truth (within 0.2 % of 6D emittance; nonlinear_ypy
+included, whose three modes give it x-y correlations of up to 0.38), and
+:func:`place_members` with ``coupling=True`` moves each member there
+(``ReconstructionConfig.place_coupling``, ``reconstruct --uncoupled``). It is
+off by default: a beam rotated in x-y (after a solenoid) is not at that point,
+and its training had found the coupling from the image shapes (6D emittance
+-3.9 %, +11.7 % placed; session stop 19, docs/generalisation_6d.md).
 """
 
 from __future__ import annotations
