@@ -44,6 +44,7 @@ from diffaccel.reconstruction import (
 )
 from diffaccel.reconstruction.generator import BeamGenerator
 from diffaccel.reconstruction.initial import fit_gaussian
+from diffaccel.reconstruction.pipeline import refit_config
 from diffaccel.reconstruction.training import train_generator
 from diffaccel.reconstruction.unseen import (
     PLACEMENT_PARTICLES,
@@ -191,15 +192,7 @@ def refitted_profiles(truth, train, result) -> dict:
     maps = [f.transfer_maps(x) for f, x in zip(forwards, settings, strict=True)]
     guess = fit_gaussian(forwards, measured, settings, maps=maps)
     meas = _unit_images(train)
-    short = dataclasses.replace(
-        config,
-        steps=config.refit_steps,
-        snapshots=1,
-        burn_in=0,
-        lr_max=config.refit_lr,
-        penalty_start=config.penalty_end,
-        checkpoint_every=10**9,
-    )
+    short = refit_config(config)
     members = []
     for k, state in enumerate(result.snapshots):
         mu, cov = member_moments(

@@ -356,15 +356,7 @@ def refit_members(
     Returns:
         The refitted and placed state dicts, one per member.
     """
-    short = dataclasses.replace(
-        config,
-        steps=config.refit_steps,
-        snapshots=1,
-        burn_in=0,
-        lr_max=config.refit_lr,
-        penalty_start=config.penalty_end,
-        checkpoint_every=10**9,
-    )
+    short = refit_config(config)
     out = []
     for k, member in enumerate(snapshots):
         done = config.steps + k * config.refit_steps
@@ -406,6 +398,24 @@ def refit_members(
         seed=config.seed,
         prior=config.unseen_prior,
         coupling=config.place_coupling,
+    )
+
+
+def refit_config(config: ReconstructionConfig) -> ReconstructionConfig:
+    """Settings of one member's refit (:func:`refit_members`).
+
+    ``config.refit_steps`` steps of one cosine cycle from ``config.refit_lr``
+    at the final image penalty (``penalty_end`` throughout), one snapshot (the
+    last state), no burn-in and no checkpoints.
+    """
+    return dataclasses.replace(
+        config,
+        steps=config.refit_steps,
+        snapshots=1,
+        burn_in=0,
+        lr_max=config.refit_lr,
+        penalty_start=config.penalty_end,
+        checkpoint_every=10**9,
     )
 
 
