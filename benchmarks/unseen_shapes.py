@@ -39,6 +39,7 @@ from diffaccel.data import make_synthetic_awa6d
 from diffaccel.reconstruction import (
     ReconstructionConfig,
     ScreenForwardModel,
+    image_errors,
     moment_errors,
     reconstruct,
 )
@@ -89,17 +90,18 @@ def truth_against_moved(name: str) -> dict:
     mu, cov = big.mean(0), torch.cov(big.T)
     a = transport_map(cov, place_unseen(cov, unseen_directions(_maps(measured), cov)))
     moved = mu + (big - mu) @ a.T
-    out: dict = {"moved_errors": {}, "models": {}}
-    for key, value in moment_errors(moved, big).items():
-        if key in ("rms_pz", "emit_z", "emit_6d"):
-            out["moved_errors"][key] = float(value)
+    errors = moment_errors(moved, big)
+    out: dict = {
+        "moved_errors": {k: errors[k] for k in ("rms_pz", "emit_z", "emit_6d")},
+        "models": {},
+    }
     for label, particles in (("truth", big), ("moved", moved)):
         model = _unit_images(
             make_synthetic_awa6d(particles=particles, k1_values=k1, seed=seed + 5)
         )
         out["models"][label] = {
             "relative_l1": {
-                s: float((meas[s] - model[s]).abs().sum((-2, -1)).mean()) for s in meas
+                s: image_errors(model[s], meas[s])["relative_l1"] for s in meas
             },
             "log_likelihood": {
                 s: float(
