@@ -234,3 +234,36 @@ def test_a_quadrupole_scan_alone_is_not_refitted(small_scan) -> None:
     assert {t for _, t in seen} == {4}
     for a, b in zip(result.snapshots, plain.snapshots, strict=True):
         assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_probe_refits_every_member_at_three_points_and_records_them(
+    small_awa6d,
+) -> None:
+    """``probe_unseen``: each member refitted at -step, 0, +step along px-pz
+    (more steps only where the KL gain passes ``probe_gain``); the record in
+    ``info["unseen_probe"]``, the progress counting every refit."""
+    seen: list[tuple[int, int]] = []
+    config = replace(CONFIG, refit_steps=4, report_every=2, probe_unseen=0.05)
+    result = reconstruct(
+        small_awa6d,
+        config,
+        callback=lambda info: seen.append((info.step, info.total)),
+        uncertainty=False,
+    )
+    record = result.info["unseen_probe"]
+    points = [s["t"] for s in record["steps"]]
+    assert points[:3] == [0.0, -0.05, 0.05]
+    assert record["t"] in points
+    assert all(len(s["kl"]) == result.n_snapshots for s in record["steps"])
+    assert all(s["kl"][0] > 0 for s in record["steps"])
+    # 6 training steps, then 4 steps per refit, one member
+    assert config.total_steps == 6 + 3 * 4
+    steps = [s for s, _ in seen]
+    assert steps == sorted(steps)
+    assert steps[-1] == 6 + 4 * len(points)
+    assert (
+        "unseen_probe"
+        not in reconstruct(
+            small_awa6d, replace(config, probe_unseen=0.0), uncertainty=False
+        ).info
+    )

@@ -21,6 +21,7 @@ from diffaccel.reconstruction.ensemble import (
 from diffaccel.reconstruction.forward import ScreenForwardModel
 from diffaccel.reconstruction.initial import GaussianGuess, fit_gaussian
 from diffaccel.reconstruction.metrics import beam_moments
+from diffaccel.reconstruction.probe import probe_members, training_kl
 from diffaccel.reconstruction.rank_members import (
     gather_members,
     member_checkpoint,
@@ -242,6 +243,7 @@ def reconstruct(
         fwd.to("cpu")
     snapshots = state.snapshots
     t_place = time.perf_counter()
+    probe: dict = {}
     if config.dims == 6 and config.place_unseen:
         # longitudinal directions the scans cannot see: placed by a stated
         # prior, not wherever training drifted (see reconstruction.unseen)
@@ -267,6 +269,7 @@ def reconstruct(
                 device=device,
                 callback=callback,
                 distributed=distributed and not members,
+                probe_record=probe,
             )
             for fwd in forwards.values():
                 fwd.to("cpu")
@@ -295,6 +298,8 @@ def reconstruct(
         "member_processes": tdist.get_world_size() if members else 1,
         "unconstrained_coordinates": unconstrained_coordinates(maps, config.dims),
     }
+    if probe:
+        info["unseen_probe"] = probe
     if len(scans) == 1:
         info.update(per_scan[used[0]])
     result = Reconstruction(config, snapshots, forwards, state.history, info)
@@ -322,6 +327,7 @@ def refit_members(
     device: str | torch.device = "cpu",
     callback: Callable[[StepInfo], None] | None = None,
     distributed: bool = False,
+    probe_record: dict | None = None,
 ) -> list[dict]:
     """Placed members' shapes fitted again to the images, then placed again.
 
@@ -352,43 +358,56 @@ def refit_members(
             of the initialised ``torch.distributed`` group, as the training
             does (:func:`~diffaccel.reconstruction.training.train_generator`);
             every process returns the same members.
+        probe_record: With ``config.probe_unseen``, filled with the probe's
+            record (:func:`~diffaccel.reconstruction.probe.probe_members`).
 
     Returns:
         The refitted and placed state dicts, one per member.
     """
-    short = refit_config(config)
+    refit = member_refit(
+        forwards,
+        measured,
+        settings,
+        guess,
+        config,
+        maps,
+        device=device,
+        distributed=distributed,
+    )
+    if config.probe_unseen > 0:
+        snapshots, record = probe_members(
+            snapshots,
+            refit,
+            lambda state: training_kl(
+                state, config, forwards, measured, settings, maps, seed=config.seed
+            ),
+            config,
+            maps,
+            progress=lambda i: _progress(
+                callback,
+                config.steps + i * config.refit_steps,
+                max(config.total_steps, config.steps + (i + 1) * config.refit_steps),
+            ),
+        )
+        if probe_record is not None:
+            probe_record.update(record)
+        return snapshots
     out = []
     for k, member in enumerate(snapshots):
         done = config.steps + k * config.refit_steps
         report = _progress(callback, done, config.total_steps)
         # the placed covariance, held while the shape fits the images
-        hold = None
-        if config.refit_hold > 0:
-            _, cov = member_moments(
-                member,
-                config.dims,
-                config.width,
-                config.depth,
-                PLACEMENT_PARTICLES,
-                config.seed,
-            )
-            # rounded to float32: threaded float64 sums scatter in the last
-            # bits from run to run, and the refit would carry that forward
-            hold = cov.float().double()
-        state = train_generator(
-            list(forwards),
-            list(measured),
-            list(settings),
-            guess,
-            dataclasses.replace(short, seed=config.seed + 1000 * (k + 1)),
-            device=device,
-            maps=maps,
-            initial_model=member,
-            hold_covariance=hold,
-            callback=report,
-            distributed=distributed,
+        _, cov = member_moments(
+            member,
+            config.dims,
+            config.width,
+            config.depth,
+            PLACEMENT_PARTICLES,
+            config.seed,
         )
-        out.append(state.model)
+        # rounded to float32: threaded float64 sums scatter in the last
+        # bits from run to run, and the refit would carry that forward
+        out.append(refit(k, member, cov.float().double(), report))
     return place_members(
         out,
         config.dims,
@@ -399,6 +418,46 @@ def refit_members(
         prior=config.unseen_prior,
         coupling=config.place_coupling,
     )
+
+
+def member_refit(
+    forwards: Sequence[ScreenForwardModel],
+    measured: Sequence[torch.Tensor],
+    settings: Sequence[torch.Tensor],
+    guess: GaussianGuess,
+    config: ReconstructionConfig,
+    maps: Sequence[torch.Tensor],
+    *,
+    device: str | torch.device = "cpu",
+    distributed: bool = False,
+) -> Callable[[int, dict, torch.Tensor, Callable | None], dict]:
+    """``refit(k, state, hold, callback)``: member ``k`` refitted from ``state``
+    (:func:`refit_config`, seed ``config.seed + 1000 (k + 1)``) with its
+    covariance held at ``hold`` (``(6, 6)`` [Bmad units]; not held with
+    ``config.refit_hold = 0``); returns the refitted state dict."""
+    short = refit_config(config)
+
+    def refit(
+        k: int,
+        state: dict,
+        hold: torch.Tensor,
+        callback: Callable[[StepInfo], None] | None = None,
+    ) -> dict:
+        return train_generator(
+            list(forwards),
+            list(measured),
+            list(settings),
+            guess,
+            dataclasses.replace(short, seed=config.seed + 1000 * (k + 1)),
+            device=device,
+            maps=maps,
+            initial_model=state,
+            hold_covariance=hold if config.refit_hold > 0 else None,
+            callback=callback,
+            distributed=distributed,
+        ).model
+
+    return refit
 
 
 def refit_config(config: ReconstructionConfig) -> ReconstructionConfig:

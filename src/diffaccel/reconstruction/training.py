@@ -342,6 +342,17 @@ class ReconstructionConfig:
             -10.6 to -11.1 %; family_draw_a seed 0: 6D -17 to -22 %); 28 of
             33 runs met either way. Holding the energy spread's direction
             alone was worse (19 of 33).
+        probe_unseen: With ``place_unseen`` and ``refit_steps``, the step
+            (correlation units; 0, the default, probes nothing) of the
+            likelihood-ratio probe along the px-pz unseen direction
+            (:func:`~diffaccel.reconstruction.probe.probe_members`): each
+            placed member is refitted at ``-step, 0, +step`` and the ensemble
+            leaves the prior point only where the members' mean training-image
+            KL gain exceeds ``probe_gain``, stepping on (at most
+            ``probe_points`` steps) while each step gains as much. Costs two
+            to four more refits per member.
+        probe_gain: Mean KL gain a probe step must exceed.
+        probe_points: Most steps the probe takes from the prior point.
         seed: Seed of the explicit ``torch.Generator`` (weights and samples).
         checkpoint_every: Steps between checkpoints (also at every snapshot).
         report_every: Steps between reads of the losses from the device (the
@@ -376,6 +387,9 @@ class ReconstructionConfig:
     refit_lr: float = 1e-3
     refit_hold: float = 1e4
     hold_unseen: float = 0.0
+    probe_unseen: float = 0.0
+    probe_gain: float = 2e-4
+    probe_points: int = 2
     seed: int = 0
     checkpoint_every: int = 100
     report_every: int = 10
@@ -449,6 +463,17 @@ class ReconstructionConfig:
             raise ValueError(
                 f"hold_unseen must be finite and >= 0; got {self.hold_unseen}."
             )
+        if not (math.isfinite(self.probe_unseen) and 0 <= self.probe_unseen < 1):
+            raise ValueError(
+                f"probe_unseen must be in [0, 1) (correlation units); got "
+                f"{self.probe_unseen}."
+            )
+        if not (math.isfinite(self.probe_gain) and self.probe_gain >= 0):
+            raise ValueError(
+                f"probe_gain must be finite and >= 0; got {self.probe_gain}."
+            )
+        if self.probe_points < 1:
+            raise ValueError(f"probe_points must be >= 1; got {self.probe_points}.")
         if self.report_every < 1:
             raise ValueError(f"report_every must be >= 1; got {self.report_every}.")
         if self.n_particles < 16:
@@ -507,6 +532,8 @@ class ReconstructionConfig:
         refit = 0
         if self.dims == 6 and self.place_unseen:
             refit = self.refit_steps * (self.snapshots - self.burn_in)
+            if self.probe_unseen > 0:  # the probe's first two points
+                refit *= 3
         return self.steps + refit
 
     @property

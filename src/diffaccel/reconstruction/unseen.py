@@ -430,6 +430,7 @@ def place_members(
     seed: int = 0,
     prior: str = "pair",
     coupling: bool = False,
+    shift: dict[tuple[int, int], float] | None = None,
 ) -> list[dict]:
     """Each member's generator moved along the unseen directions (see the module).
 
@@ -447,6 +448,12 @@ def place_members(
         coupling: Where a member has unseen longitudinal directions, also
             move it along the barely seen x-y coupling directions
             (:func:`coupling_directions`) to the largest determinant.
+        shift: ``{(i, j): t}``: from the prior point, move ``t`` further along
+            the direction that trades the ``(i, j)`` correlation (correlation
+            units, as :func:`unseen_directions`; the point
+            :func:`~diffaccel.reconstruction.probe.probe_members` chose).
+            Ignored where no direction trades that pair or where the shifted
+            covariance would not be positive definite.
 
     Returns:
         New state dicts (the inputs are not changed): with ``A`` the transport
@@ -465,6 +472,13 @@ def place_members(
             continue
         extra = coupling_directions(maps, cov) if coupling else None
         target = place_unseen(cov, directions, prior=prior, coupling=extra)
+        if shift:
+            pairs = traded_pairs(directions, cov)
+            moved = target + sum(
+                t * directions[pairs.index(p)] for p, t in shift.items() if p in pairs
+            )
+            if float(torch.linalg.eigvalsh(moved).min()) > 0:
+                target = moved
         out.append(_fold(state, transport_map(cov, target), mu))
     return out
 

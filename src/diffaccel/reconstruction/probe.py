@@ -1,0 +1,212 @@
+"""Asking the images where the beam lies along the px-pz unseen direction.
+
+The AWA 6D scans leave the trade of rms pz against the px-pz covariance unseen
+in the screens' second moments, and :mod:`~diffaccel.reconstruction.unseen`
+places every member at a stated prior point (zero px-pz partial correlation).
+A beam whose px-pz partial correlation is not zero (family_draw_b +0.09,
+draw2028_3 +0.12, draw2030_1 -0.14; docs/generalisation_6d.md) is placed
+10-37 % off in z emittance. The image *shapes* still carry that information:
+members refitted at points along the direction fit the training images better
+off the prior point for those beams (KL gains 3-11e-4 per member) and not for
+beams the prior places right (at most 1.7e-4; session stop 20).
+
+:func:`probe_members` is that likelihood-ratio test, opt-in
+(``ReconstructionConfig.probe_unseen``): every placed member is moved to
+``t = -step, 0, +step`` along its px-pz direction (correlation units, the
+covariance plus ``t`` times the direction), refitted there with the covariance
+held (as :func:`~diffaccel.reconstruction.pipeline.refit_members`; ``t = 0``
+is the default refit), and its training-image KL distance computed on
+:data:`PROBE_PARTICLES` quasi-random particles. The ensemble moves one step
+towards the better side only if the members' mean KL gain exceeds
+``probe_gain``, and keeps stepping while each further step gains as much (at
+most ``probe_points`` steps). A threshold on the gain, not the KL minimum
+itself: the KL is nearly flat in the direction (family_draw_b within 2e-4 over
+emit_z +16 .. -25 %), and a beam at the prior point must stay there.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+
+import torch
+from torch import Tensor
+
+from diffaccel.reconstruction.forward import ScreenForwardModel
+from diffaccel.reconstruction.generator import BeamGenerator
+from diffaccel.reconstruction.losses import image_distance
+from diffaccel.reconstruction.training import (
+    ReconstructionConfig,
+    StepInfo,
+)
+from diffaccel.reconstruction.unseen import (
+    PLACEMENT_PARTICLES,
+    _fold,
+    member_moments,
+    place_members,
+    traded_pairs,
+    transport_map,
+    unseen_directions,
+)
+
+#: The traded correlation that :func:`probe_members` probes (px-pz).
+PROBE_PAIR = (1, 5)
+#: Quasi-random particles of each probe's KL distance (16 384 scatter by
+#: about 1e-3 between refitted members, above the gains it compares).
+PROBE_PARTICLES = 200_000
+
+
+def training_kl(
+    state: dict,
+    config: ReconstructionConfig,
+    forwards: Sequence[ScreenForwardModel],
+    measured: Sequence[Tensor],
+    settings: Sequence[Tensor],
+    maps: Sequence[Tensor],
+    *,
+    n_particles: int = PROBE_PARTICLES,
+    seed: int = 0,
+) -> float:
+    """KL distance ``sum m log(m / s)`` of the measured training images to a
+    member's, averaged over each scan's images and summed over the scans.
+
+    ``n_particles`` quasi-random particles drawn with ``seed`` (the same base
+    points for every member and call). Images by the affine maps where they
+    are exact (:meth:`ScreenForwardModel.linear_maps`), else by tracking.
+    """
+    gen = BeamGenerator(
+        config.dims, width=config.width, depth=config.depth, scale=torch.ones(6)
+    )
+    gen.load_state_dict(state)
+    gen.requires_grad_(False)
+    with torch.no_grad():
+        x = gen(
+            n_particles,
+            generator=torch.Generator().manual_seed(seed),
+            quasi_random=True,
+        )
+        total = 0.0
+        for fwd, meas, s, m in zip(forwards, measured, settings, maps, strict=True):
+            fwd = fwd.to(x.device)
+            linear = fwd.linear_maps(s, monochromatic=False, maps=m)
+            pred = (
+                fwd.images(x, s.to(x.device))
+                if linear is None
+                else fwd.images_linear(x, linear)
+            )
+            pred = pred / pred.sum((-2, -1), keepdim=True).clamp_min(1e-30)
+            unit = meas.to(pred) / meas.to(pred).sum((-2, -1), keepdim=True)
+            total += float(image_distance(pred, unit, "kl").mean())
+    return total
+
+
+@dataclasses.dataclass
+class _Point:
+    """The members refitted at one point ``t`` and their KL distances."""
+
+    t: float
+    states: list[dict]
+    kl: list[float]
+
+
+def probe_members(
+    placed: Sequence[dict],
+    refit: Callable[[int, dict, Tensor, Callable | None], dict],
+    score: Callable[[dict], float],
+    config: ReconstructionConfig,
+    maps: Sequence[Tensor],
+    *,
+    progress: Callable[[int], Callable[[StepInfo], None] | None] = lambda k: None,
+) -> tuple[list[dict], dict]:
+    """Placed members refitted at the point along px-pz the images prefer.
+
+    Args:
+        placed: Members placed at the prior point
+            (:func:`~diffaccel.reconstruction.unseen.place_members`).
+        refit: ``refit(k, state, hold, callback)`` -> member ``k``'s state
+            refitted from ``state`` with its covariance held at ``hold``.
+        score: A refitted member's misfit to the training images
+            (:func:`training_kl`).
+        config: The run's settings (``probe_unseen`` the step, ``probe_gain``,
+            ``probe_points``, the generator's size, the placement's prior).
+        maps: Each scan's affine maps of its training settings ``(K_s, 7, 7)``.
+        progress: ``progress(i)`` -> the callback of the ``i``-th refit.
+
+    Returns:
+        The refitted members placed again at the chosen point (the prior
+        point plus ``t`` along each member's px-pz direction), and a record:
+        ``t`` (correlation units), ``steps`` (each probed point's ``t``,
+        members' KL and mean gain over the point it was compared with).
+    """
+    moments, directions = [], []
+    for state in placed:
+        mu, cov = member_moments(
+            state, 6, config.width, config.depth, PLACEMENT_PARTICLES, config.seed
+        )
+        v = unseen_directions(maps, cov)
+        pairs = traded_pairs(v, cov)
+        moments.append((mu, cov))
+        directions.append(v[pairs.index(PROBE_PAIR)] if PROBE_PAIR in pairs else None)
+    count = iter(range(10**6))
+
+    def at(t: float) -> _Point | None:
+        targets = []
+        for (_, cov), v in zip(moments, directions, strict=True):
+            target = cov + t * v
+            if float(torch.linalg.eigvalsh(target).min()) <= 0:
+                return None  # past a strongly chirped beam's edge
+            # rounded to float32 as refit_members does (run-to-run bits)
+            targets.append(target.float().double())
+        states = []
+        for k, (state, (mu, cov), target) in enumerate(
+            zip(placed, moments, targets, strict=True)
+        ):
+            moved = state if t == 0 else _fold(state, transport_map(cov, target), mu)
+            states.append(refit(k, moved, target, progress(next(count))))
+        return _Point(t, states, [score(s) for s in states])
+
+    def gain(a: _Point, b: _Point) -> float:
+        return sum(x - y for x, y in zip(a.kl, b.kl, strict=True)) / len(a.kl)
+
+    def record(p: _Point, ref: _Point) -> dict:
+        return {"t": p.t, "kl": p.kl, "mean_gain": gain(ref, p)}
+
+    if any(v is None for v in directions):  # no px-pz trade: the plain refit
+        states = [
+            refit(k, s, moments[k][1].float().double(), progress(k))
+            for k, s in enumerate(placed)
+        ]
+        return _placed(states, config, maps, 0.0), {"t": 0.0, "steps": []}
+    step = config.probe_unseen
+    best = at(0.0)
+    steps = [record(best, best)]
+    sides = [p for p in (at(-step), at(step)) if p is not None]
+    steps += [record(p, best) for p in sides]
+    trial = max(sides, key=lambda p: gain(best, p), default=None)
+    while trial is not None and gain(best, trial) > config.probe_gain:
+        best = trial
+        n = round(abs(best.t) / step) + 1
+        if n > config.probe_points:
+            break
+        trial = at(math.copysign(n * step, best.t))
+        if trial is not None:
+            steps.append(record(trial, best))
+    return _placed(best.states, config, maps, best.t), {"t": best.t, "steps": steps}
+
+
+def _placed(
+    states: Sequence[dict], config: ReconstructionConfig, maps, t: float
+) -> list[dict]:
+    """``states`` placed again at the prior point plus ``t`` along px-pz."""
+    return place_members(
+        states,
+        config.dims,
+        config.width,
+        config.depth,
+        maps,
+        seed=config.seed,
+        prior=config.unseen_prior,
+        coupling=config.place_coupling,
+        shift={PROBE_PAIR: t} if t else None,
+    )
