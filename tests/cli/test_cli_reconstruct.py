@@ -23,6 +23,8 @@ from diffaccel.data import (
     write_quad_scan,
     write_scans,
 )
+from diffaccel.reconstruction import load
+from diffaccel.reconstruction.probe import PROBE_STEP
 
 FAST = ["--particles", "512", "--steps", "6", "--snapshots", "2"]
 # the same with the --epochs alias (kept from before the rename to --steps)
@@ -358,6 +360,20 @@ def test_uncoupled_is_a_6d_option(scan_file: Path, tmp_path: Path) -> None:
     )
     assert r.exit_code == 1 and "--uncoupled" in r.output and "dims=4" in r.output
     assert "Traceback" not in r.output and not out.exists()
+
+
+def test_probe_is_an_opt_in(two_scan_file: Path, tmp_path) -> None:
+    """``--probe`` turns the px-pz likelihood-ratio probe on (stored in the
+    run's config); the default does not probe."""
+    runs = {}
+    for flag in ([], ["--probe"]):
+        out = tmp_path / f"o{len(flag)}"
+        args = ["reconstruct", str(two_scan_file), "--out", str(out), "--dims", "6"]
+        r = CliRunner().invoke(main, [*args, *flag, *FAST, "--no-figures"])
+        assert r.exit_code == 0, r.output
+        runs[len(flag)] = load(out).config.probe_unseen
+    assert runs == {0: 0.0, 1: PROBE_STEP}
+    assert PROBE_STEP > 0
 
 
 def test_reconstruct_and_predict_version_2(two_scan_file: Path, tmp_path) -> None:

@@ -197,6 +197,14 @@ def test_uncoupled_members_end_at_the_largest_determinant(small_awa6d) -> None:
     plain = reconstruct(small_awa6d, config, uncertainty=False)
     assert max(slopes(placed)) < 1e-3
     assert max(slopes(plain)) > 1e-2
+    # also where the probe moved the members off the prior point along px-pz
+    probed = reconstruct(
+        small_awa6d,
+        replace(config, place_coupling=True, probe_unseen=0.05),
+        uncertainty=False,
+    )
+    assert probed.info["unseen_probe"]["t"] != 0
+    assert max(slopes(probed)) < 1e-3
 
 
 def test_progress_counts_training_and_refit(small_awa6d) -> None:

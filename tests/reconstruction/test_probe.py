@@ -133,7 +133,7 @@ def test_bad_probe_settings_are_refused(field: str, value: float) -> None:
 
 
 def test_probe_adds_two_refits_per_member_to_the_step_count() -> None:
-    plain = ReconstructionConfig(dims=6)
+    plain = ReconstructionConfig(dims=6)  # the default does not probe
     probed = ReconstructionConfig(dims=6, probe_unseen=0.05)
     members = plain.snapshots - plain.burn_in
     assert probed.total_steps - plain.total_steps == 2 * members * plain.refit_steps

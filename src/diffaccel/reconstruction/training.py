@@ -343,15 +343,28 @@ class ReconstructionConfig:
             33 runs met either way. Holding the energy spread's direction
             alone was worse (19 of 33).
         probe_unseen: With ``place_unseen`` and ``refit_steps``, the step
-            (correlation units; 0, the default, probes nothing) of the
-            likelihood-ratio probe along the px-pz unseen direction
+            (correlation units; 0, the default, probes nothing;
+            ``reconstruct --probe`` uses 0.05) of the likelihood-ratio probe
+            along the px-pz unseen direction
             (:func:`~diffaccel.reconstruction.probe.probe_members`): each
             placed member is refitted at ``-step, 0, +step`` and the ensemble
             leaves the prior point only where the members' mean training-image
             KL gain exceeds ``probe_gain``, stepping on (at most
-            ``probe_points`` steps) while each step gains as much. Costs two
-            to four more refits per member.
-        probe_gain: Mean KL gain a probe step must exceed.
+            ``probe_points`` steps) while each step gains as much. Two to four
+            more refits per member: the shared 6D benchmark 54 -> 93 s on two
+            CPU cores. Opt-in (docs/generalisation_6d.md, stop 21): on the
+            audit it fixes family_draw_b on two seeds of three (emit_z -38 ->
+            -6 / -7 %; 32 of 33 runs met, 30 without), but on 36 random draws
+            it fixed neither miss (draw2028_3 gained 9.6e-4, draw2030_1
+            nothing) and moved draw2030_0, which the prior places right, to
+            emit_z +7.9 % (a gain of 1.2e-3): the members' own shape misfit
+            varies along the direction as much as the information does.
+        probe_gain: Mean KL gain (per image, summed over the scans) a probe
+            step must exceed. Set on the audit: runs whose truth the prior
+            places right gained up to 7.8e-4 by a step (the shared file;
+            double_horn 4.9e-4), family_draw_b 1.7e-3 to 1.8e-3 (seeds 0, 1)
+            and 2.4e-4 (seed 2). At 2e-4 the probe moved double_horn seed 2
+            to emit_z +11.4 % and family_draw_b seed 1 two steps to +18 %.
         probe_points: Most steps the probe takes from the prior point.
         seed: Seed of the explicit ``torch.Generator`` (weights and samples).
         checkpoint_every: Steps between checkpoints (also at every snapshot).
@@ -388,7 +401,7 @@ class ReconstructionConfig:
     refit_hold: float = 1e4
     hold_unseen: float = 0.0
     probe_unseen: float = 0.0
-    probe_gain: float = 2e-4
+    probe_gain: float = 1e-3
     probe_points: int = 2
     seed: int = 0
     checkpoint_every: int = 100
@@ -519,9 +532,10 @@ class ReconstructionConfig:
     @property
     def total_steps(self) -> int:
         """Optimiser steps of a run: training, plus in 6D with ``place_unseen``
-        the refit of every member (``refit_steps`` each; run only where the
-        scans leave longitudinal directions unseen, not for a quadrupole scan
-        alone).
+        the refit of every member (``refit_steps`` each, at three points
+        with ``probe_unseen``, more where the probe steps on; run only where
+        the scans leave longitudinal directions unseen, not for a quadrupole
+        scan alone).
 
         Example:
             >>> ReconstructionConfig(dims=6).total_steps  # 360 + 3 x 60
@@ -529,10 +543,10 @@ class ReconstructionConfig:
             >>> ReconstructionConfig(dims=4).total_steps
             300
         """
-        refit = 0
+        refit = 0  # the probe's first three points (more where it steps on)
         if self.dims == 6 and self.place_unseen:
             refit = self.refit_steps * (self.snapshots - self.burn_in)
-            if self.probe_unseen > 0:  # the probe's first two points
+            if self.probe_unseen > 0:
                 refit *= 3
         return self.steps + refit
 

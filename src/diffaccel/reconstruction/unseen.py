@@ -451,7 +451,8 @@ def place_members(
         shift: ``{(i, j): t}``: from the prior point, move ``t`` further along
             the direction that trades the ``(i, j)`` correlation (correlation
             units, as :func:`unseen_directions`; the point
-            :func:`~diffaccel.reconstruction.probe.probe_members` chose).
+            :func:`~diffaccel.reconstruction.probe.probe_members` chose),
+            the coupling directions (with ``coupling``) then placed again.
             Ignored where no direction trades that pair or where the shifted
             covariance would not be positive definite.
 
@@ -479,6 +480,12 @@ def place_members(
             )
             if float(torch.linalg.eigvalsh(moved).min()) > 0:
                 target = moved
+                if coupling:  # the largest determinant again, there
+                    target = place_unseen(
+                        target,
+                        directions[:0],
+                        coupling=coupling_directions(maps, target),
+                    )
         out.append(_fold(state, transport_map(cov, target), mu))
     return out
 
