@@ -37,7 +37,7 @@ from diffaccel.reconstruction.uncertainty import analyse_moments
 from diffaccel.reconstruction.unseen import (
     PLACEMENT_PARTICLES,
     member_moments,
-    place_members,
+    place_configured,
     unseen_directions,
 )
 
@@ -247,16 +247,7 @@ def reconstruct(
     if config.dims == 6 and config.place_unseen:
         # longitudinal directions the scans cannot see: placed by a stated
         # prior, not wherever training drifted (see reconstruction.unseen)
-        snapshots = place_members(
-            snapshots,
-            config.dims,
-            config.width,
-            config.depth,
-            maps,
-            seed=run_config.seed,
-            prior=config.unseen_prior,
-            coupling=config.place_coupling,
-        )
+        snapshots = place_configured(snapshots, run_config, maps)
         if refit:
             snapshots = refit_members(
                 snapshots,
@@ -408,16 +399,7 @@ def refit_members(
         # rounded to float32: threaded float64 sums scatter in the last
         # bits from run to run, and the refit would carry that forward
         out.append(refit(k, member, cov.float().double(), report))
-    return place_members(
-        out,
-        config.dims,
-        config.width,
-        config.depth,
-        maps,
-        seed=config.seed,
-        prior=config.unseen_prior,
-        coupling=config.place_coupling,
-    )
+    return place_configured(out, config, maps)
 
 
 def member_refit(

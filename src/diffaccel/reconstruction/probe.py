@@ -51,7 +51,7 @@ from diffaccel.reconstruction.unseen import (
     PLACEMENT_PARTICLES,
     _fold,
     member_moments,
-    place_members,
+    place_configured,
     traded_pairs,
     transport_map,
     unseen_directions,
@@ -190,7 +190,7 @@ def probe_members(
             refit(k, s, moments[k][1].float().double(), progress(k))
             for k, s in enumerate(placed)
         ]
-        return _placed(states, config, maps, 0.0), {"t": 0.0, "steps": []}
+        return place_configured(states, config, maps), {"t": 0.0, "steps": []}
     step = config.probe_unseen
     best = at(0.0)
     steps = [record(best, best)]
@@ -205,21 +205,8 @@ def probe_members(
         trial = at(math.copysign(n * step, best.t))
         if trial is not None:
             steps.append(record(trial, best))
-    return _placed(best.states, config, maps, best.t), {"t": best.t, "steps": steps}
-
-
-def _placed(
-    states: Sequence[dict], config: ReconstructionConfig, maps, t: float
-) -> list[dict]:
-    """``states`` placed again at the prior point plus ``t`` along px-pz."""
-    return place_members(
-        states,
-        config.dims,
-        config.width,
-        config.depth,
-        maps,
-        seed=config.seed,
-        prior=config.unseen_prior,
-        coupling=config.place_coupling,
-        shift={PROBE_PAIR: t} if t else None,
-    )
+    shift = {PROBE_PAIR: best.t} if best.t else None
+    return place_configured(best.states, config, maps, shift), {
+        "t": best.t,
+        "steps": steps,
+    }

@@ -84,12 +84,16 @@ and its training had found the coupling from the image shapes (6D emittance
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
 from diffaccel.reconstruction.generator import BeamGenerator
 from diffaccel.reconstruction.hold import MomentHold
+
+if TYPE_CHECKING:  # training imports this module
+    from diffaccel.reconstruction.training import ReconstructionConfig
 
 #: Covariance entries (i <= j) that involve z or pz: the unknowns.
 _LONGITUDINAL = [(i, j) for i in range(6) for j in range(i, 6) if j >= 4]
@@ -488,6 +492,27 @@ def place_members(
                     )
         out.append(_fold(state, transport_map(cov, target), mu))
     return out
+
+
+def place_configured(
+    snapshots: Sequence[dict],
+    config: ReconstructionConfig,
+    maps: Sequence[Tensor],
+    shift: dict[tuple[int, int], float] | None = None,
+) -> list[dict]:
+    """:func:`place_members` with a run's settings (generator size, ``seed``,
+    ``unseen_prior``, ``place_coupling``) and an optional ``shift``."""
+    return place_members(
+        snapshots,
+        config.dims,
+        config.width,
+        config.depth,
+        maps,
+        seed=config.seed,
+        prior=config.unseen_prior,
+        coupling=config.place_coupling,
+        shift=shift,
+    )
 
 
 def member_moments(
