@@ -84,16 +84,13 @@ and its training had found the coupling from the image shapes (6D emittance
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import torch
 from torch import Tensor
 
 from diffaccel.reconstruction.generator import BeamGenerator
 from diffaccel.reconstruction.hold import MomentHold
-
-if TYPE_CHECKING:  # training imports this module
-    from diffaccel.reconstruction.training import ReconstructionConfig
 
 #: Covariance entries (i <= j) that involve z or pz: the unknowns.
 _LONGITUDINAL = [(i, j) for i in range(6) for j in range(i, 6) if j >= 4]
@@ -494,9 +491,27 @@ def place_members(
     return out
 
 
+class PlacementSettings(Protocol):
+    """What :func:`place_configured` reads of a
+    :class:`~diffaccel.reconstruction.ReconstructionConfig`."""
+
+    @property
+    def dims(self) -> int: ...
+    @property
+    def width(self) -> int: ...
+    @property
+    def depth(self) -> int: ...
+    @property
+    def seed(self) -> int: ...
+    @property
+    def unseen_prior(self) -> str: ...
+    @property
+    def place_coupling(self) -> bool: ...
+
+
 def place_configured(
     snapshots: Sequence[dict],
-    config: ReconstructionConfig,
+    config: PlacementSettings,
     maps: Sequence[Tensor],
     shift: dict[tuple[int, int], float] | None = None,
 ) -> list[dict]:
