@@ -28,7 +28,6 @@ Usage: ``python benchmarks/unseen_shapes.py [--beams family_draw_b,...]
 from __future__ import annotations
 
 import argparse
-import dataclasses
 from pathlib import Path
 
 import torch
@@ -45,8 +44,7 @@ from diffaccel.reconstruction import (
 )
 from diffaccel.reconstruction.generator import BeamGenerator
 from diffaccel.reconstruction.initial import fit_gaussian
-from diffaccel.reconstruction.pipeline import refit_config
-from diffaccel.reconstruction.training import train_generator
+from diffaccel.reconstruction.pipeline import member_refit
 from diffaccel.reconstruction.unseen import (
     PLACEMENT_PARTICLES,
     _fold,
@@ -194,7 +192,7 @@ def refitted_profiles(truth, train, result) -> dict:
     maps = [f.transfer_maps(x) for f, x in zip(forwards, settings, strict=True)]
     guess = fit_gaussian(forwards, measured, settings, maps=maps)
     meas = _unit_images(train)
-    short = refit_config(config)
+    refit_member = member_refit(forwards, measured, settings, guess, config, maps)
     members = []
     for k, state in enumerate(result.snapshots):
         mu, cov = member_moments(
@@ -209,16 +207,7 @@ def refitted_profiles(truth, train, result) -> dict:
                 continue
             # the move folded into the generator, as place_members does
             moved = _fold(state, transport_map(cov, target), mu)
-            refit = train_generator(
-                forwards,
-                measured,
-                settings,
-                guess,
-                dataclasses.replace(short, seed=config.seed + 1000 * (k + 1)),
-                maps=maps,
-                initial_model=moved,
-                hold_covariance=target.float().double(),
-            ).model
+            refit = refit_member(k, moved, target.float().double())
             gen = BeamGenerator(
                 6, width=config.width, depth=config.depth, scale=torch.ones(6)
             )

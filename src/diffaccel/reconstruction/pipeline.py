@@ -35,8 +35,6 @@ from diffaccel.reconstruction.training import (
 )
 from diffaccel.reconstruction.uncertainty import analyse_moments
 from diffaccel.reconstruction.unseen import (
-    PLACEMENT_PARTICLES,
-    member_moments,
     place_configured,
     unseen_directions,
 )
@@ -365,41 +363,24 @@ def refit_members(
         device=device,
         distributed=distributed,
     )
-    if config.probe_unseen > 0:
-        snapshots, record = probe_members(
-            snapshots,
-            refit,
-            lambda state: training_kl(
-                state, config, forwards, measured, settings, maps, seed=config.seed
-            ),
-            config,
-            maps,
-            progress=lambda i: _progress(
-                callback,
-                config.steps + i * config.refit_steps,
-                max(config.total_steps, config.steps + (i + 1) * config.refit_steps),
-            ),
-        )
-        if probe_record is not None:
-            probe_record.update(record)
-        return snapshots
-    out = []
-    for k, member in enumerate(snapshots):
-        done = config.steps + k * config.refit_steps
-        report = _progress(callback, done, config.total_steps)
-        # the placed covariance, held while the shape fits the images
-        _, cov = member_moments(
-            member,
-            config.dims,
-            config.width,
-            config.depth,
-            PLACEMENT_PARTICLES,
-            config.seed,
-        )
-        # rounded to float32: threaded float64 sums scatter in the last
-        # bits from run to run, and the refit would carry that forward
-        out.append(refit(k, member, cov.float().double(), report))
-    return place_configured(out, config, maps)
+    # the plain refit is the probe's first point (probe_unseen = 0: the only one)
+    snapshots, record = probe_members(
+        snapshots,
+        refit,
+        lambda state: training_kl(
+            state, config, forwards, measured, settings, maps, seed=config.seed
+        ),
+        config,
+        maps,
+        progress=lambda i: _progress(
+            callback,
+            config.steps + i * config.refit_steps,
+            max(config.total_steps, config.steps + (i + 1) * config.refit_steps),
+        ),
+    )
+    if probe_record is not None and config.probe_unseen > 0:
+        probe_record.update(record)
+    return snapshots
 
 
 def member_refit(

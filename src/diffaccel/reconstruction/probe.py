@@ -34,6 +34,7 @@ reliably, hence opt-in.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from collections.abc import Callable, Sequence
 
@@ -109,7 +110,8 @@ def training_kl(
                 else fwd.images_linear(x, linear)
             )
             pred = pred / pred.sum((-2, -1), keepdim=True).clamp_min(1e-30)
-            unit = meas.to(pred) / meas.to(pred).sum((-2, -1), keepdim=True)
+            unit = meas.to(pred)
+            unit = unit / unit.sum((-2, -1), keepdim=True)
             total += float(image_distance(pred, unit, "kl").mean())
     return total
 
@@ -133,6 +135,11 @@ def probe_members(
     progress: Callable[[int], Callable[[StepInfo], None] | None] = lambda k: None,
 ) -> tuple[list[dict], dict]:
     """Placed members refitted at the point along px-pz the images prefer.
+
+    With ``config.probe_unseen = 0`` (the default), or where no unseen
+    direction trades px-pz, every member is refitted where it was placed
+    (:func:`~diffaccel.reconstruction.pipeline.refit_members`' plain refit)
+    and nothing is scored.
 
     Args:
         placed: Members placed at the prior point
@@ -161,7 +168,7 @@ def probe_members(
         pairs = traded_pairs(v, cov)
         moments.append((mu, cov))
         directions.append(v[pairs.index(PROBE_PAIR)] if PROBE_PAIR in pairs else None)
-    count = iter(range(10**6))
+    count = itertools.count()
 
     def at(t: float) -> _Point | None:
         targets = []
@@ -185,10 +192,11 @@ def probe_members(
     def record(p: _Point, ref: _Point) -> dict:
         return {"t": p.t, "kl": p.kl, "mean_gain": gain(ref, p)}
 
-    if any(v is None for v in directions):  # no px-pz trade: the plain refit
+    if config.probe_unseen == 0 or any(v is None for v in directions):
+        # no probe (or no px-pz trade): each member refitted where it was placed
         states = [
-            refit(k, s, moments[k][1].float().double(), progress(k))
-            for k, s in enumerate(placed)
+            refit(k, s, cov.float().double(), progress(k))
+            for k, (s, (_, cov)) in enumerate(zip(placed, moments, strict=True))
         ]
         return place_configured(states, config, maps), {"t": 0.0, "steps": []}
     step = config.probe_unseen
