@@ -29,6 +29,17 @@ shared file's family a beam the prior places right gained 1.2e-3
 (draw2030_0, moved to emit_z +7.9 %) and the two misses 9.6e-4 (draw2028_3)
 and nothing (draw2030_1): the signal does not separate the two groups
 reliably, hence opt-in.
+
+Where that misfit comes from (stop 22): a refitted member fits better toward
+where training left it along the direction, whatever the truth (the shared
+file's members were trained 0.045 below the prior point, their refitted KL
+minimum lies 0.03 below it, the truth at it;
+``benchmarks/unseen_trained_point.py``). A refit at ``refit_lr = 3e-3`` sheds
+most of that memory in the same 60 steps, and with ``probe_gain = 5e-4`` the
+audit met 33 of 33. But on the 36 draws it met 33 (draw2026_5, placed right,
+moved toward its trained point to emit_z +22.7 %), so those settings are not
+the default either; a gain that points toward the trained point is not yet
+evidence.
 """
 
 from __future__ import annotations
