@@ -343,15 +343,26 @@ def synthetic_beam(name: str, n: int, seed: int) -> torch.Tensor:
     return b - b.mean(0)
 
 
-def run_beam(name: str, seeds: list[int], overrides: dict | None = None) -> dict:
+def beam_scans(name: str, held_out: bool = True) -> tuple:
+    """``(truth, train, test)`` of a beam: the shared training file (its stored
+    truth, no held-out scans: ``test`` None) or a synthetic beam imaged at
+    :data:`TRAIN_K1` and, with ``held_out``, at :data:`TEST_K1`."""
     if name == "shared":
-        train, test = read_scans(TRAIN), None
-        truth = train.ground_truth
-    else:
-        seed = beam_seed(name)
-        truth = synthetic_beam(name, 200_000, seed)
-        train = make_synthetic_awa6d(particles=truth, k1_values=TRAIN_K1, seed=seed)
-        test = make_synthetic_awa6d(particles=truth, k1_values=TEST_K1, seed=seed)
+        train = read_scans(TRAIN)
+        return train.ground_truth, train, None
+    seed = beam_seed(name)
+    truth = synthetic_beam(name, 200_000, seed)
+    train = make_synthetic_awa6d(particles=truth, k1_values=TRAIN_K1, seed=seed)
+    test = (
+        make_synthetic_awa6d(particles=truth, k1_values=TEST_K1, seed=seed)
+        if held_out
+        else None
+    )
+    return truth, train, test
+
+
+def run_beam(name: str, seeds: list[int], overrides: dict | None = None) -> dict:
+    truth, train, test = beam_scans(name)
     runs = []
     for s in seeds:
         config = ReconstructionConfig(dims=6, seed=s, **(overrides or {}))

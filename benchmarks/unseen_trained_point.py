@@ -27,10 +27,9 @@ from pathlib import Path
 
 import torch
 from _meta import emit, git_commit
-from reconstruction_6d_beams import TRAIN, TRAIN_K1, beam_seed, synthetic_beam
+from reconstruction_6d_beams import beam_scans
 
 import diffaccel.reconstruction.pipeline as pipeline
-from diffaccel.data import make_synthetic_awa6d, read_scans
 from diffaccel.reconstruction import ReconstructionConfig, moment_errors, reconstruct
 from diffaccel.reconstruction.unseen import (
     PLACEMENT_PARTICLES,
@@ -80,14 +79,7 @@ def main() -> None:
     runs = []
     for item in args.runs.split(","):
         name, seed = item.split(":")
-        if name == "shared":
-            train = read_scans(TRAIN)
-            truth = train.ground_truth
-        else:
-            truth = synthetic_beam(name, 200_000, beam_seed(name))
-            train = make_synthetic_awa6d(
-                particles=truth, k1_values=TRAIN_K1, seed=beam_seed(name)
-            )
+        truth, train, _ = beam_scans(name, held_out=False)
         found.clear()
         result = reconstruct(
             train, ReconstructionConfig(dims=6, seed=int(seed)), uncertainty=False
