@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -200,7 +201,8 @@ def test_uncoupled_members_end_at_the_largest_determinant(small_awa6d) -> None:
     # also where the probe moved the members off the prior point along px-pz
     probed = reconstruct(
         small_awa6d,
-        replace(config, place_coupling=True, probe_unseen=0.05),
+        # both sides probed: this small run moves toward its trained side
+        replace(config, place_coupling=True, probe_unseen=0.05, probe_away=False),
         uncertainty=False,
     )
     assert probed.info["unseen_probe"]["t"] != 0
@@ -247,11 +249,14 @@ def test_a_quadrupole_scan_alone_is_not_refitted(small_scan) -> None:
 def test_probe_refits_every_member_at_three_points_and_records_them(
     small_awa6d,
 ) -> None:
-    """``probe_unseen``: each member refitted at -step, 0, +step along px-pz
-    (more steps only where the KL gain passes ``probe_gain``); the record in
-    ``info["unseen_probe"]``, the progress counting every refit."""
+    """``probe_unseen`` without ``probe_away``: each member refitted at -step,
+    0, +step along px-pz (more steps only where the KL gain passes
+    ``probe_gain``); the record in ``info["unseen_probe"]``, the progress
+    counting every refit."""
     seen: list[tuple[int, int]] = []
-    config = replace(CONFIG, refit_steps=4, report_every=2, probe_unseen=0.05)
+    config = replace(
+        CONFIG, refit_steps=4, report_every=2, probe_unseen=0.05, probe_away=False
+    )
     result = reconstruct(
         small_awa6d,
         config,
@@ -275,3 +280,21 @@ def test_probe_refits_every_member_at_three_points_and_records_them(
             small_awa6d, replace(config, probe_unseen=0.0), uncertainty=False
         ).info
     )
+
+
+def test_probe_away_probes_the_side_away_from_the_trained_members(
+    small_awa6d,
+) -> None:
+    """``probe_away`` (the default): the members' trained ``t`` recorded, the
+    probe's first two points the prior point and the step away from their
+    mean, the progress counting the refits so."""
+    config = replace(CONFIG, refit_steps=4, report_every=2, probe_unseen=0.05)
+    assert config.probe_away and config.total_steps == 6 + 2 * 4
+    result = reconstruct(small_awa6d, config, uncertainty=False)
+    record = result.info["unseen_probe"]
+    assert len(record["trained_t"]) == result.n_snapshots
+    mean = sum(record["trained_t"]) / len(record["trained_t"])
+    assert mean != 0
+    points = [s["t"] for s in record["steps"]]
+    assert points[:2] == [0.0, -math.copysign(0.05, mean)]
+    assert all(t * mean <= 0 for t in points)

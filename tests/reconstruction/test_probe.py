@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 from test_unseen import _beam_cov, _maps, _partial
@@ -132,8 +134,65 @@ def test_bad_probe_settings_are_refused(field: str, value: float) -> None:
         ReconstructionConfig(dims=6, **{field: value})
 
 
-def test_probe_adds_two_refits_per_member_to_the_step_count() -> None:
-    plain = ReconstructionConfig(dims=6)  # the default does not probe
-    probed = ReconstructionConfig(dims=6, probe_unseen=0.05)
+@pytest.mark.parametrize("away, extra", [(True, 1), (False, 2)])
+def test_probe_adds_refits_per_member_to_the_step_count(away: bool, extra: int) -> None:
+    """One more refit per member where the probe looks on one side, two on both."""
+    plain = ReconstructionConfig(dims=6, probe_unseen=0.0)
+    probed = ReconstructionConfig(dims=6, probe_unseen=0.05, probe_away=away)
     members = plain.snapshots - plain.burn_in
-    assert probed.total_steps - plain.total_steps == 2 * members * plain.refit_steps
+    assert probed.total_steps - plain.total_steps == extra * members * plain.refit_steps
+
+
+def _moved(state: dict, t: float) -> dict:
+    """``state`` moved by ``t`` along its px-pz direction (as training may
+    leave a member before the placement)."""
+    mu, cov = member_moments(state, 6, 8, 2, PLACEMENT_PARTICLES, CONFIG.seed)
+    v = unseen_directions(_maps(), cov)
+    target = cov + t * v[traded_pairs(v, cov).index(PROBE_PAIR)]
+    return _fold(state, transport_map(cov, target), mu)
+
+
+@pytest.mark.parametrize("trained_at", [-0.04, 0.04])
+def test_probe_looks_away_from_where_training_left_the_members(
+    trained_at: float,
+) -> None:
+    """``probe_away``: the members' trained ``t`` is recorded, and only the
+    side away from it is probed; a better fit on the trained side is refused
+    (a refitted member's memory, not evidence), one on the far side taken."""
+    members = [_placed_member(0), _placed_member(1)]
+    trained = [_moved(m, trained_at) for m in members]
+    config = ReconstructionConfig(
+        dims=6, width=8, depth=2, probe_unseen=0.05, probe_gain=1e-4
+    )
+
+    def run(best_t: float) -> dict:
+        best = _partial_at(members[0], best_t)
+
+        def score(state):
+            return (_partial(_cov(state), 1, 5) - best) ** 2
+
+        _, record = probe_members(
+            members, lambda k, s, h, c: s, score, config, _maps(), trained=trained
+        )
+        return record
+
+    away = -1.0 if trained_at > 0 else 1.0
+    toward = run(-away * 0.1)  # the images prefer the trained side
+    assert toward["trained_t"] == pytest.approx([trained_at] * 2, abs=2e-3)
+    assert [s["t"] for s in toward["steps"]] == pytest.approx([0, away * 0.05])
+    assert toward["t"] == 0.0
+    found = run(away * 0.1)  # they prefer the far side: two steps there
+    assert found["t"] == pytest.approx(away * 0.1)
+    assert [s["t"] for s in found["steps"]] == pytest.approx(
+        [0, away * 0.05, away * 0.1]
+    )
+    # without probe_away both sides are probed, and the trained side taken
+    _, both = probe_members(
+        members,
+        lambda k, s, h, c: s,
+        lambda s: (_partial(_cov(s), 1, 5) - _partial_at(members[0], -away * 0.1)) ** 2,
+        dataclasses.replace(config, probe_away=False),
+        _maps(),
+        trained=trained,
+    )
+    assert both["t"] == pytest.approx(-away * 0.1)

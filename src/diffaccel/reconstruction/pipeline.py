@@ -245,6 +245,7 @@ def reconstruct(
     if config.dims == 6 and config.place_unseen:
         # longitudinal directions the scans cannot see: placed by a stated
         # prior, not wherever training drifted (see reconstruction.unseen)
+        trained = snapshots
         snapshots = place_configured(snapshots, run_config, maps)
         if refit:
             snapshots = refit_members(
@@ -259,6 +260,7 @@ def reconstruct(
                 callback=callback,
                 distributed=distributed and not members,
                 probe_record=probe,
+                trained=trained,
             )
             for fwd in forwards.values():
                 fwd.to("cpu")
@@ -317,6 +319,7 @@ def refit_members(
     callback: Callable[[StepInfo], None] | None = None,
     distributed: bool = False,
     probe_record: dict | None = None,
+    trained: Sequence[dict] | None = None,
 ) -> list[dict]:
     """Placed members' shapes fitted again to the images, then placed again.
 
@@ -349,6 +352,8 @@ def refit_members(
             every process returns the same members.
         probe_record: With ``config.probe_unseen``, filled with the probe's
             record (:func:`~diffaccel.reconstruction.probe.probe_members`).
+        trained: The members before the placement (the probe's side,
+            ``config.probe_away``).
 
     Returns:
         The refitted and placed state dicts, one per member.
@@ -377,6 +382,7 @@ def refit_members(
             config.steps + i * config.refit_steps,
             max(config.total_steps, config.steps + (i + 1) * config.refit_steps),
         ),
+        trained=trained,
     )
     if probe_record is not None and config.probe_unseen > 0:
         probe_record.update(record)

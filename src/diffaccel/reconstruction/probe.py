@@ -144,6 +144,7 @@ def probe_members(
     maps: Sequence[Tensor],
     *,
     progress: Callable[[int], Callable[[StepInfo], None] | None] = lambda k: None,
+    trained: Sequence[dict] | None = None,
 ) -> tuple[list[dict], dict]:
     """Placed members refitted at the point along px-pz the images prefer.
 
@@ -163,14 +164,20 @@ def probe_members(
             ``probe_points``, the generator's size, the placement's prior).
         maps: Each scan's affine maps of its training settings ``(K_s, 7, 7)``.
         progress: ``progress(i)`` -> the callback of the ``i``-th refit.
+        trained: The same members as training left them, before the
+            placement. With ``config.probe_away`` the probe looks only on the
+            side away from where they were (their mean ``t``), since a
+            refitted member's KL favours that side whatever the truth.
 
     Returns:
         The refitted members placed again at the chosen point (the prior
         point plus ``t`` along each member's px-pz direction), and a record:
         ``t`` (correlation units), ``steps`` (each probed point's ``t``,
-        members' KL and mean gain over the point it was compared with).
+        members' KL and mean gain over the point it was compared with) and,
+        with ``trained``, ``trained_t`` (each member's ``t`` before the
+        placement).
     """
-    moments, directions = [], []
+    moments, directions, bases, indices = [], [], [], []
     for state in placed:
         mu, cov = member_moments(
             state, 6, config.width, config.depth, PLACEMENT_PARTICLES, config.seed
@@ -178,7 +185,10 @@ def probe_members(
         v = unseen_directions(maps, cov)
         pairs = traded_pairs(v, cov)
         moments.append((mu, cov))
-        directions.append(v[pairs.index(PROBE_PAIR)] if PROBE_PAIR in pairs else None)
+        index = pairs.index(PROBE_PAIR) if PROBE_PAIR in pairs else None
+        bases.append(v)
+        indices.append(index)
+        directions.append(None if index is None else v[index])
     count = itertools.count()
 
     def at(t: float) -> _Point | None:
@@ -211,9 +221,16 @@ def probe_members(
         ]
         return place_configured(states, config, maps), {"t": 0.0, "steps": []}
     step = config.probe_unseen
+    signs = (-1.0, 1.0)
+    out: dict = {}
+    if trained is not None:
+        out["trained_t"] = trained_points(trained, moments, bases, indices, config)
+        mean = sum(out["trained_t"]) / len(out["trained_t"])
+        if config.probe_away and mean != 0:
+            signs = (-math.copysign(1.0, mean),)
     best = at(0.0)
     steps = [record(best, best)]
-    sides = [p for p in (at(-step), at(step)) if p is not None]
+    sides = [p for p in (at(s * step) for s in signs) if p is not None]
     steps += [record(p, best) for p in sides]
     trial = max(sides, key=lambda p: gain(best, p), default=None)
     while trial is not None and gain(best, trial) > config.probe_gain:
@@ -228,4 +245,29 @@ def probe_members(
     return place_configured(best.states, config, maps, shift), {
         "t": best.t,
         "steps": steps,
+        **out,
     }
+
+
+def trained_points(
+    trained: Sequence[dict],
+    moments: Sequence[tuple[Tensor, Tensor]],
+    bases: Sequence[Tensor],
+    indices: Sequence[int],
+    config: ReconstructionConfig,
+) -> list[float]:
+    """Each member's ``t`` along its px-pz direction before the placement.
+
+    The trained covariance minus the placed one, regressed on the placed
+    member's unseen directions (least squares over the 6x6 entries; the
+    directions' correlation units), its px-pz coefficient.
+    """
+    out = []
+    for state, (_, cov), v, i in zip(trained, moments, bases, indices, strict=True):
+        _, own = member_moments(
+            state, 6, config.width, config.depth, PLACEMENT_PARTICLES, config.seed
+        )
+        design = v.reshape(v.shape[0], -1).T
+        coef = torch.linalg.lstsq(design, (own - cov).reshape(-1, 1)).solution
+        out.append(float(coef[i]))
+    return out

@@ -366,6 +366,13 @@ class ReconstructionConfig:
             and 2.4e-4 (seed 2). At 2e-4 the probe moved double_horn seed 2
             to emit_z +11.4 % and family_draw_b seed 1 two steps to +18 %.
         probe_points: Most steps the probe takes from the prior point.
+        probe_away: The probe looks only on the side of the prior point away
+            from where training left the members along px-pz (their mean;
+            both sides where that is exactly the prior point or with False).
+            A refitted member's KL favours the side it was trained on,
+            whatever the truth (docs/generalisation_6d.md, stop 22), so a
+            gain toward it is no evidence; one away from it is. It also
+            halves the probe's refits.
         seed: Seed of the explicit ``torch.Generator`` (weights and samples).
         checkpoint_every: Steps between checkpoints (also at every snapshot).
         report_every: Steps between reads of the losses from the device (the
@@ -403,6 +410,7 @@ class ReconstructionConfig:
     probe_unseen: float = 0.0
     probe_gain: float = 1e-3
     probe_points: int = 2
+    probe_away: bool = True
     seed: int = 0
     checkpoint_every: int = 100
     report_every: int = 10
@@ -532,8 +540,9 @@ class ReconstructionConfig:
     @property
     def total_steps(self) -> int:
         """Optimiser steps of a run: training, plus in 6D with ``place_unseen``
-        the refit of every member (``refit_steps`` each, at three points
-        with ``probe_unseen``, more where the probe steps on; run only where
+        the refit of every member (``refit_steps`` each, at two points with
+        ``probe_unseen`` and ``probe_away``, three without ``probe_away``, more
+        where the probe steps on; run only where
         the scans leave longitudinal directions unseen, not for a quadrupole
         scan alone).
 
@@ -543,11 +552,11 @@ class ReconstructionConfig:
             >>> ReconstructionConfig(dims=4).total_steps
             300
         """
-        refit = 0  # the probe's first three points (more where it steps on)
+        refit = 0  # the probe's first points (more where it steps on)
         if self.dims == 6 and self.place_unseen:
             refit = self.refit_steps * (self.snapshots - self.burn_in)
             if self.probe_unseen > 0:
-                refit *= 3
+                refit *= 2 if self.probe_away else 3
         return self.steps + refit
 
     @property
@@ -591,6 +600,7 @@ class ReconstructionConfig:
         d.setdefault("hold_unseen", 0.0)
         d.setdefault("refit_steps", 0)  # runs trained before the refit
         d.setdefault("refit_hold", 0.0)  # refits before the covariance hold
+        d.setdefault("probe_away", False)  # probes before the one-sided probe
         d["longitudinal_scale"] = tuple(d["longitudinal_scale"])
         return cls(**d)
 
