@@ -362,17 +362,17 @@ def test_uncoupled_is_a_6d_option(scan_file: Path, tmp_path: Path) -> None:
     assert "Traceback" not in r.output and not out.exists()
 
 
-def test_probe_is_an_opt_in(two_scan_file: Path, tmp_path) -> None:
-    """``--probe`` turns the px-pz likelihood-ratio probe on (stored in the
-    run's config); the default does not probe."""
+def test_probe_is_on_in_6d_unless_turned_off(two_scan_file: Path, tmp_path) -> None:
+    """``--dims 6`` probes along px-pz by default (stored in the run's config);
+    ``--no-probe`` turns it off."""
     runs = {}
-    for flag in ([], ["--probe"]):
+    for flag in ([], ["--no-probe"]):
         out = tmp_path / f"o{len(flag)}"
         args = ["reconstruct", str(two_scan_file), "--out", str(out), "--dims", "6"]
         r = CliRunner().invoke(main, [*args, *flag, *FAST, "--no-figures"])
         assert r.exit_code == 0, r.output
         runs[len(flag)] = load(out).config.probe_unseen
-    assert runs == {0: 0.0, 1: PROBE_STEP}
+    assert runs == {0: PROBE_STEP, 1: 0.0}
     assert PROBE_STEP > 0
 
 

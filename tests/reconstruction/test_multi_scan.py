@@ -210,9 +210,10 @@ def test_uncoupled_members_end_at_the_largest_determinant(small_awa6d) -> None:
 
 
 def test_progress_counts_training_and_refit(small_awa6d) -> None:
-    """The callback's steps run on through the refit of the placed members."""
+    """The callback's steps run on through the refit of the placed members
+    (the plain refit; with the probe, test_probe_refits_every_member_...)."""
     seen: list[tuple[int, int]] = []
-    config = replace(CONFIG, refit_steps=4, report_every=2)
+    config = replace(CONFIG, refit_steps=4, report_every=2, probe_unseen=0.0)
     reconstruct(
         small_awa6d,
         config,

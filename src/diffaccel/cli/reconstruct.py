@@ -495,14 +495,14 @@ def run_reconstruction(
     "by a solenoid); see docs/generalisation_6d.md.",
 )
 @click.option(
-    "--probe",
-    is_flag=True,
-    help="--dims 6 (opt-in): let the training images move the beam off the stated "
-    "prior point along the px-pz direction the screens cannot see (zero px-pz "
-    "partial correlation) where they fit clearly better there: a "
-    "likelihood-ratio probe, two more refits per member (about 40 s on two CPU "
-    "cores). For beams with dispersion-like px-pz correlation; it can also move "
-    "a beam the prior placed right (docs/generalisation_6d.md, stop 21).",
+    "--probe/--no-probe",
+    default=None,
+    help="--dims 6: let the training images move the beam off the stated prior "
+    "point along the px-pz direction the screens cannot see (zero px-pz partial "
+    "correlation) where members refitted there fit clearly better: a "
+    "likelihood-ratio probe on the side away from where training left the "
+    "members, one or more extra refits per member (about 20 s on two CPU cores) "
+    "[default: on for --dims 6; see docs/generalisation_6d.md].",
 )
 @click.option("--no-figures", is_flag=True, help="Skip the PNG figures.")
 @click.option(
@@ -552,7 +552,7 @@ def reconstruct_command(
     image_loss: str,
     blur: float | None,
     uncoupled: bool,
-    probe: bool,
+    probe: bool | None,
     no_figures: bool,
     uncertainty: bool,
     force: bool,
@@ -589,7 +589,7 @@ def reconstruct_command(
             image_loss=image_loss,  # type: ignore[arg-type]
             blur_pixels=blur,
             place_coupling=uncoupled,
-            probe_unseen=PROBE_STEP if probe else 0.0,
+            probe_unseen=None if probe is None else PROBE_STEP if probe else 0.0,
         )
     except ValueError as err:
         raise click.ClickException(str(err)) from err

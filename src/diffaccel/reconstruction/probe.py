@@ -9,37 +9,33 @@ draw2028_3 +0.12, draw2030_1 -0.14; docs/generalisation_6d.md) is placed
 members refitted at points along the direction fit the training images better
 off the prior point for those beams.
 
-:func:`probe_members` is that likelihood-ratio test, opt-in
-(``ReconstructionConfig.probe_unseen``, ``reconstruct --probe``): every placed
-member is moved to ``t = -step, 0, +step`` along its px-pz direction (correlation units,
-the covariance plus ``t`` times the direction), refitted there with the
-covariance held (as :func:`~diffaccel.reconstruction.pipeline.refit_members`;
-``t = 0`` is that refit), and its training-image KL distance computed on
+:func:`probe_members` is that likelihood-ratio test (the 6D default since
+stop 23, ``ReconstructionConfig.probe_unseen``; ``reconstruct --no-probe``
+turns it off): every placed member is refitted at the prior point and at
+``t = +-step`` along its px-pz direction (correlation units, the covariance
+plus ``t`` times the direction) with the covariance held (as
+:func:`~diffaccel.reconstruction.pipeline.refit_members`; ``t = 0`` is that
+refit), and its training-image KL distance computed on
 :data:`PROBE_PARTICLES` quasi-random particles. The ensemble moves one step
-towards the better side only if the members' mean KL gain exceeds
-``probe_gain``, and keeps stepping while each further step gains as much (at
-most ``probe_points`` steps).
+only if the members' mean KL gain exceeds ``probe_gain``, and keeps stepping
+while each further step gains as much (at most ``probe_points`` steps).
 
-A threshold on the gain, not the KL minimum itself: the members' own shape
-misfit also varies along the direction. On the generalisation audit (stop 21)
-runs whose truth the prior places right gained up to 7.8e-4 by a step (the
-shared file; double_horn 4.9e-4, its three members alike), family_draw_b
-1.7-1.8e-3 on two seeds and 2.4e-4 on the third. On 36 random draws of the
-shared file's family a beam the prior places right gained 1.2e-3
-(draw2030_0, moved to emit_z +7.9 %) and the two misses 9.6e-4 (draw2028_3)
-and nothing (draw2030_1): the signal does not separate the two groups
-reliably, hence opt-in.
+Only one side is probed (``probe_away``): the one away from where training
+left the members (:func:`trained_points`). A refitted member fits better
+toward that point whatever the truth (stop 22,
+``benchmarks/unseen_trained_point.py``: the shared file's members were
+trained 0.045 below the prior point, their refitted KL minimum lay 0.03 below
+it, the truth at it), so a gain on that side is no evidence; a gain on the
+other side is, against the memory. Both sides probed (stop 21, stop 22),
+beams the prior places right gained as much as beams it places wrong
+(draw2030_0 1.2e-3 at ``refit_lr`` 1e-3; draw2026_5 7.6e-4 at 3e-3, moved
+to emit_z +22.7 %), and no threshold separated them.
 
-Where that misfit comes from (stop 22): a refitted member fits better toward
-where training left it along the direction, whatever the truth (the shared
-file's members were trained 0.045 below the prior point, their refitted KL
-minimum lies 0.03 below it, the truth at it;
-``benchmarks/unseen_trained_point.py``). A refit at ``refit_lr = 3e-3`` sheds
-most of that memory in the same 60 steps, and with ``probe_gain = 5e-4`` the
-audit met 33 of 33. But on the 36 draws it met 33 (draw2026_5, placed right,
-moved toward its trained point to emit_z +22.7 %), so those settings are not
-the default either; a gain that points toward the trained point is not yet
-evidence.
+What it finds, and what it cannot (docs/generalisation_6d.md, stop 23): a
+beam whose training lands on the far side of the prior point from the
+truth (family_draw_b: +0.09 px-pz partial correlation, placed at -35 % in z
+emittance). A beam whose training lands on the truth's side (draw2028_3,
+draw2031_0) stays at the prior point.
 """
 
 from __future__ import annotations
@@ -71,7 +67,8 @@ from diffaccel.reconstruction.unseen import (
 
 #: The traded correlation that :func:`probe_members` probes (px-pz).
 PROBE_PAIR = (1, 5)
-#: The step of ``reconstruct --probe`` (correlation units).
+#: The 6D default step of the probe (``ReconstructionConfig.probe_unseen``;
+#: correlation units).
 PROBE_STEP = 0.05
 #: Quasi-random particles of each probe's KL distance (16 384 scatter by
 #: about 1e-3 between refitted members, above the gains it compares)...
@@ -148,8 +145,8 @@ def probe_members(
 ) -> tuple[list[dict], dict]:
     """Placed members refitted at the point along px-pz the images prefer.
 
-    With ``config.probe_unseen = 0`` (the default), or where no unseen
-    direction trades px-pz, every member is refitted where it was placed
+    With ``config.probe_unseen = 0`` (4D, ``reconstruct --no-probe``), or
+    where no unseen direction trades px-pz, every member is refitted where it was placed
     (:func:`~diffaccel.reconstruction.pipeline.refit_members`' plain refit)
     and nothing is scored.
 
