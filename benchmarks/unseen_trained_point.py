@@ -8,7 +8,12 @@ point's, regressed on the unseen directions (least squares, correlation units
 as ``unseen_directions``), one coefficient per traded pair (``"(1, 5)"``: px-pz,
 the direction the probe of ``reconstruction.probe`` moves along; ``"(3, 4)"``:
 py-z). Stop 22 (docs/generalisation_6d.md) found that a refitted member's
-training-image KL favours the side of that point, whatever the truth.
+training-image KL favours the side of that point, whatever the truth; since
+stop 23 the default probe looks only on the other side, and records the px-pz
+coefficient itself (``info["unseen_probe"]["trained_t"]``, regressed on the
+placed member's directions instead of the trained one's: the shared file's
+seed 0 at one thread -0.044 / -0.046 / -0.050, where stop 22's computation
+gave -0.043 / -0.045 / -0.049).
 
 The members are read where the pipeline hands them to the placement
 (``pipeline.place_configured`` wrapped for the first call of each run): the
