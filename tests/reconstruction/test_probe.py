@@ -165,7 +165,7 @@ def test_probe_looks_away_from_where_training_left_the_members(
         dims=6, width=8, depth=2, probe_unseen=0.05, probe_gain=1e-4
     )
 
-    def run(best_t: float) -> dict:
+    def run(best_t: float, config=config) -> dict:
         best = _partial_at(members[0], best_t)
 
         def score(state):
@@ -187,12 +187,5 @@ def test_probe_looks_away_from_where_training_left_the_members(
         [0, away * 0.05, away * 0.1]
     )
     # without probe_away both sides are probed, and the trained side taken
-    _, both = probe_members(
-        members,
-        lambda k, s, h, c: s,
-        lambda s: (_partial(_cov(s), 1, 5) - _partial_at(members[0], -away * 0.1)) ** 2,
-        dataclasses.replace(config, probe_away=False),
-        _maps(),
-        trained=trained,
-    )
+    both = run(-away * 0.1, dataclasses.replace(config, probe_away=False))
     assert both["t"] == pytest.approx(-away * 0.1)
