@@ -594,7 +594,9 @@ def test_cuda_images_and_gradients_equal_cpu(method: str) -> None:
     image = cic_image if method == "cic" else kde_image
     out = {}
     for device in ("cpu", "cuda"):
-        xd, yd, wd = (t.to(device).requires_grad_(True) for t in (x, y, w))
+        # fresh leaves on each device (``t.to("cpu")`` would be ``t`` itself,
+        # and the CUDA copy of a tensor that requires grad is no leaf)
+        xd, yd, wd = (t.to(device, copy=True).requires_grad_(True) for t in (x, y, w))
         img = image(xd, yd, (40, 50), 2e-4, (1e-4, 0.0), weights=wd)
         img.square().sum().backward()
         assert img.device.type == device
