@@ -44,8 +44,8 @@ DATASET = DATA / "gpsr_4d_synthetic.h5"
 SYNC_OPS = ("aten::item", "aten::_local_scalar_dense")
 
 
-def _config(steps: int, particles: int) -> ReconstructionConfig:
-    return ReconstructionConfig(n_particles=particles, steps=steps)
+def _config(steps: int, particles: int, graph: bool = True) -> ReconstructionConfig:
+    return ReconstructionConfig(n_particles=particles, steps=steps, cuda_graph=graph)
 
 
 def _profile(ds, train, cfg, device) -> tuple[list, float]:
@@ -82,6 +82,11 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--top", type=int, default=0, help="list the N commonest ops")
+    ap.add_argument(
+        "--eager",
+        action="store_true",
+        help="no CUDA graph on a GPU (cuda_graph=False): the step launched op by op",
+    )
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -98,7 +103,7 @@ def main() -> None:
         for _ in range(args.repeats):
             r = reconstruct(
                 ds,
-                _config(steps, args.particles),
+                _config(steps, args.particles, not args.eager),
                 train_indices=train,
                 device=args.device,
             )
@@ -107,7 +112,9 @@ def main() -> None:
     step_time = (timings[long] - timings[short]) / (long - short)
     counts = {}
     for steps in (short, long):
-        events, _ = _profile(ds, train, _config(steps, args.particles), args.device)
+        events, _ = _profile(
+            ds, train, _config(steps, args.particles, not args.eager), args.device
+        )
         aten = [e for e in events if e.name.startswith("aten::")]
         counts[steps] = {
             "all": aten,
@@ -120,6 +127,7 @@ def main() -> None:
         "name": "reconstruction_step",
         "dataset": str(DATASET.resolve()),
         "device": args.device,
+        "cuda_graph": not args.eager,
         "threads": torch.get_num_threads(),
         "n_particles": cfg.n_particles,
         "train_images": len(train),

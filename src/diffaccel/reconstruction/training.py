@@ -8,7 +8,9 @@ import logging
 import math
 import os
 import time
+import warnings
 from collections.abc import Callable, Sequence
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,6 +28,16 @@ from diffaccel.reconstruction.forward import (
     SharedUpstream,
 )
 from diffaccel.reconstruction.generator import BeamGenerator, FlatGenerator
+from diffaccel.reconstruction.graphed_step import (
+    BC2_SQRT,
+    LAM,
+    STEP_SIZE,
+    GraphedStep,
+    graph_capable,
+    join_stream,
+    step_factors,
+    warm_stream,
+)
 from diffaccel.reconstruction.hold import CovarianceHold, MomentHold
 from diffaccel.reconstruction.initial import GaussianGuess
 from diffaccel.reconstruction.losses import (
@@ -89,6 +101,20 @@ class FlatAdam:
         denom = self.exp_avg_sq.sqrt().div_(self._bc2_sqrt.fill_(math.sqrt(bc2)))
         denom.add_(self._eps)
         self.param.addcdiv_(self.exp_avg, denom, value=-lr / bc1)
+
+    @torch.no_grad()
+    def step_factored(self, grad: Tensor, step_size: Tensor, bc2_sqrt: Tensor) -> None:
+        """:meth:`step` with the step's factors as device scalars (CUDA graphs).
+
+        ``step_size`` is ``-lr / (1 - beta1**t)``, ``bc2_sqrt`` is
+        ``sqrt(1 - beta2**t)`` (:func:`~diffaccel.reconstruction.graphed_step.
+        step_factors`); the caller counts :attr:`steps`.
+        """
+        b1, b2 = self.betas
+        self.exp_avg.lerp_(grad, 1 - b1)
+        self.exp_avg_sq.mul_(self._beta2).addcmul_(grad, grad, value=1 - b2)
+        denom = self.exp_avg_sq.sqrt().div_(bc2_sqrt).add_(self._eps)
+        self.param.addcmul_(self.exp_avg.div(denom), step_size)
 
     def state_dict(self) -> dict:
         """``torch.optim``-shaped state (one parameter), for checkpoints."""
@@ -392,6 +418,14 @@ class ReconstructionConfig:
             only host synchronisation of training): history, the finite-loss
             check and the callback happen then (and at snapshots, checkpoints
             and the last step). Does not change the result.
+        cuda_graph: On a CUDA device, capture the training step as a CUDA
+            graph after a few eager steps and replay it (one launch per step
+            instead of a few hundred; :mod:`~diffaccel.reconstruction.
+            graphed_step`; docs/gpu.md). 4D only: 6D steps do not capture
+            yet and stay eager, as do ``distributed`` training and steps with
+            a covariance hold. The same arithmetic up to rounding (the
+            per-step factors are device scalars); where a capture fails the
+            run goes on eagerly with a warning. Ignored on CPUs.
     """
 
     dims: int = 4
@@ -427,6 +461,7 @@ class ReconstructionConfig:
     seed: int = 0
     checkpoint_every: int = 100
     report_every: int = 10
+    cuda_graph: bool = True
 
     def __post_init__(self) -> None:
         if self.dims not in (4, 6):
@@ -750,6 +785,57 @@ def _smoothed(
 #: (:class:`~diffaccel.reconstruction.unseen.UnseenHold`).
 HOLD_EVERY = 10
 
+#: Eager steps (on a side stream) before the step is captured as a CUDA graph.
+GRAPH_WARMUP_STEPS = 3
+
+
+def _capture(
+    body: Callable[[Tensor], tuple[Tensor, ...]],
+    config: ReconstructionConfig,
+    start: int,
+    total: int,
+    opt: FlatAdam,
+    gen_rng: torch.Generator,
+    device: torch.device,
+    side: torch.cuda.Stream | None,
+) -> tuple[GraphedStep | None, torch.Generator]:
+    """Training steps ``start`` to ``total - 1`` as a CUDA graph, and the
+    random generator to go on with: ``gen_rng`` after a capture, a copy of its
+    state before it where the capture fails (with the graph None): a generator
+    registered with a failed capture cannot draw outside it.
+    """
+    join_stream(side, device)
+    cyc = config.cycle_length
+    remaining = range(start, total)
+    table = step_factors(
+        [cyclic_cosine_lr(s, cyc, config.lr_max, config.lr_min) for s in remaining],
+        [
+            penalty_schedule(s, cyc, config.penalty_start, config.penalty_end)
+            for s in remaining
+        ],
+        opt.steps + 1,
+        opt.betas,
+        device,
+    )
+    before = gen_rng.get_state()
+    try:
+        with warnings.catch_warnings():
+            # the generator's parameter vector was first used on the warm-up
+            # stream; autograd notes the other stream of the capture (harmless)
+            warnings.filterwarnings(
+                "ignore", message="The AccumulateGrad node's stream does not match"
+            )
+            return GraphedStep(body, table, gen_rng), gen_rng
+    except RuntimeError as err:  # e.g. an operation CUDA cannot capture
+        logger.warning(
+            "could not capture the training step as a CUDA graph (%s); "
+            "training goes on step by step",
+            str(err).splitlines()[0] if str(err) else type(err).__name__,
+        )
+        fresh = torch.Generator(device=device)
+        fresh.set_state(before)
+        return None, fresh
+
 
 def train_generator(
     forward: ScreenForwardModel | Sequence[ScreenForwardModel],
@@ -989,11 +1075,11 @@ def train_generator(
             n,
             prior=config.unseen_prior,
         )
-    t0 = time.perf_counter() - state.elapsed_s
-    while state.step < total:
-        step = state.step
-        lr = cyclic_cosine_lr(step, cyc, config.lr_max, config.lr_min)
-        lam = penalty_schedule(step, cyc, config.penalty_start, config.penalty_end)
+
+    def forward_backward(
+        lam: float | Tensor,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None]:
+        """One step's gradient (of the loss), image penalty, H - C, moments."""
         x = net.sample(gen_rng)  # (N, dims)
         dist = None
         for sim, penalty in zip(render(x), penalties, strict=True):
@@ -1002,7 +1088,11 @@ def train_generator(
             d = penalty(sim)  # this scan's share of the mean image penalty D
             dist = d if dist is None else dist + d
         rel, moments = relative_entropy(x)  # H - C; plain moments
-        objective = torch.sub(rel, dist, alpha=lam)
+        if isinstance(lam, Tensor):  # a captured step's device scalar
+            objective = rel - lam * dist
+        else:
+            objective = torch.sub(rel, dist, alpha=lam)
+        held = None
         if hold is not None:  # the hold's gradient
             # the moments rounded to float32: threaded float64 sums scatter
             # in the last bits from run to run, and the hold feeds them back
@@ -1020,13 +1110,54 @@ def train_generator(
         # process); sub(alpha=) costs fewer ATen ops than lam * D - (H - C)
         (grad,) = torch.autograd.grad(objective, [net.flat])
         grad.neg_()
-        if distributed:  # each process holds its particles' part of the gradient
-            tdist.all_reduce(grad)
-        opt.step(grad, lr)
-        with torch.no_grad():
-            values = (dist, rel, moments)
-            for slot, value in zip(slots[len(pending)], values, strict=True):
-                slot.copy_(value)
+        return grad, dist, rel, moments, held
+
+    def graph_body(factors: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The step as captured: factors from the table, outputs to read."""
+        grad, dist, rel, moments, _ = forward_backward(factors[LAM])
+        opt.step_factored(grad, factors[STEP_SIZE], factors[BC2_SQRT])
+        return dist, rel, moments
+
+    # CUDA graph: a few eager steps on a side stream (lazy initialisations
+    # happen there), then the step is captured and replayed
+    use_graph = (
+        config.cuda_graph
+        and dims == 4  # 6D steps do not capture yet (docs/gpu.md)
+        and graph_capable(device)
+        and not distributed
+        and hold is None
+        and total - state.step > GRAPH_WARMUP_STEPS
+    )
+    side = warm_stream(device) if use_graph else None
+    graph_start = state.step + GRAPH_WARMUP_STEPS
+    graphed: GraphedStep | None = None
+    t0 = time.perf_counter() - state.elapsed_s
+    while state.step < total:
+        step = state.step
+        lr = cyclic_cosine_lr(step, cyc, config.lr_max, config.lr_min)
+        lam = penalty_schedule(step, cyc, config.penalty_start, config.penalty_end)
+        if use_graph and graphed is None and step == graph_start:
+            graphed, gen_rng = _capture(
+                graph_body, config, step, total, opt, gen_rng, device, side
+            )
+            use_graph, side = graphed is not None, None
+        if graphed is not None:
+            values = graphed(step - graph_start)
+            opt.steps += 1  # the captured Adam step's count
+            with torch.no_grad():
+                for slot, value in zip(slots[len(pending)], values, strict=True):
+                    slot.copy_(value)
+        else:
+            with torch.cuda.stream(side) if side is not None else nullcontext():
+                grad, dist, rel, moments, held = forward_backward(lam)
+                if distributed:  # each process holds its particles' gradient
+                    tdist.all_reduce(grad)
+                opt.step(grad, lr)
+                with torch.no_grad():
+                    values = (dist, rel, moments)
+                    for slot, value in zip(slots[len(pending)], values, strict=True):
+                        slot.copy_(value)
+            join_stream(side, device)
         pending.append((step, lr, lam))
         state.step = step + 1
         if hold is not None and hold.refreshes and state.step % HOLD_EVERY == 0:
