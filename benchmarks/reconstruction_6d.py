@@ -27,7 +27,7 @@ Prints one JSON object (benchmarks/_meta.py). Timings under load are inflated:
 ``load_avg_1min_*`` records the machine's load.
 
 Usage: ``python benchmarks/reconstruction_6d.py [--skip-gpsr] [--gpsr-epochs N]
-[--gpsr-particles N] [--threads N]``
+[--gpsr-particles N] [--threads N] [--device cuda]``
 """
 
 from __future__ import annotations
@@ -71,7 +71,7 @@ def _verdict(errors: dict[str, float], held_out: dict[str, float]) -> dict:
     return {"meets_moments_and_images": not fails, "fails": fails}
 
 
-def run_diffaccel(threads: int, test) -> dict:
+def run_diffaccel(threads: int, test, device: str = "cpu") -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "run"
         cmd = [
@@ -84,6 +84,8 @@ def run_diffaccel(threads: int, test) -> dict:
             "6",
             "--out",
             str(out),
+            "--device",
+            device,
         ]
         env = dict(os.environ, OMP_NUM_THREADS=str(threads))
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -251,6 +253,9 @@ def main() -> None:
         "--gpsr-screen", default="cloud-in-cell", choices=["cloud-in-cell", "kde"]
     )
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument(
+        "--device", default="cpu", choices=["cpu", "cuda"], help="diffaccel's device"
+    )
     ap.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -263,14 +268,14 @@ def main() -> None:
         "threads": args.threads,
         "torch": torch.__version__,
         "python": platform.python_version(),
-        "device": "cpu",
+        "device": args.device,
         "git_commit": git_commit(),
         "load_avg_1min_at_start": os.getloadavg()[0],
         "truth_rms": truth["rms"].tolist(),
         "limits": LIMITS
         | {"held_out_relative_l1": HELD_OUT_L1, "wall_s": WALL_LIMIT_S},
     }
-    out["diffaccel"] = run_diffaccel(args.threads, test)
+    out["diffaccel"] = run_diffaccel(args.threads, test, args.device)
     if not args.skip_gpsr:
         out["gpsr"] = run_gpsr(
             train, test, args.gpsr_epochs, args.gpsr_particles, args.gpsr_screen
