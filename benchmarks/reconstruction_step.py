@@ -19,8 +19,14 @@ to the stricter count, ``aten_ops_per_step``. Counts are deterministic; the
 per-step time (the same difference of the median training times of
 ``--repeats`` unprofiled runs) depends on the machine's load.
 
+On a CUDA device the default 4D step is captured as a CUDA graph after three
+eager steps (``ReconstructionConfig.cuda_graph``): the ATen ops counted are
+then the host's per step (one row copy, the replay, the copies of the losses);
+the ~290 operators of the step run inside the graph. ``--eager`` turns the
+graph off, the baseline to quote beside it (same run, same GPU).
+
 Usage: ``python benchmarks/reconstruction_step.py [--steps 60] [--repeats 3]
-[--particles 6144] [--device cpu] [--threads 1] [--top 0]``
+[--particles 6144] [--device cpu] [--threads 1] [--top 0] [--eager]``
 """
 
 from __future__ import annotations
