@@ -352,3 +352,25 @@ def test_cuda_training_matches_cpu_in_distribution(small_scan, dims: int) -> Non
         assert all(math.isfinite(v) for v in r.history["loss"])
         rms[device] = torch.tensor(r.history["rms"][-1])[:4]
     assert torch.allclose(rms["cpu"], rms["cuda"], rtol=0.06)
+
+
+def _aten_ops(scan, steps: int) -> tuple[int, int]:
+    cfg = ReconstructionConfig(n_particles=1024, steps=steps, snapshots=1)
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as p:
+        reconstruct(scan, cfg, uncertainty=False)
+    names = [e.name for e in p.events() if e.name.startswith("aten::")]
+    syncs = sum(n in ("aten::item", "aten::_local_scalar_dense") for n in names)
+    return len(names), syncs
+
+
+def test_default_4d_step_stays_within_issue_12_op_budget(small_scan) -> None:
+    # issue 12: at most 300 ATen ops (nested ones included) and 1 host sync per
+    # step; the difference of two runs cancels set-up and bookkeeping (the same
+    # snapshot count, reads every report_every = 10 steps in both). A fresh
+    # placeholder tensor per step once pushed the count to 304.4 unnoticed
+    (ops_short, syncs_short), (ops_long, syncs_long) = (
+        _aten_ops(small_scan, s) for s in (20, 40)
+    )
+    per_step = (ops_long - ops_short) / 20
+    assert 250 < per_step <= 300
+    assert (syncs_long - syncs_short) / 20 <= 1

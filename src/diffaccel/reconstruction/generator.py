@@ -411,6 +411,9 @@ class FlatGenerator:
         self._biases = [lay.bias.expand(self.n, lay.out_features) for lay in linears]
         self._mix_t = _transposed(model.mix)
         self._quad_t = _transposed(model.quad) if model.dims == 6 else None
+        # 4D: the saved "quadratic features" placeholder, made once (a fresh
+        # empty tensor per step was 5 of the step's ATen ops)
+        self._no_quad = torch.empty(0, dtype=p.dtype, device=p.device)
         self._ones = torch.ones(self.n, dtype=p.dtype, device=p.device)
         self._names = [
             name[: -len(".weight")]
@@ -468,7 +471,7 @@ class _GeneratorFn(torch.autograd.Function):
             h = _hidden_layer(h, wts[i], biases[i], m.dims)
             hidden.append(h)
         u = torch.addmm(biases[-1], h, wts[-1]).addmm_(base, net._mix_t)
-        q = base.new_zeros(0)
+        q = net._no_quad
         if m.dims == 6:
             q = quadratic_features(base)
             u = u.addmm_(q, net._quad_t)
