@@ -13,6 +13,8 @@ import math
 import pytest
 import torch
 
+from diffaccel.dynamics import images
+from diffaccel.dynamics.elements import _kernels
 from diffaccel.reconstruction import ReconstructionConfig, reconstruct
 from diffaccel.reconstruction import training as training_module
 from diffaccel.reconstruction.graphed_step import (
@@ -180,3 +182,29 @@ def test_cuda_failed_capture_goes_on_eagerly(small_scan, monkeypatch, caplog) ->
     # CUDA's atomic image sums: 2e-5 measured on an H200; other draws, like
     # another seed, differ by about 1e-2)
     assert got.history["loss"] == pytest.approx(ref.history["loss"], rel=1e-4)
+
+
+def _step_events(scan, steps: int) -> dict[str, int]:
+    cfg = ReconstructionConfig(
+        dims=6, n_particles=512, steps=steps, snapshots=1, place_unseen=False
+    )
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as p:
+        reconstruct(scan, cfg, uncertainty=False)
+    names = [e.name for e in p.events()]
+    watched = ("aten::_local_scalar_dense", "aten::lift_fresh")
+    return {k: names.count(k) for k in watched}
+
+
+def test_6d_step_reads_nothing_back_on_a_gpu_path(small_awa6d, monkeypatch) -> None:
+    # the CPU run made to take the GPU's paths: full-screen images, no cheap
+    # host reads, finite checks off for the generated beam. A 6D step then
+    # neither reads the device (22 reads per step before) nor copies a value
+    # from the host (7), so nothing in it blocks a stream or a CUDA graph
+    monkeypatch.setattr(images, "_full_screen_path", lambda x: True)
+    monkeypatch.setattr(_kernels, "_cheap_reads", lambda t: False)
+    monkeypatch.setattr(training_module, "_host_reads_cheap", lambda device: False)
+    short, long = _step_events(small_awa6d, 10), _step_events(small_awa6d, 20)
+    assert {k: long[k] - short[k] for k in short} == {
+        "aten::_local_scalar_dense": 0,
+        "aten::lift_fresh": 0,
+    }

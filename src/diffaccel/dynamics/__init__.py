@@ -7,6 +7,7 @@ Coordinates are Bmad's ``(x, px, y, py, z, pz)`` about a reference momentum
 from __future__ import annotations
 
 from diffaccel.dynamics import elements
+from diffaccel.dynamics._validate import finite_checks
 from diffaccel.dynamics.beamline import ELEMENT_TYPES, Beamline
 from diffaccel.dynamics.constants import (
     ELECTRON_MASS_EV,
@@ -59,6 +60,7 @@ __all__ = [
     "emittance_4d",
     "emittance_6d",
     "energy_to_p0c",
+    "finite_checks",
     "gaussian_blur",
     "kde_image",
     "normalized_emittance",

@@ -2,8 +2,36 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
+
 import torch
 from torch import Tensor
+
+_FINITE_CHECKS: ContextVar[bool] = ContextVar("diffaccel_finite_checks", default=True)
+
+
+@contextmanager
+def finite_checks(enabled: bool) -> Iterator[None]:
+    """Turn the NaN/infinity checks of particles and screen positions on or off.
+
+    Each check reads a value back from the device (a host synchronisation on a
+    GPU, which a CUDA graph cannot capture). Training turns them off on GPUs
+    for the particles it generates itself; a non-finite loss still stops it
+    (read every ``report_every`` steps). Shape, dtype and ``p0c`` checks stay.
+    """
+    token = _FINITE_CHECKS.set(enabled)
+    try:
+        yield
+    finally:
+        _FINITE_CHECKS.reset(token)
+
+
+def finite_checks_enabled() -> bool:
+    """Whether the NaN/infinity checks run (see :func:`finite_checks`)."""
+    return _FINITE_CHECKS.get()
 
 
 def check_particles(particles: Tensor, *, check_finite: bool = True) -> Tensor:
@@ -22,7 +50,11 @@ def check_particles(particles: Tensor, *, check_finite: bool = True) -> Tensor:
         raise ValueError(
             f"particles must have a floating dtype; got {particles.dtype}."
         )
-    if check_finite and not bool(torch.isfinite(particles).all()):
+    if (
+        check_finite
+        and finite_checks_enabled()
+        and not bool(torch.isfinite(particles).all())
+    ):
         bad = (~torch.isfinite(particles)).sum().item()
         raise ValueError(
             f"particles contain {bad} NaN or infinite coordinate(s); "
@@ -32,7 +64,18 @@ def check_particles(particles: Tensor, *, check_finite: bool = True) -> Tensor:
 
 
 def as_p0c(p0c: Tensor | float, like: Tensor) -> Tensor:
-    """``p0c`` [eV] as a tensor of ``like``'s dtype and device; must be > 0."""
+    """``p0c`` [eV] as a tensor of ``like``'s dtype and device; must be > 0.
+
+    A Python number is checked on the host and filled on the device (no copy
+    from the host, no device read); a tensor is checked where it lives.
+    """
+    if isinstance(p0c, int | float) and not isinstance(p0c, bool):
+        if not (math.isfinite(p0c) and p0c > 0):
+            raise ValueError(
+                f"p0c (reference momentum times c) must be finite and > 0 eV; "
+                f"got {p0c!r} eV."
+            )
+        return torch.full((), float(p0c), dtype=like.dtype, device=like.device)
     t = torch.as_tensor(p0c, dtype=like.dtype, device=like.device)
     if not bool(torch.isfinite(t).all()) or not bool((t > 0).all()):
         raise ValueError(

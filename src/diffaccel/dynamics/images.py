@@ -20,6 +20,8 @@ from typing import TypeVar
 import torch
 from torch import Tensor
 
+from diffaccel.dynamics._validate import finite_checks_enabled
+
 __all__ = ["cic_image", "gaussian_blur", "kde_image", "pixel_centers"]
 
 # exp(-80) = 1.8e-35 is still a normal float32: clamping the exponent there keeps
@@ -88,6 +90,8 @@ def _check_finite(x: Tensor, y: Tensor) -> None:
     A sum is one cheap reduction and is non-finite whenever an entry is; only
     then (or if huge finite positions overflow it) is each entry checked.
     """
+    if not finite_checks_enabled():  # training on a GPU (see finite_checks)
+        return
     with torch.no_grad():
         if bool(torch.isfinite(x.sum() + y.sum())):
             return
@@ -249,14 +253,16 @@ class _CloudInCell(torch.autograd.Function):
         # maps to (2 f + 1) / W - 1
         scale = (2.0 * ax / w, 2.0 * ay / h)
         grid = x.new_empty(b, 1, n, 2)
+        # the offsets filled on the device (new_tensor would copy from the host)
+        kw = {"dtype": x.dtype, "device": x.device}
         torch.add(
-            x.new_tensor((2.0 * bx + 1.0) / w - 1.0),
+            torch.full((), (2.0 * bx + 1.0) / w - 1.0, **kw),
             x,
             alpha=scale[0],
             out=grid[:, 0, :, 0],
         )
         torch.add(
-            y.new_tensor((2.0 * by + 1.0) / h - 1.0),
+            torch.full((), (2.0 * by + 1.0) / h - 1.0, **kw),
             y,
             alpha=scale[1],
             out=grid[:, 0, :, 1],

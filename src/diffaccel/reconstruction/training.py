@@ -20,6 +20,7 @@ import torch.distributed as tdist
 from torch import Tensor
 
 from diffaccel.data import atomic_write
+from diffaccel.dynamics import finite_checks
 from diffaccel.dynamics.images import gaussian_blur
 from diffaccel.reconstruction.forward import (
     MAX_BLUR_PIXELS,
@@ -785,6 +786,12 @@ def _smoothed(
 #: (:class:`~diffaccel.reconstruction.unseen.UnseenHold`).
 HOLD_EVERY = 10
 
+
+def _host_reads_cheap(device: torch.device) -> bool:
+    """Whether reading a value back from ``device`` costs no synchronisation."""
+    return device.type == "cpu"
+
+
 #: Eager steps (on a side stream) before the step is captured as a CUDA graph.
 GRAPH_WARMUP_STEPS = 3
 
@@ -1082,7 +1089,9 @@ def train_generator(
         """One step's gradient (of the loss), image penalty, H - C, moments."""
         x = net.sample(gen_rng)  # (N, dims)
         dist = None
-        for sim, penalty in zip(render(x), penalties, strict=True):
+        with finite_checks(checks_on):  # off on GPUs: no device reads
+            sims = render(x)
+        for sim, penalty in zip(sims, penalties, strict=True):
             if distributed:
                 sim = _SumOverProcesses.apply(sim)
             d = penalty(sim)  # this scan's share of the mean image penalty D
@@ -1111,6 +1120,10 @@ def train_generator(
         (grad,) = torch.autograd.grad(objective, [net.flat])
         grad.neg_()
         return grad, dist, rel, moments, held
+
+    # the particles' and positions' NaN checks read the device: on GPUs they
+    # are off for the generated beam (a non-finite loss still stops training)
+    checks_on = _host_reads_cheap(device)
 
     def graph_body(factors: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """The step as captured: factors from the table, outputs to read."""

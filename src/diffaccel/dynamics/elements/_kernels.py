@@ -156,7 +156,8 @@ class _StackColumns(torch.autograd.Function):
 
     A column whose incoming gradient is exactly zero (e.g. ``z`` when only a
     screen image of ``x, y`` is differentiated) gets ``None``, so autograd skips
-    the chain of operations that produced it. The result is unchanged.
+    the chain of operations that produced it. The result is unchanged. Only
+    on the CPU: elsewhere the test would read the device once per column.
     """
 
     @staticmethod
@@ -169,7 +170,11 @@ class _StackColumns(torch.autograd.Function):
         grads: list[Tensor | None] = []
         for i, shape in enumerate(ctx.shapes):
             g = grad[..., i]
-            if not ctx.needs_input_grad[i] or not bool(g.detach().any()):
+            # a column's gradient that is all zero becomes None (less work
+            # upstream); testing it reads the device, so only on the CPU
+            if not ctx.needs_input_grad[i] or (
+                _cheap_reads(g) and not bool(g.detach().any())
+            ):
                 grads.append(None)
             else:
                 grads.append(g.sum_to_size(shape))
@@ -199,9 +204,28 @@ def stack_columns(coords: Sequence[Tensor]) -> Tensor:
     return _StackColumns.apply(*coords)
 
 
+def _cheap_reads(t: Tensor) -> bool:
+    """Whether reading ``t``'s values on the host is cheap (no device sync)."""
+    return t.device.type == "cpu"
+
+
 def is_zero(value: Tensor) -> bool:
-    """True if ``value`` is a constant exactly zero (never for trainable tensors)."""
-    return not value.requires_grad and not bool(value.detach().any())
+    """True if ``value`` is a constant exactly zero (never for trainable tensors).
+
+    Off the CPU the answer is remembered on the tensor with its version
+    counter (an in-place change makes it ask again): an element's offsets and
+    roll are asked at every pass, and each answer reads the device.
+    """
+    if value.requires_grad:
+        return False
+    if _cheap_reads(value):
+        return not bool(value.detach().any())
+    memo = getattr(value, "_diffaccel_is_zero", None)
+    if memo is not None and memo[0] == value._version:
+        return memo[1]
+    answer = not bool(value.detach().any())
+    value._diffaccel_is_zero = (value._version, answer)
+    return answer
 
 
 def to_element_frame(
