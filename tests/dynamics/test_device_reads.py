@@ -81,3 +81,19 @@ def test_stacked_columns_backward_reads_nothing_off_the_cpu(monkeypatch) -> None
     p.grad = None
     assert reads_cpu > 0 and _reads(lambda: out.backward(grad)) == 0
     torch.testing.assert_close(p.grad, g_cpu, rtol=0, atol=0)  # same gradient
+
+
+def test_scan_settings_finite_check_follows_finite_checks() -> None:
+    line = Beamline.from_spec(
+        [{"type": "Quadrupole", "name": "Q", "length": 0.1, "k1": 0.0}]
+    )
+    p = torch.zeros(10, 6)
+    bad = torch.tensor([[1.0], [math.nan]])
+    with pytest.raises(ValueError, match="settings contain NaN"):
+        line.track(p, 1e7, bad, ["Q.k1"])
+    good = torch.tensor([[1.0], [2.0]])
+    checked = _reads(lambda: line.track(p, 1e7, good, ["Q.k1"]))
+    with finite_checks(False):
+        unchecked = _reads(lambda: line.track(p, 1e7, good, ["Q.k1"]))
+    # one read fewer for the particles, one for the settings
+    assert checked - unchecked == 2

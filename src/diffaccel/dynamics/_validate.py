@@ -15,7 +15,8 @@ _FINITE_CHECKS: ContextVar[bool] = ContextVar("diffaccel_finite_checks", default
 
 @contextmanager
 def finite_checks(enabled: bool) -> Iterator[None]:
-    """Turn the NaN/infinity checks of particles and screen positions on or off.
+    """Turn the NaN/infinity checks of particles, scan settings and screen
+    positions on or off.
 
     Each check reads a value back from the device (a host synchronisation on a
     GPU, which a CUDA graph cannot capture). Training turns them off on GPUs

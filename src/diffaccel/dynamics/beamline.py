@@ -8,7 +8,11 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from diffaccel.dynamics._validate import as_p0c, check_particles
+from diffaccel.dynamics._validate import (
+    as_p0c,
+    check_particles,
+    finite_checks_enabled,
+)
 from diffaccel.dynamics.elements._kernels import stack_columns
 from diffaccel.dynamics.elements.dipole import Dipole
 from diffaccel.dynamics.elements.drift import Drift
@@ -229,7 +233,7 @@ class Beamline(nn.Module):
                 f"settings must be shaped (*K, P) with P = len(names) = {len(names)}; "
                 f"got {tuple(settings.shape)}."
             )
-        if not bool(torch.isfinite(settings).all()):
+        if finite_checks_enabled() and not bool(torch.isfinite(settings).all()):
             raise ValueError("settings contain NaN or infinite values.")
         if len(set(names)) != len(names):
             raise ValueError(f"names must be unique; got {list(names)}.")
