@@ -62,6 +62,9 @@ def test_is_zero_remembers_its_answer_off_the_cpu(monkeypatch) -> None:
     tilt.add_(0.1)  # an in-place change: asked again
     assert not _kernels.is_zero(tilt)
     assert not _kernels.is_zero(torch.zeros((), requires_grad=True))
+    with torch.inference_mode():  # inference tensors keep no version: no memo
+        frozen = torch.zeros(())
+    assert _kernels.is_zero(frozen) and _kernels.is_zero(frozen)
 
 
 def test_stacked_columns_backward_reads_nothing_off_the_cpu(monkeypatch) -> None:

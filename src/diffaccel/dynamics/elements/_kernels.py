@@ -218,7 +218,7 @@ def is_zero(value: Tensor) -> bool:
     """
     if value.requires_grad:
         return False
-    if _cheap_reads(value):
+    if _cheap_reads(value) or value.is_inference():  # (no version counter)
         return not bool(value.detach().any())
     memo = getattr(value, "_diffaccel_is_zero", None)
     if memo is not None and memo[0] == value._version:
