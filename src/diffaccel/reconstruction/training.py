@@ -422,11 +422,12 @@ class ReconstructionConfig:
         cuda_graph: On a CUDA device, capture the training step as a CUDA
             graph after a few eager steps and replay it (one launch per step
             instead of a few hundred; :mod:`~diffaccel.reconstruction.
-            graphed_step`; docs/gpu.md). 4D only: 6D steps do not capture
-            yet and stay eager, as do ``distributed`` training and steps with
-            a covariance hold. The same arithmetic up to rounding (the
-            per-step factors are device scalars); where a capture fails the
-            run goes on eagerly with a warning. Ignored on CPUs.
+            graphed_step`; docs/gpu.md). 4D only (:data:`GRAPH_DIMS`): 6D
+            steps stay eager until their capture is checked on a GPU, as do
+            ``distributed`` training and steps with a covariance hold. The
+            same arithmetic up to rounding (the per-step factors are device
+            scalars); where a capture fails the run goes on eagerly with a
+            warning. Ignored on CPUs.
     """
 
     dims: int = 4
@@ -794,6 +795,10 @@ def _host_reads_cheap(device: torch.device) -> bool:
 
 #: Eager steps (on a side stream) before the step is captured as a CUDA graph.
 GRAPH_WARMUP_STEPS = 3
+#: Generator dimensions whose training steps are captured (``cuda_graph``).
+#: 6D steps read nothing back from the device since 0910aa2 but have not been
+#: captured on a GPU yet (docs/gpu.md; ``test_cuda_graph_6d_steps`` checks it).
+GRAPH_DIMS = (4,)
 
 
 def _capture(
@@ -1135,7 +1140,7 @@ def train_generator(
     # happen there), then the step is captured and replayed
     use_graph = (
         config.cuda_graph
-        and dims == 4  # 6D steps do not capture yet (docs/gpu.md)
+        and dims in GRAPH_DIMS
         and graph_capable(device)
         and not distributed
         and hold is None
