@@ -123,6 +123,35 @@ def test_captured_6d_step_body_trains_like_eager_steps(
     )
 
 
+class _Stop(Exception):
+    pass
+
+
+def test_resumed_run_captures_again_and_continues_the_run(
+    small_scan, eager_graph, tmp_path
+) -> None:
+    # a run stopped after its checkpoint at step 10 and resumed: eager warm-up
+    # steps 10-12, then a new capture whose table starts at step 13 with
+    # Adam's count going on from the checkpoint
+    cfg = ReconstructionConfig(**FAST, report_every=5)
+    ref = reconstruct(small_scan, cfg, uncertainty=False)
+    ck = tmp_path / "ck.pt"
+
+    def stop(info) -> None:
+        if info.step == 10:
+            raise _Stop
+
+    with pytest.raises(_Stop):
+        reconstruct(small_scan, cfg, checkpoint=ck, callback=stop, uncertainty=False)
+    got = reconstruct(small_scan, cfg, checkpoint=ck, resume=True, uncertainty=False)
+    first, _, resumed = (
+        eager_graph.made
+    )  # the reference run's, the stopped, the resumed
+    assert resumed.table.shape[0] == FAST["steps"] - 10 - GRAPH_WARMUP_STEPS
+    torch.testing.assert_close(resumed.table, first.table[10:], rtol=1e-12, atol=0)
+    assert got.history["loss"] == pytest.approx(ref.history["loss"], rel=1e-4)
+
+
 def test_no_capture_when_disabled_or_too_short(small_scan, eager_graph) -> None:
     reconstruct(small_scan, ReconstructionConfig(**FAST, cuda_graph=False))
     short = {**FAST, "steps": GRAPH_WARMUP_STEPS, "snapshots": 1}
