@@ -82,13 +82,15 @@ class GraphedStep:
         self.factors = table[0].clone()
         self.graph = torch.cuda.CUDAGraph()
         self.graph.register_generator_state(generator)
-        with torch.cuda.graph(self.graph):
+        # on the table's GPU, which need not be the current one (cuda:1)
+        with torch.cuda.device(table.device), torch.cuda.graph(self.graph):
             self.outputs = tuple(body(self.factors))
 
     def __call__(self, i: int) -> tuple[Tensor, ...]:
         """Run the step with row ``i`` of the table; the step's outputs."""
-        self.factors.copy_(self.table[i])
-        self.graph.replay()
+        with torch.cuda.device(self.table.device):
+            self.factors.copy_(self.table[i])
+            self.graph.replay()
         return self.outputs
 
 
