@@ -174,8 +174,9 @@ def test_failed_capture_goes_on_eagerly(small_scan, monkeypatch, caplog) -> None
             assert torch.equal(sa[k], sb[k]), k
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-def test_cuda_graph_trains_like_eager_cuda_steps(small_scan, monkeypatch) -> None:
+@pytest.fixture
+def captured(monkeypatch) -> list:
+    """The real GraphedSteps that a test's runs make."""
     made = []
     real = training_module.GraphedStep
 
@@ -184,16 +185,23 @@ def test_cuda_graph_trains_like_eager_cuda_steps(small_scan, monkeypatch) -> Non
         return made[-1]
 
     monkeypatch.setattr(training_module, "GraphedStep", spy)
-    ref = reconstruct(
-        small_scan,
-        ReconstructionConfig(**FAST, cuda_graph=False),
-        device="cuda",
-        uncertainty=False,
-    )
+    return made
+
+
+def _cuda_runs(scan, cfg: dict):
+    """The same training on CUDA with eager steps and with the CUDA graph."""
+    eager = ReconstructionConfig(**cfg, cuda_graph=False)
+    ref = reconstruct(scan, eager, device="cuda", uncertainty=False)
     got = reconstruct(
-        small_scan, ReconstructionConfig(**FAST), device="cuda", uncertainty=False
+        scan, ReconstructionConfig(**cfg), device="cuda", uncertainty=False
     )
-    assert len(made) == 1  # the graphed run captured its step once
+    return ref, got
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_graph_trains_like_eager_cuda_steps(small_scan, captured) -> None:
+    ref, got = _cuda_runs(small_scan, FAST)
+    assert len(captured) == 1  # the graphed run captured its step once
     # replays draw the same base samples as eager steps (the generator is
     # registered with the graph), so the runs agree up to rounding
     assert got.history["loss"] == pytest.approx(ref.history["loss"], rel=1e-3)
@@ -262,29 +270,12 @@ def test_6d_step_reads_nothing_back_on_a_gpu_path(small_awa6d, monkeypatch) -> N
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-def test_cuda_graph_6d_steps(small_awa6d, monkeypatch, caplog) -> None:
+def test_cuda_graph_6d_steps(small_awa6d, captured, monkeypatch, caplog) -> None:
     # whether 6D steps capture and train like eager ones: the check to pass
     # before GRAPH_DIMS admits 6 (it fails where the capture does)
-    made = []
-    real = training_module.GraphedStep
-
-    def spy(*args):
-        made.append(real(*args))
-        return made[-1]
-
-    monkeypatch.setattr(training_module, "GraphedStep", spy)
     monkeypatch.setattr(training_module, "GRAPH_DIMS", (4, 6))
-    cfg = {**FAST, "dims": 6, "place_unseen": False}
-    ref = reconstruct(
-        small_awa6d,
-        ReconstructionConfig(**cfg, cuda_graph=False),
-        device="cuda",
-        uncertainty=False,
-    )
     with caplog.at_level(logging.WARNING, logger="diffaccel.reconstruction"):
-        got = reconstruct(
-            small_awa6d, ReconstructionConfig(**cfg), device="cuda", uncertainty=False
-        )
+        ref, got = _cuda_runs(small_awa6d, {**FAST, "dims": 6, "place_unseen": False})
     assert "could not capture" not in caplog.text
-    assert len(made) == 1
+    assert len(captured) == 1
     assert got.history["loss"] == pytest.approx(ref.history["loss"], rel=1e-3)
