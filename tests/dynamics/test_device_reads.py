@@ -65,6 +65,14 @@ def test_is_zero_remembers_its_answer_off_the_cpu(monkeypatch) -> None:
     with torch.inference_mode():  # inference tensors keep no version: no memo
         frozen = torch.zeros(())
     assert _kernels.is_zero(frozen) and _kernels.is_zero(frozen)
+    # the memo is of that tensor object: a copy asks again, and a freed
+    # tensor's entry goes
+    assert _reads(lambda: _kernels.is_zero(tilt.clone())) == 1
+    gone = torch.zeros(())
+    assert _kernels.is_zero(gone)
+    n = len(_kernels._ZERO_MEMO)
+    del gone
+    assert len(_kernels._ZERO_MEMO) == n - 1
 
 
 def test_stacked_columns_backward_reads_nothing_off_the_cpu(monkeypatch) -> None:

@@ -7,6 +7,7 @@ an element does not change (``pz`` in magnets) stay unexpanded.
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Sequence
 
 import torch
@@ -209,22 +210,29 @@ def _cheap_reads(t: Tensor) -> bool:
     return t.device.type == "cpu"
 
 
+#: ``id(tensor) -> (weak reference, version, answer)`` of :func:`is_zero` off
+#: the CPU (an entry leaves when its tensor is freed).
+_ZERO_MEMO: dict[int, tuple[weakref.ref, int, bool]] = {}
+
+
 def is_zero(value: Tensor) -> bool:
     """True if ``value`` is a constant exactly zero (never for trainable tensors).
 
-    Off the CPU the answer is remembered on the tensor with its version
-    counter (an in-place change makes it ask again): an element's offsets and
-    roll are asked at every pass, and each answer reads the device.
+    Off the CPU the answer is remembered for that very tensor object and its
+    version counter (an in-place change makes it ask again): an element's
+    offsets and roll are asked at every pass, and each answer reads the device.
     """
     if value.requires_grad:
         return False
     if _cheap_reads(value) or value.is_inference():  # (no version counter)
         return not bool(value.detach().any())
-    memo = getattr(value, "_diffaccel_is_zero", None)
-    if memo is not None and memo[0] == value._version:
-        return memo[1]
+    key = id(value)
+    memo = _ZERO_MEMO.get(key)
+    if memo is not None and memo[0]() is value and memo[1] == value._version:
+        return memo[2]
     answer = not bool(value.detach().any())
-    value._diffaccel_is_zero = (value._version, answer)
+    ref = weakref.ref(value, lambda _, key=key: _ZERO_MEMO.pop(key, None))
+    _ZERO_MEMO[key] = (ref, value._version, answer)
     return answer
 
 
