@@ -33,6 +33,12 @@ held-out images on the odd ones):
 - ``draw<R>_<K>`` (not in the default list): the K-th random README-family beam
   of numpy seed R (:func:`family_draw`, the ranges of ``family_draw_a/b``;
   ``draw2026_0`` ... ``draw2026_5``: beams no default was chosen on);
+- ``tilted<R>_<K>`` (not in the default list): the K-th random beam of numpy
+  seed R built as the shared file's stored truth is (:func:`tilted_beam`,
+  :func:`tilted_draw`): a Gaussian 4D transverse beam, z tilted along a mix of
+  x and px, and pz = h z + c (z^2 - <z^2>) + spread, with no transverse
+  curvature (the family draws' ``kappa``), so its px-pz partial correlation is
+  zero;
 - ``xyrot<D>_<beam>`` (not in the default list): any of the above turned in
   x-y by D degrees (x, px and y, py rotated together, as a solenoid leaves a
   beam): a beam with real x-y coupling, e.g. ``xyrot45_correlated``.
@@ -271,20 +277,74 @@ def family_draw(rng: np.random.Generator) -> dict:
     }
 
 
+def tilted_beam(params: dict, n: int, g: torch.Generator) -> torch.Tensor:
+    """A beam built as the shared file's stored truth reads, Bmad ``(n, 6)``.
+
+    That truth (50 000 particles) is Gaussian in x, px, y, py (kurtosis within
+    0.03; px and py carry no x^2 or y^2 term), its z is a tilt along x and px
+    plus an independent part (z = 3.3 x + 5.7 px + 0.33 mm rms), and
+    pz = 4.0 z + 2000 (z^2 - <z^2>) + 0.50e-3 rms. Here: x-px and y-py
+    correlations ``xpx``, ``ypy``; z = sz (f d + sqrt(1 - f^2) u) with d the
+    unit-variance mix cos(phi) x-part + sin(phi) px-part, ``f`` = ``tilt_fraction``
+    and ``phi`` = ``tilt_angle``; pz = h z + c (z^2 - <z^2>) + spread.
+    """
+    u = torch.randn(n, 6, generator=g, dtype=torch.float64)
+    r, q = params["xpx"], params["ypy"]
+    x = params["sx"] * u[:, 0]
+    px = params["spx"] * (r * u[:, 0] + (1 - r**2) ** 0.5 * u[:, 1])
+    y = params["sy"] * u[:, 2]
+    py = params["spy"] * (q * u[:, 2] + (1 - q**2) ** 0.5 * u[:, 3])
+    phi, f = params["tilt_angle"], params["tilt_fraction"]
+    d = math.cos(phi) * u[:, 0] + math.sin(phi) * u[:, 1]
+    z = params["sz"] * (f * d + (1 - f**2) ** 0.5 * u[:, 4])
+    pz = (
+        params["h"] * z
+        + params["c"] * (z**2 - (z**2).mean())
+        + params["spread"] * u[:, 5]
+    )
+    return torch.stack([x, px, y, py, z, pz], -1)
+
+
+def tilted_draw(rng: np.random.Generator) -> dict:
+    """Parameters of one :func:`tilted_beam` (the family draws' ranges for
+    sizes, correlations, chirp and spread; the shared truth's tilt fraction is
+    about 0.91)."""
+
+    def sign() -> float:
+        return 1.0 if rng.random() < 0.5 else -1.0
+
+    return {
+        "h": sign() * rng.uniform(0.5, 4.0),
+        "c": sign() * rng.uniform(300.0, 3000.0),
+        "spread": rng.uniform(0.3e-3, 2e-3),
+        "tilt_angle": rng.uniform(0.0, 2 * math.pi),
+        "tilt_fraction": rng.uniform(0.2, 0.95),
+        "xpx": rng.uniform(-0.95, 0.95),
+        "ypy": rng.uniform(-0.95, 0.95),
+        "sx": rng.uniform(3.5e-4, 7e-4),
+        "spx": rng.uniform(1.8e-4, 3.5e-4),
+        "sy": rng.uniform(3.5e-4, 7e-4),
+        "spy": rng.uniform(1.8e-4, 3.5e-4),
+        "sz": rng.uniform(5e-4, 9e-4),
+    }
+
+
 def drawn_params(name: str) -> tuple[dict, int]:
     """``draw<R>_<K>``: the K-th (from 0) random README-family beam of numpy
-    seed R (:func:`family_draw`), and its sampling and data seed ``R + K``.
+    seed R (:func:`family_draw`), and its sampling and data seed ``R + K``;
+    ``tilted<R>_<K>`` likewise with :func:`tilted_draw`.
 
     Beams no session tuned on (issue 9's "other beams"): e.g. ``--beams
     draw2026_0,draw2026_1``.
     """
-    m = re.fullmatch(r"draw(\d+)_(\d+)", name)
+    m = re.fullmatch(r"(draw|tilted)(\d+)_(\d+)", name)
     if m is None:
         raise ValueError(f"unknown beam {name!r}")
-    base, k = int(m.group(1)), int(m.group(2))
+    base, k = int(m.group(2)), int(m.group(3))
     rng = np.random.default_rng(base)
+    draw = family_draw if m.group(1) == "draw" else tilted_draw
     for _ in range(k + 1):
-        params = family_draw(rng)
+        params = draw(rng)
     return params, base + k
 
 
@@ -315,6 +375,9 @@ def synthetic_beam(name: str, n: int, seed: int) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
     if name.startswith("draw"):
         b = family_beam(drawn_params(name)[0], n, g)
+        return b - b.mean(0)
+    if name.startswith("tilted"):
+        b = tilted_beam(drawn_params(name)[0], n, g)
         return b - b.mean(0)
     if name in FAMILY:
         b = family_beam(FAMILY[name], n, g)
@@ -451,7 +514,9 @@ def main() -> None:
         out["beams"][name] = run_beam(name, seeds, overrides)
     out["fails"] = {n: b["fails"] for n, b in out["beams"].items() if b["fails"]}
     # the shared file's family (README's description) apart from the presets
-    family = [n for n in out["fails"] if n in FAMILY or n.startswith("draw")]
+    family = [
+        n for n in out["fails"] if n in FAMILY or n.startswith(("draw", "tilted"))
+    ]
     out["fails_family"] = {n: out["fails"][n] for n in family}
     other = [n for n in out["fails"] if n in OTHER_KINDS or _rotated(n)]
     out["fails_other_kinds"] = {n: out["fails"][n] for n in other}
