@@ -16,6 +16,7 @@ from diffaccel.data import (
     atomic_write_json,
     read_magnet_csv,
 )
+from diffaccel.dynamics.linalg import lstsq
 from diffaccel.hysteresis import (
     CONFIG_FILE,
     MODEL_FILE,
@@ -163,7 +164,7 @@ def fit_command(
         train_rmse = rms(resid[:train_rows])
         test_rmse = rms(resid[train_rows:]) if n_te else None
         basis = torch.stack([torch.ones_like(u), u], dim=1)
-        coef = torch.linalg.lstsq(basis[:train_rows], y_tr[:, None]).solution
+        coef = lstsq(basis[:train_rows], y_tr[:, None])
         line_rmse = rms((basis @ coef).squeeze(1)[train_rows:] - y[train_rows:])
         inside = (resid[train_rows:].abs() <= 2.0 * std[train_rows:]).double()
 

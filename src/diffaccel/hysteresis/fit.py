@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from diffaccel.dynamics.linalg import lstsq
 from diffaccel.hysteresis.preisach import PreisachModel
 
 __all__ = [
@@ -214,7 +215,7 @@ def fit_preisach(
         un = model.normalize_input(u)
         m = model.magnetization(u, initial_state)
         basis = torch.stack([torch.ones_like(un), un, m], dim=1)
-        coef = torch.linalg.lstsq(basis, yn.unsqueeze(1)).solution.squeeze(1)
+        coef = lstsq(basis, yn.unsqueeze(1)).squeeze(1)
         model.offset.copy_(coef[0])
         model.slope.copy_(coef[1])
         model.scale.copy_(coef[2])

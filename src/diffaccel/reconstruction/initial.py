@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from diffaccel.dynamics.linalg import lstsq
 from diffaccel.reconstruction.forward import ScreenForwardModel
 
 
@@ -164,7 +165,7 @@ def fit_gaussian(
     # centroid: [mx; my] - offsets = [rx; ry] @ mean
     a = torch.cat([rx, ry], 0)
     b = torch.cat([torch.cat(mx_all), torch.cat(my_all)], 0)
-    mean_seen = torch.linalg.lstsq(a, b[:, None]).solution[:, 0]
+    mean_seen = lstsq(a, b[:, None])[:, 0]
     # second moments: linear in the upper-triangular entries of Sigma
     iu = torch.triu_indices(n, n)
     mult = torch.where(iu[0] == iu[1], 1.0, 2.0).to(torch.float64)
@@ -178,7 +179,7 @@ def fit_gaussian(
     b2 = torch.cat([torch.cat(vxx_all), torch.cat(vyy_all), torch.cat(vxy_all)], 0)
     # scale unknowns for conditioning
     col = a2.abs().amax(0).clamp_min(1e-300)
-    sol = torch.linalg.lstsq(a2 / col, b2[:, None]).solution[:, 0] / col
+    sol = lstsq(a2 / col, b2[:, None])[:, 0] / col
     s_seen = torch.zeros(n, n, dtype=torch.float64)
     s_seen[iu[0], iu[1]] = sol
     s_seen = s_seen + s_seen.T - torch.diag(s_seen.diagonal())

@@ -48,6 +48,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
+from diffaccel.dynamics.linalg import lstsq
 from diffaccel.reconstruction.forward import ScreenForwardModel
 from diffaccel.reconstruction.generator import BeamGenerator
 from diffaccel.reconstruction.losses import image_distance
@@ -265,6 +266,6 @@ def trained_points(
             state, 6, config.width, config.depth, PLACEMENT_PARTICLES, config.seed
         )
         design = v.reshape(v.shape[0], -1).T
-        coef = torch.linalg.lstsq(design, (own - cov).reshape(-1, 1)).solution
+        coef = lstsq(design, (own - cov).reshape(-1, 1))
         out.append(float(coef[i]))
     return out

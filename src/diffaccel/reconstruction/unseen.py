@@ -89,6 +89,7 @@ from typing import Protocol
 import torch
 from torch import Tensor
 
+from diffaccel.dynamics.linalg import lstsq
 from diffaccel.reconstruction.generator import BeamGenerator
 from diffaccel.reconstruction.hold import MomentHold
 
@@ -321,7 +322,7 @@ def place_unseen(
             break
         # d tr(P E_j) / d t_k = -tr(P V_k P E_j)
         jac = -torch.einsum("ab,kbc,cd,jda->jk", p, v, p, sel)
-        step = torch.linalg.lstsq(jac, -g[:, None]).solution[:, 0]
+        step = lstsq(jac, -g[:, None])[:, 0]
         for _half in range(30):
             trial = precision(t + step)
             if trial is not None:
