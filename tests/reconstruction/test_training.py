@@ -13,6 +13,7 @@ from diffaccel.reconstruction import (
     load_checkpoint,
     reconstruct,
 )
+from diffaccel.reconstruction.generator import FlatGenerator
 from diffaccel.reconstruction.initial import fit_gaussian
 from diffaccel.reconstruction.training import train_generator
 
@@ -132,14 +133,14 @@ def test_corrupt_checkpoint(tmp_path: Path) -> None:
         ({"refit_steps": -1}, "refit_steps"),
         ({"refit_lr": 0.0}, "refit_lr"),
         ({"sampling_offset": -0.1}, "sampling_offset must be finite and >= 0"),
-        ({"sampling_offset": math.inf}, "sampling_offset must be finite"),
+        ({"sampling_offset": math.inf}, "sampling_offset must be a finite number"),
         ({"image_loss": "l1", "sampling_offset": 0.25}, "'kl' only"),
         ({"penalty_end": 0.0}, "penalty_start and penalty_end must be > 0"),
-        ({"penalty_start": math.nan}, "penalty_start and penalty_end"),
+        ({"penalty_start": math.nan}, "penalty_start must be a finite number"),
         ({"hold_unseen": -1.0}, "hold_unseen must be finite and >= 0"),
-        ({"hold_unseen": math.nan}, "hold_unseen must be finite"),
+        ({"hold_unseen": math.nan}, "hold_unseen must be a finite number"),
         ({"refit_hold": -1.0}, "refit_hold must be finite and >= 0"),
-        ({"refit_hold": math.inf}, "refit_hold must be finite"),
+        ({"refit_hold": math.inf}, "refit_hold must be a finite number"),
         ({"dims": 4, "place_coupling": True}, r"place_coupling.*dims=4"),
         (
             {"dims": 6, "place_unseen": False, "place_coupling": True},
@@ -374,3 +375,54 @@ def test_default_4d_step_stays_within_issue_12_op_budget(small_scan) -> None:
     per_step = (ops_long - ops_short) / 20
     assert 250 < per_step <= 300
     assert (syncs_long - syncs_short) / 20 <= 1
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "match"),
+    [
+        ("entropy_radius", math.nan, "entropy_radius must be a finite number"),
+        ("prior_factor", math.inf, "prior_factor must be a finite number"),
+        ("prior_factor", 0.0, "prior_factor must be > 0"),
+        ("longitudinal_scale", (-1.0, 1.0), r"longitudinal_scale .* must be > 0"),
+        ("longitudinal_scale", (1e-3,), "longitudinal_scale must be two finite"),
+        ("seed", 1.5, "seed must be an integer"),
+        ("n_particles", 100.5, "n_particles must be an integer"),
+        ("steps", True, "steps must be an integer"),
+        ("quasi_random", 1, "quasi_random must be True or False"),
+        ("lr_min", 0.1, r"lr_min \(0.1\) must not exceed lr_max"),
+        ("width", 0, "width must be >= 1"),
+        ("checkpoint_every", 0, "checkpoint_every must be >= 1"),
+        ("refit_lr", "3e-3", "refit_lr must be a finite number"),
+    ],
+)
+def test_config_refuses_wrong_types_and_values_naming_the_field(
+    field: str, value: object, match: str
+) -> None:
+    # each of these failed only later, deep in training, with a message about
+    # something else (e.g. NaN prior widths read as "loss became nan")
+    with pytest.raises(ValueError, match=match):
+        ReconstructionConfig(dims=6, **{field: value})
+
+
+def test_config_takes_integers_for_numbers_and_lists_for_the_scale() -> None:
+    config = ReconstructionConfig(dims=6, refit_hold=10000, longitudinal_scale=[1, 2])
+    assert config.refit_hold == 10000
+    assert config.longitudinal_scale == (1, 2)
+    assert ReconstructionConfig.from_dict(config.to_dict()) == config
+
+
+@pytest.mark.parametrize("dims", [4, 6])
+def test_non_finite_generated_particles_are_reported_as_divergence(
+    small_scan, monkeypatch: pytest.MonkeyPatch, dims: int
+) -> None:
+    # the particle checks of tracking name user input ("remove or fix them");
+    # for the generator's own output the error must say that training diverged
+    sample = FlatGenerator.sample
+
+    def poisoned(self, generator):
+        return sample(self, generator) * math.nan
+
+    monkeypatch.setattr(FlatGenerator, "sample", poisoned)
+    config = ReconstructionConfig(dims=dims, n_particles=256, steps=2, snapshots=1)
+    with pytest.raises(FloatingPointError, match="training diverged at step 0"):
+        reconstruct(small_scan, config, uncertainty=False)

@@ -6,12 +6,13 @@ import hashlib
 import json
 import logging
 import math
+import numbers
 import os
 import time
 import warnings
 from collections.abc import Callable, Sequence
 from contextlib import nullcontext
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -177,6 +178,24 @@ _DIMS_DEFAULTS: dict[int, _DimsDefaults] = {
     4: _DimsDefaults(6144, 300, 5, 1.0, 0.0, 0, 0.0, 1e4, 0, 0.0),
     6: _DimsDefaults(16384, 360, 6, math.sqrt(1.0 / 12.0), 1.0, 3, 0.25, 3e4, 60, 0.05),
 }
+
+
+_INT_FIELDS = frozenset(
+    "dims n_particles width depth steps snapshots burn_in refit_steps "
+    "probe_points seed checkpoint_every report_every".split()
+)
+_BOOL_FIELDS = frozenset(
+    "quasi_random place_unseen place_coupling probe_away cuda_graph".split()
+)
+
+
+def _is_real(value: object) -> bool:
+    """A finite real number (an int or float, not a bool)."""
+    return (
+        isinstance(value, numbers.Real)
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+    )
 
 
 @dataclass(frozen=True)
@@ -466,6 +485,7 @@ class ReconstructionConfig:
     cuda_graph: bool = True
 
     def __post_init__(self) -> None:
+        self._check_types()
         if self.dims not in (4, 6):
             raise ValueError(f"dims must be 4 or 6; got {self.dims}.")
         defaults = _DIMS_DEFAULTS[self.dims]
@@ -571,6 +591,51 @@ class ReconstructionConfig:
             )
         if not self.lr_max > 0 or not self.lr_min >= 0:
             raise ValueError("learning rates must be positive.")
+        if self.lr_min > self.lr_max:
+            raise ValueError(
+                f"lr_min ({self.lr_min}) must not exceed lr_max ({self.lr_max})."
+            )
+        for name in ("entropy_radius", "prior_factor"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0; got {getattr(self, name)}.")
+        if not all(v > 0 for v in self.longitudinal_scale):
+            raise ValueError(
+                "longitudinal_scale (rms z [m], pz [1]) must be > 0; got "
+                f"{tuple(self.longitudinal_scale)}."
+            )
+        for name in ("width", "depth", "checkpoint_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1; got {getattr(self, name)}.")
+
+    def _check_types(self) -> None:
+        """Every field a number of its kind (finite), a flag a bool: a wrong
+        type or a NaN fails here, naming the field, instead of deep in training."""
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if value is None or f.name in ("image_loss", "unseen_prior"):
+                continue  # None: the dims default, set below; text checked below
+            if f.name in _BOOL_FIELDS:
+                ok = isinstance(value, bool)
+                kind = "True or False"
+            elif f.name in _INT_FIELDS:
+                ok = isinstance(value, numbers.Integral) and not isinstance(value, bool)
+                kind = "an integer"
+            elif f.name == "longitudinal_scale":
+                ok = (
+                    isinstance(value, tuple | list)
+                    and len(value) == 2
+                    and all(_is_real(v) for v in value)
+                )
+                kind = "two finite numbers (rms z [m], pz [1])"
+            else:
+                ok = _is_real(value)
+                kind = "a finite number"
+            if not ok:
+                raise ValueError(f"{f.name} must be {kind}; got {value!r}.")
+        if isinstance(self.longitudinal_scale, list):
+            object.__setattr__(
+                self, "longitudinal_scale", tuple(self.longitudinal_scale)
+            )
 
     def memory_bytes(self, n_images: int) -> int:
         """Rough peak memory [bytes] of training on ``n_images`` images (CPU).
@@ -1095,7 +1160,16 @@ def train_generator(
         x = net.sample(gen_rng)  # (N, dims)
         dist = None
         with finite_checks(checks_on):  # off on GPUs: no device reads
-            sims = render(x)
+            try:
+                sims = render(x)
+            except ValueError as err:  # the particle checks: which particles?
+                if bool(torch.isfinite(x).all()):
+                    raise
+                raise FloatingPointError(
+                    f"training diverged at step {state.step}: the generator "
+                    "produced non-finite particles. Use more particles "
+                    "(n_particles) or a lower learning rate (lr_max)."
+                ) from err
         for sim, penalty in zip(sims, penalties, strict=True):
             if distributed:
                 sim = _SumOverProcesses.apply(sim)
@@ -1201,6 +1275,12 @@ def train_generator(
             dist_s, rel_s = row[0], row[1]
             loss_s = (dist_s - rel_s / lam_s) * lam_s  # lam D - (H - C)
             if not math.isfinite(loss_s):
+                if not all(bool(p.isfinite().all()) for p in model.parameters()):
+                    raise FloatingPointError(
+                        f"training diverged at step {s}: loss {loss_s} and "
+                        "non-finite generator weights. Use more particles "
+                        "(n_particles) or a lower learning rate (lr_max)."
+                    )
                 raise FloatingPointError(
                     f"loss became {loss_s} at step {s}; the beam may have left "
                     "the screen entirely. Check the screen calibration and settings."
