@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import math
+import pickle
 from dataclasses import replace
 from pathlib import Path
 
@@ -15,7 +16,7 @@ from diffaccel.reconstruction import (
 )
 from diffaccel.reconstruction.generator import FlatGenerator
 from diffaccel.reconstruction.initial import fit_gaussian
-from diffaccel.reconstruction.training import train_generator
+from diffaccel.reconstruction.training import load_tensors, train_generator
 
 FAST = {"n_particles": 1024, "steps": 24, "snapshots": 3, "checkpoint_every": 5}
 
@@ -426,3 +427,25 @@ def test_non_finite_generated_particles_are_reported_as_divergence(
     config = ReconstructionConfig(dims=dims, n_particles=256, steps=2, snapshots=1)
     with pytest.raises(FloatingPointError, match="training diverged at step 0"):
         reconstruct(small_scan, config, uncertainty=False)
+
+
+def test_damaged_tensor_files_get_a_safe_one_line_error(tmp_path: Path) -> None:
+    torch.save({"a": torch.ones(3)}, tmp_path / "good.pt")
+    good = (tmp_path / "good.pt").read_bytes()
+    files = {
+        "garbage.pt": bytes(range(256)) * 2,
+        "cut.pt": good[: len(good) // 2],
+        "empty.pt": b"",
+        "pickle.pt": pickle.dumps(object),
+    }
+    for name, content in files.items():
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(ValueError) as err:
+            load_tensors(tmp_path / name, "ensemble")
+        text = str(err.value)
+        assert text.startswith(f"cannot read ensemble {tmp_path / name}: ")
+        assert "not written by diffaccel, or damaged since" in text
+        # torch's own text suggests weights_only=False, i.e. running the file
+        assert "weights_only" not in text and "\n" not in text
+    with pytest.raises(ValueError, match="No such file or directory"):
+        load_tensors(tmp_path / "missing.pt", "ensemble")

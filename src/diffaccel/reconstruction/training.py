@@ -8,6 +8,7 @@ import logging
 import math
 import numbers
 import os
+import pickle
 import time
 import warnings
 from collections.abc import Callable, Sequence
@@ -1356,13 +1357,25 @@ def load_tensors(path: str | os.PathLike, what: str) -> object:
             foreign file (torch raises several types, with multi-line messages).
     """
     try:
-        return torch.load(Path(path), weights_only=True, map_location="cpu")
+        with warnings.catch_warnings():  # torch's pickle-protocol notice
+            warnings.simplefilter("ignore", UserWarning)
+            return torch.load(Path(path), weights_only=True, map_location="cpu")
     except Exception as exc:  # corrupt or foreign file
-        text = str(exc).strip()
-        first = text.splitlines()[0] if text else "empty or truncated file"
-        raise ValueError(
-            f"cannot read {what} {path}: {type(exc).__name__}: {first}"
-        ) from exc
+        damaged = "not written by diffaccel, or damaged since"
+        if isinstance(exc, pickle.UnpicklingError):
+            # torch's text invites weights_only=False (arbitrary code): never
+            reason = f"not a tensor file that is safe to load ({damaged})"
+        elif isinstance(exc, EOFError) or not str(exc).strip():
+            reason = f"empty or truncated file ({damaged})"
+        elif "zip archive" in str(exc):
+            reason = f"not a readable torch archive ({damaged})"
+        elif isinstance(exc, FileNotFoundError | IsADirectoryError | PermissionError):
+            reason = exc.strerror or type(exc).__name__
+        elif isinstance(exc, OSError):  # e.g. EINVAL seeking in a cut file
+            reason = f"unreadable file: {exc.strerror} ({damaged})"
+        else:
+            reason = f"{type(exc).__name__}: {str(exc).strip().splitlines()[0]}"
+        raise ValueError(f"cannot read {what} {path}: {reason}") from exc
 
 
 def _read_checkpoint(path: str | os.PathLike) -> dict:
