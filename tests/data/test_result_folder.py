@@ -143,6 +143,18 @@ def test_keep_partial_then_resume(tmp_path: Path) -> None:
     assert _names(out) == {"checkpoint", "result"}
 
 
+def test_keep_partial_leaves_no_empty_staging_folder(tmp_path: Path) -> None:
+    # a run that fails before writing anything (e.g. bad settings found at the
+    # first step) has nothing to resume: no ".run.partial" clutter is left
+    out = tmp_path / "run"
+    with (
+        pytest.raises(_Late),
+        result_folder(out, command="test", keep_partial=True),
+    ):
+        raise _Late
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
 def test_resume_of_a_completed_result_starts_from_its_files(tmp_path: Path) -> None:
     out = tmp_path / "run"
     _write(out, {"checkpoint": "step 10"})

@@ -9,8 +9,8 @@ second run into the same folder while one is running; a lock left by a process
 that no longer exists (on this host) is taken over.
 
 The staging folder of a failed run is removed, unless the command asks to keep
-it (``keep_partial=True``): a reconstruction keeps its checkpoint there, so
-``--resume`` continues the interrupted run. The swap is two renames within the
+it (``keep_partial=True``) and it holds something: a reconstruction keeps its
+checkpoint there, so ``--resume`` continues the interrupted run. The swap is two renames within the
 parent folder (old result aside, staging in) and then the removal of the old
 result; were the process killed between the renames, the old result is still
 there as ``.<name>.old``.
@@ -250,7 +250,8 @@ def result_folder(
         try:
             yield folder
         except BaseException:
-            if not keep_partial:
+            # an empty staging folder has nothing to resume from
+            if not keep_partial or not any(staging.iterdir()):
                 shutil.rmtree(staging, ignore_errors=True)
             raise
         marker = {"command": command, "written": time.time(), "pid": os.getpid()}
