@@ -412,9 +412,20 @@ def test_reconstruct_and_predict_version_2(two_scan_file: Path, tmp_path) -> Non
             rtol=0,
             atol=1e-5,
         )
-    # several scans do not fit one .npy array: a clear error
-    r = CliRunner().invoke(main, [*args[:-1], str(tmp_path / "p.npy")])
+    # several scans do not fit one .npy array: a clear error, and no folder
+    # of the --out path made before it
+    npy = tmp_path / "new" / "sub" / "p.npy"
+    r = CliRunner().invoke(main, [*args[:-1], str(npy)])
     assert r.exit_code == 1 and "holds 2 scans" in r.output
+    assert not (tmp_path / "new").exists()
+    # nor one .npy spread, refused before the predictions are written
+    r = CliRunner().invoke(main, [*args, "--force", "--std-out", str(npy)])
+    assert r.exit_code == 1 and "2 scans; write them to an .npz" in r.output
+    assert not (tmp_path / "new").exists()
+    # nothing is written into the result folder (its --force would refuse it)
+    r = CliRunner().invoke(main, [*args[:-1], str(out / "pred.h5")])
+    assert r.exit_code == 1 and "inside the result folder" in r.output
+    assert not (out / "pred.h5").exists()
     # the spread of every scan: one array per scan name
     std = tmp_path / "std.npz"
     r = CliRunner().invoke(

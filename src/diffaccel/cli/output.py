@@ -80,23 +80,26 @@ def check_out_file(
     """Refuse an output file that would replace something the user gave.
 
     ``out`` may replace an existing file only with ``force``, never one of the
-    ``inputs`` (``{"--dataset": path}``; None entries are skipped) and never a
-    file of a diffaccel result folder (a fit, a reconstruction), ``force`` or
-    not: the command would destroy the result it reads. ``option`` names
-    ``out`` in the messages.
+    ``inputs`` (``{"--dataset": path}``; None entries are skipped), and is never
+    written into a diffaccel result folder (a fit, a reconstruction), ``force``
+    or not: the command could destroy the result it reads, and a foreign file
+    there makes the folder refuse a later ``--force``. ``option`` names ``out``
+    in the messages.
 
     Raises:
         click.ClickException: naming the option and the file.
     """
-    if out.exists() and not force:
-        raise click.ClickException(f"{out} exists; pass --force to overwrite it")
     for name, path in inputs.items():
         if path is not None and out.resolve() == path.resolve():
             raise click.ClickException(
                 f"{option} {out} is the {name} file; write the output elsewhere."
             )
-    if out.exists() and (out.resolve().parent / MARKER).exists():
+    if (out.resolve().parent / MARKER).exists():
+        # a result folder holds what its command wrote, nothing else: a new
+        # file there would make a later --force refuse the folder as foreign
         raise click.ClickException(
-            f"{option} {out} is a file of the result folder {out.parent}; write the "
+            f"{option} {out} is inside the result folder {out.parent}; write the "
             "output elsewhere."
         )
+    if out.exists() and not force:
+        raise click.ClickException(f"{out} exists; pass --force to overwrite it")

@@ -832,7 +832,11 @@ def predict(
             check_on_screen(images, settings)
     except (FormatError, ValueError, FileNotFoundError, OSError) as err:
         raise click.ClickException(str(err)) from err
-    out.parent.mkdir(parents=True, exist_ok=True)
+    # every refusal before the first file or folder is made
+    if std_out is not None and std_out.suffix.lower() == ".npy" and len(spread) != 1:
+        raise click.ClickException(
+            f"--std-out {std_out}: {len(spread)} scans; write them to an .npz file"
+        )
     if suffix == ".npy":
         if dataset_path is not None:
             if len(predicted) != 1:
@@ -846,6 +850,7 @@ def predict(
             except ValueError as err:
                 raise click.ClickException(str(err)) from err
         array = images.numpy().astype(np.float32)
+        out.parent.mkdir(parents=True, exist_ok=True)
 
         def _save(p: Path) -> None:
             with p.open("wb") as f:
@@ -857,6 +862,7 @@ def predict(
         if std_out is not None:
             _write_spread(std_out, spread)
         return
+    out.parent.mkdir(parents=True, exist_ok=True)
     try:
         written = write_scans(
             predicted_dataset(other, predicted, source=str(result_dir)),
