@@ -8,12 +8,12 @@ untouched. A lock file beside the destination, ``.<name>.lock``, refuses a
 second run into the same folder while one is running; a lock left by a process
 that no longer exists (on this host) is taken over.
 
-The staging folder of a failed run is removed, unless the command asks to keep
-it (``keep_partial=True``) and it holds something: a reconstruction keeps its
-checkpoint there, so ``--resume`` continues the interrupted run. The swap is two renames within the
-parent folder (old result aside, staging in) and then the removal of the old
-result; were the process killed between the renames, the old result is still
-there as ``.<name>.old``.
+The staging folder of a failed run is removed, unless the command asks to
+keep it (``keep_partial=True``) and it holds something: a reconstruction keeps
+its checkpoint there, so ``--resume`` continues the interrupted run. The swap
+is two renames within the parent folder (old result aside, staging in) and then
+the removal of the old result; were the process killed between the renames,
+the old result is still there as ``.<name>.old``.
 
 A destination is only replaced with ``force`` (or ``resume``), and only if it
 is empty, holds the marker file that every result folder gets
