@@ -449,3 +449,16 @@ def test_damaged_tensor_files_get_a_safe_one_line_error(tmp_path: Path) -> None:
         assert "weights_only" not in text and "\n" not in text
     with pytest.raises(ValueError, match="No such file or directory"):
         load_tensors(tmp_path / "missing.pt", "ensemble")
+
+
+def test_reconstruct_names_a_device_or_checkpoint_it_cannot_use(
+    small_scan, tmp_path: Path
+) -> None:
+    config = ReconstructionConfig(n_particles=256, steps=2, snapshots=1)
+    with pytest.raises(ValueError, match="'tpu' is not a torch device"):
+        reconstruct(small_scan, config, device="tpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="CUDA is not available"):
+            reconstruct(small_scan, config, device="cuda")
+    with pytest.raises(ValueError, match="is a folder; give a file name in it"):
+        reconstruct(small_scan, config, checkpoint=tmp_path)

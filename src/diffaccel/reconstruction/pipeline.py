@@ -119,6 +119,24 @@ def training_selection(
     return TrainingSelection(out)
 
 
+def _usable_device(device: str | torch.device) -> torch.device:
+    """``device`` as a torch device this machine has (a one-line error otherwise)."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, ValueError, TypeError) as err:
+        raise ValueError(
+            f"device {device!r} is not a torch device (cpu, cuda, cuda:1, mps...)."
+        ) from err
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {device!r}: CUDA is not available on this machine.")
+    if dev.type == "cuda" and (dev.index or 0) >= torch.cuda.device_count():
+        raise ValueError(
+            f"device {device!r}: this machine has {torch.cuda.device_count()} CUDA "
+            "device(s)."
+        )
+    return dev
+
+
 def reconstruct(
     dataset: QuadScanDataset | MultiScanDataset,
     config: ReconstructionConfig | None = None,
@@ -172,11 +190,18 @@ def reconstruct(
         ["uncertainty"]`` the moment-space posterior.
 
     Raises:
-        ValueError: for bad indices, or a checkpoint written with a different
+        ValueError: for bad indices, a device this machine lacks, a checkpoint
+            path that is a folder, or a checkpoint written with a different
             config or for other data (naming the scan where one is concerned).
             Images are checked by the dataset (finite, positive sums).
     """
     config = config or ReconstructionConfig()
+    device = _usable_device(device)
+    if checkpoint is not None and Path(checkpoint).is_dir():
+        raise ValueError(
+            f"checkpoint {checkpoint} is a folder; give a file name in it, e.g. "
+            f"{Path(checkpoint) / 'checkpoint.pt'}."
+        )
     if split not in ("particles", "members"):
         raise ValueError(f"split must be 'particles' or 'members'; got {split!r}.")
     members = distributed and split == "members"
