@@ -18,9 +18,15 @@ from diffaccel.data import (
     write_quad_scan,
     write_scans,
 )
+from diffaccel.data.quad_scan import PARAMETER_LIMITS, check_p0c
 from diffaccel.data.synthetic import PRESETS
 
 __all__ = ["synthetic"]
+
+#: Largest screen side accepted by ``--shape`` [pixels] (a 4096 x 4096 float32
+#: image is 64 MiB per setting and shot).
+MAX_SHAPE = 4096
+_K1 = PARAMETER_LIMITS["k1"]
 
 
 @click.command("synthetic")
@@ -64,14 +70,20 @@ __all__ = ["synthetic"]
     help="Number of quadrupole settings K [default: 20; awa6d: 9].",
 )
 @click.option(
-    "--k1-min", type=float, default=None, help="[1/m^2] [default: -25; awa6d: -12]"
+    "--k1-min",
+    type=click.FloatRange(-_K1, _K1),
+    default=None,
+    help="[1/m^2] [default: -25; awa6d: -12]",
 )
 @click.option(
-    "--k1-max", type=float, default=None, help="[1/m^2] [default: 15; awa6d: 12]"
+    "--k1-max",
+    type=click.FloatRange(-_K1, _K1),
+    default=None,
+    help="[1/m^2] [default: 15; awa6d: 12]",
 )
 @click.option(
     "--shape",
-    type=(click.IntRange(min=2), click.IntRange(min=2)),
+    type=(click.IntRange(2, MAX_SHAPE), click.IntRange(2, MAX_SHAPE)),
     default=None,
     help="Screen rows H and columns W [pixels] [default: 64 64; awa6d: 96 96].",
 )
@@ -121,6 +133,17 @@ __all__ = ["synthetic"]
 def synthetic(out: Path, force: bool, **options: Any) -> None:
     """Simulate a quadrupole scan of a known beam and write it to OUT (HDF5)."""
     opts = _Options(**options)
+    if out.suffix.lower() not in (".h5", ".hdf5"):
+        raise click.BadParameter(
+            f"{out}: expected a .h5 or .hdf5 file name (the quad-scan file is HDF5)",
+            param_hint="OUT",
+        )
+    if opts.p0c is not None and opts.particle_file is None:
+        try:
+            check_p0c(opts.p0c, "electron", "--p0c")
+        except FormatError as err:
+            message = str(err).removeprefix("--p0c: ")
+            raise click.BadParameter(message, param_hint="--p0c") from err
     check_out_file(out, force, {"--particle-file": opts.particle_file})
     beam = (
         f"preset {opts.preset}"
@@ -132,6 +155,13 @@ def synthetic(out: Path, force: bool, **options: Any) -> None:
         click.echo(build(opts, out, force, beam))
     except (FormatError, ValueError, FileExistsError) as err:
         raise click.ClickException(str(err)) from err
+    except (MemoryError, RuntimeError) as err:
+        if not isinstance(err, MemoryError) and "alloc" not in str(err):
+            raise
+        raise click.ClickException(
+            "not enough memory for the images and tracking asked for (--shape, "
+            "--settings, --shots, --particles); reduce them"
+        ) from err
 
 
 @dataclass(frozen=True)

@@ -33,6 +33,7 @@ from torch import Tensor
 
 from diffaccel.data.atomic import atomic_write
 from diffaccel.data.errors import FormatError
+from diffaccel.data.quad_scan import check_p0c
 from diffaccel.dynamics import Species
 from diffaccel.dynamics.coordinates import bmad_to_openpmd, openpmd_to_bmad
 
@@ -50,6 +51,9 @@ _UNITS = {
     "weight": (1.0, (0, 0, 1, 1, 0, 0, 0), "C"),
     "particleStatus": (1.0, (0, 0, 0, 0, 0, 0, 0), "1"),
 }
+#: Largest accepted transverse position |x|, |y| of a read particle [m]: beam
+#: pipes are centimetres wide; metres are a unit error (mm stored as m).
+MAX_TRANSVERSE = 1.0
 
 
 def _drift_to_common_z(columns: dict[str, Tensor]) -> dict[str, Tensor]:
@@ -96,13 +100,15 @@ def write_openpmd_particles(
 
     Raises:
         FileExistsError: if ``path`` exists and ``overwrite`` is false.
-        ValueError: for a wrong shape, NaN/inf coordinates, ``p0c <= 0``,
+        ValueError: for a wrong shape (or fewer than 2 particles), NaN/inf
+            coordinates, ``p0c <= 0``,
             ``charge_C <= 0`` or an unknown species.
     """
     particles = torch.as_tensor(particles_bmad).detach()
-    if particles.ndim != 2 or particles.shape[-1] != 6:
+    if particles.ndim != 2 or particles.shape[-1] != 6 or particles.shape[0] < 2:
         raise ValueError(
-            f"particles_bmad: expected shape (N, 6); got {tuple(particles.shape)}"
+            "particles_bmad: expected shape (N, 6) with N >= 2 particles; got "
+            f"{tuple(particles.shape)}"
         )
     if not bool(torch.isfinite(particles).all()):
         raise ValueError("particles_bmad: expected finite coordinates; found NaN/inf")
@@ -196,18 +202,47 @@ def _particle_group(h5: h5py.File, where: Path) -> h5py.Group:
     return group[species[0]]
 
 
+def _number_attr(obj: h5py.HLObject, key: str, where: str) -> float:
+    """A numeric (not text, not bool) scalar attribute as a float."""
+    value = np.asarray(obj.attrs[key])
+    if value.dtype.kind not in "iuf" or value.size != 1:
+        raise FormatError(f"{where}.{key}: expected a number; found {obj.attrs[key]!r}")
+    return float(value.item())
+
+
 def _read_record(group: h5py.Group, name: str, n: int | None, where: str) -> np.ndarray:
     if name not in group:
         raise FormatError(f"{where}: missing record {name!r}")
     obj = group[name]
+    here = f"{where}/{name}"
     if isinstance(obj, h5py.Group):  # constant record component
         if "value" not in obj.attrs:
-            raise FormatError(f"{where}/{name}: constant record without 'value'")
+            raise FormatError(f"{here}: constant record without 'value'")
         shape = tuple(obj.attrs.get("shape", (n,)))
-        values = np.full(shape, float(obj.attrs["value"]))
+        values = np.full(shape, _number_attr(obj, "value", here))
     else:
+        if obj.dtype.kind not in "iuf":
+            raise FormatError(f"{here}: expected real numbers; found dtype {obj.dtype}")
         values = np.asarray(obj[()], dtype=np.float64)
-    unit_si = float(obj.attrs.get("unitSI", 1.0))
+    unit_si = _number_attr(obj, "unitSI", here) if "unitSI" in obj.attrs else 1.0
+    if not (np.isfinite(unit_si) and unit_si > 0):
+        raise FormatError(
+            f"{here}.unitSI: expected a finite number > 0; found {unit_si}"
+        )
+    kind = name.partition("/")[0]
+    if "unitDimension" in obj.attrs and kind in _UNITS:
+        dim = np.asarray(obj.attrs["unitDimension"])
+        want = np.asarray(_UNITS[kind][1], dtype=np.float64)
+        if (
+            dim.dtype.kind not in "iuf"
+            or dim.shape != want.shape
+            or (not np.allclose(dim, want))
+        ):
+            raise FormatError(
+                f"{here}.unitDimension: expected {want.tolist()} (powers of L, M, "
+                f"T, I, theta, N, J for {kind} [{_UNITS[kind][2]}]); found "
+                f"{obj.attrs['unitDimension']!r}"
+            )
     return values * unit_si
 
 
@@ -261,8 +296,10 @@ def read_openpmd_particles(path: str | os.PathLike) -> tuple[Tensor, float, str]
         alive = np.ones(n, dtype=bool)
         if "particleStatus" in g:
             alive = _read_record(g, "particleStatus", n, where) == 1
-        p0c_attr = float(g.attrs["p0c"]) if "p0c" in g.attrs else None
-        t_ref = float(g.attrs["tReference"]) if "tReference" in g.attrs else None
+        p0c_attr = _number_attr(g, "p0c", where) if "p0c" in g.attrs else None
+        t_ref = (
+            _number_attr(g, "tReference", where) if "tReference" in g.attrs else None
+        )
     for key, values in si.items():
         if values.shape != (n,):
             raise FormatError(
@@ -274,14 +311,33 @@ def read_openpmd_particles(path: str | os.PathLike) -> tuple[Tensor, float, str]
         raise FormatError(f"{where}: momentum/z must be > 0 (a forward-moving beam)")
     if not alive.any():
         raise FormatError(f"{where}: no live particles (particleStatus == 1)")
+    if alive.sum() < 2:
+        raise FormatError(
+            f"{where}: expected at least 2 live particles (a beam); found "
+            f"{int(alive.sum())}"
+        )
+    if not (si["weight"][alive] > 0).all():
+        bad = int((si["weight"][alive] <= 0).sum())
+        raise FormatError(
+            f"{where}/weight: expected macro-particle charges > 0 [C]; found {bad} "
+            f"<= 0 (min {si['weight'][alive].min():g})"
+        )
     data = {k: torch.from_numpy(v[alive]) for k, v in si.items()}
     p = torch.sqrt(data["px"] ** 2 + data["py"] ** 2 + data["pz"] ** 2)
     data["energy"] = torch.sqrt(p**2 + spec.mass_ev**2)
     data = _drift_to_common_z(data)
     if p0c_attr is None:
         p0c_attr = float(p.mean())
+    if p0c_attr > 0:  # otherwise refused below, by the conversion
+        check_p0c(p0c_attr, spec.name, f"{where}.p0c")
     try:
         particles, _ = openpmd_to_bmad(data, p0c_attr, spec, t_ref=t_ref)
     except ValueError as err:
         raise FormatError(f"{where}: {err}") from err
+    far = particles[:, [0, 2]].abs().amax()
+    if not bool(far <= MAX_TRANSVERSE):
+        raise FormatError(
+            f"{where}/position: expected |x|, |y| <= {MAX_TRANSVERSE:g} m (after "
+            f"drifting to the mean z); found {float(far):g} m (a unit error?)"
+        )
     return particles, p0c_attr, spec.name

@@ -12,6 +12,7 @@ import copy
 import json
 import math
 import os
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -34,6 +35,7 @@ __all__ = [
     "PARAMETER_LIMITS",
     "PARAMETER_UNITS",
     "QuadScanDataset",
+    "check_p0c",
     "check_setting_limits",
     "read_quad_scan",
     "write_quad_scan",
@@ -88,6 +90,10 @@ MAX_CENTER = 1.0
 MAX_RESOLUTION_PIXELS = 100.0
 #: Smallest screen: image moments need at least two pixels per axis.
 MIN_PIXELS = 2
+#: Smallest accepted ``p0c / (m c^2)`` (beta * gamma): 511 eV for electrons,
+#: 938 keV for protons. Below it ``p0c`` is almost surely in the wrong unit
+#: (43.36 for 43.36 MeV); no beam this tool images is that slow.
+MIN_BETA_GAMMA = 1e-3
 
 
 @dataclass(frozen=True, eq=False)
@@ -126,8 +132,12 @@ class QuadScanDataset:
 
     Raises:
         FormatError: naming the field when a value is missing, has the wrong
-            shape, contains NaN/inf, an all-zero image, a non-positive pixel size
-            or a setting name that is not a parameter of the beamline.
+            shape, contains NaN/inf, an all-zero image, an image with a pixel
+            more negative than its brightest pixel is bright (small negative
+            pixels of background-subtracted images are accepted), a non-positive
+            pixel size, a ``p0c`` below ``MIN_BETA_GAMMA`` times the rest energy
+            (a unit error), a setting name that is not a parameter of the
+            beamline or a negative setting of a parameter that must be >= 0.
 
     Example:
         >>> import torch
@@ -336,6 +346,36 @@ def _positive_float(name: str, value: Any, unit: str) -> float:
     return out
 
 
+def check_p0c(p0c: float, species: str, where: str = "p0c") -> None:
+    """Refuse a reference momentum far below the particle's rest energy.
+
+    Args:
+        p0c: Reference momentum times c [eV], already checked to be > 0.
+        species: ``"electron"``, ``"positron"`` or ``"proton"``.
+        where: Field or option named in the message.
+
+    Raises:
+        FormatError: if ``p0c < MIN_BETA_GAMMA * m c^2`` (a unit error: p0c is
+            in eV).
+    """
+    if species not in SPECIES:
+        return  # reported by the species check
+    low = MIN_BETA_GAMMA * Species.from_name(species).mass_ev
+    if not p0c >= low:
+        raise FormatError(
+            f"{where}: expected >= {low:g} eV for {species}s (p0c / (m c^2) >= "
+            f"{MIN_BETA_GAMMA:g}); found {p0c:g} eV (p0c is in eV: 43.36 MeV is "
+            "43.36e6)"
+        )
+
+
+def _is_real_number(value: Any) -> bool:
+    """Whether ``value`` is a real number (int or float; not bool, str, None)."""
+    return isinstance(value, int | float | np.integer | np.floating) and not (
+        isinstance(value, bool | np.bool_)
+    )
+
+
 def _validate_spec(spec: list[dict]) -> dict[str, dict]:
     """Check the beamline element list; return elements by name."""
     if not isinstance(spec, list) or not spec:
@@ -357,6 +397,15 @@ def _validate_spec(spec: list[dict]) -> dict[str, dict]:
                 f"beamline[{i}]: duplicate element name {element['name']!r}"
             )
         by_name[element["name"]] = element
+        cls = ELEMENT_TYPES.get(element["type"])
+        scalar = () if cls is None or cls.__name__ == "LinearMap" else cls.param_names
+        for key in scalar:
+            if key in element and not _is_real_number(element[key]):
+                raise FormatError(
+                    f"beamline[{i}] ({element['type']} {element['name']!r}).{key}: "
+                    f"expected a real number; found {type(element[key]).__name__} "
+                    f"{element[key]!r}"
+                )
     try:
         Beamline.from_spec(spec)
     except (ValueError, TypeError) as err:
@@ -457,6 +506,25 @@ def check_setting_limits(names: Sequence[str], settings: Tensor) -> None:
             )
 
 
+def _check_setting_signs(
+    names: Sequence[str], settings: Tensor, elements: dict[str, dict]
+) -> None:
+    """Refuse negative settings of parameters the element requires >= 0."""
+    for p, name in enumerate(names):
+        element, _, parameter = name.partition(".")
+        cls = ELEMENT_TYPES[elements[element]["type"]]
+        unit = dict(cls.nonnegative_params).get(parameter)
+        if unit is None or settings.shape[0] == 0:
+            continue
+        column = settings[:, p]
+        if bool((column < 0).any()):
+            k = int(torch.argmin(column))
+            raise FormatError(
+                f"settings: {name!r} = {float(column[k]):g} at setting {k}; "
+                f"expected >= 0 {unit} ({parameter} of {cls.__name__} {element!r})"
+            )
+
+
 def _validate(ds: QuadScanDataset) -> None:
     images, settings = ds.images, ds.settings
     if not images.is_floating_point():
@@ -510,6 +578,19 @@ def _validate(ds: QuadScanDataset) -> None:
             f"images: image of setting {k} (shot {s}) is all zero; "
             f"{int(empty.sum())} all-zero image(s) in total"
         )
+    # background-subtracted images may dip below 0 by their noise; a pixel more
+    # negative than the image's brightest one is not noise (sign or offset error)
+    low = images.amin(dim=(-2, -1))
+    deep = low < -images.amax(dim=(-2, -1))
+    if bool(deep.any()):
+        k, s = (int(v) for v in torch.nonzero(deep)[0])
+        raise FormatError(
+            f"images: image of setting {k} (shot {s}) has a pixel of "
+            f"{float(low[k, s]):g}, more negative than its brightest pixel is "
+            f"bright ({float(images[k, s].max()):g}); background-subtracted images "
+            "may dip below 0 by their noise, not by more than the signal "
+            f"({int(deep.sum())} such image(s))"
+        )
     sums = images.sum(dim=(-2, -1), dtype=torch.float64)
     if bool((sums <= 0).any()):
         k, s = (int(v) for v in torch.nonzero(sums <= 0)[0])
@@ -539,11 +620,13 @@ def _validate(ds: QuadScanDataset) -> None:
         )
     if ds.species not in SPECIES:
         raise FormatError(f"species: expected one of {SPECIES}; found {ds.species!r}")
+    check_p0c(ds.p0c, ds.species)
     elements = _validate_spec(ds.beamline_spec)
     _validate_settings_names(
         ds.setting_names, ds.setting_units, elements, int(settings.shape[1])
     )
     check_setting_limits(ds.setting_names, settings)
+    _check_setting_signs(ds.setting_names, settings, elements)
     gt = ds.ground_truth
     if gt is not None:
         if gt.ndim != 2 or gt.shape[-1] != 6 or gt.shape[0] < 1:
@@ -617,10 +700,12 @@ def _dataset(group: h5py.Group, key: str, where: str) -> h5py.Dataset:
 
 def _float_attr(obj: h5py.HLObject, key: str, where: str) -> float:
     value = _attr(obj, key, where)
-    try:
-        out = float(np.asarray(value).item())
-    except (TypeError, ValueError) as err:
-        raise FormatError(f"{where}.{key}: expected a number; found {value!r}") from err
+    array = np.asarray(value)
+    if array.dtype.kind not in "iuf" or array.size != 1:
+        raise FormatError(
+            f"{where}.{key}: expected a number; found {type(value).__name__} {value!r}"
+        )
+    out = float(array.item())
     if not math.isfinite(out):
         raise FormatError(f"{where}.{key}: expected a finite number; found {out}")
     return out
@@ -632,14 +717,14 @@ def _read_version(h5: h5py.File) -> int:
     if fmt != FORMAT_NAME:
         raise FormatError(f"/.format: expected {FORMAT_NAME!r}; found {fmt!r}")
     raw = _attr(h5, "format_version", "/")
-    try:
-        value = np.asarray(raw).item()
-        number = float(value)
-    except (TypeError, ValueError) as err:
+    array = np.asarray(raw)
+    if array.dtype.kind not in "iuf" or array.size != 1:
         raise FormatError(
-            f"/.format_version: expected an integer; found {raw!r}"
-        ) from err
-    if isinstance(value, bool) or not number.is_integer():
+            f"/.format_version: expected an integer; found {type(raw).__name__} {raw!r}"
+        )
+    value = array.item()
+    number = float(value)
+    if not number.is_integer():
         raise FormatError(
             f"/.format_version: expected an integer (1 or 2); found {value!r}"
         )
@@ -673,6 +758,8 @@ def _read_root(h5: h5py.File) -> _Root:
     species = _text_attr(h5, "species", "/")
     if species not in SPECIES:
         raise FormatError(f"/.species: expected one of {SPECIES}; found {species!r}")
+    if p0c > 0:  # <= 0 is reported by the container
+        check_p0c(p0c, species, "/.p0c")
     metadata: dict[str, Any] = {}
     if "metadata" in h5.attrs:
         metadata = _json_attr(h5, "metadata", "/")
@@ -717,6 +804,11 @@ def _read_ground_truth(data: h5py.Dataset, p0c: float, species: str) -> Tensor:
 
 def _read_array(group: h5py.Group, key: str, where: str, dtype: Any) -> Tensor:
     data = _dataset(group, key, where)
+    if data.dtype.kind not in "iuf":
+        raise FormatError(
+            f"{where}{key}: expected real numbers (integer or float); found dtype "
+            f"{data.dtype}"
+        )
     try:
         return torch.from_numpy(np.asarray(data[()], dtype=dtype))
     except (TypeError, ValueError) as err:
@@ -839,7 +931,9 @@ def read_file_scans(
             _refuse_other_version_fields(h5, version)
             root = _read_root(h5)
             if version == 1:
-                return version, {single_name: _read_scan(h5, "/", root)}, root.metadata
+                scan = _read_scan(h5, "/", root)
+                _warn_repeated_settings(scan, path, "/")
+                return version, {single_name: scan}, root.metadata
             names = scan_names(h5)
             if one and len(names) != 1:
                 raise FormatError(
@@ -850,9 +944,34 @@ def read_file_scans(
                 name: _read_scan(h5["scans"][name], f"/scans/{name}/", root)
                 for name in names
             }
+            for name, scan in scans.items():
+                _warn_repeated_settings(scan, path, f"/scans/{name}/")
             return version, scans, root.metadata
         except FormatError as err:
             raise FormatError(f"{path}: {err}") from err
+
+
+def _warn_repeated_settings(ds: QuadScanDataset, path: Path, where: str) -> None:
+    """Warn when settings rows repeat (shots of one setting belong on axis S).
+
+    Repeated rows can be legitimate (a setting revisited later in the scan, e.g.
+    to see hysteresis), so this warns instead of refusing.
+    """
+    _, inverse, counts = torch.unique(
+        ds.settings, dim=0, return_inverse=True, return_counts=True
+    )
+    if bool((counts == 1).all()):
+        return
+    groups = [
+        torch.nonzero(inverse == g).flatten().tolist()
+        for g in torch.nonzero(counts > 1).flatten().tolist()
+    ]
+    warnings.warn(
+        f"{path}: {where}settings: rows {groups} hold the same setting "
+        f"({ds.setting_names}); several shots of one setting belong on the shots "
+        "axis S of images (K, S, H, W), unless the setting was revisited on purpose",
+        stacklevel=4,
+    )
 
 
 #: Root fields of one format version that the other version does not have.

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -35,8 +37,15 @@ def finite_checks_enabled() -> bool:
     return _FINITE_CHECKS.get()
 
 
-def check_particles(particles: Tensor, *, check_finite: bool = True) -> Tensor:
-    """Check that ``particles`` is a floating tensor shaped ``(..., N, 6)``."""
+def check_particles(
+    particles: Tensor, *, check_finite: bool = True, check_momentum: bool = True
+) -> Tensor:
+    """Check that ``particles`` is a floating tensor shaped ``(..., N, 6)``.
+
+    With ``check_finite`` (and :func:`finite_checks` on) also that every
+    coordinate is finite and, with ``check_momentum``, that every ``pz > -1``
+    (a positive momentum), in one device read.
+    """
     if not isinstance(particles, Tensor):
         raise TypeError(
             f"particles must be a torch.Tensor shaped (..., N, 6); "
@@ -51,15 +60,23 @@ def check_particles(particles: Tensor, *, check_finite: bool = True) -> Tensor:
         raise ValueError(
             f"particles must have a floating dtype; got {particles.dtype}."
         )
-    if (
-        check_finite
-        and finite_checks_enabled()
-        and not bool(torch.isfinite(particles).all())
-    ):
+    if check_finite and finite_checks_enabled():
+        # one device read for both checks; the details only on failure
+        ok = torch.isfinite(particles).all()
+        if check_momentum:
+            ok = ok & (particles[..., 5] > -1).all()
+        if bool(ok):
+            return particles
         bad = (~torch.isfinite(particles)).sum().item()
+        if bad:
+            raise ValueError(
+                f"particles contain {bad} NaN or infinite coordinate(s); "
+                "remove or fix them before tracking."
+            )
+        slow = int((particles[..., 5] <= -1).sum().item())
         raise ValueError(
-            f"particles contain {bad} NaN or infinite coordinate(s); "
-            "remove or fix them before tracking."
+            f"particles contain {slow} particle(s) with pz <= -1 (zero or negative "
+            "momentum; pz = dP/P0); remove or fix them."
         )
     return particles
 
@@ -70,14 +87,33 @@ def as_p0c(p0c: Tensor | float, like: Tensor) -> Tensor:
     A Python number is checked on the host and filled on the device (no copy
     from the host, no device read); a tensor is checked where it lives.
     """
-    if isinstance(p0c, int | float) and not isinstance(p0c, bool):
+    dtype = getattr(p0c, "dtype", None)
+    if (
+        p0c is None
+        or isinstance(p0c, str | bytes | bool | np.bool_ | complex)
+        or (isinstance(p0c, Tensor) and (p0c.is_complex() or dtype == torch.bool))
+        or (isinstance(p0c, np.ndarray) and dtype.kind not in "iuf")
+    ):
+        raise ValueError(
+            "p0c (reference momentum times c) must be a real number or tensor "
+            f"[eV]; got {dtype or type(p0c).__name__} {p0c!r}."
+        )
+    if isinstance(p0c, numbers.Real) and not isinstance(p0c, int | float):
+        p0c = float(p0c)  # numpy scalars
+    if isinstance(p0c, int | float):
         if not (math.isfinite(p0c) and p0c > 0):
             raise ValueError(
                 f"p0c (reference momentum times c) must be finite and > 0 eV; "
                 f"got {p0c!r} eV."
             )
         return torch.full((), float(p0c), dtype=like.dtype, device=like.device)
-    t = torch.as_tensor(p0c, dtype=like.dtype, device=like.device)
+    try:
+        t = torch.as_tensor(p0c, dtype=like.dtype, device=like.device)
+    except (TypeError, ValueError, RuntimeError) as err:
+        raise ValueError(
+            "p0c (reference momentum times c) must be a real number or tensor "
+            f"[eV]; got {type(p0c).__name__} {p0c!r} ({err})."
+        ) from err
     if not bool(torch.isfinite(t).all()) or not bool((t > 0).all()):
         raise ValueError(
             f"p0c (reference momentum times c) must be finite and > 0 eV; "

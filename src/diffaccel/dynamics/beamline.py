@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Iterator, Mapping, Sequence
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -40,6 +42,37 @@ ELEMENT_TYPES: dict[str, type[Element]] = {
     )
 }
 _SCREEN_KEYS = ("shape", "pixel_size", "center")
+
+
+def _spec_value(value: Any, owner: str, key: str) -> Tensor:
+    """A spec parameter as a float64 tensor: a real number or nested list of them.
+
+    Raises:
+        ValueError: naming the element and parameter for a bool, string, None,
+            complex number or anything else that is not real numbers.
+    """
+
+    def bad(v: Any) -> bool:
+        if isinstance(v, list | tuple):
+            return any(bad(u) for u in v)
+        return isinstance(v, bool) or not isinstance(v, numbers.Real)
+
+    if isinstance(value, Tensor):
+        ok = not value.is_complex() and value.dtype != torch.bool
+    elif isinstance(value, np.ndarray):
+        ok = value.dtype.kind in "iuf"
+    else:
+        ok = not bad(value)
+    if not ok:
+        got = getattr(value, "dtype", type(value).__name__)
+        raise ValueError(
+            f"{owner}: {key} must be a real number (or a list of them); got "
+            f"{got} {value!r}."
+        )
+    try:
+        return torch.as_tensor(value, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError) as err:
+        raise ValueError(f"{owner}: {key}: not a rectangular array ({err}).") from err
 
 
 class Beamline(nn.Module):
@@ -121,19 +154,23 @@ class Beamline(nn.Module):
                 )
             if elem_cls is Screen:
                 elements.append(Screen(name, **entry))
-            elif elem_cls is LinearMap:
-                values = {
-                    k: torch.as_tensor(v, dtype=torch.float64) for k, v in entry.items()
-                }
+                continue
+            owner = f"spec[{pos}] ({kind} {name!r})"
+            values = {k: _spec_value(v, owner, k) for k, v in entry.items()}
+            if elem_cls is LinearMap:
                 if "matrix" not in values:
                     raise ValueError(
                         f"spec[{pos}] (LinearMap {name!r}) needs 'matrix'."
                     )
                 elements.append(LinearMap(name, **values))
             else:
-                values = {
-                    k: torch.as_tensor(v, dtype=torch.float64) for k, v in entry.items()
-                }
+                if elem_cls is TransverseDeflectingCavity and not bool(
+                    (values.get("frequency", torch.zeros(())) > 0).all()
+                ):
+                    got = repr(entry["frequency"]) if "frequency" in entry else "none"
+                    raise ValueError(
+                        f"{owner}: frequency must be > 0 Hz (an RF cavity); got {got}."
+                    )
                 elements.append(elem_cls(name, **values))
         return cls(elements)
 
@@ -217,7 +254,10 @@ class Beamline(nn.Module):
         return elem, attr
 
     def _scanned(
-        self, settings: Tensor | None, names: Sequence[str] | None
+        self,
+        settings: Tensor | None,
+        names: Sequence[str] | None,
+        particles: Tensor | None = None,
     ) -> Beamline:
         if settings is None and names is None:
             return self
@@ -237,6 +277,16 @@ class Beamline(nn.Module):
             raise ValueError("settings contain NaN or infinite values.")
         if len(set(names)) != len(names):
             raise ValueError(f"names must be unique; got {list(names)}.")
+        if particles is not None:
+            try:
+                torch.broadcast_shapes(particles.shape[:-2], settings.shape[:-1])
+            except RuntimeError:
+                raise ValueError(
+                    f"particles {tuple(particles.shape)} (*K, N, 6) and settings "
+                    f"{tuple(settings.shape)} (*K, P) must have broadcastable batch "
+                    f"shapes K; got {tuple(particles.shape[:-2])} and "
+                    f"{tuple(settings.shape[:-1])}."
+                ) from None
         return self.with_params({n: settings[..., p] for p, n in enumerate(names)})
 
     def track(
@@ -299,7 +349,7 @@ class Beamline(nn.Module):
         """
         check_particles(particles)
         p0c = as_p0c(p0c, particles)
-        line = self._scanned(settings, names)
+        line = self._scanned(settings, names, particles)
         images: dict[str, Tensor] = {}
         elements = list(line.elements)
         # nothing after the last screen is needed; an element followed only by
@@ -332,7 +382,7 @@ class Beamline(nn.Module):
     ) -> tuple[Tensor, dict[str, Tensor]]:
         check_particles(particles)
         p0c = as_p0c(p0c, particles)
-        line = self._scanned(settings, names)
+        line = self._scanned(settings, names, particles)
         screens: dict[str, Tensor] = {}
         coords = tuple(particles.unbind(-1))
         for e in line.elements:

@@ -116,7 +116,7 @@ def cheetah_to_bmad(
     """
     if particles.dim() >= 2 and particles.shape[-1] == 7:
         particles = particles[..., :6]
-    check_particles(particles)
+    check_particles(particles, check_momentum=False)  # delta: checked below
     p0c = as_p0c(p0c, particles).unsqueeze(-1)
     tau, delta = particles[..., 4], particles[..., 5]
     e0 = (p0c.square() + species.mass_ev**2).sqrt()

@@ -70,6 +70,19 @@ def _prepare(
         raise ValueError(
             f"x and y must be shaped (*K, N); got {tuple(x.shape)}, {tuple(y.shape)}."
         )
+    shapes = [x.shape, y.shape] + ([] if weights is None else [weights.shape])
+    try:
+        full = torch.broadcast_shapes(*shapes)
+    except RuntimeError as err:
+        raise ValueError(
+            "x, y and weights must broadcast to one shape (*K, N); got shapes "
+            f"{', '.join(str(tuple(s)) for s in shapes)}."
+        ) from err
+    if full[-1] == 0:
+        raise ValueError(
+            f"x and y hold no particles (N = 0; shape {tuple(full)}); an image "
+            "needs at least one particle."
+        )
     if weights is not None:
         x, y, weights = torch.broadcast_tensors(x, y, weights.to(x))
     else:
@@ -143,6 +156,9 @@ def gaussian_blur(
     Mass blurred past the edge is lost (the screen does not see it). Computed as
     two matrix products, so it is exact and differentiable.
     """
+    if not isinstance(image, Tensor) or image.dim() < 2:
+        got = tuple(image.shape) if isinstance(image, Tensor) else type(image).__name__
+        raise ValueError(f"image must be a tensor shaped (*K, H, W); got {got}.")
     sx, sy = _pair(sigma, "blur_sigma [m]")
     psx, psy = _pair(pixel_size, "pixel_size [m]")
     if sx < 0 or sy < 0:

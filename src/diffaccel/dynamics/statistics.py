@@ -58,7 +58,8 @@ def centroid(particles: Tensor, weights: Tensor | None = None) -> Tensor:
         >>> centroid(torch.tensor([[1.0, 0, 0, 0, 0, 0], [3.0, 0, 0, 0, 0, 0]]))[0]
         tensor(2.)
     """
-    check_particles(particles)
+    check_particles(particles, check_momentum=False)
+    _need(particles, 1, "centroids")
     w = _weights(particles, weights)
     p = particles.to(torch.float64)
     if w is None:
@@ -68,8 +69,18 @@ def centroid(particles: Tensor, weights: Tensor | None = None) -> Tensor:
     return mean.to(particles.dtype)
 
 
+def _need(particles: Tensor, n: int, what: str) -> None:
+    """Refuse beams of fewer than ``n`` particles (a shape check, no device read)."""
+    if particles.shape[-2] < n:
+        raise ValueError(
+            f"{what} need at least {n} particle(s); got particles of shape "
+            f"{tuple(particles.shape)}."
+        )
+
+
 def _cov64(particles: Tensor, weights: Tensor | None) -> Tensor:
-    check_particles(particles)
+    check_particles(particles, check_momentum=False)
+    _need(particles, 2, "second moments (covariance, emittance, twiss)")
     w = _weights(particles, weights)
     p = particles.to(torch.float64)
     if w is None:

@@ -1,0 +1,248 @@
+"""Bad values in dataset and particle files: refused naming file and field."""
+
+from __future__ import annotations
+
+import json
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from diffaccel.data import (
+    FormatError,
+    QuadScanDataset,
+    read_openpmd_particles,
+    read_quad_scan,
+    write_openpmd_particles,
+    write_quad_scan,
+)
+
+SPEC = [
+    {"type": "Quadrupole", "name": "Q1", "length": 0.1, "k1": 0.0},
+    {"type": "Drift", "name": "D1", "length": 1.0},
+    {"type": "Screen", "name": "SCREEN"},
+]
+
+
+def _dataset() -> QuadScanDataset:
+    yy, xx = torch.meshgrid(torch.arange(8.0), torch.arange(8.0), indexing="ij")
+    image = torch.exp(-((xx - 3.5) ** 2 + (yy - 3.5) ** 2) / 4)
+    images = (image / image.sum()).expand(4, 1, 8, 8).clone()
+    return QuadScanDataset(
+        images=images,
+        settings=torch.tensor([[-1.0], [0.0], [1.0], [2.0]]),
+        setting_names=["Q1.k1"],
+        setting_units=["1/m^2"],
+        p0c=43e6,
+        species="electron",
+        beamline_spec=SPEC,
+        pixel_size=(1e-3, 1e-3),
+        center=(0.0, 0.0),
+    )
+
+
+def _replace(h5: h5py.File, key: str, data: np.ndarray) -> None:
+    attrs = dict(h5[key].attrs)
+    del h5[key]
+    h5[key] = data
+    h5[key].attrs.update(attrs)
+
+
+def _images(h5: h5py.File, fn: Callable[[np.ndarray], np.ndarray]) -> None:
+    _replace(h5, "images", fn(h5["images"][()]))
+
+
+def _someneg(x: np.ndarray) -> np.ndarray:
+    x[1, 0, 0, 0] = -0.5
+    return x
+
+
+def _drift_length(value: float) -> Callable[[h5py.File], None]:
+    def apply(h5: h5py.File) -> None:
+        h5["settings"].attrs["names"] = '["D1.length"]'
+        h5["settings"].attrs["units"] = '["m"]'
+        _replace(h5, "settings", np.full((4, 1), value))
+
+    return apply
+
+
+def _beamline(value: object) -> Callable[[h5py.File], None]:
+    def apply(h5: h5py.File) -> None:
+        spec = json.loads(h5.attrs["beamline"])
+        spec[1]["length"] = value
+        h5.attrs["beamline"] = json.dumps(spec)
+
+    return apply
+
+
+BAD_FILES = {
+    "p0c_bool": (
+        lambda h: h.attrs.__setitem__("p0c", True),
+        r"/\.p0c: expected a number",
+    ),
+    "p0c_str": (
+        lambda h: h.attrs.__setitem__("p0c", "43e6"),
+        r"/\.p0c: expected a number",
+    ),
+    "p0c_tiny": (
+        lambda h: h.attrs.__setitem__("p0c", 1e-3),
+        r"/\.p0c: expected >= 510\.999 eV for electrons",
+    ),
+    "pixel_str": (
+        lambda h: h["screen"].attrs.__setitem__("pixel_size_x", "1e-3"),
+        r"/screen\.pixel_size_x: expected a number",
+    ),
+    "version_str": (
+        lambda h: h.attrs.__setitem__("format_version", "1"),
+        r"/\.format_version: expected an integer",
+    ),
+    "images_complex": (
+        lambda h: _images(h, lambda x: x.astype(np.complex64)),
+        r"/images: expected real numbers .* complex64",
+    ),
+    "images_bool": (
+        lambda h: _images(h, lambda x: x > 0),
+        r"/images: expected real numbers .* bool",
+    ),
+    "images_negative": (
+        lambda h: _images(h, _someneg),
+        r"/images: image of setting 1 \(shot 0\) has a pixel of -0\.5",
+    ),
+    "length_str": (_beamline("1.0"), r"\(Drift 'D1'\)\.length: expected a real number"),
+    "length_null": (_beamline(None), r"\(Drift 'D1'\)\.length: expected a real number"),
+    "length_bool": (_beamline(True), r"\(Drift 'D1'\)\.length: expected a real number"),
+    "length_list": (
+        _beamline([1.0]),
+        r"\(Drift 'D1'\)\.length: expected a real number",
+    ),
+    "negative_length_setting": (
+        _drift_length(-1.0),
+        r"/settings: 'D1\.length' = -1 at setting 0; expected >= 0 m",
+    ),
+}
+
+
+@pytest.fixture
+def scan_file(tmp_path: Path) -> Path:
+    return write_quad_scan(_dataset(), tmp_path / "scan.h5")
+
+
+@pytest.mark.parametrize("case", sorted(BAD_FILES))
+def test_bad_dataset_file_is_refused(scan_file: Path, case: str) -> None:
+    change, message = BAD_FILES[case]
+    with h5py.File(scan_file, "r+") as h5:
+        change(h5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no ComplexWarning on the way
+        with pytest.raises(FormatError, match=message) as info:
+            read_quad_scan(scan_file)
+    assert str(info.value).startswith(f"{scan_file}: /")
+
+
+def test_tdc_needs_a_frequency(scan_file: Path) -> None:
+    with h5py.File(scan_file, "r+") as h5:
+        spec = json.loads(h5.attrs["beamline"])
+        tdc = {"type": "TransverseDeflectingCavity", "name": "T", "length": 0.1}
+        h5.attrs["beamline"] = json.dumps(
+            [spec[0], {**tdc, "frequency": 0.0}, *spec[1:]]
+        )
+    with pytest.raises(FormatError, match=r"'T'\): frequency must be > 0 Hz"):
+        read_quad_scan(scan_file)
+
+
+def test_small_negative_pixels_are_accepted(scan_file: Path) -> None:
+    """Background-subtracted images may dip below zero by their noise."""
+    with h5py.File(scan_file, "r+") as h5:
+        x = h5["images"][()]
+        x[:, :, 0, 0] = -0.1 * x.max()
+        _replace(h5, "images", x)
+    assert float(read_quad_scan(scan_file).images.min()) < 0
+
+
+def test_repeated_setting_rows_warn(scan_file: Path) -> None:
+    with h5py.File(scan_file, "r+") as h5:
+        _replace(h5, "settings", np.array([[-1.0], [0.0], [-1.0], [2.0]]))
+    with pytest.warns(UserWarning, match=r"/settings: rows \[\[0, 2\]\] hold the same"):
+        read_quad_scan(scan_file)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with h5py.File(scan_file, "r+") as h5:
+            _replace(h5, "settings", np.array([[-1.0], [0.0], [1.0], [2.0]]))
+        read_quad_scan(scan_file)
+
+
+def test_container_refuses_tiny_p0c() -> None:
+    ds = _dataset()
+    with pytest.raises(FormatError, match=r"p0c: expected >= 938272 eV for protons"):
+        QuadScanDataset(**{**ds.__dict__, "p0c": 43.0, "species": "proton"})
+
+
+# ------------------------------------------------------------------ particles
+P = "data/0/particles/"
+RECORDS = [f"position/{c}" for c in "xyz"] + [f"momentum/{c}" for c in "xyz"]
+RECORDS += ["time", "weight", "particleStatus"]
+
+
+def _first(n: int) -> Callable[[h5py.File], None]:
+    def apply(h5: h5py.File) -> None:
+        for key in RECORDS:
+            _replace(h5, P + key, h5[P + key][:n])
+
+    return apply
+
+
+BAD_PARTICLES = {
+    "unitSI_str": (
+        lambda h: h[P + "position/x"].attrs.__setitem__("unitSI", "m"),
+        r"position/x\.unitSI: expected a number; found 'm'",
+    ),
+    "record_str": (
+        lambda h: _replace(h, P + "position/x", np.array([b"a"] * 300)),
+        r"position/x: expected real numbers; found dtype",
+    ),
+    "far_positions": (
+        lambda h: _replace(h, P + "position/z", np.linspace(-1e3, 1e3, 300)),
+        r"/position: expected \|x\|, \|y\| <= 1 m",
+    ),
+    "weight_negative": (
+        lambda h: _replace(h, P + "weight", -h[P + "weight"][()]),
+        r"/weight: expected macro-particle charges > 0",
+    ),
+    "weight_zero": (
+        lambda h: _replace(h, P + "weight", np.zeros(300)),
+        r"/weight: expected macro-particle charges > 0",
+    ),
+    "unit_dimension": (
+        lambda h: h[P + "position/x"].attrs.__setitem__(
+            "unitDimension", np.array([0.0, 0, 1, 0, 0, 0, 0])
+        ),
+        r"position/x\.unitDimension: expected \[1\.0, 0\.0",
+    ),
+    "one_particle": (_first(1), "expected at least 2 live particles"),
+    "p0c_str": (
+        lambda h: h[P].attrs.__setitem__("p0c", "43e6"),
+        r"particles\.p0c: expected a number",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_PARTICLES))
+def test_bad_particle_file_is_refused(tmp_path: Path, case: str) -> None:
+    beam = torch.randn(300, 6, generator=torch.Generator().manual_seed(0)) * 1e-3
+    path = write_openpmd_particles(tmp_path / "beam.h5", beam.double(), 43e6)
+    change, message = BAD_PARTICLES[case]
+    with h5py.File(path, "r+") as h5:
+        change(h5)
+    with pytest.raises(FormatError, match=message) as info:
+        read_openpmd_particles(path)
+    assert str(info.value).startswith(str(path))
+
+
+@pytest.mark.parametrize("n", [0, 1])
+def test_write_refuses_empty_beam(tmp_path: Path, n: int) -> None:
+    with pytest.raises(ValueError, match=r"N >= 2 particles; got \(" + str(n)):
+        write_openpmd_particles(tmp_path / "x.h5", torch.zeros(n, 6).double(), 1e6)
