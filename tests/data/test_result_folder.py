@@ -173,3 +173,17 @@ def test_read_only_parent_is_reported_before_the_run(tmp_path: Path) -> None:
                 pytest.fail("the body must not run")
     finally:
         ro.chmod(0o700)
+
+
+def test_refusal_names_resume_only_for_commands_that_can_resume(
+    tmp_path: Path,
+) -> None:
+    out = tmp_path / "run"
+    _write(out, {"x": "1"})
+    for keep, says in ((False, False), (True, True)):
+        with (
+            pytest.raises(ResultFolderError, match="pass --force") as err,
+            result_folder(out, command="test", keep_partial=keep),
+        ):
+            pass
+        assert ("--resume" in str(err.value)) is says

@@ -9,6 +9,10 @@ import click
 import torch
 from tqdm import tqdm
 
+from diffaccel.cli.hysteresis import (
+    check_finite,
+    check_input_range,
+)
 from diffaccel.cli.output import output_folder, save_png
 from diffaccel.data import (
     DEFAULT_INPUT_COLUMN,
@@ -26,13 +30,18 @@ from diffaccel.hysteresis import (
     save_fit,
 )
 from diffaccel.hysteresis.mesh import MAX_CLI_MESH_SIZE
-from diffaccel.hysteresis.predictive import rms
+from diffaccel.hysteresis.predictive import min_training_rows, rms
 from diffaccel.plotting.hysteresis import plot_preisach_density, plot_preisach_fit
 
 __all__ = ["fit_command"]
 
 SUMMARY_FILE = "summary.json"
 FIGURES = ("fit.png", "density.png")
+# beyond it the data term (a normalised mse, ~1 at most) is lost in the float64
+# round-off of the penalty, and far beyond it the loss overflows
+MAX_SMOOTHNESS = 1e12
+# larger magnitudes overflow squares and ranges in float64; no measurement has them
+MAX_MAGNITUDE = 1e100
 
 
 @click.command("fit")
@@ -41,7 +50,8 @@ FIGURES = ("fit.png", "density.png")
     "--train-rows",
     type=click.IntRange(min=1),
     required=True,
-    help="Fit on the first N rows (time order); the rest are predicted.",
+    help=f"Fit on the first N rows (time order; at least {min_training_rows()}, "
+    "some held out for validation); the rest are predicted.",
 )
 @click.option("--input", "input_col", default=DEFAULT_INPUT_COLUMN, show_default=True)
 @click.option(
@@ -72,9 +82,10 @@ FIGURES = ("fit.png", "density.png")
 )
 @click.option(
     "--smoothness",
-    type=click.FloatRange(min=0),
+    type=click.FloatRange(min=0, max=MAX_SMOOTHNESS),
     default=0.0,
     show_default=True,
+    callback=check_finite,
     help="Weight of the density roughness penalty.",
 )
 @click.option("--steps", type=click.IntRange(min=1), default=300, show_default=True)
@@ -90,6 +101,7 @@ FIGURES = ("fit.png", "density.png")
     "--input-range",
     type=(float, float),
     default=None,
+    callback=check_input_range,
     help="Model input range LO HI [input units]; default: training rows +- 1 % "
     "(+- 1.01 max|input| for --initial-state demagnetized).",
 )
@@ -122,6 +134,21 @@ def fit_command(
             f"{train_rows} exceeds the {len(hist)} rows of {data}.",
             param_hint="--train-rows",
         )
+    if train_rows < min_training_rows():
+        raise click.BadParameter(
+            f"a fit needs at least {min_training_rows()} training rows; got "
+            f"{train_rows}.",
+            param_hint="--train-rows",
+        )
+    for name, values in ((input_col, hist.input), (output_col, hist.output)):
+        big = values.abs() > MAX_MAGNITUDE
+        if big.any():
+            i = int(big.nonzero()[0, 0])
+            raise click.ClickException(
+                f"{data}: column {name!r}, data row {i + 1}: "
+                f"{float(values[i]):.6g} is beyond {MAX_MAGNITUDE:.0e} in magnitude, "
+                "not a measurement (a unit or parsing error?)."
+            )
     with output_folder(
         out_dir,
         "hysteresis fit",

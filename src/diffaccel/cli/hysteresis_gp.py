@@ -10,6 +10,7 @@ import click
 import torch
 from tqdm import tqdm
 
+from diffaccel.cli.hysteresis import check_input_range
 from diffaccel.cli.output import output_folder, save_png
 from diffaccel.data import atomic_write_json, read_magnet_csv
 from diffaccel.hysteresis import (
@@ -29,6 +30,8 @@ SUMMARY_FILE = "gp_summary.json"
 FIGURE_FILE = "gp_fit.png"
 # margin added to the data range of the hysteretic input (fraction of the range)
 RANGE_MARGIN = 0.01
+# largest seed torch takes
+SEED_MAX = 2**64 - 1
 
 
 @click.command("gp-fit")
@@ -72,6 +75,7 @@ RANGE_MARGIN = 0.01
     "--input-range",
     type=(float, float),
     default=None,
+    callback=check_input_range,
     help="Preisach input range LO HI [units of --x]; default: data range +- 1 %.",
 )
 @click.option(
@@ -81,7 +85,13 @@ RANGE_MARGIN = 0.01
     show_default=True,
     help="Magnet state before the first row.",
 )
-@click.option("--seed", type=int, default=0, show_default=True)
+@click.option(
+    "--seed",
+    type=click.IntRange(min=0, max=SEED_MAX),
+    default=0,
+    show_default=True,
+    help="Seed of the random restarts.",
+)
 @click.option(
     "--force", is_flag=True, help="Replace an earlier result in OUT (at the end)."
 )
@@ -110,6 +120,13 @@ def gp_fit(
         raise click.BadParameter(
             f"column(s) {repeated} given more than once", param_hint="--plain"
         )
+    for col, option in ((x_col, "--x"), (y_col, "--y")):
+        if col in plain_cols:
+            raise click.BadParameter(
+                f"column {col!r} is the {option} column; --plain names extra, "
+                "non-hysteretic input columns.",
+                param_hint="--plain",
+            )
     try:
         hist = read_magnet_csv(data, input_column=x_col, output_column=y_col)
         if float(hist.input.max() - hist.input.min()) <= 0:

@@ -41,6 +41,8 @@ __all__ = ["predict_command", "read_ahead"]
 PREDICTION = "prediction"
 PREDICTION_STD = "prediction_std"
 CHUNK_ROWS = 20_000
+# cap of --chunk-rows: a chunk is held in memory (10^9 rows: tens of GB)
+MAX_CHUNK_ROWS = 10**9
 
 
 @click.command("predict")
@@ -59,7 +61,7 @@ CHUNK_ROWS = 20_000
 )
 @click.option(
     "--chunk-rows",
-    type=click.IntRange(min=1),
+    type=click.IntRange(min=1, max=MAX_CHUNK_ROWS),
     default=CHUNK_ROWS,
     show_default=True,
     help="Rows read, predicted and written at a time (memory grows with it).",
@@ -77,6 +79,12 @@ def predict_command(
     Writes the input's columns plus ``prediction`` and ``prediction_std`` (one
     standard deviation, including measurement noise) [output units].
     """
+    # the refusals --force does not lift come first, so that the first is true
+    check_out_file(out_file, True, {"--input": data})
+    if out_file.suffix.lower() != ".csv":
+        raise click.ClickException(
+            f"--out {out_file}: expected a .csv file name (the output is CSV text)."
+        )
     check_out_file(out_file, force, {"--input": data})
     try:
         spec, config = _load(fit_dir)

@@ -219,9 +219,10 @@ def result_folder(
                     "; choose another (new or empty) folder."
                 )
             if not (force or resume):
+                # only commands that keep a failed run's files can resume it
+                hint = " or --resume to continue an interrupted run" * keep_partial
                 raise ResultFolderError(
-                    f"--out {out} is not empty; pass --force to replace it or "
-                    "--resume to continue an interrupted run."
+                    f"--out {out} is not empty; pass --force to replace it{hint}."
                 )
             if not os.access(out, os.W_OK | os.X_OK):
                 raise ResultFolderError(f"--out {out} is not writable.")

@@ -70,6 +70,15 @@ class LaplaceBand(nn.Module):
                 "LaplaceBand directions need shape (K, M + 3); got "
                 f"{tuple(directions.shape)}."
             )
+        for name, value, least in (
+            ("noise_std", noise_std, 0.0),
+            ("calibration", calibration, 1.0),
+        ):
+            v = torch.as_tensor(value, dtype=torch.float64)
+            if v.ndim != 0 or not (torch.isfinite(v) and v >= least):
+                raise ValueError(
+                    f"{name} must be a finite number >= {least:g}; got {v.tolist()}."
+                )
         self.register_buffer("directions", directions.detach().clone())
         self.register_buffer(
             "noise_std", torch.as_tensor(noise_std, dtype=directions.dtype).clone()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -202,8 +203,8 @@ def fit_preisach(
         raise ValueError(f"optimizer must be 'lbfgs' or 'adam'; got {optimizer!r}.")
     if steps < 1:
         raise ValueError(f"steps must be >= 1; got {steps}.")
-    if smoothness < 0:
-        raise ValueError(f"smoothness must be >= 0; got {smoothness}.")
+    if not (math.isfinite(smoothness) and smoothness >= 0):
+        raise ValueError(f"smoothness must be finite and >= 0; got {smoothness}.")
     u, y = check_series(current, field, model.alpha.dtype, model.alpha.device)
     model.check_input_range(u, "training inputs")  # before touching the model
     t0 = time.perf_counter()

@@ -36,6 +36,7 @@ __all__ = [
     "MagnetFit",
     "default_input_range",
     "fit_magnet",
+    "min_training_rows",
     "predict_stream",
     "symmetric_default",
 ]
@@ -44,6 +45,27 @@ __all__ = [
 RANGE_MARGIN = 0.01
 # rows held out of the training rows for validation (at least 2)
 VALIDATION_FRACTION = 0.25
+
+
+def _held_out(n: int, validation_fraction: float) -> int:
+    """Rows held out for validation of ``n`` training rows."""
+    return max(2, round(validation_fraction * n))
+
+
+def min_training_rows(validation_fraction: float = VALIDATION_FRACTION) -> int:
+    """Fewest training rows :func:`fit_magnet` takes: ``MIN_FIT_POINTS`` left to fit.
+
+    Raises:
+        ValueError: unless ``0 <= validation_fraction < 1``.
+    """
+    if not 0 <= validation_fraction < 1:
+        raise ValueError(
+            f"validation_fraction must be in [0, 1); got {validation_fraction}."
+        )
+    n = MIN_FIT_POINTS + 2
+    while n - _held_out(n, validation_fraction) < MIN_FIT_POINTS:
+        n += 1
+    return n
 
 
 def symmetric_default(input_range: Sequence[float]) -> bool:
@@ -170,12 +192,13 @@ def fit_magnet(
     _build(mesh_size, rng, initial_state, bool(symmetric)).check_input_range(
         u, "training inputs"
     )
-    n_val = max(2, round(validation_fraction * u.numel()))
+    n_val = _held_out(u.numel(), validation_fraction)
     n_fit = u.numel() - n_val
     if n_fit < MIN_FIT_POINTS:
         raise ValueError(
             f"{u.numel()} training rows leave {n_fit} to fit after holding out "
-            f"{n_val} for validation; need at least {MIN_FIT_POINTS + 2} rows."
+            f"{n_val} for validation; need at least "
+            f"{min_training_rows(validation_fraction)} rows."
         )
     if float(y[:n_fit].max() - y[:n_fit].min()) <= 0:
         raise ValueError("output is constant over the fitted rows; nothing to fit.")

@@ -105,7 +105,9 @@ def load_fit(fit_dir: str | Path) -> tuple[PreisachModel, LaplaceBand | None, di
                 band_t["directions"], band_t["noise_std"], float(band_t["calibration"])
             )
         except (KeyError, ValueError) as err:
-            raise ValueError(f"{pt_path}: malformed band ({err}).") from None
+            raise ValueError(
+                f"{pt_path}: malformed band ({str(err).rstrip('.')})."
+            ) from None
         if band.n_hysterons != raw.numel():
             raise ValueError(
                 f"{pt_path}: band has {band.n_hysterons} hysterons, the model "

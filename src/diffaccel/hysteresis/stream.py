@@ -396,6 +396,15 @@ _ARRAYS = (
     "band_affine",
     "band_weights",
 )
+_SCALARS = (
+    "offset",
+    "slope",
+    "scale",
+    "output_loc",
+    "output_scale",
+    "noise_std",
+    "calibration",
+)
 
 
 @dataclass(frozen=True)
@@ -463,14 +472,22 @@ class StreamSpec:
                     f"{np.shape(self.band_weights)}; expected (K, 2), (K, {m[0]})."
                 )
         lo, hi = self.input_range
-        values = [lo, hi, self.offset, self.slope, self.scale]
-        values += [self.output_loc, self.output_scale, self.noise_std, self.calibration]
-        arrays = [getattr(self, n) for n in _ARRAYS if getattr(self, n) is not None]
-        finite = all(np.isfinite(a).all() for a in arrays)
-        if not (np.isfinite(values).all() and finite):
-            raise ValueError("non-finite model numbers.")
+        if not (np.isfinite(lo) and np.isfinite(hi)):
+            raise ValueError(f"non-finite input_range ({lo}, {hi}).")
+        for name in _SCALARS + _ARRAYS:
+            value = getattr(self, name)
+            if value is not None and not np.isfinite(value).all():
+                raise ValueError(f"non-finite {name}.")
         if not hi > lo:
             raise ValueError(f"input range needs lo < hi; got ({lo}, {hi}).")
+        if not self.noise_std >= 0:
+            raise ValueError(f"noise_std must be >= 0; got {self.noise_std}.")
+        if not self.calibration >= 1:
+            raise ValueError(f"calibration must be >= 1; got {self.calibration}.")
+        if (np.asarray(self.weights) < 0).any():
+            raise ValueError(
+                f"weights must be >= 0; got {float(np.min(self.weights))}."
+            )
 
     @property
     def has_band(self) -> bool:
