@@ -204,6 +204,15 @@ OTHER_KINDS = {
 }
 
 
+def curved_chirp(params: dict, z: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+    """pz = h z + c (z^2 - <z^2>) + spread * noise (``params`` h, c, spread)."""
+    return (
+        params["h"] * z
+        + params["c"] * (z**2 - (z**2).mean())
+        + params["spread"] * noise
+    )
+
+
 def family_beam(params: dict, n: int, g: torch.Generator) -> torch.Tensor:
     """A beam of the shared file's family (see :data:`FAMILY`), Bmad ``(n, 6)``.
 
@@ -220,12 +229,7 @@ def family_beam(params: dict, n: int, g: torch.Generator) -> torch.Tensor:
     y = sy * u[:, 2]
     py = spy * (params["ypy"] * u[:, 2] + (1 - params["ypy"] ** 2) ** 0.5 * u[:, 3])
     z = sz * u[:, 4] + params["tilt"] * x
-    pz = (
-        params["h"] * z
-        + params["c"] * (z**2 - (z**2).mean())
-        + params["spread"] * u[:, 5]
-        + params["ypz"] * y
-    )
+    pz = curved_chirp(params, z, u[:, 5]) + params["ypz"] * y
     return torch.stack([x, px, y, py, z, pz], -1)
 
 
@@ -246,11 +250,7 @@ def double_horn_beam(params: dict, n: int, g: torch.Generator) -> torch.Tensor:
     y = 4.6e-4 * u[:, 2]
     py = 2.6e-4 * (0.8 * u[:, 2] + 0.6 * u[:, 3])
     z = a * torch.sin(theta) + params["horn_width"] * a * u[:, 4] + 0.2 * x
-    pz = (
-        params["h"] * z
-        + params["c"] * (z**2 - (z**2).mean())
-        + params["spread"] * u[:, 5]
-    )
+    pz = curved_chirp(params, z, u[:, 5])
     return torch.stack([x, px, y, py, z, pz], -1)
 
 
@@ -297,11 +297,7 @@ def tilted_beam(params: dict, n: int, g: torch.Generator) -> torch.Tensor:
     phi, f = params["tilt_angle"], params["tilt_fraction"]
     d = math.cos(phi) * u[:, 0] + math.sin(phi) * u[:, 1]
     z = params["sz"] * (f * d + (1 - f**2) ** 0.5 * u[:, 4])
-    pz = (
-        params["h"] * z
-        + params["c"] * (z**2 - (z**2).mean())
-        + params["spread"] * u[:, 5]
-    )
+    pz = curved_chirp(params, z, u[:, 5])
     return torch.stack([x, px, y, py, z, pz], -1)
 
 
