@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import pytest
 import torch
 
 from diffaccel.dynamics.linalg import lstsq
@@ -32,3 +33,12 @@ def test_lstsq_is_the_minimum_norm_solution() -> None:
     full = torch.randn(30, 6, generator=g, dtype=torch.float64)
     truth = torch.randn(6, 2, generator=g, dtype=torch.float64)
     assert torch.allclose(lstsq(full, full @ truth), truth, rtol=0, atol=1e-12)
+
+
+def test_lstsq_refuses_non_finite_systems() -> None:
+    a, b = _rank_deficient(3)
+    a[0, 0] = float("nan")
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        lstsq(a, b)
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        lstsq(torch.ones(3, 2, dtype=torch.float64), torch.full((3, 1), float("inf")))

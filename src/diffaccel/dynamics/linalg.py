@@ -22,7 +22,13 @@ def lstsq(a: Tensor, b: Tensor) -> Tensor:
 
     Shapes:
         ``a (..., M, N)``, ``b (..., M, K)`` -> ``(..., N, K)``.
+
+    Raises:
+        ValueError: if ``a`` or ``b`` holds NaN or infinite values (LAPACK
+            would print its own error and torch fail an internal assert).
     """
+    if not (bool(torch.isfinite(a).all()) and bool(torch.isfinite(b).all())):
+        raise ValueError("least squares: the system holds NaN or infinite values.")
     if a.device.type == "cpu":
         return torch.linalg.lstsq(a, b, driver="gelsd").solution
     return torch.linalg.lstsq(a, b).solution

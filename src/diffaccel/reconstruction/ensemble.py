@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import numbers
 import os
 from collections.abc import Mapping
 from functools import partial
@@ -138,8 +139,7 @@ class Reconstruction:
             ``(n, 6)`` particles of the ensemble mixture (members contribute
             equal shares), or ``(E, n, 6)``.
         """
-        if n < 1:
-            raise ValueError(f"n must be >= 1; got {n}.")
+        _count("n", n)
         device = torch.device(device or "cpu")
         rng = torch.Generator(device=device).manual_seed(seed)
         e = self.n_snapshots
@@ -209,7 +209,15 @@ class Reconstruction:
         Raises:
             ValueError: if ``settings`` has the wrong number of columns or NaNs.
         """
+        # the spread recolours members by their covariance: enough particles
+        _count("n_particles", n_particles, least=64 if return_std else 1)
+        if return_std:
+            _count("n_draws", n_draws, least=0)  # 0: the members alone
+            _count("draw_particles", draw_particles, least=64)
         if forward is not None:
+            if not isinstance(forward, ScreenForwardModel):
+                kind = type(forward).__name__
+                raise ValueError(f"forward must be a ScreenForwardModel; got {kind}.")
             fwd = forward
         elif scan is not None:
             if scan not in self.forwards:
@@ -220,6 +228,15 @@ class Reconstruction:
         else:
             fwd = self.forward
         settings = fwd.check_settings(settings)
+        if maps is not None and (
+            maps.ndim != 3
+            or maps.shape[0] != settings.shape[0]
+            or tuple(maps.shape[1:]) not in ((6, 6), (7, 7))
+        ):
+            raise ValueError(
+                f"maps {tuple(maps.shape)} must be the forward model's "
+                f"transfer_maps(settings): (K, 7, 7) with K = {settings.shape[0]}."
+            )
         beams = self.sample(n_particles, per_snapshot=True, seed=seed)
         # a 4D beam (pz = 0) through a beamline whose affine maps are exact for
         # it: one matrix product per beam instead of tracking (the same images
@@ -418,6 +435,23 @@ def load(directory: str | os.PathLike) -> Reconstruction:
         raise ValueError(
             f"{path} is a damaged diffaccel ensemble ({type(exc).__name__}: {first})."
         ) from exc
+
+
+#: Most particles one call draws per member: 10^9 x 6 float32 is 24 GB.
+MAX_PARTICLES = 10**9
+
+
+def _count(name: str, value: object, least: int = 1) -> None:
+    """Refuse a particle or draw count that is not an integer >= ``least``."""
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, numbers.Integral)
+        or not least <= value <= MAX_PARTICLES
+    ):
+        raise ValueError(
+            f"{name} must be an integer in [{least}, {MAX_PARTICLES:.0e}]; "
+            f"got {value!r}."
+        )
 
 
 def _unit_sum(images: Tensor) -> Tensor:

@@ -132,10 +132,26 @@ def fit_gaussian(
     rx_all, ry_all, mx_all, my_all, vxx_all, vyy_all, vxy_all = ([] for _ in range(7))
     floors, drift = [], 0.0
     map_list = list(maps) if maps is not None else [None] * len(forwards)
+    if not len(forwards) == len(image_list) == len(setting_list) == len(map_list):
+        raise ValueError(
+            f"one forward model, image stack and settings per scan; got "
+            f"{len(forwards)}, {len(image_list)} and {len(setting_list)}"
+            + ("" if maps is None else f" (and {len(map_list)} maps)")
+            + "."
+        )
     for fwd, imgs, sets, r in zip(
         forwards, image_list, setting_list, map_list, strict=True
     ):
         img = imgs.detach().to("cpu", torch.float64)
+        if img.ndim != 3 or img.shape[0] != sets.shape[0]:
+            raise ValueError(
+                f"images {tuple(img.shape)} must be (K, H, W) with one image per "
+                f"setting of settings {tuple(sets.shape)}."
+            )
+        if not bool(torch.isfinite(img).all()) or not bool(
+            (img.sum((-2, -1)) > 0).all()
+        ):
+            raise ValueError("images must be finite and each sum to > 0.")
         img = img / img.sum((-2, -1), keepdim=True).clamp_min(1e-300)
         xs, ys = fwd.screen.pixel_centers(dtype=torch.float64)
         px = img.sum(-2)  # (K, W)

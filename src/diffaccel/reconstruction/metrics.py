@@ -35,6 +35,7 @@ def beam_moments(particles: Tensor) -> dict[str, Tensor]:
         >>> round(float(m["emit_x"]) * 1e6, 1)
         1.0
     """
+    particles = torch.as_tensor(particles)  # numpy arrays too
     if particles.ndim != 2 or particles.shape[1] != 6 or particles.shape[0] < 2:
         raise ValueError(
             f"particles must have shape (N >= 2, 6); got {tuple(particles.shape)}."
@@ -181,15 +182,27 @@ def image_errors(predicted: Tensor, measured: Tensor) -> dict[str, float]:
         per-setting ``relative_l1_per_setting`` list.
 
     Raises:
-        ValueError: if the shapes differ.
+        ValueError: if the shapes differ or are empty, a pixel is NaN or
+            infinite, or a measured image does not sum to > 0.
     """
+    predicted, measured = torch.as_tensor(predicted), torch.as_tensor(measured)
     if predicted.shape != measured.shape or predicted.ndim != 3:
         raise ValueError(
             f"predicted {tuple(predicted.shape)} and measured "
             f"{tuple(measured.shape)} must both be (K, H, W)."
         )
+    if predicted.numel() == 0:
+        raise ValueError(f"no images to compare (shape {tuple(predicted.shape)}).")
     p = predicted.detach().to(torch.float64)
     m = measured.detach().to(p.device, torch.float64)
+    for name, t in (("predicted", p), ("measured", m)):
+        if not bool(torch.isfinite(t).all()):
+            raise ValueError(f"{name} images contain NaN or infinite pixels.")
+    if not bool((m.sum((-2, -1)) > 0).all()):
+        k = int(torch.nonzero(m.sum((-2, -1)) <= 0)[0])
+        raise ValueError(
+            f"measured image {k} sums to <= 0; relative errors need positive images."
+        )
     diff = (m - p).abs()
     peak = m.amax((-2, -1)).clamp_min(1e-300)
     mae = diff.mean((-2, -1)) / peak

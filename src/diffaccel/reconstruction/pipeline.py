@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import numbers
 import os
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -11,6 +12,7 @@ from typing import Literal
 
 import torch
 import torch.distributed as tdist
+from torch import Tensor
 
 from diffaccel.data.quad_scan import QuadScanDataset
 from diffaccel.data.scans import MultiScanDataset, parse_selection
@@ -67,6 +69,33 @@ class TrainingSelection(dict[str, list[int]]):
         return tuple(self)
 
 
+def _indices(given: object, scan: str) -> list[int]:
+    """A scan's training indices as ints; text, floats and booleans refused."""
+    if isinstance(given, str | bytes):
+        raise ValueError(
+            f"train_indices of scan {scan!r}: expected a list of integer indices; "
+            f"got the text {given!r} (a rule such as 'even' applies to every scan: "
+            "pass it as train_indices itself)."
+        )
+    try:
+        items = list(given)  # type: ignore[call-overload]
+    except TypeError:
+        raise ValueError(
+            f"train_indices of scan {scan!r}: expected a list of integer indices; "
+            f"got {given!r}."
+        ) from None
+    out = []
+    for i in items:
+        if isinstance(i, Tensor) and i.numel() == 1:
+            i = i.item()
+        if isinstance(i, bool) or not isinstance(i, numbers.Integral):
+            raise ValueError(
+                f"train_indices of scan {scan!r}: {i!r} is not an integer index."
+            )
+        out.append(int(i))
+    return out
+
+
 def training_selection(
     dataset: MultiScanDataset, train_indices: TrainIndices
 ) -> TrainingSelection:
@@ -101,13 +130,13 @@ def training_selection(
             raise ValueError(
                 f"train_indices: unknown scan(s) {unknown}; scans are {dataset.names}."
             )
-        raw = {name: list(train_indices.get(name, [])) for name in dataset.names}
+        raw = {name: train_indices.get(name, []) for name in dataset.names}
     else:
-        raw = {name: list(train_indices) for name in dataset.names}
+        raw = {name: train_indices for name in dataset.names}
     out = {}
-    for name, idx in raw.items():
+    for name, given in raw.items():
         k = dataset[name].n_settings
-        idx = [int(i) for i in idx]
+        idx = _indices(given, name)
         if any(i < 0 or i >= k for i in idx) or len(set(idx)) != len(idx):
             raise ValueError(
                 f"train_indices of scan {name!r} must be distinct integers in "
