@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import copy
 import logging
+import math
+import numbers
+import operator
 from collections.abc import Mapping
 from typing import Literal
 
@@ -32,6 +35,19 @@ __all__ = ["HysteresisBO"]
 logger = logging.getLogger(__name__)
 
 Acquisition = Literal["ucb", "logei"]
+
+
+def _positive_int(name: str, value: object) -> int:
+    """``value`` as an int >= 1, or a ValueError naming ``name``."""
+    try:
+        if isinstance(value, bool):
+            raise TypeError
+        n = operator.index(value)
+    except TypeError:
+        raise ValueError(f"{name} must be an int >= 1; got {value!r}.") from None
+    if n < 1:
+        raise ValueError(f"{name} must be >= 1; got {n}.")
+    return n
 
 
 class HysteresisBO:
@@ -103,16 +119,40 @@ class HysteresisBO:
                 f"bounds must be a float tensor of shape (2, d); got "
                 f"{tuple(bounds.shape)} {bounds.dtype}."
             )
+        if not torch.isfinite(bounds).all():
+            raise ValueError(
+                f"bounds contain NaN or infinite values; got {bounds.tolist()}."
+            )
         if not (bounds[1] > bounds[0]).all():
             raise ValueError(f"bounds need lower < upper; got {bounds.tolist()}.")
+        d = bounds.shape[1]
+        for c in hysteresis:
+            if isinstance(c, bool) or not isinstance(c, numbers.Integral):
+                raise ValueError(
+                    f"hysteresis keys must be int column indices; got {c!r}."
+                )
+            if not 0 <= c < d:
+                raise ValueError(
+                    f"hysteresis column {c} does not exist: bounds have d={d} "
+                    f"columns (0..{d - 1})."
+                )
         if acquisition not in ("ucb", "logei"):
             raise ValueError(
                 f"acquisition must be 'ucb' or 'logei'; got {acquisition!r}."
             )
-        if beta <= 0:
-            raise ValueError(f"beta must be > 0; got {beta}.")
+        try:
+            beta_f = float(beta)
+        except (TypeError, ValueError, RuntimeError):
+            msg = f"beta must be a finite number > 0; got {beta!r}."
+            raise ValueError(msg) from None
+        if not (math.isfinite(beta_f) and beta_f > 0):
+            raise ValueError(f"beta must be finite and > 0; got {beta}.")
+        fit_restarts = _positive_int("fit_restarts", fit_restarts)
+        fit_max_iter = _positive_int("fit_max_iter", fit_max_iter)
+        num_restarts = _positive_int("num_restarts", num_restarts)
+        raw_samples = _positive_int("raw_samples", raw_samples)
         self.bounds = bounds
-        self.hysteresis = dict(hysteresis)
+        self.hysteresis = {int(c): pm for c, pm in hysteresis.items()}
         self.acquisition = acquisition
         self.beta = float(beta)
         self.maximize = bool(maximize)
@@ -230,9 +270,11 @@ class HysteresisBO:
 
         Returns:
             Settings, shape ``(q, d)``.
+
+        Raises:
+            ValueError: unless ``q`` is an int >= 1.
         """
-        if q < 1:
-            raise ValueError(f"q must be >= 1; got {q}.")
+        q = _positive_int("q", q)
         acq = self.acquisition_function(q)
         gen = torch.random.fork_rng()
         with gen:

@@ -21,6 +21,7 @@ from __future__ import annotations
 import copy
 import logging
 import math
+import numbers
 import time
 import warnings
 from collections.abc import Callable, Mapping
@@ -255,6 +256,7 @@ class HysteresisGP(Model):
             fixed (a ``"learned"`` initial state is used as it is, not refitted).
         bounds: Lower and upper bounds of every input column, shape ``(2, d)``,
             used to scale plain columns to ``[0, 1]``; the data range if omitted.
+            Finite, with lower <= upper (equal bounds: a constant column).
         train_Yvar: Measured noise variances of ``train_Y`` [units of ``train_Y``
             squared], shape ``(n, 1)``; a ``FixedNoiseGaussianLikelihood`` then
             replaces the fitted noise level.
@@ -324,7 +326,19 @@ class HysteresisGP(Model):
                 )
             _check_likelihood(likelihood)
         d = train_X.shape[-1]
-        dims = sorted(int(c) for c in hysteresis)
+        for c in hysteresis:
+            if isinstance(c, bool) or not isinstance(c, numbers.Integral):
+                raise ValueError(
+                    f"hysteresis keys must be int column indices of train_X; got "
+                    f"{c!r} ({type(c).__name__})."
+                )
+            if not isinstance(hysteresis[c], PreisachModel):
+                raise ValueError(
+                    f"hysteresis[{c}] must be a PreisachModel; got "
+                    f"{type(hysteresis[c]).__name__}."
+                )
+        hysteresis = {int(c): pm for c, pm in hysteresis.items()}
+        dims = sorted(hysteresis)
         for c in dims:
             if not 0 <= c < d:
                 raise ValueError(
@@ -337,6 +351,14 @@ class HysteresisGP(Model):
         if bounds.shape != (2, d):
             raise ValueError(
                 f"bounds must have shape (2, d) = (2, {d}); got {tuple(bounds.shape)}."
+            )
+        if not torch.isfinite(bounds).all():
+            raise ValueError(
+                f"bounds contain NaN or infinite values; got {bounds.tolist()}."
+            )
+        if (bounds[0] > bounds[1]).any():
+            raise ValueError(
+                f"bounds need lower <= upper in every column; got {bounds.tolist()}."
             )
         if candidate_smoothing is not None and not candidate_smoothing >= 0:
             raise ValueError(

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -57,7 +59,34 @@ def next_step_output(
 
     Returns:
         Outputs [output units], shape ``(K,)``.
+
+    Raises:
+        ValueError: for a ``state`` whose last dimension is not the model's
+            number of hysterons ``M``, or a non-finite ``u_last`` / ``u_next``.
     """
+    m = len(model.alpha)
+    state_t = torch.as_tensor(state)
+    if state_t.ndim not in (1, 2) or state_t.shape[-1] != m:
+        raise ValueError(
+            f"state must have shape (M,) or (K, M) with M = {m} hysterons of the "
+            f"model's mesh; got {tuple(state_t.shape)}."
+        )
+    if torch.is_tensor(u_last):
+        if not bool(torch.isfinite(u_last).all()):
+            raise ValueError("u_last contains NaN or infinite values.")
+    elif not math.isfinite(float(u_last)):
+        raise ValueError(f"u_last must be finite; got {u_last}.")
+    return _next_step_output(model, u_next, state_t, u_last, smooth)
+
+
+def _next_step_output(
+    model: PreisachModel,
+    u_next: Tensor,
+    state: Tensor,
+    u_last: Tensor | float,
+    smooth: bool = True,
+) -> Tensor:
+    """:func:`next_step_output` without its argument checks (hot loops)."""
     un = model.normalize_input(u_next.reshape(-1, 1))  # (K, 1)
     lo, hi = model.input_range
     start = (torch.as_tensor(u_last, dtype=un.dtype, device=un.device) - lo) / (hi - lo)
@@ -107,8 +136,18 @@ def invert_preisach(
         An :class:`InverseResult`.
 
     Raises:
-        ValueError: for NaN targets, an empty history or invalid limits.
+        ValueError: for NaN targets, an empty history, invalid limits, or a
+            ``max_iter`` that is not an int >= 1 or a ``tol`` that is not
+            positive and finite.
     """
+    if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral):
+        raise ValueError(f"max_iter must be an int >= 1; got {max_iter!r}.")
+    if max_iter < 1:
+        raise ValueError(f"max_iter must be >= 1; got {max_iter}.")
+    if isinstance(tol, bool) or not isinstance(tol, numbers.Real):
+        raise ValueError(f"tol must be a positive finite number; got {tol!r}.")
+    if not (math.isfinite(tol) and tol > 0):
+        raise ValueError(f"tol must be positive and finite; got {tol}.")
     dtype, device = model.alpha.dtype, model.alpha.device
     y_t = torch.as_tensor(target, dtype=dtype, device=device).reshape(-1)
     if not torch.isfinite(y_t).all():
@@ -117,7 +156,15 @@ def invert_preisach(
     if h.ndim != 1 or h.numel() < 1:
         raise ValueError(f"history must have shape (H,) with H >= 1; got {h.shape}.")
     r_lo, r_hi = model.input_range
-    lo_lim, hi_lim = (r_lo, r_hi) if limits is None else (float(v) for v in limits)
+    if limits is None:
+        lo_lim, hi_lim = r_lo, r_hi
+    else:
+        lims = [float(v) for v in limits]
+        if len(lims) != 2 or not all(math.isfinite(v) for v in lims):
+            raise ValueError(
+                f"limits must be two finite numbers (lo, hi); got {list(limits)}."
+            )
+        lo_lim, hi_lim = lims
     lo_lim, hi_lim = max(lo_lim, r_lo), min(hi_lim, r_hi)
     if not lo_lim < hi_lim:
         raise ValueError(
@@ -132,7 +179,7 @@ def invert_preisach(
     hi = torch.full((k,), hi_lim, dtype=dtype, device=device)
 
     def response(x: Tensor) -> Tensor:
-        return next_step_output(model, x, state, u_last)
+        return _next_step_output(model, x, state, u_last)
 
     with torch.no_grad():
         f_lo = response(lo) - y_t

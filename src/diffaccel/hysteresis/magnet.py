@@ -156,10 +156,12 @@ def hysteretic_settings(
         names)`` (``T`` acts as the scan dimension ``K``).
 
     Raises:
-        ValueError: if the last dimension of ``currents`` is not ``P`` or the
-            magnets drive the same element twice.
+        ValueError: if ``magnets`` is empty, the last dimension of ``currents``
+            is not ``P`` or the magnets drive the same element twice.
     """
     p = len(magnets)
+    if p < 1:
+        raise ValueError("magnets is empty; give at least one HystereticMagnet.")
     if currents.dim() < 2 or currents.shape[-1] != p:
         raise ValueError(
             f"currents must have shape (*B, T, P) with P = {p} magnets; got "

@@ -8,6 +8,7 @@ hysteron (relay), ``beta`` its down-switching threshold.
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 from torch import Tensor
@@ -196,8 +197,16 @@ class PreisachMesh:
             The mesh.
 
         Raises:
-            ValueError: if ``n < 1``, ``refine < 0`` or ``band < 1``.
+            ValueError: if ``n``, ``refine`` or ``band`` is not an int, or
+                ``n < 1``, ``refine < 0`` or ``band < 1``.
         """
+        for name, v in (("n", n), ("refine", refine), ("band", band)):
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral):
+                raise ValueError(
+                    f"triangular mesh needs an int {name}; got {v!r} "
+                    f"({type(v).__name__})."
+                )
+        n, refine, band = int(n), int(refine), int(band)
         if n < 1:
             raise ValueError(f"triangular mesh needs n >= 1 cells per axis; got {n}.")
         if refine < 0 or band < 1:

@@ -80,7 +80,12 @@ def symmetric_default(input_range: Sequence[float]) -> bool:
     its virgin curve and first descent they never exercise the mirrored
     hysterons (see ``benchmarks/preisach_acceptance.py``).
     """
-    lo, hi = (float(v) for v in input_range)
+    vals = [float(v) for v in input_range]
+    if len(vals) != 2 or not all(math.isfinite(v) for v in vals):
+        raise ValueError(
+            f"input_range must be two finite numbers (lo, hi); got {list(input_range)}."
+        )
+    lo, hi = vals
     return abs(lo + hi) <= 0.05 * (hi - lo)
 
 
@@ -100,7 +105,15 @@ def default_input_range(
 
     Returns:
         ``(lo, hi)`` with ``lo < hi``.
+
+    Raises:
+        ValueError: if ``current`` is empty or holds NaN or infinite values.
     """
+    current = torch.as_tensor(current)
+    if current.numel() < 1:
+        raise ValueError("current is empty; need at least one training input.")
+    if not bool(torch.isfinite(current).all()):
+        raise ValueError("current contains NaN or infinite values.")
     lo, hi = float(current.min()), float(current.max())
     if initial_state == "demagnetized":
         top = (1.0 + RANGE_MARGIN) * max(abs(lo), abs(hi), 1e-12)
@@ -173,7 +186,7 @@ def fit_magnet(
         steps: L-BFGS iterations per fit.
         smoothness: Density roughness penalty (see :func:`fit_preisach`).
         validation_fraction: Share of the last training rows held out to
-            choose ``symmetric`` and calibrate the band.
+            choose ``symmetric`` and calibrate the band, in ``[0, 1)``.
         callback: ``callback(step, loss)`` of every fit, in turn.
 
     Returns:
@@ -184,6 +197,10 @@ def fit_magnet(
             that misses training inputs, or too few rows to validate.
     """
     start = time.perf_counter()
+    if not 0 <= validation_fraction < 1:  # also refuses NaN
+        raise ValueError(
+            f"validation_fraction must be in [0, 1); got {validation_fraction}."
+        )
     u, y = check_series(current, field, torch.float64, None)
     rng = tuple(input_range) if input_range is not None else None
     if rng is None:

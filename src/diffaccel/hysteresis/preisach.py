@@ -109,6 +109,11 @@ class PreisachModel(nn.Module):
         dtype: torch.dtype = torch.float64,
     ) -> None:
         super().__init__()
+        if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
+            raise ValueError(
+                f"dtype must be a floating torch dtype (e.g. torch.float64); "
+                f"got {dtype}."
+            )
         lo, hi = (float(v) for v in input_range)
         if not (math.isfinite(lo) and math.isfinite(hi)) or hi <= lo:
             raise ValueError(
@@ -484,6 +489,10 @@ class PreisachModel(nn.Module):
 
         Returns:
             Outputs [output units] for the future steps, shape ``(*B, T)``.
+
+        Raises:
+            ValueError: if the batch shapes of ``history`` and ``u`` do not
+                broadcast (also a ``RuntimeError``, as raised before).
         """
         u = torch.as_tensor(u, dtype=self.alpha.dtype, device=self.alpha.device)
         if history is None:
@@ -494,11 +503,22 @@ class PreisachModel(nn.Module):
                 f"history and u need shape (*B, T); got {tuple(h.shape)}, "
                 f"{tuple(u.shape)}."
             )
-        batch = torch.broadcast_shapes(h.shape[:-1], u.shape[:-1])
+        try:
+            batch = torch.broadcast_shapes(h.shape[:-1], u.shape[:-1])
+        except RuntimeError:
+            raise _BatchShapeError(
+                f"history and u need broadcastable batch shapes *B: history "
+                f"{tuple(h.shape)} (*B, H) and u {tuple(u.shape)} (*B, T) do not "
+                "match."
+            ) from None
         h = h.expand(*batch, h.shape[-1])
         u = u.expand(*batch, u.shape[-1])
         full = torch.cat([h, u], dim=-1)
         return self(full, initial_state, smooth=smooth)[..., h.shape[-1] :]
+
+
+class _BatchShapeError(ValueError, RuntimeError):
+    """Mismatched batch shapes: a ValueError (a RuntimeError as it used to be)."""
 
 
 def _host(x: Tensor) -> np.ndarray:
