@@ -277,10 +277,14 @@ def test_a_second_run_into_a_busy_folder_is_refused(
     out = tmp_path / "out"
     lock = tmp_path / ".out.lock"  # as a running process (this one) holds it
     lock.write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
+    # the running one's checkpoint: not this refused run's to offer for --resume
+    (tmp_path / ".out.partial").mkdir()
+    (tmp_path / ".out.partial" / "checkpoint.pt").write_bytes(b"of the other run")
     r = CliRunner().invoke(
         main, ["reconstruct", str(scan_file), "--out", str(out), *FAST]
     )
     assert r.exit_code == 1 and "being written by another run" in r.output
+    assert "--resume continues it" not in r.output
     assert not out.exists() and lock.exists()
 
 

@@ -613,6 +613,7 @@ def reconstruct_command(
         click.echo(f"resuming from {found[0]} ({config})", err=True)
     if torch.device(dev).type == "cpu":
         check_memory(config, sum(len(v) for v in selection.values()))
+    started = False
     try:
         if writer:
             target = output_folder(
@@ -627,6 +628,7 @@ def reconstruct_command(
         else:  # process 0 owns the folder; the others read its checkpoint
             target = nullcontext(SimpleNamespace(path=partial_folder(out)))
         with _shared_refusal(target, distributed) as folder:
+            started = True  # the folder is this run's (not refused, not locked)
             summary = run_reconstruction(
                 ds,
                 dataset,
@@ -641,7 +643,8 @@ def reconstruct_command(
                 uncertainty=uncertainty,
             )
     except (KeyboardInterrupt, click.ClickException):
-        if (partial_folder(out) / CHECKPOINT).is_file():
+        # a refused run (another run's lock) must not point at that run's files
+        if started and (partial_folder(out) / CHECKPOINT).is_file():
             click.echo(
                 f"note: the run's checkpoint is kept in {partial_folder(out)}; "
                 f"--resume continues it ({out} is unchanged)",

@@ -155,6 +155,10 @@ def synthetic(out: Path, force: bool, **options: Any) -> None:
         click.echo(build(opts, out, force, beam))
     except (FormatError, ValueError, FileExistsError) as err:
         raise click.ClickException(str(err)) from err
+    except PermissionError as err:  # e.g. a read-only folder
+        raise click.ClickException(
+            f"cannot write {out}: {err.strerror} ({out.parent} is not writable?)"
+        ) from err
     except (MemoryError, RuntimeError) as err:
         if not isinstance(err, MemoryError) and "alloc" not in str(err):
             raise
