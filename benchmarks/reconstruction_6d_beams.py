@@ -254,17 +254,24 @@ def double_horn_beam(params: dict, n: int, g: torch.Generator) -> torch.Tensor:
     return torch.stack([x, px, y, py, z, pz], -1)
 
 
+def _sign(rng: np.random.Generator) -> float:
+    return 1.0 if rng.random() < 0.5 else -1.0
+
+
+def _chirp_draw(rng: np.random.Generator) -> dict:
+    """Chirp h [1/m], curvature c [1/m^2] and spread of a random draw."""
+    return {
+        "h": _sign(rng) * rng.uniform(0.5, 4.0),
+        "c": _sign(rng) * rng.uniform(300.0, 3000.0),
+        "spread": rng.uniform(0.3e-3, 2e-3),
+    }
+
+
 def family_draw(rng: np.random.Generator) -> dict:
     """Parameters of one README-family beam (ranges of the audit's draws)."""
-
-    def sign() -> float:
-        return 1.0 if rng.random() < 0.5 else -1.0
-
     return {
-        "h": sign() * rng.uniform(0.5, 4.0),
-        "c": sign() * rng.uniform(300.0, 3000.0),
-        "spread": rng.uniform(0.3e-3, 2e-3),
-        "tilt": sign() * rng.uniform(0.1, 0.7),
+        **_chirp_draw(rng),
+        "tilt": _sign(rng) * rng.uniform(0.1, 0.7),
         "xpx": rng.uniform(-0.95, 0.95),
         "ypy": rng.uniform(-0.95, 0.95),
         "kappa": rng.uniform(-400.0, 400.0),
@@ -305,14 +312,8 @@ def tilted_draw(rng: np.random.Generator) -> dict:
     """Parameters of one :func:`tilted_beam` (the family draws' ranges for
     sizes, correlations, chirp and spread; the shared truth's tilt fraction is
     about 0.91)."""
-
-    def sign() -> float:
-        return 1.0 if rng.random() < 0.5 else -1.0
-
     return {
-        "h": sign() * rng.uniform(0.5, 4.0),
-        "c": sign() * rng.uniform(300.0, 3000.0),
-        "spread": rng.uniform(0.3e-3, 2e-3),
+        **_chirp_draw(rng),
         "tilt_angle": rng.uniform(0.0, 2 * math.pi),
         "tilt_fraction": rng.uniform(0.2, 0.95),
         "xpx": rng.uniform(-0.95, 0.95),
