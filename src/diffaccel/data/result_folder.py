@@ -220,7 +220,9 @@ def result_folder(
                 )
             if not (force or resume):
                 # only commands that keep a failed run's files can resume it
-                hint = " or --resume to continue an interrupted run" * keep_partial
+                hint = ""
+                if keep_partial:
+                    hint = " or --resume to continue an interrupted run"
                 raise ResultFolderError(
                     f"--out {out} is not empty; pass --force to replace it{hint}."
                 )

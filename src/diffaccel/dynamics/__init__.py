@@ -7,7 +7,7 @@ Coordinates are Bmad's ``(x, px, y, py, z, pz)`` about a reference momentum
 from __future__ import annotations
 
 from diffaccel.dynamics import elements
-from diffaccel.dynamics._validate import finite_checks
+from diffaccel.dynamics._validate import finite_checks, is_integer, is_real
 from diffaccel.dynamics.beamline import ELEMENT_TYPES, Beamline
 from diffaccel.dynamics.constants import (
     ELECTRON_MASS_EV,
@@ -62,6 +62,8 @@ __all__ = [
     "energy_to_p0c",
     "finite_checks",
     "gaussian_blur",
+    "is_integer",
+    "is_real",
     "kde_image",
     "normalized_emittance",
     "openpmd_to_bmad",

@@ -37,6 +37,22 @@ def finite_checks_enabled() -> bool:
     return _FINITE_CHECKS.get()
 
 
+def is_integer(value: object) -> bool:
+    """Whether ``value`` is an integer (Python or NumPy), not a bool."""
+    return isinstance(value, numbers.Integral) and not isinstance(
+        value, bool | np.bool_
+    )
+
+
+def is_real(value: object) -> bool:
+    """Whether ``value`` is a finite real number (Python or NumPy), not a bool."""
+    return (
+        isinstance(value, numbers.Real)
+        and not isinstance(value, bool | np.bool_)
+        and math.isfinite(value)
+    )
+
+
 def check_particles(
     particles: Tensor, *, check_finite: bool = True, check_momentum: bool = True
 ) -> Tensor:

@@ -11,7 +11,6 @@ from __future__ import annotations
 import copy
 import logging
 import math
-import numbers
 import operator
 from collections.abc import Mapping
 from typing import Literal
@@ -27,6 +26,7 @@ from botorch.acquisition.acquisition import AcquisitionFunction
 from botorch.optim import optimize_acqf
 from torch import Tensor
 
+from diffaccel.dynamics import is_integer
 from diffaccel.hysteresis.hgp import HGPFitResult, HysteresisGP, fit_hysteresis_gp
 from diffaccel.hysteresis.preisach import PreisachModel
 
@@ -127,7 +127,7 @@ class HysteresisBO:
             raise ValueError(f"bounds need lower < upper; got {bounds.tolist()}.")
         d = bounds.shape[1]
         for c in hysteresis:
-            if isinstance(c, bool) or not isinstance(c, numbers.Integral):
+            if not is_integer(c):
                 raise ValueError(
                     f"hysteresis keys must be int column indices; got {c!r}."
                 )

@@ -21,7 +21,6 @@ from __future__ import annotations
 import copy
 import logging
 import math
-import numbers
 import time
 import warnings
 from collections.abc import Callable, Mapping
@@ -59,6 +58,7 @@ from gpytorch.priors import NormalPrior
 from gpytorch.utils.warnings import GPInputWarning
 from torch import Tensor, nn
 
+from diffaccel.dynamics import is_integer
 from diffaccel.hysteresis.preisach import PreisachModel
 from diffaccel.hysteresis.states import exact_states, smooth_states
 
@@ -327,7 +327,7 @@ class HysteresisGP(Model):
             _check_likelihood(likelihood)
         d = train_X.shape[-1]
         for c in hysteresis:
-            if isinstance(c, bool) or not isinstance(c, numbers.Integral):
+            if not is_integer(c):
                 raise ValueError(
                     f"hysteresis keys must be int column indices of train_X; got "
                     f"{c!r} ({type(c).__name__})."

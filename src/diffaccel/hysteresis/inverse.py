@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import math
-import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from diffaccel.dynamics import is_integer, is_real
 from diffaccel.hysteresis.preisach import PreisachModel
 from diffaccel.hysteresis.states import smooth_states
 
@@ -140,14 +140,12 @@ def invert_preisach(
             ``max_iter`` that is not an int >= 1 or a ``tol`` that is not
             positive and finite.
     """
-    if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral):
+    if not is_integer(max_iter):
         raise ValueError(f"max_iter must be an int >= 1; got {max_iter!r}.")
     if max_iter < 1:
         raise ValueError(f"max_iter must be >= 1; got {max_iter}.")
-    if isinstance(tol, bool) or not isinstance(tol, numbers.Real):
+    if not (is_real(tol) and tol > 0):
         raise ValueError(f"tol must be a positive finite number; got {tol!r}.")
-    if not (math.isfinite(tol) and tol > 0):
-        raise ValueError(f"tol must be positive and finite; got {tol}.")
     dtype, device = model.alpha.dtype, model.alpha.device
     y_t = torch.as_tensor(target, dtype=dtype, device=device).reshape(-1)
     if not torch.isfinite(y_t).all():

@@ -8,10 +8,11 @@ hysteron (relay), ``beta`` its down-switching threshold.
 from __future__ import annotations
 
 import math
-import numbers
 
 import torch
 from torch import Tensor
+
+from diffaccel.dynamics import is_integer
 
 __all__ = ["MAX_CLI_MESH_SIZE", "PreisachMesh"]
 
@@ -201,7 +202,7 @@ class PreisachMesh:
                 ``n < 1``, ``refine < 0`` or ``band < 1``.
         """
         for name, v in (("n", n), ("refine", refine), ("band", band)):
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral):
+            if not is_integer(v):
                 raise ValueError(
                     f"triangular mesh needs an int {name}; got {v!r} "
                     f"({type(v).__name__})."

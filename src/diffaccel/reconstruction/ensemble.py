@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import numbers
 import os
 from collections.abc import Mapping
 from functools import partial
@@ -13,6 +12,7 @@ import torch
 from torch import Tensor
 
 from diffaccel.data import atomic_write
+from diffaccel.dynamics import is_integer
 from diffaccel.reconstruction.forward import ScreenForwardModel
 from diffaccel.reconstruction.generator import BeamGenerator
 from diffaccel.reconstruction.metrics import COORDINATES, beam_moments
@@ -443,11 +443,7 @@ MAX_PARTICLES = 10**9
 
 def _count(name: str, value: object, least: int = 1) -> None:
     """Refuse a particle or draw count that is not an integer >= ``least``."""
-    if (
-        isinstance(value, bool)
-        or not isinstance(value, numbers.Integral)
-        or not least <= value <= MAX_PARTICLES
-    ):
+    if not (is_integer(value) and least <= value <= MAX_PARTICLES):
         raise ValueError(
             f"{name} must be an integer in [{least}, {MAX_PARTICLES:.0e}]; "
             f"got {value!r}."

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import numbers
 import os
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -16,6 +15,7 @@ from torch import Tensor
 
 from diffaccel.data.quad_scan import QuadScanDataset
 from diffaccel.data.scans import MultiScanDataset, parse_selection
+from diffaccel.dynamics import is_integer
 from diffaccel.reconstruction.ensemble import (
     Reconstruction,
     unconstrained_coordinates,
@@ -88,7 +88,7 @@ def _indices(given: object, scan: str) -> list[int]:
     for i in items:
         if isinstance(i, Tensor) and i.numel() == 1:
             i = i.item()
-        if isinstance(i, bool) or not isinstance(i, numbers.Integral):
+        if not is_integer(i):
             raise ValueError(
                 f"train_indices of scan {scan!r}: {i!r} is not an integer index."
             )

@@ -6,7 +6,6 @@ import hashlib
 import json
 import logging
 import math
-import numbers
 import os
 import pickle
 import time
@@ -22,7 +21,7 @@ import torch.distributed as tdist
 from torch import Tensor
 
 from diffaccel.data import atomic_write
-from diffaccel.dynamics import finite_checks
+from diffaccel.dynamics import finite_checks, is_integer, is_real
 from diffaccel.dynamics.images import gaussian_blur
 from diffaccel.reconstruction.forward import (
     MAX_BLUR_PIXELS,
@@ -188,15 +187,6 @@ _INT_FIELDS = frozenset(
 _BOOL_FIELDS = frozenset(
     "quasi_random place_unseen place_coupling probe_away cuda_graph".split()
 )
-
-
-def _is_real(value: object) -> bool:
-    """A finite real number (an int or float, not a bool)."""
-    return (
-        isinstance(value, numbers.Real)
-        and not isinstance(value, bool)
-        and math.isfinite(value)
-    )
 
 
 @dataclass(frozen=True)
@@ -619,17 +609,17 @@ class ReconstructionConfig:
                 ok = isinstance(value, bool)
                 kind = "True or False"
             elif f.name in _INT_FIELDS:
-                ok = isinstance(value, numbers.Integral) and not isinstance(value, bool)
+                ok = is_integer(value)
                 kind = "an integer"
             elif f.name == "longitudinal_scale":
                 ok = (
                     isinstance(value, tuple | list)
                     and len(value) == 2
-                    and all(_is_real(v) for v in value)
+                    and all(is_real(v) for v in value)
                 )
                 kind = "two finite numbers (rms z [m], pz [1])"
             else:
-                ok = _is_real(value)
+                ok = is_real(value)
                 kind = "a finite number"
             if not ok:
                 raise ValueError(f"{f.name} must be {kind}; got {value!r}.")
