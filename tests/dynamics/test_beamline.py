@@ -10,6 +10,7 @@ import torch
 from diffaccel.dynamics import Beamline, Element, LinearMap, Quadrupole, Screen
 
 P0C = 43.36e6  # [eV]
+F64 = torch.float64
 SPEC = [
     {"type": "Quadrupole", "name": "Q1", "length": 0.1, "k1": 0.0},
     {"type": "Drift", "name": "D1", "length": 1.0},
@@ -219,6 +220,85 @@ def test_linear_map_track_xy_equals_track_columns(batched: bool, make_beam) -> N
     assert x.shape == y.shape == (4, 50)
     torch.testing.assert_close(x, full[0], rtol=1e-14, atol=1e-17)
     torch.testing.assert_close(y, full[2], rtol=1e-14, atol=1e-17)
+
+
+AWA6D = [
+    {"type": "Quadrupole", "name": "Q1", "length": 0.11, "k1": 8.0},
+    {"type": "Drift", "name": "D1", "length": 0.73},
+    {
+        "type": "TransverseDeflectingCavity",
+        "name": "TDC",
+        "length": 0.01,
+        "voltage": 4e6,
+        "frequency": 1.3e9,
+        "tilt": 1.5707963,
+    },
+    {"type": "Drift", "name": "D2", "length": 0.48},
+    {"type": "Dipole", "name": "B1", "length": 0.3, "angle": -0.35, "e2": -0.35},
+    {"type": "Drift", "name": "D3", "length": 0.73},
+    {"type": "Screen", "name": "SCREEN"},
+]
+
+
+def _z_spy(monkeypatch, cls: type[Element]) -> list[bool]:
+    """Record, per call of ``cls.track_columns``, whether it was given ``z``."""
+    seen: list[bool] = []
+    original = cls.track_columns
+
+    def spy(self, coords, p0c, species):
+        seen.append(coords[4] is not None)
+        return original(self, coords, p0c, species)
+
+    monkeypatch.setattr(cls, "track_columns", spy)
+    return seen
+
+
+def test_screen_images_track_z_only_up_to_the_last_cavity(
+    monkeypatch, make_beam
+) -> None:
+    from diffaccel.dynamics import Dipole, Drift
+
+    line = Beamline.from_spec(AWA6D).with_screen("SCREEN", (48, 40), 1e-4)
+    beam = make_beam(500, sizes=(3e-4, 1e-4, 3e-4, 1e-4, 1e-3, 2e-3))
+    beam = beam.requires_grad_(True)
+    k1 = torch.tensor([[-8.0], [0.0], [8.0]], dtype=F64)
+    kw = {"settings": k1, "names": ["Q1.k1"]}
+    # z is read by the cavity, so it is tracked through Q1 and D1, and not
+    # after it (D2, B1, D3 feed only the screen's x and y)
+    drift_z, dipole_z = _z_spy(monkeypatch, Drift), _z_spy(monkeypatch, Dipole)
+    images = line.screen_images(beam, P0C, **kw)["SCREEN"]
+    assert drift_z == [True, False, False] and dipole_z == [False]
+    # the same images and gradients as tracking every coordinate
+    ref = line["SCREEN"].image(line.track_screens(beam, P0C, **kw)["SCREEN"])
+    torch.testing.assert_close(images, ref, rtol=0, atol=0)
+    (g1,) = torch.autograd.grad(images.square().sum(), beam)
+    (g2,) = torch.autograd.grad(ref.square().sum(), beam)
+    torch.testing.assert_close(g1, g2, rtol=1e-10, atol=1e-12 * g2.abs().max())
+
+
+def test_track_columns_without_z_and_elements_that_read_it(make_beam) -> None:
+    line = Beamline.from_spec(AWA6D[:-1])
+    beam = make_beam(200, sizes=(3e-4, 1e-4, 3e-4, 1e-4, 1e-3, 2e-3))
+    p0c = torch.tensor(P0C, dtype=F64)
+    full = line.track(beam, P0C)
+    cols = line.track_columns(tuple(beam.unbind(-1)), p0c, need_z=False)
+    assert cols[4] is None
+    for i in (0, 1, 2, 3, 5):
+        torch.testing.assert_close(cols[i], full[:, i], rtol=0, atol=0)
+    # an element defined elsewhere reads z unless it says otherwise, so an
+    # element after the cavity gets z when one of those follows it
+    assert Element.reads_z and _Kick.reads_z
+    seen: list[bool] = []
+
+    class _Probe(_Kick):
+        def track_columns(self, coords, p0c, species):
+            seen.append(coords[4] is not None)
+            return super().track_columns(coords, p0c, species)
+
+    tail = Beamline([*line.elements, _Probe("P", 0.0), Screen("S")])
+    tail = tail.with_screen("S", (16, 16), 1e-3)
+    tail.screen_images(beam, P0C)
+    assert seen == [True]
 
 
 def test_screen_images_with_screens_between_linear_maps(make_beam) -> None:

@@ -260,7 +260,7 @@ def test_6d_step_reads_nothing_back_on_a_gpu_path(small_awa6d, monkeypatch) -> N
     # neither reads the device (22 reads per step before) nor copies a value
     # from the host (7), so nothing in it blocks a stream or a CUDA graph
     monkeypatch.setattr(images, "_full_screen_path", lambda x: True)
-    monkeypatch.setattr(_kernels, "_cheap_reads", lambda t: False)
+    monkeypatch.setattr(_kernels, "cheap_reads", lambda t: False)
     monkeypatch.setattr(training_module, "_host_reads_cheap", lambda device: False)
     short, long = _step_events(small_awa6d, 10), _step_events(small_awa6d, 20)
     assert {k: long[k] - short[k] for k in short} == {

@@ -7,7 +7,13 @@ Coordinates are Bmad's ``(x, px, y, py, z, pz)`` about a reference momentum
 from __future__ import annotations
 
 from diffaccel.dynamics import elements
-from diffaccel.dynamics._validate import finite_checks, is_integer, is_real
+from diffaccel.dynamics._validate import (
+    as_p0c,
+    check_particles,
+    finite_checks,
+    is_integer,
+    is_real,
+)
 from diffaccel.dynamics.beamline import ELEMENT_TYPES, Beamline
 from diffaccel.dynamics.constants import (
     ELECTRON_MASS_EV,
@@ -50,9 +56,11 @@ __all__ = [
     "Beamline",
     "Species",
     "Twiss",
+    "as_p0c",
     "bmad_to_cheetah",
     "bmad_to_openpmd",
     "centroid",
+    "check_particles",
     "cheetah_to_bmad",
     "cic_image",
     "covariance",

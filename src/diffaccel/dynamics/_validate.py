@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from contextvars import ContextVar
 
@@ -51,6 +51,26 @@ def is_real(value: object) -> bool:
         and not isinstance(value, bool | np.bool_)
         and math.isfinite(value)
     )
+
+
+def broadcast_shapes(*shapes: Sequence[int]) -> torch.Size:
+    """The broadcast of ``shapes``, as ``torch.broadcast_shapes``.
+
+    Without its first call's import of sympy (about 0.5 s of every process
+    that tracks). Raises RuntimeError, as torch does, if they do not broadcast.
+    """
+    ndim = max((len(s) for s in shapes), default=0)
+    out = [1] * ndim
+    for shape in shapes:
+        for i, d in enumerate(shape, ndim - len(shape)):
+            if d == 1 or d == out[i]:
+                continue
+            if out[i] != 1:
+                raise RuntimeError(
+                    f"shapes {[tuple(s) for s in shapes]} do not broadcast."
+                )
+            out[i] = d
+    return torch.Size(out)
 
 
 def check_particles(

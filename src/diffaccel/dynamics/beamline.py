@@ -12,13 +12,14 @@ from torch import Tensor, nn
 
 from diffaccel.dynamics._validate import (
     as_p0c,
+    broadcast_shapes,
     check_particles,
     finite_checks_enabled,
 )
 from diffaccel.dynamics.elements._kernels import stack_columns
 from diffaccel.dynamics.elements.dipole import Dipole
 from diffaccel.dynamics.elements.drift import Drift
-from diffaccel.dynamics.elements.element import Element
+from diffaccel.dynamics.elements.element import Coords, Element
 from diffaccel.dynamics.elements.linear_map import LinearMap
 from diffaccel.dynamics.elements.quadrupole import Quadrupole
 from diffaccel.dynamics.elements.screen import Screen
@@ -73,6 +74,11 @@ def _spec_value(value: Any, owner: str, key: str) -> Tensor:
         return torch.as_tensor(value, dtype=torch.float64)
     except (TypeError, ValueError, RuntimeError) as err:
         raise ValueError(f"{owner}: {key}: not a rectangular array ({err}).") from err
+
+
+def _last_z_reader(elements: Sequence[Element]) -> int:
+    """Index of the last element whose map reads ``z`` (-1 if none does)."""
+    return max((i for i, e in enumerate(elements) if e.reads_z), default=-1)
 
 
 class Beamline(nn.Module):
@@ -279,7 +285,7 @@ class Beamline(nn.Module):
             raise ValueError(f"names must be unique; got {list(names)}.")
         if particles is not None:
             try:
-                torch.broadcast_shapes(particles.shape[:-2], settings.shape[:-1])
+                broadcast_shapes(particles.shape[:-2], settings.shape[:-1])
             except RuntimeError:
                 raise ValueError(
                     f"particles {tuple(particles.shape)} (*K, N, 6) and settings "
@@ -350,15 +356,47 @@ class Beamline(nn.Module):
         check_particles(particles)
         p0c = as_p0c(p0c, particles)
         line = self._scanned(settings, names, particles)
+        return line.images_of_columns(
+            tuple(particles.unbind(-1)),  # type: ignore[arg-type]
+            p0c,
+            species,
+            method=method,
+            bandwidth=bandwidth,
+            blur_sigma=blur_sigma,
+            weights=weights,
+        )
+
+    def images_of_columns(
+        self,
+        coords: Coords,
+        p0c: Tensor,
+        species: Species = ELECTRON,
+        *,
+        method: str = "cic",
+        bandwidth: Sequence[float] | float | None = None,
+        blur_sigma: Sequence[float] | float | None = None,
+        weights: Tensor | None = None,
+    ) -> dict[str, Tensor]:
+        """Unchecked :meth:`screen_images` of coordinate columns.
+
+        As :meth:`Element.track_columns`: ``coords`` are the six columns, each
+        broadcastable to ``(*K, N)``; ``p0c`` a tensor of their dtype; scan
+        settings already applied (:meth:`with_params`). Nothing is validated
+        (the positions at each screen still are, by the imaging). Only what the
+        images need is computed: nothing after the last screen, ``z`` only up
+        to the last element that reads it (:attr:`Element.reads_z`), and a
+        :class:`LinearMap` followed only by screens gives ``x`` and ``y``.
+        ``coords[4]`` may be None when no element reads ``z``.
+        """
         images: dict[str, Tensor] = {}
-        elements = list(line.elements)
-        # nothing after the last screen is needed; an element followed only by
-        # screens needs to produce x and y only (a LinearMap then skips 4 rows)
+        elements = list(self.elements)
         last = max(
             (i for i, e in enumerate(elements) if isinstance(e, Screen)), default=-1
         )
-        coords = tuple(particles.unbind(-1))
+        z_until = _last_z_reader(elements[: last + 1])
         for i, e in enumerate(elements[: last + 1]):
+            if i > z_until and coords[4] is not None:
+                coords = (*coords[:4], None, coords[5])  # type: ignore[assignment]
             if isinstance(e, Screen):
                 images[e.name] = e.image_xy(
                     coords[0], coords[2], method, bandwidth, blur_sigma, weights
@@ -371,6 +409,31 @@ class Beamline(nn.Module):
             else:
                 coords = e.track_columns(coords, p0c, species)
         return images
+
+    def track_columns(
+        self,
+        coords: Coords,
+        p0c: Tensor,
+        species: Species = ELECTRON,
+        *,
+        need_z: bool = True,
+    ) -> Coords:
+        """Unchecked tracking of coordinate columns through every element.
+
+        As :meth:`Element.track_columns` (columns broadcastable to ``(*K, N)``,
+        ``p0c`` a tensor of their dtype, settings already applied, nothing
+        validated). With ``need_z`` False the returned ``z`` is None and is not
+        computed after the last element that reads it.
+        """
+        elements = list(self.elements)
+        z_until = len(elements) if need_z else _last_z_reader(elements)
+        for i, e in enumerate(elements):
+            if i > z_until and coords[4] is not None:
+                coords = (*coords[:4], None, coords[5])  # type: ignore[assignment]
+            coords = e.track_columns(coords, p0c, species)
+        if not need_z:
+            coords = (*coords[:4], None, coords[5])  # type: ignore[assignment]
+        return coords
 
     def _run(
         self,

@@ -20,7 +20,7 @@ from typing import TypeVar
 import torch
 from torch import Tensor
 
-from diffaccel.dynamics._validate import finite_checks_enabled
+from diffaccel.dynamics._validate import broadcast_shapes, finite_checks_enabled
 
 __all__ = ["cic_image", "gaussian_blur", "kde_image", "pixel_centers"]
 
@@ -72,7 +72,7 @@ def _prepare(
         )
     shapes = [x.shape, y.shape] + ([] if weights is None else [weights.shape])
     try:
-        full = torch.broadcast_shapes(*shapes)
+        full = broadcast_shapes(*shapes)
     except RuntimeError as err:
         raise ValueError(
             "x, y and weights must broadcast to one shape (*K, N); got shapes "

@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from diffaccel.data.quad_scan import check_setting_limits
+from diffaccel.dynamics import as_p0c, check_particles
 from diffaccel.dynamics.beamline import Beamline
 from diffaccel.dynamics.elements.screen import Screen
 from diffaccel.dynamics.images import cic_image, gaussian_blur
@@ -445,15 +446,17 @@ class SharedUpstream:
     :meth:`ScreenForwardModel.images`, so the same images).
 
     Build it with :meth:`build`, which returns None when nothing is shared.
+    The beam is tracked as coordinate columns (never stacked into particles
+    between the parts), ``z`` only as far as an element needs it, and the
+    generated particles are checked once, at the entrance.
 
     Args:
         upstream: The shared leading elements with every distinct row of their
             scanned settings applied (``(U,)`` parameters).
         rows: For each scan, the index of each of its settings among the ``U``
             distinct rows; None where they are exactly ``0 .. U - 1``.
-        downstream: For each scan, its remaining elements (ending at the screen).
-        names: For each scan, the scanned names of its remaining elements.
-        settings: For each scan, the settings of those names ``(K_s, P'_s)``.
+        downstream: For each scan, its remaining elements (ending at the
+            screen) with that scan's settings applied (``(K_s,)`` parameters).
         forwards: The scans' forward models (screen, blur, ``p0c``, species).
 
     Shapes:
@@ -466,16 +469,14 @@ class SharedUpstream:
         upstream: Beamline,
         rows: list[Tensor | None],
         downstream: list[Beamline],
-        names: list[list[str]],
-        settings: list[Tensor],
         forwards: list[ScreenForwardModel],
     ) -> None:
         self.upstream = upstream
         self.rows = rows
         self.downstream = downstream
-        self.names = names
-        self.settings = settings
         self.forwards = forwards
+        # z leaves the upstream part only if a scan's remaining elements read it
+        self.need_z = any(e.reads_z for line in downstream for e in line.elements)
 
     @classmethod
     def build(
@@ -536,7 +537,7 @@ class SharedUpstream:
             return None
         line = Beamline.from_spec(specs[0][:n_shared])
         line = line.with_params({n: distinct[:, p] for p, n in enumerate(up_names)})
-        rows, downstream, names, down_settings = [], [], [], []
+        rows, downstream = [], []
         start = 0
         for f, spec, s in zip(forwards, specs, checked, strict=True):
             k = s.shape[0]
@@ -544,34 +545,33 @@ class SharedUpstream:
             start += k
             identity = k == len(distinct) and bool((idx == torch.arange(k)).all())
             rows.append(None if identity else idx.to(device))
-            downstream.append(Beamline.from_spec(spec[n_shared:]).to(device))
-            own = [n for n in f.names if not upstream_name(n)]
-            names.append(own)
-            down_settings.append(s[:, [f.names.index(n) for n in own]].to(device))
-        return cls(line.to(device), rows, downstream, names, down_settings, forwards)
+            own = Beamline.from_spec(spec[n_shared:])
+            own_names = [n for n in f.names if not upstream_name(n)]
+            own = own.with_params({n: s[:, f.names.index(n)] for n in own_names})
+            downstream.append(own.to(device))
+        return cls(line.to(device), rows, downstream, forwards)
 
     def __call__(self, particles: Tensor) -> list[Tensor]:
-        p0c = self.forwards[0].p0c
+        check_particles(particles)
+        p0c = as_p0c(self.forwards[0].p0c, particles)
         species = self.forwards[0]._species
-        at = self.upstream.track(particles, p0c, species=species)  # (U, N, 6)
+        at = self.upstream.track_columns(
+            tuple(particles.unbind(-1)),  # type: ignore[arg-type]
+            p0c,
+            species,
+            need_z=self.need_z,
+        )  # columns (U, N) or (N,)
         images = []
-        for rows, line, names, sets, fwd in zip(
-            self.rows,
-            self.downstream,
-            self.names,
-            self.settings,
-            self.forwards,
-            strict=True,
-        ):
-            start = at if rows is None else at.index_select(0, rows)
-            screens = line.screen_images(
-                start,
-                p0c,
-                settings=sets if names else None,
-                names=names if names else None,
-                species=species,
-                method="cic",
-                blur_sigma=fwd._blur(),
+        scans = zip(self.rows, self.downstream, self.forwards, strict=True)
+        for rows, line, fwd in scans:
+            start = at
+            if rows is not None:  # this scan's rows of the distinct settings
+                start = tuple(  # type: ignore[assignment]
+                    c if c is None or c.dim() < 2 else c.index_select(0, rows)
+                    for c in at
+                )
+            screens = line.images_of_columns(
+                start, p0c, species, method="cic", blur_sigma=fwd._blur()
             )
             images.append(screens[fwd.screen.name])
         return images

@@ -268,6 +268,20 @@ def test_dipole_small_angle_limit_is_drift(make_beam) -> None:
     torch.testing.assert_close(b, d, rtol=1e-14, atol=1e-16)
 
 
+def test_dipole_scan_through_zero_angle_equals_each_setting(make_beam) -> None:
+    # a scan with straight (angle 0) and bending settings takes the path that
+    # handles both; every row must equal the dipole of that one setting
+    beam = make_beam(30)
+    angles = torch.tensor([0.0, 0.3, -0.2], dtype=F64)
+    out = Dipole("B", 0.5, angles, e1=0.05).track(beam, P0C)
+    for i, a in enumerate(angles.tolist()):
+        ref = Dipole("B", 0.5, a, e1=0.05).track(beam, P0C)
+        torch.testing.assert_close(out[i], ref, rtol=1e-14, atol=1e-17)
+    torch.testing.assert_close(
+        out[0], Drift("D", 0.5).track(beam, P0C), rtol=1e-14, atol=1e-16
+    )
+
+
 def test_dipole_reference_orbit_stays_on_axis() -> None:
     zero = torch.zeros(1, 6, dtype=F64)
     out = Dipole("B", 1.0, 0.7, e1=0.2, e2=0.3).track(zero, P0C)

@@ -13,7 +13,8 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-Coords = tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]
+#: ``z`` may be None where nothing downstream needs it (``Element.reads_z``).
+Coords = tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None, Tensor]
 
 # |u| below which d(sin sqrt(u) / sqrt(u))/du uses its Taylor series (the closed
 # form (C - S) / (2u) cancels there). Series error at 1e-2: ~1e-15 relative.
@@ -38,15 +39,16 @@ def exact_drift(
     px: Tensor,
     y: Tensor,
     py: Tensor,
-    z: Tensor,
+    z: Tensor | None,
     pz: Tensor,
     length: Tensor,
     mu2: Tensor,
-) -> tuple[Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor | None]:
     """Exact field-free drift; returns the new ``(x, y, z)``.
 
     ``x' = px / ps`` with ``ps = sqrt((1 + pz)^2 - px^2 - py^2)`` and
     ``dz = L (beta / beta0 - P / ps)``, both written to avoid cancellation.
+    ``z`` None (not needed downstream) is not computed.
     """
     p = 1.0 + pz
     pt2 = px.square() + py.square()
@@ -54,6 +56,8 @@ def exact_drift(
     step = length / ps
     x = torch.addcmul(x, px, step)
     y = torch.addcmul(y, py, step)
+    if z is None:
+        return x, y, None
     dz = length * velocity_z_shift(pz, mu2) - pt2 * step / (p + ps)
     return x, y, z + dz
 
@@ -113,14 +117,14 @@ def focusing_functions(u: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
 
 def quad_body(
     coords: Coords, k1: Tensor, length: Tensor, mu2: Tensor
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None]:
     """Chromatic thick quadrupole body in the paraxial approximation.
 
     Each particle sees ``k = k1 / (1 + pz)``; with ``x' = px / (1 + pz)`` the
     transverse motion is the thick-lens solution, and ``z`` changes by
     ``L (beta / beta0 - 1) - 1/2 int (x'^2 + y'^2) ds`` (integrated analytically:
     ``int x'^2 = [L (k x^2 + x'^2) + C S (x'^2 - k x^2)] / 2 - k x x' S^2``).
-    Returns the new ``(x, px, y, py, z)``.
+    Returns the new ``(x, px, y, py, z)`` (``z`` None if given None).
     """
     x, px, y, py, z, pz = coords
     inv_p = 1.0 / (1.0 + pz)
@@ -130,7 +134,29 @@ def quad_body(
     s_y = s_y * length
     xp = px * inv_p
     yp = py * inv_p
+    if z is not None:  # (None: not needed downstream)
+        z = _quad_z(z, x, xp, y, yp, pz, k, length, (c_x, s_x, c_y, s_y), mu2)
+    x_new = c_x * x + s_x * xp
+    px_new = c_x * px - k1 * s_x * x
+    y_new = c_y * y + s_y * yp
+    py_new = c_y * py + k1 * s_y * y
+    return x_new, px_new, y_new, py_new, z
 
+
+def _quad_z(
+    z: Tensor,
+    x: Tensor,
+    xp: Tensor,
+    y: Tensor,
+    yp: Tensor,
+    pz: Tensor,
+    k: Tensor,
+    length: Tensor,
+    focusing: tuple[Tensor, Tensor, Tensor, Tensor],
+    mu2: Tensor,
+) -> Tensor:
+    """The new ``z`` of :func:`quad_body` (``focusing``: ``C, L s`` of x and y)."""
+    c_x, s_x, c_y, s_y = focusing
     a_x = k * x.square()
     b_x = xp.square()
     a_y = -k * y.square()
@@ -143,13 +169,7 @@ def quad_body(
         0.5 * (length * (a_y + b_y) + c_y * s_y * (b_y - a_y))
         + k * y * yp * s_y.square()
     )
-    z = z + length * velocity_z_shift(pz, mu2) - 0.5 * (i_x + i_y)
-
-    x_new = c_x * x + s_x * xp
-    px_new = c_x * px - k1 * s_x * x
-    y_new = c_y * y + s_y * yp
-    py_new = c_y * py + k1 * s_y * y
-    return x_new, px_new, y_new, py_new, z
+    return z + length * velocity_z_shift(pz, mu2) - 0.5 * (i_x + i_y)
 
 
 class _StackColumns(torch.autograd.Function):
@@ -174,7 +194,7 @@ class _StackColumns(torch.autograd.Function):
             # a column's gradient that is all zero becomes None (less work
             # upstream); testing it reads the device, so only on the CPU
             if not ctx.needs_input_grad[i] or (
-                _cheap_reads(g) and not bool(g.detach().any())
+                cheap_reads(g) and not bool(g.detach().any())
             ):
                 grads.append(None)
             else:
@@ -205,9 +225,17 @@ def stack_columns(coords: Sequence[Tensor]) -> Tensor:
     return _StackColumns.apply(*coords)
 
 
-def _cheap_reads(t: Tensor) -> bool:
+def cheap_reads(t: Tensor) -> bool:
     """Whether reading ``t``'s values on the host is cheap (no device sync)."""
     return t.device.type == "cpu"
+
+
+def none_true(mask: Tensor) -> bool:
+    """True if ``mask`` holds no True and reading it costs no device sync.
+
+    False off the CPU (the caller then takes the path that handles both).
+    """
+    return cheap_reads(mask) and not bool(mask.any())
 
 
 #: ``id(tensor) -> (weak reference, version, answer)`` of :func:`is_zero` off
@@ -224,7 +252,7 @@ def is_zero(value: Tensor) -> bool:
     """
     if value.requires_grad:
         return False
-    if _cheap_reads(value) or value.is_inference():  # (no version counter)
+    if cheap_reads(value) or value.is_inference():  # (no version counter)
         return not bool(value.detach().any())
     key = id(value)
     memo = _ZERO_MEMO.get(key)

@@ -10,6 +10,7 @@ from diffaccel.dynamics.elements._kernels import (
     exact_drift,
     is_zero,
     lab_frame_map,
+    none_true,
     velocity_z_shift,
 )
 from diffaccel.dynamics.elements.element import Coords, Element, bcast
@@ -51,6 +52,7 @@ class Dipole(Element):
     """
 
     param_names = ("length", "angle", "e1", "e2", "tilt")
+    reads_z = False
     optional_params = ("e1", "e2", "tilt")
     nonnegative_params = (("length", "m"),)
 
@@ -154,12 +156,17 @@ def _bend_body(
     x1 = x * c + (px * s + ps1 - ps * c - (1.0 - c)) / gs
     turn = th + torch.atan2(px, ps) - torch.atan2(px1, ps1)
     y1 = y + py * turn / gs
-    z1 = z + length * velocity_z_shift(pz, mu2) + (length - p * turn / gs)
-    xd, yd, zd = exact_drift(x, px, y, py, z, pz, length, mu2)
-    x = xd.where(small, x1)
-    y = yd.where(small, y1)
-    z = zd.where(small, z1)
-    px = px.where(small, px1)
+    z1 = None
+    if z is not None:  # (None: not needed downstream)
+        z1 = z + length * velocity_z_shift(pz, mu2) + (length - p * turn / gs)
+    if none_true(small):  # every setting bends
+        x, y, z, px = x1, y1, z1, px1
+    else:  # a straight setting is a drift
+        xd, yd, zd = exact_drift(x, px, y, py, z, pz, length, mu2)
+        x = xd.where(small, x1)
+        y = yd.where(small, y1)
+        z = None if zd is None else zd.where(small, z1)
+        px = px.where(small, px1)
 
     px, py = px + h2 * x, py - h2 * y
     return x, px, y, py, z, pz

@@ -52,6 +52,7 @@ class Drift(Element):
     """
 
     param_names = ("length",)
+    reads_z = False
     nonnegative_params = (("length", "m"),)
 
     def __init__(self, name: str, length: Tensor | float = 0.0) -> None:

@@ -10,6 +10,7 @@ from torch import Tensor, nn
 
 from diffaccel.dynamics._validate import (
     as_p0c,
+    broadcast_shapes,
     check_finite,
     check_nonnegative,
     check_particles,
@@ -26,7 +27,8 @@ __all__ = ["Coords", "Element", "bcast"]
 
 #: The six coordinate columns ``(x, px, y, py, z, pz)``, each broadcastable to
 #: ``(*K, N)``.
-Coords = tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]
+#: ``z`` may be None where nothing downstream needs it (:attr:`Element.reads_z`).
+Coords = tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None, Tensor]
 
 
 def bcast(value: Tensor, like: Tensor) -> Tensor:
@@ -72,6 +74,11 @@ class Element(nn.Module):
     optional_params: ClassVar[tuple[str, ...]] = ()
     #: ``(name, unit)`` of parameters that must be >= 0 (checked on construction).
     nonnegative_params: ClassVar[tuple[tuple[str, str], ...]] = ()
+    #: Whether the map depends on ``z`` (an RF cavity's does). An element that
+    #: does not may be given ``z = None`` by :meth:`track_columns` when nothing
+    #: downstream needs ``z`` (screen images); it must then return ``None``
+    #: there. True by default, so elements defined elsewhere always get ``z``.
+    reads_z: ClassVar[bool] = True
 
     def __init__(self, name: str, **params: Tensor | float) -> None:
         super().__init__()
@@ -132,7 +139,7 @@ class Element(nn.Module):
     @property
     def batch_shape(self) -> torch.Size:
         """Broadcast shape ``K`` of all numeric attributes."""
-        return torch.broadcast_shapes(*(p.shape for p in self.params().values()))
+        return broadcast_shapes(*(p.shape for p in self.params().values()))
 
     def track(
         self, particles: Tensor, p0c: Tensor | float, species: Species = ELECTRON
@@ -166,7 +173,9 @@ class Element(nn.Module):
         The columns ``(x, px, y, py, z, pz)`` are each broadcastable to
         ``(*K, N)`` and need not share a shape (a coordinate an element leaves
         alone is not expanded). ``p0c`` must already be a tensor of the
-        particles' dtype. Inputs are not validated here. The default stacks the
+        particles' dtype. Inputs are not validated here. ``z`` is None when
+        the caller does not need it and the element does not read it
+        (:attr:`reads_z` False): then it is not computed. The default stacks the
         columns and calls :meth:`track`; built-in elements override it.
         """
         particles = torch.stack(torch.broadcast_tensors(*coords), dim=-1)

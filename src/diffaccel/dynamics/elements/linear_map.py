@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from diffaccel.dynamics._validate import check_nonnegative
+from diffaccel.dynamics._validate import broadcast_shapes, check_nonnegative
 from diffaccel.dynamics.elements.element import Coords, Element
 from diffaccel.dynamics.species import ELECTRON, Species
 
@@ -69,7 +69,7 @@ class LinearMap(Element):
     @property
     def batch_shape(self) -> torch.Size:
         """Batch shape ``K`` of the matrix (and length)."""
-        return torch.broadcast_shapes(self.matrix.shape[:-2], self.length.shape)
+        return broadcast_shapes(self.matrix.shape[:-2], self.length.shape)
 
     def track_columns(self, coords: Coords, p0c: Tensor, species: Species) -> Coords:
         """Unchecked column tracking (see :meth:`Element.track_columns`)."""

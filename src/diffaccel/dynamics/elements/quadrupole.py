@@ -54,6 +54,7 @@ class Quadrupole(Element):
     """
 
     param_names = ("length", "k1", "tilt", "dx", "dy")
+    reads_z = False
     optional_params = ("tilt", "dx", "dy")
     nonnegative_params = (("length", "m"),)
 

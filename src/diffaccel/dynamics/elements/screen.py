@@ -43,6 +43,7 @@ class Screen(Element):
     """
 
     param_names = ()
+    reads_z = False
 
     def __init__(
         self,
