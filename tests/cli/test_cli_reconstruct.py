@@ -211,6 +211,27 @@ def test_resume_completes_an_interrupted_run(
             assert torch.equal(a[k], b[k]), k
 
 
+def test_interrupt_before_the_first_checkpoint_says_so(
+    scan_file: Path, tmp_path: Path, monkeypatch
+) -> None:
+    out = tmp_path / "out"
+    real = cli_reconstruct.reconstruct
+
+    def interrupted(*a, callback=None, **kw):
+        def stop(info):
+            raise KeyboardInterrupt  # Ctrl-C at the first report
+
+        return real(*a, callback=stop, **kw)
+
+    monkeypatch.setattr(cli_reconstruct, "reconstruct", interrupted)
+    args = ["reconstruct", str(scan_file), "--out", str(out), "--no-figures"]
+    r = CliRunner().invoke(main, [*args, "--steps", "400", "--snapshots", "2"])
+    assert r.exit_code == 1 and "Aborted" in r.output
+    assert "before the first checkpoint (written every 100 steps)" in r.output
+    assert "--resume continues it" not in r.output
+    assert not out.exists() and not partial_folder(out).exists()
+
+
 def test_resume_refuses_other_options_and_other_data(
     scan_file: Path, tmp_path: Path
 ) -> None:

@@ -642,12 +642,19 @@ def reconstruct_command(
                 split=split,
                 uncertainty=uncertainty,
             )
-    except (KeyboardInterrupt, click.ClickException):
+    except (KeyboardInterrupt, click.ClickException) as err:
         # a refused run (another run's lock) must not point at that run's files
         if started and (partial_folder(out) / CHECKPOINT).is_file():
             click.echo(
                 f"note: the run's checkpoint is kept in {partial_folder(out)}; "
                 f"--resume continues it ({out} is unchanged)",
+                err=True,
+            )
+        elif started and isinstance(err, KeyboardInterrupt):
+            click.echo(
+                "note: interrupted before the first checkpoint (written every "
+                f"{config.checkpoint_every} steps): nothing to resume, {out} is "
+                "unchanged",
                 err=True,
             )
         raise
