@@ -211,6 +211,34 @@ def test_resume_completes_an_interrupted_run(
             assert torch.equal(a[k], b[k]), k
 
 
+def test_resume_names_train_indices_when_the_data_differ(
+    scan_file: Path, tmp_path: Path, monkeypatch
+) -> None:
+    out = tmp_path / "out"
+    args = ["reconstruct", str(scan_file), *FAST, "--no-figures", "--out", str(out)]
+    real = cli_reconstruct.reconstruct
+
+    def interrupted(*a, callback=None, **kw):
+        def stop(info):
+            callback(info)
+            if info.step >= 3:  # after the checkpoint of the first snapshot
+                raise KeyboardInterrupt
+
+        return real(*a, callback=stop, **kw)
+
+    monkeypatch.setattr(cli_reconstruct, "reconstruct", interrupted)
+    r = CliRunner().invoke(main, [*args, "--train-indices", "even"])
+    assert r.exit_code == 1 and "--resume continues it" in r.output
+    monkeypatch.setattr(cli_reconstruct, "reconstruct", real)
+    # the training settings are not in the checkpoint: without them the data
+    # differ, and the message says what to give
+    r = CliRunner().invoke(main, [*args, "--resume"])
+    assert r.exit_code == 1 and "other training data" in r.output
+    assert "give the same again with --resume" in r.output, r.output
+    r = CliRunner().invoke(main, [*args, "--resume", "--train-indices", "even"])
+    assert r.exit_code == 0, r.output
+
+
 def test_interrupt_before_the_first_checkpoint_says_so(
     scan_file: Path, tmp_path: Path, monkeypatch
 ) -> None:

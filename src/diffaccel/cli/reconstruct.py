@@ -51,7 +51,7 @@ from diffaccel.reconstruction import (
     training_selection,
 )
 from diffaccel.reconstruction.probe import PROBE_STEP
-from diffaccel.reconstruction.training import checkpoint_config
+from diffaccel.reconstruction.training import CheckpointDataError, checkpoint_config
 
 __all__ = ["predict", "reconstruct_command", "run_reconstruction"]
 
@@ -358,6 +358,11 @@ def run_reconstruction(
             split=split,  # type: ignore[arg-type]
             uncertainty=uncertainty,
         )
+    except CheckpointDataError as err:  # (the training settings are not stored)
+        raise click.ClickException(
+            f"{err} If the interrupted run had --train-indices, give the same "
+            "again with --resume."
+        ) from err
     except (ValueError, FloatingPointError) as err:
         raise click.ClickException(str(err)) from err
     finally:

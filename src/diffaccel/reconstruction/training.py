@@ -57,6 +57,10 @@ logger = logging.getLogger(__name__)
 CHECKPOINT_VERSION = 2  # 2: optimiser state of one flat parameter vector
 
 
+class CheckpointDataError(ValueError):
+    """A checkpoint to resume was written for other training data."""
+
+
 class FlatAdam:
     """Adam on one flat parameter vector, with ``torch.optim.Adam``'s arithmetic.
 
@@ -1039,7 +1043,7 @@ def train_generator(
     if resume and ckpt is not None and ckpt.exists():
         state = load_checkpoint(ckpt)
         if state.fingerprint != fingerprint:
-            raise ValueError(
+            raise CheckpointDataError(
                 f"checkpoint {ckpt} was written for other training data (another "
                 "file, other training settings or another screen calibration); "
                 "resume with the same data, or start a new run."
