@@ -194,8 +194,15 @@ def test_shared_upstream_gives_each_scans_images(gaussian_beam, rows) -> None:
     x[:, 4:] = torch.randn(2000, 2, generator=g, dtype=x.dtype) * 1e-3  # z, pz
     x = x.float().requires_grad_(True)
     shared = SharedUpstream.build(forwards, settings)
-    # quadrupole, drift, cavity and drift tracked once for the distinct rows
-    assert len(shared.upstream) == 4
+    # quadrupole and drift tracked once per distinct k1, cavity and drift once
+    # per distinct (k1, voltage) row
+    every = torch.cat(settings)
+    (first, quad), (index, cavity) = shared.stages
+    assert first is None and [e.name for e in quad] == ["SCAN_QUAD", "D1"]
+    assert [e.name for e in cavity] == ["SCAN_TDC", "D2"]
+    assert quad["SCAN_QUAD"].k1.shape == (len(every[:, 0].unique()),)
+    assert cavity["SCAN_TDC"].voltage.shape == (len(every.unique(dim=0)),)
+    assert index is not None and len(index) == len(every.unique(dim=0))
     images = shared(x)
     (sum(i.square().sum() for i in images)).backward()
     grad = x.grad.clone()

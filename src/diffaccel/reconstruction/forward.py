@@ -12,6 +12,7 @@ from torch import Tensor
 from diffaccel.data.quad_scan import check_setting_limits
 from diffaccel.dynamics import as_p0c, check_particles
 from diffaccel.dynamics.beamline import Beamline
+from diffaccel.dynamics.elements.element import Coords
 from diffaccel.dynamics.elements.screen import Screen
 from diffaccel.dynamics.images import cic_image, gaussian_blur
 from diffaccel.dynamics.species import Species
@@ -204,20 +205,21 @@ class ScreenForwardModel:
     def pixel_kernel_sum_sq(self, samples: int = 64) -> float:
         """Sum over pixels of the squared deposit weights of one particle.
 
-        ``kappa = mean_u sum_p w_p(u)^2`` over sub-pixel positions ``u`` of the
-        particle, for the cloud-in-cell deposit and Gaussian blur of
-        :meth:`images` (1 for a histogram, 4/9 for bare cloud-in-cell, about
-        ``1 / (4 pi blur_pixels^2)`` for a wide blur). A pixel of an image of
-        ``N`` particles with expected value ``s`` then has variance
-        ``kappa s / N``: the sampling noise of the simulated images.
+                ``kappa = mean_u sum_p w_p(u)^2`` over sub-pixel positions ``u`` of the
+                particle, for the cloud-in-cell deposit and Gaussian blur of
+                :meth:`images` (1 for a histogram, 4/9 for bare cloud-in-cell, about
+                ``1 / (4 pi blur_pixels^2)`` for a wide blur). A pixel of an image of
+                ``N`` particles with expected value ``s`` then has variance
+                ``kappa s / N``: the sampling noise of the simulated images.
 
-        Example:
-            >>> from diffaccel.dynamics.elements.screen import Screen
-            >>> from diffaccel.dynamics.beamline import Beamline
-            >>> scr = Screen(name="S", shape=(8, 8), pixel_size=1e-4)
-            >>> f = ScreenForwardModel(Beamline([scr]), [], 1e7, blur_pixels=0.1)
-            >>> round(f.pixel_kernel_sum_sq(), 4)  # bare cloud-in-cell: (2/3)^2
-            0.4444
+                Example:
+                    >>> from diffaccel.dynamics.elements.screen import Screen
+                    >>> from diffaccel.dynamics.beamline import Beamline
+        from diffaccel.dynamics.elements.element import Coords
+                    >>> scr = Screen(name="S", shape=(8, 8), pixel_size=1e-4)
+                    >>> f = ScreenForwardModel(Beamline([scr]), [], 1e7, blur_pixels=0.1)
+                    >>> round(f.pixel_kernel_sum_sq(), 4)  # bare cloud-in-cell: (2/3)^2
+                    0.4444
         """
         blur = self._blur()
         kappa = 1.0
@@ -434,6 +436,56 @@ class _LinearCIC(torch.autograd.Function):
         return torch.bmm(g.view(k, spec.n, 2), spec.g_t).sum(0), None
 
 
+def _select_rows(coords: Coords, rows: Tensor) -> Coords:
+    """The rows ``rows`` of every batched ``(U, N)`` column (``(N,)`` ones as is)."""
+    return tuple(  # type: ignore[return-value]
+        c if c is None or c.dim() < 2 else c.index_select(0, rows) for c in coords
+    )
+
+
+def _stages(
+    spec: list[dict[str, Any]],
+    names: list[str],
+    distinct: Tensor,
+    device: str | torch.device,
+) -> list[tuple[Tensor | None, Beamline]]:
+    """The shared elements ``spec`` in parts, each at its distinct settings rows.
+
+    ``names`` are the scanned parameters of these elements, ``distinct`` their
+    distinct rows ``(U, P)`` (sorted, as ``torch.unique`` gives them). A part
+    begins at the first element and at each element with a scanned parameter;
+    its rows are the distinct rows of the parameters up to its end. See
+    :class:`SharedUpstream`.
+    """
+    elements = [e["name"] for e in spec]
+    acts_at = [elements.index(n.rsplit(".", 1)[0]) for n in names]
+    starts = sorted({0, *acts_at})
+    stages: list[tuple[Tensor | None, Beamline]] = []
+    previous: Tensor | None = None  # each of the U rows' row in the previous part
+    for a, b in zip(starts, [*starts[1:], len(spec)], strict=True):
+        cols = [p for p, at in enumerate(acts_at) if at < b]
+        part = Beamline.from_spec(spec[a:b])
+        index = None
+        if cols:
+            uniq, inverse = torch.unique(distinct[:, cols], dim=0, return_inverse=True)
+            part = part.with_params(
+                {names[p]: uniq[:, j] for j, p in enumerate(cols) if acts_at[p] >= a}
+            )
+            if previous is not None:
+                # one of the U rows of each of this part's rows, and its row
+                # in the previous part
+                one = torch.empty(len(uniq), dtype=torch.long)
+                one.scatter_(0, inverse, torch.arange(len(inverse)))
+                index = previous[one]
+                if len(index) == int(previous.max()) + 1 and bool(
+                    (index == torch.arange(len(index))).all()
+                ):
+                    index = None
+            previous = inverse
+        stages.append((None if index is None else index.to(device), part.to(device)))
+    return stages
+
+
 class SharedUpstream:
     """Screen images of several scans that begin with the same elements.
 
@@ -448,11 +500,19 @@ class SharedUpstream:
     Build it with :meth:`build`, which returns None when nothing is shared.
     The beam is tracked as coordinate columns (never stacked into particles
     between the parts), ``z`` only as far as an element needs it, and the
-    generated particles are checked once, at the entrance.
+    generated particles are checked once, at the entrance. The shared part
+    runs in stages: each element sees only the distinct rows of the settings
+    up to it (the quadrupole of the AWA layout its 5 values, not the 10 rows of
+    quadrupole x cavity), and the rows are copied out where a later scanned
+    element needs more.
 
     Args:
-        upstream: The shared leading elements with every distinct row of their
-            scanned settings applied (``(U,)`` parameters).
+        stages: The shared leading elements in consecutive parts, each with the
+            distinct rows of the settings up to its end applied (``(U_j,)``
+            parameters), and the index of each of its rows among the previous
+            part's rows (None where the previous part's are already them, or
+            where nothing before it is scanned). The last part's rows are the
+            ``U`` distinct rows of every shared setting.
         rows: For each scan, the index of each of its settings among the ``U``
             distinct rows; None where they are exactly ``0 .. U - 1``.
         downstream: For each scan, its remaining elements (ending at the
@@ -466,17 +526,21 @@ class SharedUpstream:
 
     def __init__(
         self,
-        upstream: Beamline,
+        stages: list[tuple[Tensor | None, Beamline]],
         rows: list[Tensor | None],
         downstream: list[Beamline],
         forwards: list[ScreenForwardModel],
     ) -> None:
-        self.upstream = upstream
+        self.stages = stages
         self.rows = rows
         self.downstream = downstream
         self.forwards = forwards
-        # z leaves the upstream part only if a scan's remaining elements read it
-        self.need_z = any(e.reads_z for line in downstream for e in line.elements)
+        # z leaves a part only if an element after it reads z
+        later = any(e.reads_z for line in downstream for e in line.elements)
+        self.need_z: list[bool] = []
+        for _, part in reversed(stages):
+            self.need_z.insert(0, later)
+            later = later or any(e.reads_z for e in part.elements)
 
     @classmethod
     def build(
@@ -535,8 +599,7 @@ class SharedUpstream:
             distinct, inverse = stacked[:1], torch.zeros(len(stacked), dtype=torch.long)
         if len(distinct) >= len(stacked) and up_names:
             return None
-        line = Beamline.from_spec(specs[0][:n_shared])
-        line = line.with_params({n: distinct[:, p] for p, n in enumerate(up_names)})
+        stages = _stages(specs[0][:n_shared], up_names, distinct, device)
         rows, downstream = [], []
         start = 0
         for f, spec, s in zip(forwards, specs, checked, strict=True):
@@ -549,27 +612,21 @@ class SharedUpstream:
             own_names = [n for n in f.names if not upstream_name(n)]
             own = own.with_params({n: s[:, f.names.index(n)] for n in own_names})
             downstream.append(own.to(device))
-        return cls(line.to(device), rows, downstream, forwards)
+        return cls(stages, rows, downstream, forwards)
 
     def __call__(self, particles: Tensor) -> list[Tensor]:
         check_particles(particles)
         p0c = as_p0c(self.forwards[0].p0c, particles)
         species = self.forwards[0]._species
-        at = self.upstream.track_columns(
-            tuple(particles.unbind(-1)),  # type: ignore[arg-type]
-            p0c,
-            species,
-            need_z=self.need_z,
-        )  # columns (U, N) or (N,)
-        images = []
+        at: Coords = tuple(particles.unbind(-1))  # type: ignore[assignment]
+        for (index, part), need_z in zip(self.stages, self.need_z, strict=True):
+            if index is not None:
+                at = _select_rows(at, index)
+            at = part.track_columns(at, p0c, species, need_z=need_z)
+        images = []  # at: columns (U, N) or (N,)
         scans = zip(self.rows, self.downstream, self.forwards, strict=True)
         for rows, line, fwd in scans:
-            start = at
-            if rows is not None:  # this scan's rows of the distinct settings
-                start = tuple(  # type: ignore[assignment]
-                    c if c is None or c.dim() < 2 else c.index_select(0, rows)
-                    for c in at
-                )
+            start = at if rows is None else _select_rows(at, rows)
             screens = line.images_of_columns(
                 start, p0c, species, method="cic", blur_sigma=fwd._blur()
             )
