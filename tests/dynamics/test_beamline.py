@@ -7,6 +7,7 @@ import json
 import pytest
 import torch
 
+from diffaccel.data.synthetic import AWA6D_BEAMLINES
 from diffaccel.dynamics import Beamline, Element, LinearMap, Quadrupole, Screen
 
 P0C = 43.36e6  # [eV]
@@ -222,22 +223,10 @@ def test_linear_map_track_xy_equals_track_columns(batched: bool, make_beam) -> N
     torch.testing.assert_close(y, full[2], rtol=1e-14, atol=1e-17)
 
 
-AWA6D = [
-    {"type": "Quadrupole", "name": "Q1", "length": 0.11, "k1": 8.0},
-    {"type": "Drift", "name": "D1", "length": 0.73},
-    {
-        "type": "TransverseDeflectingCavity",
-        "name": "TDC",
-        "length": 0.01,
-        "voltage": 4e6,
-        "frequency": 1.3e9,
-        "tilt": 1.5707963,
-    },
-    {"type": "Drift", "name": "D2", "length": 0.48},
-    {"type": "Dipole", "name": "B1", "length": 0.3, "angle": -0.35, "e2": -0.35},
-    {"type": "Drift", "name": "D3", "length": 0.73},
-    {"type": "Screen", "name": "SCREEN"},
-]
+def _awa6d_line() -> Beamline:
+    """The AWA 6D dipole-on line (``data.synthetic``) with its cavity at 4 MV."""
+    line = Beamline.from_spec(AWA6D_BEAMLINES["dipole_on"])
+    return line.with_params({"SCAN_TDC.voltage": torch.tensor(4e6, dtype=F64)})
 
 
 def _z_spy(monkeypatch, cls: type[Element]) -> list[bool]:
@@ -258,18 +247,18 @@ def test_screen_images_track_z_only_up_to_the_last_cavity(
 ) -> None:
     from diffaccel.dynamics import Dipole, Drift
 
-    line = Beamline.from_spec(AWA6D).with_screen("SCREEN", (48, 40), 1e-4)
+    line = _awa6d_line().with_screen("DYG2", (48, 40), 1e-4)
     beam = make_beam(500, sizes=(3e-4, 1e-4, 3e-4, 1e-4, 1e-3, 2e-3))
     beam = beam.requires_grad_(True)
     k1 = torch.tensor([[-8.0], [0.0], [8.0]], dtype=F64)
-    kw = {"settings": k1, "names": ["Q1.k1"]}
-    # z is read by the cavity, so it is tracked through Q1 and D1, and not
-    # after it (D2, B1, D3 feed only the screen's x and y)
+    kw = {"settings": k1, "names": ["SCAN_QUAD.k1"]}
+    # z is read by the cavity, so it is tracked through the quadrupole and D1,
+    # and not after it (D2, the dipole and D3 feed only the screen's x and y)
     drift_z, dipole_z = _z_spy(monkeypatch, Drift), _z_spy(monkeypatch, Dipole)
-    images = line.screen_images(beam, P0C, **kw)["SCREEN"]
+    images = line.screen_images(beam, P0C, **kw)["DYG2"]
     assert drift_z == [True, False, False] and dipole_z == [False]
     # the same images and gradients as tracking every coordinate
-    ref = line["SCREEN"].image(line.track_screens(beam, P0C, **kw)["SCREEN"])
+    ref = line["DYG2"].image(line.track_screens(beam, P0C, **kw)["DYG2"])
     torch.testing.assert_close(images, ref, rtol=0, atol=0)
     (g1,) = torch.autograd.grad(images.square().sum(), beam)
     (g2,) = torch.autograd.grad(ref.square().sum(), beam)
@@ -277,7 +266,7 @@ def test_screen_images_track_z_only_up_to_the_last_cavity(
 
 
 def test_track_columns_without_z_and_elements_that_read_it(make_beam) -> None:
-    line = Beamline.from_spec(AWA6D[:-1])
+    line = Beamline(list(_awa6d_line())[:-1])
     beam = make_beam(200, sizes=(3e-4, 1e-4, 3e-4, 1e-4, 1e-3, 2e-3))
     p0c = torch.tensor(P0C, dtype=F64)
     full = line.track(beam, P0C)

@@ -205,21 +205,20 @@ class ScreenForwardModel:
     def pixel_kernel_sum_sq(self, samples: int = 64) -> float:
         """Sum over pixels of the squared deposit weights of one particle.
 
-                ``kappa = mean_u sum_p w_p(u)^2`` over sub-pixel positions ``u`` of the
-                particle, for the cloud-in-cell deposit and Gaussian blur of
-                :meth:`images` (1 for a histogram, 4/9 for bare cloud-in-cell, about
-                ``1 / (4 pi blur_pixels^2)`` for a wide blur). A pixel of an image of
-                ``N`` particles with expected value ``s`` then has variance
-                ``kappa s / N``: the sampling noise of the simulated images.
+        ``kappa = mean_u sum_p w_p(u)^2`` over sub-pixel positions ``u`` of the
+        particle, for the cloud-in-cell deposit and Gaussian blur of
+        :meth:`images` (1 for a histogram, 4/9 for bare cloud-in-cell, about
+        ``1 / (4 pi blur_pixels^2)`` for a wide blur). A pixel of an image of
+        ``N`` particles with expected value ``s`` then has variance
+        ``kappa s / N``: the sampling noise of the simulated images.
 
-                Example:
-                    >>> from diffaccel.dynamics.elements.screen import Screen
-                    >>> from diffaccel.dynamics.beamline import Beamline
-        from diffaccel.dynamics.elements.element import Coords
-                    >>> scr = Screen(name="S", shape=(8, 8), pixel_size=1e-4)
-                    >>> f = ScreenForwardModel(Beamline([scr]), [], 1e7, blur_pixels=0.1)
-                    >>> round(f.pixel_kernel_sum_sq(), 4)  # bare cloud-in-cell: (2/3)^2
-                    0.4444
+        Example:
+            >>> from diffaccel.dynamics.elements.screen import Screen
+            >>> from diffaccel.dynamics.beamline import Beamline
+            >>> scr = Screen(name="S", shape=(8, 8), pixel_size=1e-4)
+            >>> f = ScreenForwardModel(Beamline([scr]), [], 1e7, blur_pixels=0.1)
+            >>> round(f.pixel_kernel_sum_sq(), 4)  # bare cloud-in-cell: (2/3)^2
+            0.4444
         """
         blur = self._blur()
         kappa = 1.0

@@ -946,9 +946,10 @@ def train_generator(
     (:meth:`ScreenForwardModel.images_linear`); otherwise, and with
     ``dims = 6``, scans track exactly (chromatic quadrupoles, RF curvature of a
     deflecting cavity, bends); leading elements that the tracked scans share
-    (AWA 6D layout: quadrupole, drift, cavity, drift) are tracked once per step
-    for their distinct settings (:class:`~diffaccel.reconstruction.forward.
-    SharedUpstream`; same images, ~35 % less time per 6D step).
+    (AWA 6D layout: quadrupole, drift, cavity, drift) are tracked once per step,
+    each element for the distinct settings up to it, and ``z`` only as far as
+    an element reads it (:class:`~diffaccel.reconstruction.forward.
+    SharedUpstream`; the same images as tracking each scan).
 
     Args:
         forward: Screen forward model of each scan (tracking + imaging); a single
