@@ -112,13 +112,24 @@ def test_captured_6d_step_body_trains_like_eager_steps(
     got = reconstruct(small_awa6d, ReconstructionConfig(**cfg), uncertainty=False)
     (replay,) = eager_graph.made
     assert len(replay.calls) == FAST["steps"] - GRAPH_WARMUP_STEPS
-    assert got.history["loss"] == pytest.approx(ref.history["loss"], rel=1e-4)
-    # the beams' rms sizes (Adam's normalised steps let a parameter whose
-    # gradient is near 0 drift by rounding: one offset differed by 1.3e-5)
+    # The captured Adam step rounds its factors differently (it divides, then
+    # multiplies, where the eager step fuses), and Adam's normalised steps let
+    # a parameter whose gradient is near 0 (the quadratic term's) carry that
+    # rounding into the beam: on this seed the loss differs by at most 1.4e-6
+    # for 11 steps, then by up to 3.7e-5 with stop 25's tracking and 1.0e-4
+    # with stop 26's (which sums the same gradients in another order); 2e-6
+    # on seeds 1, 2. A step with a wrong factor (another step's learning rate
+    # or penalty) differs by more than 1e-3 from its first replay (step 3).
+    loss_got = torch.tensor(got.history["loss"], dtype=torch.float64)
+    loss_ref = torch.tensor(ref.history["loss"], dtype=torch.float64)
+    drift = (loss_got - loss_ref).abs() / loss_ref.abs()
+    assert drift[:11].max() <= 1e-5, drift
+    assert drift.max() <= 3e-4, drift
+    # the beams' rms sizes (one offset differed by 1.3e-5)
     torch.testing.assert_close(
         torch.tensor(got.history["rms"]),
         torch.tensor(ref.history["rms"]),
-        rtol=1e-4,
+        rtol=3e-4,
         atol=0,
     )
 
