@@ -21,29 +21,6 @@ from diffaccel.data import (
     write_quad_scan,
 )
 
-SPEC = [
-    {"type": "Quadrupole", "name": "Q1", "length": 0.1, "k1": 0.0},
-    {"type": "Drift", "name": "D1", "length": 1.0},
-    {"type": "Screen", "name": "SCREEN"},
-]
-
-
-def _dataset() -> QuadScanDataset:
-    yy, xx = torch.meshgrid(torch.arange(8.0), torch.arange(8.0), indexing="ij")
-    image = torch.exp(-((xx - 3.5) ** 2 + (yy - 3.5) ** 2) / 4)
-    images = (image / image.sum()).expand(4, 1, 8, 8).clone()
-    return QuadScanDataset(
-        images=images,
-        settings=torch.tensor([[-1.0], [0.0], [1.0], [2.0]]),
-        setting_names=["Q1.k1"],
-        setting_units=["1/m^2"],
-        p0c=43e6,
-        species="electron",
-        beamline_spec=SPEC,
-        pixel_size=(1e-3, 1e-3),
-        center=(0.0, 0.0),
-    )
-
 
 def _replace(h5: h5py.File, key: str, data: np.ndarray) -> None:
     attrs = dict(h5[key].attrs)
@@ -127,8 +104,9 @@ BAD_FILES = {
 
 
 @pytest.fixture
-def scan_file(tmp_path: Path) -> Path:
-    return write_quad_scan(_dataset(), tmp_path / "scan.h5")
+def scan_file(tmp_path: Path, dataset_factory) -> Path:
+    """4 settings of one shot of 8 x 8 pixels."""
+    return write_quad_scan(dataset_factory(4, 1, 8, 8), tmp_path / "scan.h5")
 
 
 @pytest.mark.parametrize("case", sorted(BAD_FILES))
@@ -175,8 +153,8 @@ def test_repeated_setting_rows_warn(scan_file: Path) -> None:
         read_quad_scan(scan_file)
 
 
-def test_container_refuses_tiny_p0c() -> None:
-    ds = _dataset()
+def test_container_refuses_tiny_p0c(dataset: QuadScanDataset) -> None:
+    ds = dataset
     with pytest.raises(FormatError, match=r"p0c: expected >= 938272 eV for protons"):
         QuadScanDataset(**{**ds.__dict__, "p0c": 43.0, "species": "proton"})
 

@@ -11,6 +11,7 @@ from diffaccel.data import (
     make_synthetic_awa6d,
     make_synthetic_quad_scan,
 )
+from diffaccel.reconstruction import ScreenForwardModel
 
 
 @pytest.fixture(scope="session")
@@ -46,3 +47,16 @@ def gaussian_beam() -> torch.Tensor:
     g = torch.Generator().manual_seed(3)
     sig = torch.tensor([1.5e-3, 0.6e-3, 1.2e-3, 0.5e-3, 0.0, 0.0], dtype=torch.float64)
     return torch.randn(4000, 6, generator=g, dtype=torch.float64) * sig
+
+
+@pytest.fixture(scope="session")
+def awa6d_two_settings() -> tuple[list, list, list]:
+    """``(forwards, images, settings)`` of the AWA 6D layout at two quadrupole
+    settings (k1 = -6, 6): a rank-deficient Gaussian fit."""
+    ms = make_synthetic_awa6d(
+        n_particles=2000, k1_values=[-6.0, 6.0], screen_shape=(32, 32), seed=1
+    )
+    forwards = [ScreenForwardModel.from_dataset(s) for _, s in ms]
+    images = [s.mean_images() for _, s in ms]
+    settings = [s.settings for _, s in ms]
+    return forwards, images, settings

@@ -2,7 +2,6 @@ from __future__ import annotations
 
 import torch
 
-from diffaccel.data import make_synthetic_awa6d
 from diffaccel.dynamics import Beamline
 from diffaccel.reconstruction import ScreenForwardModel, fit_gaussian
 
@@ -47,15 +46,10 @@ def test_gaussian_fit_recovers_the_beam_covariance() -> None:
     assert torch.linalg.eigvalsh(fitted).min() > 0
 
 
-def test_gaussian_fit_is_the_same_on_every_call() -> None:
+def test_gaussian_fit_is_the_same_on_every_call(awa6d_two_settings) -> None:
     # two settings of a 6D layout leave the least squares rank deficient; the
     # guess (and a seeded reconstruction with it) must not change call to call
-    ms = make_synthetic_awa6d(
-        n_particles=2000, k1_values=[-6.0, 6.0], screen_shape=(32, 32), seed=1
-    )
-    forwards = [ScreenForwardModel.from_dataset(s) for _, s in ms]
-    images = [s.mean_images() for _, s in ms]
-    settings = [s.settings for _, s in ms]
+    forwards, images, settings = awa6d_two_settings
     first = fit_gaussian(forwards, images, settings).cov
     for _ in range(6):
         assert torch.equal(fit_gaussian(forwards, images, settings).cov, first)

@@ -6,10 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from diffaccel.data import make_synthetic_awa6d
 from diffaccel.reconstruction import (
     ReconstructionConfig,
-    ScreenForwardModel,
     fit_gaussian,
     image_errors,
     moment_errors,
@@ -77,13 +75,10 @@ def test_sample_and_predict_refuse_bad_counts_and_maps(small_result) -> None:
         small_result.predict_images(settings, maps=other)
 
 
-def test_fit_gaussian_names_bad_images_before_the_least_squares() -> None:
-    ms = make_synthetic_awa6d(
-        n_particles=2000, k1_values=[-6.0, 6.0], screen_shape=(32, 32), seed=1
-    )
-    forwards = [ScreenForwardModel.from_dataset(s) for _, s in ms]
-    images = [s.mean_images() for _, s in ms]
-    settings = [s.settings for _, s in ms]
+def test_fit_gaussian_names_bad_images_before_the_least_squares(
+    awa6d_two_settings,
+) -> None:
+    forwards, images, settings = awa6d_two_settings
     # NaN images reached LAPACK: an MKL error on stderr and a torch assert
     with pytest.raises(ValueError, match="images must be finite"):
         fit_gaussian(forwards, [i * float("nan") for i in images], settings)

@@ -81,6 +81,11 @@ def _last_z_reader(elements: Sequence[Element]) -> int:
     return max((i for i, e in enumerate(elements) if e.reads_z), default=-1)
 
 
+def _without_z(coords: Coords) -> Coords:
+    """The columns with ``z`` left out (None: no element after reads it)."""
+    return (*coords[:4], None, coords[5])  # type: ignore[return-value]
+
+
 class Beamline(nn.Module):
     """An ordered sequence of uniquely named elements.
 
@@ -395,8 +400,8 @@ class Beamline(nn.Module):
         )
         z_until = _last_z_reader(elements[: last + 1])
         for i, e in enumerate(elements[: last + 1]):
-            if i > z_until and coords[4] is not None:
-                coords = (*coords[:4], None, coords[5])  # type: ignore[assignment]
+            if i > z_until:
+                coords = _without_z(coords)
             if isinstance(e, Screen):
                 images[e.name] = e.image_xy(
                     coords[0], coords[2], method, bandwidth, blur_sigma, weights
@@ -428,12 +433,10 @@ class Beamline(nn.Module):
         elements = list(self.elements)
         z_until = len(elements) if need_z else _last_z_reader(elements)
         for i, e in enumerate(elements):
-            if i > z_until and coords[4] is not None:
-                coords = (*coords[:4], None, coords[5])  # type: ignore[assignment]
+            if i > z_until:
+                coords = _without_z(coords)
             coords = e.track_columns(coords, p0c, species)
-        if not need_z:
-            coords = (*coords[:4], None, coords[5])  # type: ignore[assignment]
-        return coords
+        return coords if need_z else _without_z(coords)
 
     def _run(
         self,
