@@ -3,6 +3,7 @@ from __future__ import annotations
 import json
 import os
 import socket
+from collections.abc import Callable
 from pathlib import Path
 
 import h5py
@@ -211,11 +212,9 @@ def test_resume_completes_an_interrupted_run(
             assert torch.equal(a[k], b[k]), k
 
 
-def test_resume_names_train_indices_when_the_data_differ(
-    scan_file: Path, tmp_path: Path, monkeypatch
-) -> None:
-    out = tmp_path / "out"
-    args = ["reconstruct", str(scan_file), *FAST, "--no-figures", "--out", str(out)]
+def _interrupt_after_first_checkpoint(monkeypatch) -> Callable[[], None]:
+    """Make ``reconstruct`` stop as Ctrl-C after the first snapshot's
+    checkpoint; returns the function that puts the real one back."""
     real = cli_reconstruct.reconstruct
 
     def interrupted(*a, callback=None, **kw):
@@ -227,11 +226,45 @@ def test_resume_names_train_indices_when_the_data_differ(
         return real(*a, callback=stop, **kw)
 
     monkeypatch.setattr(cli_reconstruct, "reconstruct", interrupted)
+    return lambda: monkeypatch.setattr(cli_reconstruct, "reconstruct", real)
+
+
+def test_resume_takes_the_runs_train_indices(
+    scan_file: Path, tmp_path: Path, monkeypatch
+) -> None:
+    out = tmp_path / "out"
+    args = ["reconstruct", str(scan_file), *FAST, "--no-figures", "--out", str(out)]
+    restore = _interrupt_after_first_checkpoint(monkeypatch)
     r = CliRunner().invoke(main, [*args, "--train-indices", "even"])
     assert r.exit_code == 1 and "--resume continues it" in r.output
-    monkeypatch.setattr(cli_reconstruct, "reconstruct", real)
-    # the training settings are not in the checkpoint: without them the data
-    # differ, and the message says what to give
+    stored = json.loads((partial_folder(out) / "selection.json").read_text())
+    assert stored == {"train_indices": {"scan": [0, 2, 4]}}
+    restore()
+    # another selection given is refused, naming both
+    r = CliRunner().invoke(main, [*args, "--resume", "--train-indices", "odd"])
+    assert r.exit_code == 1
+    assert "trained on other settings" in r.output
+    assert "[1, 3, 5]" in r.output and "[0, 2, 4]" in r.output, r.output
+    assert (partial_folder(out) / "checkpoint.pt").is_file()  # still resumable
+    # none given: the run's own (its data match the checkpoint's fingerprint)
+    r = CliRunner().invoke(main, [*args, "--resume"])
+    assert r.exit_code == 0, r.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["train_indices"] == [0, 2, 4]  # one scan: a list
+
+
+def test_resume_of_a_run_without_stored_train_indices_names_them(
+    scan_file: Path, tmp_path: Path, monkeypatch
+) -> None:
+    """A run interrupted before selection.json existed (removed here) resumes
+    with the --train-indices given, and says so when they differ."""
+    out = tmp_path / "out"
+    args = ["reconstruct", str(scan_file), *FAST, "--no-figures", "--out", str(out)]
+    restore = _interrupt_after_first_checkpoint(monkeypatch)
+    r = CliRunner().invoke(main, [*args, "--train-indices", "even"])
+    assert r.exit_code == 1 and "--resume continues it" in r.output
+    (partial_folder(out) / "selection.json").unlink()
+    restore()
     r = CliRunner().invoke(main, [*args, "--resume"])
     assert r.exit_code == 1 and "other training data" in r.output
     assert "give the same again with --resume" in r.output, r.output

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import time
 from collections.abc import Iterator, Mapping, Sequence
@@ -56,6 +57,9 @@ from diffaccel.reconstruction.training import CheckpointDataError, checkpoint_co
 __all__ = ["predict", "reconstruct_command", "run_reconstruction"]
 
 CHECKPOINT = "checkpoint.pt"
+#: The training settings of a run, written beside its checkpoint so that
+#: ``--resume`` needs no ``--train-indices``.
+SELECTION = "selection.json"
 _DEFAULTS = {d: ReconstructionConfig(dims=d) for d in (4, 6)}
 
 
@@ -114,6 +118,7 @@ OWNED = (
     "summary.json",
     "particles.h5",
     CHECKPOINT,
+    SELECTION,
     "checkpoint.rank*.pt",  # the other processes' of --split members
     "*.png",
 )
@@ -240,6 +245,40 @@ def resume_config(
     return stored
 
 
+def resume_selection(
+    folder: Path,
+    dataset: MultiScanDataset,
+    selection: dict[str, list[int]],
+    given: bool,
+) -> dict[str, list[int]]:
+    """The training settings to resume with: those the run stored in ``folder``.
+
+    A run started by this version stores its selection (:data:`SELECTION`);
+    without ``--train-indices`` (``given`` False) it is taken from there, a
+    different one given is refused naming both. A run without the file (an
+    older version) resumes with the selection given (default: all).
+    """
+    path = folder / SELECTION
+    if not path.is_file():
+        return selection
+    try:
+        stored = json.loads(path.read_text())["train_indices"]
+        stored = training_selection(dataset, stored)
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise click.ClickException(
+            f"cannot resume: {path} does not hold this dataset's training settings "
+            f"({err}); was the run made with another file?"
+        ) from err
+    if given and dict(stored) != dict(selection):
+        raise click.ClickException(
+            "--resume continues the checkpoint's run, which trained on other "
+            f"settings: --train-indices gives {dict(selection)}, the run used "
+            f"{dict(stored)}. Drop --train-indices to resume, or use --force "
+            "without --resume to start a new run."
+        )
+    return stored
+
+
 def _init_distributed(device: str) -> str:
     """Join the process group that torchrun describes; this process's device."""
     needed = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")
@@ -345,6 +384,10 @@ def run_reconstruction(
         )
         bar.refresh()
 
+    stored = resume and (folder / SELECTION).is_file()
+    if writer and not resume:  # a resumed run has its own (or, older, none)
+        atomic_write_json(folder / SELECTION, {"train_indices": dict(selection)})
+    done = False
     try:
         result = reconstruct(
             ds,
@@ -358,15 +401,23 @@ def run_reconstruction(
             split=split,  # type: ignore[arg-type]
             uncertainty=uncertainty,
         )
-    except CheckpointDataError as err:  # (the training settings are not stored)
-        raise click.ClickException(
-            f"{err} If the interrupted run had --train-indices, give the same "
+        done = True
+    except CheckpointDataError as err:
+        # a run of a version before selection.json resumes with the
+        # --train-indices given; with it, the settings were the run's own
+        hint = (
+            " Was the dataset file changed since?"
+            if stored
+            else " If the interrupted run had --train-indices, give the same "
             "again with --resume."
-        ) from err
+        )
+        raise click.ClickException(f"{err}{hint}") from err
     except (ValueError, FloatingPointError) as err:
         raise click.ClickException(str(err)) from err
     finally:
         bar.close()
+        if writer and not done and not ck.is_file():  # nothing to resume
+            (folder / SELECTION).unlink(missing_ok=True)
     if not writer:
         return {}
     t_train = time.perf_counter() - t0
@@ -615,6 +666,12 @@ def reconstruct_command(
                 "interrupted run keeps it there); run without --resume."
             )
         config = resume_config(found[0], config, given)
+        selection = resume_selection(
+            found[0].parent,
+            ds,
+            selection,
+            ctx.get_parameter_source("train_indices") == ParameterSource.COMMANDLINE,
+        )
         click.echo(f"resuming from {found[0]} ({config})", err=True)
     if torch.device(dev).type == "cpu":
         check_memory(config, sum(len(v) for v in selection.values()))
