@@ -120,7 +120,7 @@ def _max_entropy_fit(
     variance against the px-pz covariance behind a dipole) at its
     minimum-norm point, often not positive definite, and the projection onto
     positive definite matrices then spoils seen entries too: on the shared 6D
-    file the start had rms pz -61 % and a correlation off by 0.86; on the
+    file the start had rms pz -60 % and a correlation off by 0.86; on the
     synthetic beam tilted3000_12 pz -89 %, and that start ended its
     reconstruction at rms pz -9 % where the truth's covariance as the start
     gave -0.8 % (``docs/generalisation_6d.md``). The largest determinant is the
@@ -319,8 +319,7 @@ def fit_gaussian(
         # squares above weighs them; per-row relative units let the tight
         # waists, where the linear moments are least accurate, dominate)
         unit = float(torch.cat([torch.cat(vxx_all), torch.cat(vyy_all)]).abs().mean())
-        row_scale = torch.full_like(b2, unit)
-        s_seen = _max_entropy_fit(s_seen, a2 / row_scale[:, None], b2 / row_scale, iu)
+        s_seen = _max_entropy_fit(s_seen, a2 / unit, b2 / unit, iu)
     mean = torch.zeros(6, dtype=torch.float64)
     mean[seen] = mean_seen
     cov = torch.zeros(6, 6, dtype=torch.float64)
