@@ -14,14 +14,8 @@ from diffaccel.reconstruction import (
 )
 from diffaccel.reconstruction.unseen import unseen_directions
 
-SHARED_6D = (
-    Path(__file__).resolve().parents[2]
-    / ".."
-    / "shared"
-    / "data"
-    / "phase_space"
-    / "sixd_synthetic_train.h5"
-)
+DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "phase_space"
+SHARED_6D = DATA / "sixd_synthetic_train.h5"
 
 SPEC = [
     {"type": "Quadrupole", "name": "Q1", "length": 0.1, "k1": 0.0},

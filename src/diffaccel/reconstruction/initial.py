@@ -284,9 +284,7 @@ def fit_gaussian(
     # scale unknowns for conditioning
     col = a2.abs().amax(0).clamp_min(1e-300)
     sol = lstsq(a2 / col, b2[:, None])[:, 0] / col
-    s_seen = torch.zeros(n, n, dtype=torch.float64)
-    s_seen[iu[0], iu[1]] = sol
-    s_seen = s_seen + s_seen.T - torch.diag(s_seen.diagonal())
+    s_seen = _sym(sol, iu, n)
     s4 = s_seen[:4, :4].clone()
     floor = min(floors)
     for p, q in ((0, 1), (2, 3)):
