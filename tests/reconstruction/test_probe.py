@@ -189,3 +189,22 @@ def test_probe_looks_away_from_where_training_left_the_members(
     # without probe_away both sides are probed, and the trained side taken
     both = run(-away * 0.1, dataclasses.replace(config, probe_away=False))
     assert both["t"] == pytest.approx(-away * 0.1)
+
+
+def test_probe_records_the_points_past_the_positive_definite_edge() -> None:
+    """A step past a member's edge (this beam: +0.54 along px-pz, none on the
+    other side) is not tried, and the record says so; the other side is."""
+    members = [_placed_member(0), _placed_member(1)]
+    config = dataclasses.replace(CONFIG, probe_unseen=0.6, probe_points=1)
+    cov = _cov(members[0])
+    v = unseen_directions(_maps(), cov)
+    along = v[traded_pairs(v, cov).index(PROBE_PAIR)]
+    assert torch.linalg.eigvalsh(cov + 0.6 * along).min() < 0
+    assert torch.linalg.eigvalsh(cov - 0.6 * along).min() > 0
+    _, record, holds = _probe(members, 0.0, 1.0, config)
+    assert record["not_positive_definite"] == [0.6]
+    assert [s["t"] for s in record["steps"]] == pytest.approx([0, -0.6])
+    assert len(holds) == 2 * 2  # each member at 0 and -0.6 only
+    # inside the edge nothing is recorded
+    _, record, _ = _probe(members, 0.0, 1.0)
+    assert record["not_positive_definite"] == []

@@ -35,7 +35,9 @@ What it finds, and what it cannot (docs/generalisation_6d.md, stop 23): a
 beam whose training lands on the far side of the prior point from the
 truth (family_draw_b: +0.09 px-pz partial correlation, placed at -35 % in z
 emittance). A beam whose training lands on the truth's side (draw2028_3,
-draw2031_0) stays at the prior point.
+draw2031_0) stays at the prior point. Since stop 27's initial guess nearly
+every beam is trained on the wide-pz side, family_draw_b too (its truth's
+side): it stays at the prior point as well (stop 28).
 """
 
 from __future__ import annotations
@@ -171,8 +173,11 @@ def probe_members(
         The refitted members placed again at the chosen point (the prior
         point plus ``t`` along each member's px-pz direction), and a record:
         ``t`` (correlation units), ``steps`` (each probed point's ``t``,
-        members' KL and mean gain over the point it was compared with) and,
-        with ``trained``, ``trained_t`` (each member's ``t`` before the
+        members' KL and mean gain over the point it was compared with),
+        ``not_positive_definite`` (the points not tried because some
+        member's covariance there is not positive definite: a strongly
+        chirped beam near its edge, e.g. family_draw_b's +0.05) and, with
+        ``trained``, ``trained_t`` (each member's ``t`` before the
         placement).
     """
     moments, directions, bases, indices = [], [], [], []
@@ -188,13 +193,15 @@ def probe_members(
         indices.append(index)
         directions.append(None if index is None else v[index])
     count = itertools.count()
+    outside: list[float] = []  # points not tried: past a member's PD edge
 
     def at(t: float) -> _Point | None:
         targets = []
         for (_, cov), v in zip(moments, directions, strict=True):
             target = cov + t * v
             if float(torch.linalg.eigvalsh(target).min()) <= 0:
-                return None  # past a strongly chirped beam's edge
+                outside.append(t)  # past a strongly chirped beam's edge
+                return None
             # rounded to float32 as refit_members does (run-to-run bits)
             targets.append(target.float().double())
         states = []
@@ -243,6 +250,7 @@ def probe_members(
     return place_configured(best.states, config, maps, shift), {
         "t": best.t,
         "steps": steps,
+        "not_positive_definite": outside,
         **out,
     }
 
