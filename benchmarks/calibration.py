@@ -18,7 +18,8 @@ Datasets:
   400+ differ from the 310-313 the analysis was developed on);
 - ``beams6d-<beam>``: the other beams of ``benchmarks/reconstruction_6d_beams.py``
   (every beam of its ``BEAM_SEEDS`` by default, or those named by
-  ``--beams6d``: presets, the shared file's family, other kinds);
+  ``--beams6d``: presets, the shared file's family, other kinds, and any
+  other name it knows, e.g. the random draws ``draw<R>_<K>``);
 - ``quad-<preset>-n<noise>-s<seed>``: quad-only scans simulated here (presets
   gaussian/correlated/nonlinear, Poisson noise at the peak pixel, seeds; KDE
   images of one-pixel bandwidth, recorded in the data as
@@ -60,7 +61,7 @@ from pathlib import Path
 
 import torch
 from _meta import emit, git_commit
-from reconstruction_6d_beams import BEAM_SEEDS, TRAIN_K1, synthetic_beam
+from reconstruction_6d_beams import BEAM_SEEDS, beam_scans
 
 from diffaccel.data import make_synthetic_quad_scan, read_quad_scan
 from diffaccel.reconstruction import ReconstructionConfig, beam_moments, reconstruct
@@ -253,13 +254,9 @@ def main() -> None:
         datasets[key] = run(key, ds, 6, None, unc)
     for name in args.beams6d:
         # the other beams of benchmarks/reconstruction_6d_beams.py (issue 9:
-        # "the same holds on other beams"), its beam seeds and training k1
-        from diffaccel.data import make_synthetic_awa6d
-
-        truth = synthetic_beam(name, 200_000, BEAM_SEEDS[name])
-        ds = make_synthetic_awa6d(
-            particles=truth, k1_values=TRAIN_K1, seed=BEAM_SEEDS[name]
-        )
+        # "the same holds on other beams"), its beam seeds and training k1;
+        # any name it knows (random draws draw<R>_<K>, tilted<R>_<K>, ...)
+        _, ds, _ = beam_scans(name, held_out=False)
         datasets[f"beams6d-{name}"] = run(f"beams6d-{name}", ds, 6, None, unc)
     if args.sixd:
         from diffaccel.data import read_scans
