@@ -410,7 +410,12 @@ class ReconstructionConfig:
             partial correlation +0.09 the prior point misses by -35 % in z
             emittance, moved to emit_z -7.7 / -6.7 / +7.5 %), and it moved
             none of 16 fresh random draws (15 of 16 met, as without; the miss,
-            draw2031_0, +0.11, was trained on its truth's side).
+            draw2031_0, +0.11, was trained on its truth's side). Since stop
+            27's initial guess training leaves nearly every beam on the
+            wide-pz side, family_draw_b too, which the probe then no longer
+            moves (emit_z -38.4 %; stop 28: with ``hold_unseen`` both sides
+            are fair, but their gains did not separate beams placed wrong
+            from beams placed right).
         probe_gain: Mean KL gain (per image, summed over the scans) a probe
             step must exceed. 5e-4, set on the audit at ``refit_lr`` 3e-3
             (stop 22, both sides probed): the three family_draw_b seeds
