@@ -136,7 +136,7 @@ def _max_entropy_fit(
     d = start.diagonal().sqrt()
     # unknowns in units of the start's sizes (every entry of order one)
     a = design * (d[iu[0]] * d[iu[1]])
-    basis = torch.zeros(m, n, n, dtype=torch.float64)
+    basis = start.new_zeros(m, n, n)
     basis[torch.arange(m), iu[0], iu[1]] = 1.0
     basis[torch.arange(m), iu[1], iu[0]] = 1.0
 
@@ -174,7 +174,7 @@ def _max_entropy_fit(
 
 def _sym(v: Tensor, iu: Tensor, n: int) -> Tensor:
     """The symmetric ``(n, n)`` matrix of upper-triangular entries ``v`` at ``iu``."""
-    s = torch.zeros(n, n, dtype=v.dtype)
+    s = v.new_zeros(n, n)
     s[iu[0], iu[1]] = v
     return s + s.T - torch.diag(s.diagonal())
 
