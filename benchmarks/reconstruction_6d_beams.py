@@ -77,6 +77,7 @@ from diffaccel.reconstruction import (
     moment_errors,
     reconstruct,
 )
+from diffaccel.reconstruction.prior_dependence import prior_dependence
 
 TRAIN_K1 = (-12.0, -6.0, 0.0, 6.0, 12.0)
 TEST_K1 = (-9.0, -3.0, 3.0, 9.0)
@@ -429,8 +430,14 @@ def run_beam(name: str, seeds: list[int], overrides: dict | None = None) -> dict
         t0 = time.perf_counter()
         result = reconstruct(train, config, uncertainty=False)
         wall = time.perf_counter() - t0
-        e = moment_errors(result.sample(200_000), truth)
+        sample = result.sample(200_000)
+        e = moment_errors(sample, truth)
         run = {"seed": s, "train_wall_s": wall, **{k: e[k] for k in KEYS}}
+        # what the prior sets, as a run's summary.json reports it (here from
+        # the pooled sample's covariance)
+        run["prior_dependence"] = prior_dependence(
+            result.training_maps(), torch.cov(sample.T.double())
+        )
         run["rms_max_abs"] = max(abs(e[f"rms_{c}"]) for c in "x px y py z pz".split())
         if "unseen_probe" in result.info:  # --set probe_unseen=...
             run["unseen_probe"] = result.info["unseen_probe"]

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import socket
@@ -16,6 +17,7 @@ import diffaccel.cli.reconstruct as cli_reconstruct
 from diffaccel.cli import main
 from diffaccel.data import (
     MultiScanDataset,
+    make_synthetic_awa6d,
     make_synthetic_quad_scan,
     partial_folder,
     read_quad_scan,
@@ -680,3 +682,44 @@ def test_distributed_members_write_one_ensemble_of_both_processes(
     assert summary["member_processes"] == 2 and summary["snapshots"] == 4
     assert {"checkpoint.pt", "checkpoint.rank1.pt"} <= {p.name for p in out.iterdir()}
     assert summary["metrics"]["images_train"]["relative_l1"] < 0.5
+
+
+def test_6d_run_states_what_the_prior_sets(tmp_path: Path, monkeypatch) -> None:
+    """The AWA 6D layout's unseen correlations (px-pz, py-z): their values and
+    what the same images would fit elsewhere, in the summary and printed."""
+    real = cli_reconstruct.reconstruct
+
+    def no_refit(ds, config, **kw):  # the placed members as they are: faster
+        return real(ds, dataclasses.replace(config, refit_steps=0), **kw)
+
+    monkeypatch.setattr(cli_reconstruct, "reconstruct", no_refit)
+    data = make_synthetic_awa6d(
+        "correlated",
+        n_particles=3000,
+        k1_values=[-12.0, 0.0, 12.0],
+        screen_shape=(24, 24),
+        seed=2,
+    )
+    path = tmp_path / "awa6d.h5"
+    write_scans(data, path)
+    out = tmp_path / "o"
+    args = ["reconstruct", str(path), "--out", str(out), "--dims", "6"]
+    r = CliRunner().invoke(
+        main, [*args, *FAST, "--no-figures", "--no-probe", "--no-uncertainty"]
+    )
+    assert r.exit_code == 0, r.output
+    s = json.loads((out / "summary.json").read_text())
+    dep = {e["pair"]: e for e in s["prior_dependence"]}
+    assert set(dep) == {"px-pz", "py-z"}
+    assert "unseen_prior" in s["prior_dependence_note"]
+    assert dep["px-pz"]["moves"] == "rms_pz" and dep["py-z"]["moves"] == "rms_z"
+    for e in dep.values():
+        # each member placed at the prior point: zero partial correlation
+        assert abs(e["partial_correlation"]) < 0.02
+        at = e["if_partial_correlation"]
+        assert [a["partial_correlation"] for a in at] == [-0.1, 0.1]
+        # either side of it the same images fit another z emittance (this
+        # beam: px-pz -7 % / +7 %, py-z +4 % / -4 %)
+        low, high = (a["relative_change"]["emit_z"] for a in at)
+        assert low * high < 0 and min(abs(low), abs(high)) > 0.01
+    assert r.output.count("set by the prior, not the images:") == 2

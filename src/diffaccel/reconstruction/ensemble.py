@@ -358,6 +358,13 @@ class Reconstruction:
         stored = self.info.get("unconstrained_coordinates")
         if tolerance == 1e-3 and isinstance(stored, list):
             return list(stored)  # computed by reconstruct() from its maps
+        return unconstrained_coordinates(
+            self.training_maps(), self.config.dims, tolerance
+        )
+
+    def training_maps(self) -> list[Tensor]:
+        """Each scan's affine maps ``(K_s, 7, 7)`` at its training settings
+        (scans without recorded training settings left out)."""
         per_scan = self.info.get("scans")
         if not isinstance(per_scan, dict):
             per_scan = {self.scan_names[0]: self.info}
@@ -368,7 +375,7 @@ class Reconstruction:
             )
             if sets.numel():
                 maps.append(fwd.transfer_maps(sets))
-        return unconstrained_coordinates(maps, self.config.dims, tolerance)
+        return maps
 
     def save(self, directory: str | os.PathLike, *, overwrite: bool = False) -> Path:
         """Write the ensemble to ``directory/ensemble.pt`` atomically.

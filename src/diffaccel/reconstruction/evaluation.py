@@ -27,6 +27,7 @@ from diffaccel.reconstruction.metrics import (
     sliced_wasserstein,
 )
 from diffaccel.reconstruction.pipeline import as_scans
+from diffaccel.reconstruction.prior_dependence import prior_dependence
 
 __all__ = [
     "check_on_screen",
@@ -41,6 +42,15 @@ UNCONSTRAINED_NOTE = (
     "transfer matrices to screen x/y is ~0); their values follow the prior "
     "(ReconstructionConfig.longitudinal_scale); their std is the prior width of "
     "the moment-space posterior (>= ~50 % in rms), not a measurement"
+)
+PRIOR_DEPENDENCE_NOTE = (
+    "correlations the scans cannot see (every screen's second moments are "
+    "unchanged to first order along these directions): the prior sets them "
+    "(ReconstructionConfig.unseen_prior: zero partial correlation of the pair "
+    "given the other four coordinates). relative_change: how the moments would "
+    "differ, with the same images, if the pair's partial correlation were the "
+    "value listed (null: no valid beam there). See "
+    "diffaccel.reconstruction.prior_dependence"
 )
 UNCERTAINTY_NOTE = (
     "std = calibrated 1-sigma: snapshot-ensemble scatter (std_ensemble) and the "
@@ -171,7 +181,10 @@ def evaluate(
         ``ground_truth`` from :func:`~diffaccel.reconstruction.moment_errors`
         plus the sliced Wasserstein distance when the truth is known),
         ``moments`` (:meth:`Reconstruction.moments`),
-        ``rms_relative_ensemble_spread``, ``unconstrained_coordinates``, notes,
+        ``rms_relative_ensemble_spread``, ``unconstrained_coordinates``,
+        ``prior_dependence`` (6D: what the prior sets, see
+        :func:`~diffaccel.reconstruction.prior_dependence.prior_dependence`;
+        4D: empty), notes,
         ``config``, ``snapshots`` and ``timings_s``; for a single scan also
         ``train_indices``/``held_out_indices`` at the top level.
     """
@@ -231,6 +244,13 @@ def evaluate(
         "rms_relative_ensemble_spread": rel_spread,
         "unconstrained_coordinates": result.unconstrained_coordinates(),
         "unconstrained_note": UNCONSTRAINED_NOTE,
+        "prior_dependence": prior_dependence(
+            result.training_maps(),
+            torch.tensor(moments["cov"]["mean"], dtype=torch.float64),
+        )
+        if result.config.dims == 6
+        else [],
+        "prior_dependence_note": PRIOR_DEPENDENCE_NOTE,
         "uncertainty_note": (
             UNCERTAINTY_NOTE if unc is not None else UNCERTAINTY_NOTE_ENSEMBLE_ONLY
         ),
