@@ -14,6 +14,7 @@ from click.testing import CliRunner
 
 from diffaccel.cli.main import main
 from diffaccel.data import write_csv_atomic
+from diffaccel.data.result_folder import MARKER
 from diffaccel.hysteresis import load_fit, save_fit
 from diffaccel.hysteresis.synthetic import bh_loop_case, synthetic_measurement
 
@@ -69,6 +70,42 @@ def test_fit_refuses_to_overwrite_without_force(
     again = _fit(magnet_csv, out, "--no-figures")
     assert again.exit_code != 0 and "--force" in again.output
     assert _fit(magnet_csv, out, "--force", "--no-figures").exit_code == 0
+
+
+def test_fit_force_keeps_files_the_user_added(magnet_csv: Path, tmp_path: Path) -> None:
+    out = tmp_path / "fit"
+    assert _fit(magnet_csv, out, "--no-figures").exit_code == 0
+    (out / "extra.txt").write_text("mine")
+    again = _fit(magnet_csv, out, "--force", "--no-figures")
+    assert again.exit_code == 1 and "did not write (extra.txt)" in again.output
+    assert (out / "extra.txt").read_text() == "mine"
+
+
+def test_fit_force_refuses_a_result_of_another_command(
+    magnet_csv: Path, tmp_path: Path
+) -> None:
+    # the marker reconstruct writes (tests/data/test_result_folder.py writes one)
+    out = tmp_path / "recon"
+    out.mkdir()
+    (out / "ensemble.pt").write_bytes(b"a reconstruction")
+    marker = {"command": "reconstruct", "written": 0.0, "files": ["ensemble.pt"]}
+    (out / MARKER).write_text(json.dumps(marker))
+    again = _fit(magnet_csv, out, "--force", "--no-figures")
+    assert again.exit_code == 1
+    assert "a result of 'reconstruct', not of 'hysteresis fit'" in again.output
+    assert (out / "ensemble.pt").read_bytes() == b"a reconstruction"
+
+
+def test_gp_fit_force_refuses_a_fit(magnet_csv: Path, tmp_path: Path) -> None:
+    out = tmp_path / "fit"
+    assert _fit(magnet_csv, out, "--no-figures").exit_code == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    args = ["hysteresis", "gp-fit", str(magnet_csv), "--x", "I", "--y", "B"]
+    args += ["--out", str(out), "--mesh-size", "8", "--restarts", "1", "--force"]
+    again = CliRunner().invoke(main, args)
+    assert again.exit_code == 1
+    assert "a result of 'hysteresis fit', not of 'hysteresis gp-fit'" in again.output
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 
 def test_predict_reproduces_fit_and_keeps_columns(

@@ -94,6 +94,18 @@ def test_gp_fit_refuses_to_overwrite_without_force(
     assert runner.invoke(main, _args(beam_csv, out, "--force")).exit_code == 0
 
 
+def test_gp_fit_force_keeps_files_the_user_added(
+    beam_csv: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "fit"
+    runner = CliRunner()
+    assert runner.invoke(main, _args(beam_csv, out)).exit_code == 0
+    (out / "extra.txt").write_text("mine")
+    again = runner.invoke(main, _args(beam_csv, out, "--force"))
+    assert again.exit_code == 1 and "did not write (extra.txt)" in again.output
+    assert (out / "extra.txt").read_text() == "mine"
+
+
 def test_gp_fit_reports_missing_column(beam_csv: Path, tmp_path: Path) -> None:
     args = _args(beam_csv, tmp_path / "fit")
     args[args.index("transmission")] = "signal"

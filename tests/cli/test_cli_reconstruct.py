@@ -355,6 +355,17 @@ def test_force_no_figures_drops_the_old_figures(
     assert not list(out.glob("*.png"))
 
 
+def test_force_keeps_files_the_user_added(scan_file: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    args = ["reconstruct", str(scan_file), "--out", str(out), *FAST, "--no-figures"]
+    assert CliRunner().invoke(main, args).exit_code == 0
+    (out / "notes.txt").write_text("mine")
+    (out / "mysub").mkdir()
+    r = CliRunner().invoke(main, [*args, "--force"])
+    assert r.exit_code == 1 and "did not write (mysub, notes.txt)" in r.output
+    assert (out / "notes.txt").read_text() == "mine" and (out / "mysub").is_dir()
+
+
 def test_a_second_run_into_a_busy_folder_is_refused(
     scan_file: Path, tmp_path: Path
 ) -> None:

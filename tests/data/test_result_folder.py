@@ -187,3 +187,46 @@ def test_refusal_names_resume_only_for_commands_that_can_resume(
         ):
             pass
         assert ("--resume" in str(err.value)) is says
+
+
+def test_force_refuses_a_result_holding_files_the_user_added(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    _write(out, {"x.txt": "old"})
+    (out / "notes.txt").write_text("mine")
+    (out / "mysub").mkdir()
+    with pytest.raises(ResultFolderError, match=r"did not write \(mysub, notes.txt\)"):
+        _write(out, {"x.txt": "new"}, force=True)
+    assert (out / "notes.txt").read_text() == "mine" and (out / "mysub").is_dir()
+    assert (out / "x.txt").read_text() == "old"
+
+
+def test_marker_lists_the_files_the_result_wrote(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    _write(out, {"x.txt": "1", "y.txt": "2"})
+    assert json.loads((out / MARKER).read_text())["files"] == ["x.txt", "y.txt"]
+
+
+@pytest.mark.parametrize("force", [False, True], ids=["plain", "force"])
+def test_refuses_a_result_of_another_command(tmp_path: Path, force: bool) -> None:
+    out = tmp_path / "run"
+    _write(out, {"ensemble.pt": "reconstruction"})
+    with pytest.raises(ResultFolderError, match="result of 'test', not of 'other'"):
+        with result_folder(out, command="other", force=force) as f:
+            (f.path / "fit.json").write_text("fit")
+    assert _names(out) == {"ensemble.pt"}
+
+
+def test_marker_without_a_file_list_falls_back_to_owned_names(
+    tmp_path: Path,
+) -> None:
+    """A result of an earlier version: its marker names the command, no files."""
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / MARKER).write_text(json.dumps({"command": "test", "written": 0.0}))
+    (out / "summary.json").write_text("{}")
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(ResultFolderError, match=r"did not write \(notes.txt\)"):
+        _write(out, {"summary.json": "[]"}, force=True, owned=["summary.json"])
+    (out / "notes.txt").unlink()
+    _write(out, {"summary.json": "[]"}, force=True, owned=["summary.json"])
+    assert (out / "summary.json").read_text() == "[]"

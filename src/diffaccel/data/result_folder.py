@@ -16,11 +16,13 @@ the removal of the old result; were the process killed between the renames,
 the old result is still there as ``.<name>.old``.
 
 A destination is only replaced with ``force`` (or ``resume``), and only if it
-is empty, holds the marker file that every result folder gets
-(``.diffaccel-result``), or holds nothing but names the command declares as its
-own (results written before markers existed). A folder with anything else in
-it, or one holding an input of the run, is refused: nothing a user gave is
-deleted.
+is empty or holds an earlier result of the same command and nothing else: the
+marker file that every result folder gets (``.diffaccel-result``) names the
+command and the files it wrote. A folder written before markers listed files
+counts as a result if it holds nothing but names the command declares as its
+own, as does one written before markers existed. A result of another command, a
+folder with anything else in it (a user's notes beside a result), or one
+holding an input of the run, is refused: nothing a user gave is deleted.
 """
 
 from __future__ import annotations
@@ -43,7 +45,9 @@ __all__ = [
     "result_folder",
 ]
 
-#: Marker file written into every result folder (JSON: command, time).
+#: Marker file written into every result folder (JSON: command, time, pid and
+#: ``files``, the sorted names the result wrote; markers of versions before
+#: 2026-12 have no ``files``).
 MARKER = ".diffaccel-result"
 
 
@@ -130,13 +134,32 @@ def _mtime(path: Path) -> float:
         return 0.0
 
 
-def _foreign(out: Path, owned: Iterable[str]) -> list[str]:
-    """Entries of ``out`` that are not (or may not be) results of the command."""
-    entries = sorted(p.name for p in out.iterdir())
-    if not entries or MARKER in entries:
-        return []
+def _marker(out: Path) -> dict:
+    """The marker of the result in ``out`` ({} if unreadable)."""
+    try:
+        marker = json.loads((out / MARKER).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return marker if isinstance(marker, dict) else {}
+
+
+def _foreign(out: Path, marker: dict, owned: Iterable[str]) -> list[str]:
+    """Entries of ``out`` that are not (or may not be) results of the command.
+
+    The marker's ``files`` are the result's; without them (a marker of an
+    earlier version, or no marker) the names matching ``owned`` are.
+    """
+    entries = sorted(p.name for p in out.iterdir() if p.name != MARKER)
+    files = marker.get("files")
+    if isinstance(files, list):
+        written = {str(f) for f in files}
+        return [n for n in entries if n not in written]
     pats = list(owned)
     return [n for n in entries if not any(fnmatch.fnmatch(n, p) for p in pats)]
+
+
+def _names(names: list[str]) -> str:
+    return f"{', '.join(names[:5])}{', ...' if len(names) > 5 else ''}"
 
 
 def _inside(path: Path, folder: Path) -> bool:
@@ -163,13 +186,14 @@ def result_folder(
     Args:
         out: Destination folder.
         command: Name of the command, recorded in the marker file.
-        force: Replace an existing result in ``out``.
+        force: Replace an existing result of ``command`` in ``out``.
         resume: Continue a kept staging folder (implies ``force`` for ``out``);
             without a staging folder, start one from ``out``'s files.
         keep_partial: Keep the staging folder when the body raises (a later
             ``resume`` continues from it); otherwise it is removed.
-        owned: Glob patterns of the files the command writes; a folder without
-            a marker holding only such names counts as an earlier result.
+        owned: Glob patterns of the files the command writes; a folder whose
+            marker lists no files (or without a marker) holding only such
+            names counts as an earlier result.
         inputs: Files the run reads; refused if one lies inside ``out``.
 
     Yields:
@@ -177,9 +201,10 @@ def result_folder(
 
     Raises:
         ResultFolderError: ``out`` is a file, holds a result and neither
-            ``force`` nor ``resume`` is given, holds files that are not a
-            result, holds an input, is being written by another run, or cannot
-            be written (checked before the body runs).
+            ``force`` nor ``resume`` is given, holds a result of another
+            command or files that the result did not write, holds an input, is
+            being written by another run, or cannot be written (checked before
+            the body runs).
 
     Example:
         >>> import tempfile
@@ -211,12 +236,25 @@ def result_folder(
     try:
         has_result = out.exists() and any(out.iterdir())
         if has_result:
-            foreign = _foreign(out, owned)
+            marked = (out / MARKER).exists()
+            marker = _marker(out) if marked else {}
+            # a marker naming no command (unreadable) leaves the names to judge
+            if marker.get("command", command) != command:
+                raise ResultFolderError(
+                    f"--out {out} holds a result of {marker['command']!r}, not of "
+                    f"{command!r}; choose another (new or empty) folder."
+                )
+            foreign = _foreign(out, marker, owned)
+            if foreign and marked:
+                raise ResultFolderError(
+                    f"--out {out} holds files its result did not write "
+                    f"({_names(foreign)}); move them out of it or choose another "
+                    "folder."
+                )
             if foreign:
                 raise ResultFolderError(
                     f"--out {out} holds files that are not a diffaccel result "
-                    f"({', '.join(foreign[:5])}{', ...' if len(foreign) > 5 else ''})"
-                    "; choose another (new or empty) folder."
+                    f"({_names(foreign)}); choose another (new or empty) folder."
                 )
             if not (force or resume):
                 # only commands that keep a failed run's files can resume it
@@ -257,7 +295,13 @@ def result_folder(
             if not keep_partial or not any(staging.iterdir()):
                 shutil.rmtree(staging, ignore_errors=True)
             raise
-        marker = {"command": command, "written": time.time(), "pid": os.getpid()}
+        files = sorted(p.name for p in staging.iterdir() if p.name != MARKER)
+        marker = {
+            "command": command,
+            "written": time.time(),
+            "pid": os.getpid(),
+            "files": files,
+        }
         (staging / MARKER).write_text(json.dumps(marker) + "\n", encoding="utf-8")
         old = _sibling(out, "old")
         if old.exists():
