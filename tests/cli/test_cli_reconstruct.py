@@ -366,6 +366,40 @@ def test_force_keeps_files_the_user_added(scan_file: Path, tmp_path: Path) -> No
     assert (out / "notes.txt").read_text() == "mine" and (out / "mysub").is_dir()
 
 
+def test_a_fresh_run_keeps_an_interrupted_runs_checkpoint(
+    scan_file: Path, tmp_path: Path, monkeypatch
+) -> None:
+    out = tmp_path / "out"
+    args = ["reconstruct", str(scan_file), *FAST, "--no-figures", "--out", str(out)]
+    restore = _interrupt_after_first_checkpoint(monkeypatch)
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 1 and "--resume continues it" in r.output
+    restore()
+    checkpoint = (partial_folder(out) / "checkpoint.pt").read_bytes()
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 1
+    assert "pass --resume to continue it or --force to discard it" in r.output
+    assert (partial_folder(out) / "checkpoint.pt").read_bytes() == checkpoint
+    assert not out.exists()
+    r = CliRunner().invoke(main, [*args, "--force"])  # discards it
+    assert r.exit_code == 0, r.output
+    assert not partial_folder(out).exists()
+
+
+def test_resume_without_a_checkpoint_names_force_for_the_staging_folder(
+    scan_file: Path, tmp_path: Path
+) -> None:
+    """A run killed before its first checkpoint leaves only selection.json."""
+    out = tmp_path / "out"
+    partial_folder(out).mkdir()
+    (partial_folder(out) / "selection.json").write_text("{}")
+    args = ["reconstruct", str(scan_file), *FAST, "--no-figures", "--out", str(out)]
+    r = CliRunner().invoke(main, [*args, "--resume"])
+    assert r.exit_code == 1 and "run with --force instead of --resume" in r.output
+    r = CliRunner().invoke(main, [*args, "--force"])
+    assert r.exit_code == 0, r.output
+
+
 def test_a_second_run_into_a_busy_folder_is_refused(
     scan_file: Path, tmp_path: Path
 ) -> None:

@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import json
 import os
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -230,3 +231,50 @@ def test_marker_without_a_file_list_falls_back_to_owned_names(
     (out / "notes.txt").unlink()
     _write(out, {"summary.json": "[]"}, force=True, owned=["summary.json"])
     assert (out / "summary.json").read_text() == "[]"
+
+
+def _interrupted(out: Path) -> None:
+    with (
+        pytest.raises(_Late),
+        result_folder(out, command="test", keep_partial=True) as f,
+    ):
+        (f.path / "checkpoint").write_text("step 5")
+        raise _Late
+
+
+def test_a_fresh_run_refuses_a_kept_staging_folder(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    _interrupted(out)
+    staging = tmp_path / ".run.partial"
+    with pytest.raises(ResultFolderError, match="--resume to continue it or --force"):
+        _write(out, {"x": "1"}, keep_partial=True)
+    assert (staging / "checkpoint").read_text() == "step 5"
+    # --force discards it
+    _write(out, {"x": "1"}, keep_partial=True, force=True)
+    assert _names(out) == {"x"} and not staging.exists()
+
+
+def test_a_killed_runs_kept_staging_folder_resumes(tmp_path: Path) -> None:
+    """SIGKILL leaves the lock of a dead process and the staging folder."""
+    out = tmp_path / "run"
+    _interrupted(out)
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    lock = tmp_path / ".run.lock"
+    lock.write_text(json.dumps({"pid": proc.pid, "host": socket.gethostname()}))
+    with pytest.raises(ResultFolderError, match="--resume to continue it"):
+        _write(out, {"x": "1"}, keep_partial=True)
+    with result_folder(out, command="test", resume=True, keep_partial=True) as f:
+        assert (f.path / "checkpoint").read_text() == "step 5"
+    assert not lock.exists()
+
+
+def test_a_killed_runs_staging_folder_without_checkpoints_is_removed(
+    tmp_path: Path,
+) -> None:
+    # a command that keeps nothing for --resume: its leftovers are half a result
+    staging = tmp_path / ".run.partial"
+    staging.mkdir()
+    (staging / "summary.json").write_text("half")
+    _write(tmp_path / "run", {"x": "1"})
+    assert not staging.exists() and _names(tmp_path / "run") == {"x"}

@@ -570,7 +570,10 @@ def run_reconstruction(
     "the ensemble scatter only (faster, under-covers).",
 )
 @click.option(
-    "--force", is_flag=True, help="Replace an earlier result in --out (at the end)."
+    "--force",
+    is_flag=True,
+    help="Replace an earlier reconstruction in --out (at the end); discard an "
+    "interrupted run's checkpoint in .OUT.partial.",
 )
 @click.option(
     "--resume",
@@ -620,7 +623,7 @@ def reconstruct_command(
 
     The results appear in OUT all together at the end (written into a
     staging folder ``.OUT.partial`` beside it first); an interrupted run keeps
-    its checkpoint there and ``--resume`` continues it.
+    its checkpoint there and ``--resume`` continues it (``--force`` discards it).
     """
     ctx = click.get_current_context()
     given = {
@@ -661,9 +664,14 @@ def reconstruct_command(
             if (d / CHECKPOINT).is_file()
         ]
         if not found:
+            # a run killed before its first checkpoint leaves a staging folder
+            # that a run without --resume refuses until --force discards it
+            fresh = "run without --resume"
+            if partial_folder(out).exists():
+                fresh = "run with --force instead of --resume to discard it"
             raise click.ClickException(
                 f"--resume: no {CHECKPOINT} in {out} or {partial_folder(out)} (an "
-                "interrupted run keeps it there); run without --resume."
+                f"interrupted run keeps it there); {fresh}."
             )
         config = resume_config(found[0], config, given)
         selection = resume_selection(

@@ -23,6 +23,11 @@ counts as a result if it holds nothing but names the command declares as its
 own, as does one written before markers existed. A result of another command, a
 folder with anything else in it (a user's notes beside a result), or one
 holding an input of the run, is refused: nothing a user gave is deleted.
+
+A staging folder kept by an interrupted run (``keep_partial``) is continued
+with ``resume`` and discarded only with ``force``; a run with neither is
+refused. A staging folder left by a killed command that keeps nothing for a
+resume is half a result and removed.
 """
 
 from __future__ import annotations
@@ -186,7 +191,8 @@ def result_folder(
     Args:
         out: Destination folder.
         command: Name of the command, recorded in the marker file.
-        force: Replace an existing result of ``command`` in ``out``.
+        force: Replace an existing result of ``command`` in ``out``, and
+            discard a staging folder kept by an interrupted run.
         resume: Continue a kept staging folder (implies ``force`` for ``out``);
             without a staging folder, start one from ``out``'s files.
         keep_partial: Keep the staging folder when the body raises (a later
@@ -203,8 +209,9 @@ def result_folder(
         ResultFolderError: ``out`` is a file, holds a result and neither
             ``force`` nor ``resume`` is given, holds a result of another
             command or files that the result did not write, holds an input, is
-            being written by another run, or cannot be written (checked before
-            the body runs).
+            being written by another run, has a kept staging folder and neither
+            ``force`` nor ``resume`` is given, or cannot be written (checked
+            before the body runs).
 
     Example:
         >>> import tempfile
@@ -267,6 +274,12 @@ def result_folder(
             if not os.access(out, os.W_OK | os.X_OK):
                 raise ResultFolderError(f"--out {out} is not writable.")
         if staging.exists() and not resume:
+            kept = sorted(p.name for p in staging.iterdir())
+            if kept and keep_partial and not force:
+                raise ResultFolderError(
+                    f"{staging} holds an interrupted run's files ({_names(kept)}); "
+                    "pass --resume to continue it or --force to discard it."
+                )
             shutil.rmtree(staging)
         if not staging.exists():
             staging.mkdir()
