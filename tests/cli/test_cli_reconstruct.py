@@ -322,6 +322,28 @@ def test_resume_refuses_other_options_and_other_data(
     assert r.exit_code == 1 and "no checkpoint.pt" in r.output
 
 
+def test_resume_of_a_finished_result_checks_options_against_its_checkpoint(
+    scan_file: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "out"
+    args = ["reconstruct", str(scan_file), "--out", str(out), "--no-figures"]
+    assert CliRunner().invoke(main, [*args, *FAST]).exit_code == 0
+    # 8 steps are a multiple of the checkpoint's 2 snapshots (not of the default)
+    r = CliRunner().invoke(main, [*args, "--resume", "--steps", "8"])
+    assert r.exit_code == 1 and "--steps 8 (checkpoint: 6)" in r.output, r.output
+    # other data: refused, and no copy of the result is left as a "checkpoint"
+    other = tmp_path / "other.h5"
+    ds = read_quad_scan(scan_file)
+    write_quad_scan(ds.with_step({"step": "test"}, images=ds.images.flip(-1)), other)
+    r = CliRunner().invoke(
+        main,
+        ["reconstruct", str(other), "--out", str(out), "--no-figures", "--resume"],
+    )
+    assert r.exit_code == 1 and "other training data" in r.output, r.output
+    assert "--resume continues it" not in r.output
+    assert not partial_folder(out).exists()
+
+
 # plot_corner is drawn by the forked child (cli.background), the image grid by
 # the command's own process: a failure in either fails the command
 @pytest.mark.parametrize("figure", ["plot_corner", "plot_image_comparison"])

@@ -278,3 +278,16 @@ def test_a_killed_runs_staging_folder_without_checkpoints_is_removed(
     (staging / "summary.json").write_text("half")
     _write(tmp_path / "run", {"x": "1"})
     assert not staging.exists() and _names(tmp_path / "run") == {"x"}
+
+
+def test_a_failed_resume_of_a_completed_result_keeps_no_copy(tmp_path: Path) -> None:
+    # the checkpoint is still in out, where the next resume finds it
+    out = tmp_path / "run"
+    _write(out, {"checkpoint": "step 10"})
+    with (
+        pytest.raises(_Late),
+        result_folder(out, command="test", resume=True, keep_partial=True),
+    ):
+        raise _Late
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+    assert _names(out) == {"checkpoint"}

@@ -226,10 +226,7 @@ def resume_config(
     Options the user gave that differ from the checkpoint's are refused (naming
     both values); options not given are taken from the checkpoint.
     """
-    try:
-        stored = checkpoint_config(checkpoint)
-    except ValueError as err:
-        raise click.ClickException(f"cannot resume: {err}") from err
+    stored = _stored_config(checkpoint)
     clash = [
         f"{flag} {getattr(config, key)} (checkpoint: {getattr(stored, key)})"
         for key, flag in CONFIG_OPTIONS.items()
@@ -243,6 +240,31 @@ def resume_config(
             "use --force without --resume to start a new run."
         )
     return stored
+
+
+def _stored_config(checkpoint: Path) -> ReconstructionConfig:
+    try:
+        return checkpoint_config(checkpoint)
+    except ValueError as err:
+        raise click.ClickException(f"cannot resume: {err}") from err
+
+
+def _resume_checkpoint(out: Path) -> Path:
+    """The checkpoint ``--resume`` continues: the staging folder's, else ``out``'s."""
+    found = [
+        d / CHECKPOINT for d in (partial_folder(out), out) if (d / CHECKPOINT).is_file()
+    ]
+    if not found:
+        # a run killed before its first checkpoint leaves a staging folder
+        # that a run without --resume refuses until --force discards it
+        fresh = "run without --resume"
+        if partial_folder(out).exists():
+            fresh = "run with --force instead of --resume to discard it"
+        raise click.ClickException(
+            f"--resume: no {CHECKPOINT} in {out} or {partial_folder(out)} (an "
+            f"interrupted run keeps it there); {fresh}."
+        )
+    return found[0]
 
 
 def resume_selection(
@@ -638,18 +660,27 @@ def reconstruct_command(
         )
     dev = _init_distributed(device) if distributed else check_device(device)
     writer = not distributed or tdist.get_rank() == 0
-    try:
-        config = ReconstructionConfig(
-            dims=int(dims),
-            n_particles=particles,
-            steps=steps,
-            snapshots=snapshots,
-            seed=seed,
-            image_loss=image_loss,  # type: ignore[arg-type]
-            blur_pixels=blur,
-            place_coupling=uncoupled,
-            probe_unseen=None if probe is None else PROBE_STEP if probe else 0.0,
+    options: dict[str, Any] = {
+        "dims": int(dims),
+        "n_particles": particles,
+        "steps": steps,
+        "snapshots": snapshots,
+        "seed": seed,
+        "image_loss": image_loss,
+        "blur_pixels": blur,
+        "place_coupling": uncoupled,
+        "probe_unseen": None if probe is None else PROBE_STEP if probe else 0.0,
+    }
+    checkpoint = _resume_checkpoint(out) if resume else None
+    if checkpoint is not None:
+        # options not given are the checkpoint's: a given --steps is checked
+        # against its --snapshots, not against the default's
+        stored = _stored_config(checkpoint)
+        options.update(
+            {k: getattr(stored, k) for k, f in CONFIG_OPTIONS.items() if f not in given}
         )
+    try:
+        config = ReconstructionConfig(**options)
     except ValueError as err:
         raise click.ClickException(str(err)) from err
     ds = read_dataset(dataset)
@@ -657,30 +688,15 @@ def reconstruct_command(
         selection = training_selection(ds, train_indices)
     except ValueError as err:
         raise click.BadParameter(str(err), param_hint="--train-indices") from err
-    if resume:
-        found = [
-            d / CHECKPOINT
-            for d in (partial_folder(out), out)
-            if (d / CHECKPOINT).is_file()
-        ]
-        if not found:
-            # a run killed before its first checkpoint leaves a staging folder
-            # that a run without --resume refuses until --force discards it
-            fresh = "run without --resume"
-            if partial_folder(out).exists():
-                fresh = "run with --force instead of --resume to discard it"
-            raise click.ClickException(
-                f"--resume: no {CHECKPOINT} in {out} or {partial_folder(out)} (an "
-                f"interrupted run keeps it there); {fresh}."
-            )
-        config = resume_config(found[0], config, given)
+    if checkpoint is not None:
+        config = resume_config(checkpoint, config, given)
         selection = resume_selection(
-            found[0].parent,
+            checkpoint.parent,
             ds,
             selection,
             ctx.get_parameter_source("train_indices") == ParameterSource.COMMANDLINE,
         )
-        click.echo(f"resuming from {found[0]} ({config})", err=True)
+        click.echo(f"resuming from {checkpoint} ({config})", err=True)
     if torch.device(dev).type == "cpu":
         check_memory(config, sum(len(v) for v in selection.values()))
     started = False
@@ -714,13 +730,17 @@ def reconstruct_command(
             )
     except (KeyboardInterrupt, click.ClickException) as err:
         # a refused run (another run's lock) must not point at that run's files
+        interrupted = started and isinstance(err, KeyboardInterrupt)
         if started and (partial_folder(out) / CHECKPOINT).is_file():
             click.echo(
                 f"note: the run's checkpoint is kept in {partial_folder(out)}; "
                 f"--resume continues it ({out} is unchanged)",
                 err=True,
             )
-        elif started and isinstance(err, KeyboardInterrupt):
+        elif interrupted and checkpoint is not None and checkpoint.parent == out:
+            # a resume of a finished result keeps no copy of it
+            click.echo(f"note: {out} is unchanged", err=True)
+        elif interrupted:
             click.echo(
                 "note: interrupted before the first checkpoint (written every "
                 f"{config.checkpoint_every} steps): nothing to resume, {out} is "

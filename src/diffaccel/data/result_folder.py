@@ -196,7 +196,8 @@ def result_folder(
         resume: Continue a kept staging folder (implies ``force`` for ``out``);
             without a staging folder, start one from ``out``'s files.
         keep_partial: Keep the staging folder when the body raises (a later
-            ``resume`` continues from it); otherwise it is removed.
+            ``resume`` continues from it); otherwise it is removed, as is
+            one a ``resume`` started from ``out``'s files.
         owned: Glob patterns of the files the command writes; a folder whose
             marker lists no files (or without a marker) holding only such
             names counts as an earlier result.
@@ -281,9 +282,11 @@ def result_folder(
                     "pass --resume to continue it or --force to discard it."
                 )
             shutil.rmtree(staging)
+        copied = False  # the staging folder starts as a copy of out's result
         if not staging.exists():
             staging.mkdir()
             if resume and has_result:  # continue from the completed folder's files
+                copied = True
                 for p in out.iterdir():
                     if p.is_file():
                         shutil.copy2(p, staging / p.name)
@@ -304,8 +307,9 @@ def result_folder(
         try:
             yield folder
         except BaseException:
-            # an empty staging folder has nothing to resume from
-            if not keep_partial or not any(staging.iterdir()):
+            # an empty staging folder has nothing to resume from, nor has a
+            # copy of out's result (a resume continues from out itself)
+            if not keep_partial or copied or not any(staging.iterdir()):
                 shutil.rmtree(staging, ignore_errors=True)
             raise
         files = sorted(p.name for p in staging.iterdir() if p.name != MARKER)
