@@ -576,6 +576,36 @@ def test_qlogei_acquisition_optimisation_end_to_end() -> None:
     assert torch.isfinite(value).all()
 
 
+# ------------------------------------------------------------------ units
+
+
+def test_results_do_not_depend_on_output_units() -> None:
+    # a beam size in m (1e-4 + 1e-5 * response) and one of range 1e-9 are the
+    # same standardised problem as the response itself: noise and predictive
+    # sigma scale with the output (GPyTorch's absolute variance floor of 1e-10
+    # and BoTorch's skipped standardisation below std 1e-8 must not show)
+    X, Y, _ = _data(0, 0.02, n_cycles=2, n_per_cycle=16)
+    sigmas, noises = [], []
+    for scale in (1.0, 1e-5, 1e-9):
+        model = HysteresisGP(X, 1e-4 + scale * Y, hysteresis={0: _preisach(8)})
+        fit_hysteresis_gp(model, restarts=1, max_iter=30)
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("error")  # no "Negative variance values" rounding
+            post = model.posterior_on_history()
+            cand = model.posterior(X[-3:].unsqueeze(-2), observation_noise=True)
+            sigmas.append(
+                torch.cat([post.variance, cand.variance.squeeze(-1)]).sqrt() / scale
+            )
+        noises.append(float(model.noise_sigma.detach()) / scale)
+    # same optimisation in standardised units: only round-off (and L-BFGS
+    # amplifying it over 30 iterations) differs between the scales
+    for sigma, noise in zip(sigmas[1:], noises[1:], strict=True):
+        torch.testing.assert_close(sigma, sigmas[0], rtol=1e-4, atol=0.0)
+        assert noise == pytest.approx(noises[0], rel=1e-4)
+    # and the unit-scale model is a sensible one: sigma well below the range 1
+    assert 0.002 < float(sigmas[0].mean()) < 0.1
+
+
 # -------------------------------------------------------------- failures
 
 
@@ -600,8 +630,27 @@ def test_qlogei_acquisition_optimisation_end_to_end() -> None:
         ),
         (torch.rand(6, 1, dtype=DT), torch.rand(6, dtype=DT), r"shape \(n, 1\)"),
         (torch.rand(2, 6, 1, dtype=DT), torch.rand(2, 6, 1, dtype=DT), r"\(n, d\)"),
+        (
+            torch.rand(4, 1, dtype=DT),
+            torch.tensor([[0.0], [1.0], [1e160], [2.0]], dtype=DT),
+            r"train_Y row 2, column 0 is 1e\+160: beyond 1e\+100",
+        ),
+        (
+            torch.tensor([[0.0], [1.0], [-1e159], [0.5]], dtype=DT),
+            torch.rand(4, 1, dtype=DT),
+            r"train_X row 2, column 0 is -1e\+160: beyond 1e\+100",
+        ),
     ],
-    ids=["too-few", "constant", "nan-y", "nan-x", "y-shape", "batched-x"],
+    ids=[
+        "too-few",
+        "constant",
+        "nan-y",
+        "nan-x",
+        "y-shape",
+        "batched-x",
+        "huge-y",
+        "huge-x",
+    ],
 )
 def test_bad_training_data_raises(X: torch.Tensor, Y: torch.Tensor, match: str) -> None:
     with pytest.raises(ValueError, match=match):

@@ -72,6 +72,47 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 _MIN_POINTS = 3
+# larger magnitudes overflow squares and ranges in float64; no measurement has
+# them (the same limit as ``fit_preisach``)
+_MAX_MAGNITUDE = 1e100
+
+
+def _standardize() -> Standardize:
+    """The default outcome transform: ``Standardize`` whatever the output's units.
+
+    BoTorch's ``Standardize`` only de-means outputs whose standard deviation is
+    below ``min_stdv`` (1e-8 by default), which would leave a beam size in
+    metres (or any output in small units) unscaled against a noise prior and
+    noise floor meant for unit-variance data. Constant outputs are refused
+    before, so every standard deviation here is positive.
+    """
+    return Standardize(m=1, min_stdv=0.0)
+
+
+class _RescaledPosterior(GPyTorchPosterior):
+    """Posterior in units of ``train_Y`` whose variance is scaled from model units.
+
+    GPyTorch rounds variances below an absolute floor (1e-10 in float64) up to
+    it, with a "Negative variance values detected" warning; after the
+    standardisation is undone that floor would swamp the variance of any
+    output in small units (a beam size of 1e-4 m has variances near 1e-13 m^2).
+    The variance is therefore computed in standardised units and multiplied by
+    the squared output scale here.
+
+    Args:
+        distribution: The posterior distribution in units of ``train_Y``.
+        variance: Its marginal variances [units of ``train_Y`` squared], shape
+            ``(*b, q, 1)``.
+    """
+
+    def __init__(self, distribution: MultivariateNormal, variance: Tensor) -> None:
+        super().__init__(distribution=distribution)
+        self._variance = variance
+
+    @property
+    def variance(self) -> Tensor:
+        """Marginal variances [units of ``train_Y`` squared], shape ``(*b, q, 1)``."""
+        return self._variance
 
 
 def magnetization_feature(states: Tensor, weights: Tensor) -> Tensor:
@@ -264,8 +305,10 @@ class HysteresisGP(Model):
             homoskedastic ``GaussianLikelihood`` (other likelihoods are rejected).
         covar_module: Replaces the default kernel (acts on the ``d`` features).
         mean_module: Replaces the default constant mean.
-        outcome_transform: Transform of ``train_Y``; ``Standardize`` by default
-            (BoTorch's ``DEFAULT``), ``None`` for none.
+        outcome_transform: Transform of ``train_Y``; by default (BoTorch's
+            ``DEFAULT``) ``Standardize`` with no lower limit on the standard
+            deviation, so that results do not depend on the output's units;
+            ``None`` for none.
         candidate_smoothing: Width of the smooth, rate-independent relays used
             for the settings given to ``posterior`` (normalised Preisach input
             units; see ``diffaccel.hysteresis.states.smooth_states``). They start
@@ -285,7 +328,8 @@ class HysteresisGP(Model):
         ``posterior(X)`` maps ``(*b, q, d)`` to a posterior over ``(*b, q, 1)``.
 
     Raises:
-        ValueError: for shapes, NaN or infinite values, fewer than 3 points,
+        ValueError: for shapes, NaN or infinite values, magnitudes beyond
+            1e100 (a unit or parsing error), fewer than 3 points,
             constant outputs, a hysteretic column outside ``0..d-1``, training
             currents outside a Preisach model's ``input_range``, negative
             ``train_Yvar`` or an unsupported likelihood.
@@ -396,7 +440,7 @@ class HysteresisGP(Model):
                 blocks.append(pm.states(train_X[:, c]).to(train_X))
         train_inputs = torch.cat(blocks, dim=-1)
         if outcome_transform is DEFAULT:
-            outcome_transform = Standardize(m=1)
+            outcome_transform = _standardize()
         y, yvar = train_Y, train_Yvar
         if outcome_transform is not None:
             outcome_transform.train()
@@ -598,7 +642,13 @@ class HysteresisGP(Model):
         posterior = GPyTorchPosterior(distribution=mvn)
         ot = getattr(self, "outcome_transform", None)
         if ot is not None:
+            variance = posterior.variance  # model units: GPyTorch's floor is relative
             posterior = ot.untransform_posterior(posterior, X=X)
+            if isinstance(ot, Standardize) and type(posterior) is GPyTorchPosterior:
+                scale = self._outcome_scale()
+                posterior = _RescaledPosterior(
+                    posterior.distribution, variance * scale.square()
+                )
         if posterior_transform is not None:
             posterior = posterior_transform(posterior)
         return posterior
@@ -754,7 +804,7 @@ class HysteresisGP(Model):
             train_Yvar=new_Yvar,
             covar_module=copy.deepcopy(self.gp.covar_module),
             mean_module=copy.deepcopy(self.gp.mean_module),
-            outcome_transform=None if ot is None else Standardize(m=1),
+            outcome_transform=None if ot is None else _standardize(),
             candidate_smoothing=self.candidate_smoothing,
             density_prior_scale=self.density_prior_scale,
             **modules,
@@ -794,6 +844,15 @@ def _validate_training_data(
             "train_Y contains NaN or infinite values; drop failed measurements "
             "from the outputs only if you keep their settings in the history."
         )
+    for name, v in (("train_X", train_X), ("train_Y", train_Y)):
+        big = v.abs() > _MAX_MAGNITUDE
+        if big.any():
+            i, c = (int(k) for k in big.nonzero()[0])
+            raise ValueError(
+                f"{name} row {i}, column {c} is {float(v[i, c]):.6g}: beyond "
+                f"{_MAX_MAGNITUDE:.0e} in magnitude, not a measurement (a unit or "
+                "parsing error?)."
+            )
     if train_Yvar is not None:
         if not isinstance(train_Yvar, Tensor) or train_Yvar.shape != train_Y.shape:
             raise ValueError(
