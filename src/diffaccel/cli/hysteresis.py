@@ -10,14 +10,21 @@ Its subcommands live in their own modules (``hysteresis_fit``,
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import click
+import numpy as np
 
 __all__ = [
+    "MAX_MAGNITUDE",
     "check_finite",
     "check_input_range",
+    "check_magnitude",
     "hysteresis",
 ]
+
+# larger magnitudes overflow squares and ranges in float64; no measurement has them
+MAX_MAGNITUDE = 1e100
 
 
 @click.group("hysteresis")
@@ -50,3 +57,28 @@ def check_input_range(
             f"HI - LO overflows (got {lo} {hi}); expected a range of finite width."
         )
     return value
+
+
+def check_magnitude(
+    data: Path, column: str, values: np.ndarray, first_row: int = 1
+) -> None:
+    """Refuse a value beyond ``MAX_MAGNITUDE``, naming the file, column and data row.
+
+    Args:
+        data: The CSV file the values come from.
+        column: Their column name.
+        values: The column's values (a numpy array or a CPU tensor), shape ``(T,)``.
+        first_row: Data row (1 = the first row below the header) of ``values[0]``.
+
+    Raises:
+        click.ClickException: at the first value beyond ``MAX_MAGNITUDE``.
+    """
+    v = np.asarray(values, dtype=np.float64)
+    big = np.flatnonzero(np.abs(v) > MAX_MAGNITUDE)
+    if big.size:
+        i = int(big[0])
+        raise click.ClickException(
+            f"{data}: column {column!r}, data row {first_row + i}: "
+            f"{float(v[i]):.6g} is beyond {MAX_MAGNITUDE:.0e} in magnitude, "
+            "not a measurement (a unit or parsing error?)."
+        )

@@ -12,6 +12,7 @@ from tqdm import tqdm
 from diffaccel.cli.hysteresis import (
     check_finite,
     check_input_range,
+    check_magnitude,
 )
 from diffaccel.cli.output import output_folder, save_png
 from diffaccel.data import (
@@ -40,8 +41,6 @@ FIGURES = ("fit.png", "density.png")
 # beyond it the data term (a normalised mse, ~1 at most) is lost in the float64
 # round-off of the penalty, and far beyond it the loss overflows
 MAX_SMOOTHNESS = 1e12
-# larger magnitudes overflow squares and ranges in float64; no measurement has them
-MAX_MAGNITUDE = 1e100
 
 
 @click.command("fit")
@@ -141,14 +140,7 @@ def fit_command(
             param_hint="--train-rows",
         )
     for name, values in ((input_col, hist.input), (output_col, hist.output)):
-        big = values.abs() > MAX_MAGNITUDE
-        if big.any():
-            i = int(big.nonzero()[0, 0])
-            raise click.ClickException(
-                f"{data}: column {name!r}, data row {i + 1}: "
-                f"{float(values[i]):.6g} is beyond {MAX_MAGNITUDE:.0e} in magnitude, "
-                "not a measurement (a unit or parsing error?)."
-            )
+        check_magnitude(data, name, values)
     with output_folder(
         out_dir,
         "hysteresis fit",

@@ -10,7 +10,7 @@ import click
 import torch
 from tqdm import tqdm
 
-from diffaccel.cli.hysteresis import check_input_range
+from diffaccel.cli.hysteresis import check_input_range, check_magnitude
 from diffaccel.cli.output import output_folder, save_png
 from diffaccel.data import atomic_write_json, read_magnet_csv
 from diffaccel.hysteresis import (
@@ -129,6 +129,8 @@ def gp_fit(
             )
     try:
         hist = read_magnet_csv(data, input_column=x_col, output_column=y_col)
+        check_magnitude(data, x_col, hist.input)
+        check_magnitude(data, y_col, hist.output)
         if float(hist.input.max() - hist.input.min()) <= 0:
             raise ValueError(
                 f"{data}: column {x_col!r} is constant ({float(hist.input[0]):g}); "
@@ -137,6 +139,7 @@ def gp_fit(
         cols = [hist.input]
         for col in plain_cols:
             cols.append(read_magnet_csv(data, col, y_col).input)
+            check_magnitude(data, col, cols[-1])
         X = torch.stack(cols, dim=-1)
         Y = hist.output.unsqueeze(-1)
         lo, hi = (float(X[:, 0].min()), float(X[:, 0].max()))
