@@ -257,3 +257,76 @@ def test_stream_spec_names_the_bad_number() -> None:
         StreamSpec(**{**base, "weights": np.array([-1.0])})
     with pytest.raises(ValueError, match="noise_std must be >= 0"):
         StreamSpec(**{**base, "noise_std": -1.0})
+
+
+@pytest.mark.parametrize(
+    ("column", "args"),
+    [
+        ("current_A", ["--x", "current_A", "--y", "y"]),
+        ("y", ["--x", "current_A", "--y", "y"]),
+        ("energy", ["--x", "current_A", "--y", "y", "--plain", "energy"]),
+    ],
+    ids=["x", "y", "plain"],
+)
+def test_gp_fit_huge_value_names_file_column_and_data_row(
+    tmp_path: Path, column: str, args: list[str]
+) -> None:
+    # a field in T m times 1e160 used to fit to "noise sigma inf" and exit 0
+    header = ["current_A", "energy", "y"]
+    rows = [[float(i % 7), float(i), 0.1 * (i % 3)] for i in range(20)]
+    rows[11][header.index(column)] = 1e160
+    data = tmp_path / "beam.csv"
+    data.write_text(
+        ",".join(header) + "\n" + "".join(",".join(map(str, r)) + "\n" for r in rows)
+    )
+    out = tmp_path / "o"
+    result = _invoke("gp-fit", str(data), *args, "--out", str(out))
+    _one_line_error(result, str(data), repr(column), "data row 12:", "1e+160")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("row", [3, 25], ids=["first-chunk", "later-chunk"])
+def test_predict_huge_input_names_file_column_and_data_row(
+    tmp_path: Path, row: int
+) -> None:
+    # used to overflow in numpy (a RuntimeWarning) and then report NaN or
+    # infinite inputs with no file or row
+    fit_dir = tmp_path / "fit"
+    _saved_fit(fit_dir)
+    data = _csv(tmp_path / "mine.csv", big_row=row)
+    out = tmp_path / "p.csv"
+    result = _invoke(
+        "predict", str(fit_dir), "--input", str(data), "--out", str(out),
+        "--chunk-rows", "7",
+    )  # fmt: skip
+    last = _one_line_error(
+        result, str(data), "'current_A'", f"data row {row}:", "1e+300"
+    )
+    assert "RuntimeWarning" not in result.output, last
+    assert not out.exists()
+
+
+def test_predict_creates_a_missing_out_folder(tmp_path: Path) -> None:
+    # as fit and gp-fit do; it used to end in "unexpected FileNotFoundError"
+    fit_dir = tmp_path / "fit"
+    _saved_fit(fit_dir)
+    data = _csv(tmp_path / "mine.csv")
+    out = tmp_path / "new" / "deeper" / "p.csv"
+    result = _invoke("predict", str(fit_dir), "--input", str(data), "--out", str(out))
+    assert result.exit_code == 0, result.output
+    lines = out.read_text().splitlines()
+    assert lines[0] == "run,current_A,field_Tm,prediction,prediction_std"
+    assert len(lines) == 31
+
+
+def test_predict_out_folder_that_is_a_file_is_one_line(tmp_path: Path) -> None:
+    fit_dir = tmp_path / "fit"
+    _saved_fit(fit_dir)
+    data = _csv(tmp_path / "mine.csv")
+    blocker = tmp_path / "blocker"
+    blocker.write_text("not a folder\n")
+    result = _invoke(
+        "predict", str(fit_dir), "--input", str(data),
+        "--out", str(blocker / "p.csv"),
+    )  # fmt: skip
+    _one_line_error(result, "--out", "cannot create its folder")

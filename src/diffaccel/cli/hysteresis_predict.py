@@ -22,6 +22,7 @@ import click
 import numpy as np
 
 import diffaccel.hysteresis as hysteresis
+from diffaccel.cli.hysteresis import check_magnitude
 from diffaccel.cli.output import check_out_file
 from diffaccel.data import (
     DEFAULT_INPUT_COLUMN,
@@ -77,7 +78,8 @@ def predict_command(
     """Predict every row of a CSV (streamed), from the fit's initial state.
 
     Writes the input's columns plus ``prediction`` and ``prediction_std`` (one
-    standard deviation, including measurement noise) [output units].
+    standard deviation, including measurement noise) [output units]. A missing
+    folder of OUT is created.
     """
     # the refusals --force does not lift come first, so that the first is true
     check_out_file(out_file, True, {"--input": data})
@@ -110,7 +112,10 @@ def predict_command(
         pending: list[list[str]] = []
 
         def inputs():
+            first_row = 1  # data row of the chunk's first row (1: below the header)
             for rows, x in chunks:
+                check_magnitude(data, in_col, x, first_row)
+                first_row += len(rows)
                 pending.append(rows)
                 stats["min"] = min(stats["min"], float(x.min()))
                 stats["max"] = max(stats["max"], float(x.max()))
@@ -138,6 +143,13 @@ def predict_command(
             for rows, columns in read_ahead(texts()):
                 f.write(append_columns(rows, columns, [15, 7]))
 
+    try:
+        # as fit and gp-fit create their --out folder
+        out_file.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise click.ClickException(
+            f"--out {out_file}: cannot create its folder {out_file.parent}: {err}"
+        ) from err
     try:
         atomic_write(out_file, write)
     except ValueError as err:
