@@ -301,7 +301,7 @@ def test_predict_refuses_a_stream_file_of_another_fit(
         with torch.no_grad():
             model.slope.add_(1.0)
         keep = (out / "stream.npz").read_bytes()
-        save_fit(out, model, band)
+        save_fit(out, model, band, overwrite=True)
         (out / "stream.npz").write_bytes(keep)
     elif damage == "npz":
         (out / "stream.npz").write_bytes(b"PK\x03\x04 not a zip")

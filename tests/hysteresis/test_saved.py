@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import copy
 import json
 from pathlib import Path
 
 import pytest
 import torch
 
-from diffaccel.hysteresis import fit_magnet, load_fit, save_fit
+from diffaccel.hysteresis import fit_magnet, load_fit, save_fit, saved
 from diffaccel.hysteresis.synthetic import bipolar_quadrupole_case
 
 
@@ -68,3 +69,54 @@ def test_inconsistent_files_raise_one_line(fitted, tmp_path, how, match) -> None
     with pytest.raises(ValueError, match=match) as info:
         load_fit(tmp_path)
     assert "\n" not in str(info.value)
+
+
+def test_load_fit_refuses_model_pt_of_another_fit(fitted, tmp_path: Path) -> None:
+    # same mesh (so the hysteron counts agree), other numbers: stream.npz
+    # records the SHA-256 of the model.pt it was made from
+    _, fit = fitted
+    mine, other = tmp_path / "mine", tmp_path / "other"
+    save_fit(mine, fit.model, fit.band)
+    changed = copy.deepcopy(fit.model)
+    with torch.no_grad():
+        changed.slope.add_(1.0)
+    save_fit(other, changed, fit.band)
+    (mine / "model.pt").write_bytes((other / "model.pt").read_bytes())
+    with pytest.raises(ValueError, match=r"not the file .*stream\.npz was made from"):
+        load_fit(mine)
+
+
+def test_save_fit_refuses_a_non_empty_folder_unless_asked(
+    fitted, tmp_path: Path
+) -> None:
+    current, fit = fitted
+    save_fit(tmp_path, fit.model, fit.band)
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    changed = copy.deepcopy(fit.model)
+    with torch.no_grad():
+        changed.slope.add_(1.0)
+    with pytest.raises(FileExistsError, match="overwrite=True"):
+        save_fit(tmp_path, changed, fit.band)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+    save_fit(tmp_path, changed, fit.band, overwrite=True)
+    model, _, _ = load_fit(tmp_path)
+    with torch.no_grad():
+        assert torch.equal(model(current), changed(current))
+
+
+def test_interrupted_overwrite_leaves_no_loadable_mix(
+    fitted, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # model.json goes first and comes back last: a folder caught between a new
+    # model.pt and the old settings is refused, not loaded as one fit
+    _, fit = fitted
+    save_fit(tmp_path, fit.model, fit.band)
+
+    def fail(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(saved, "write_stream_file", fail)
+    with pytest.raises(OSError, match="disk full"):
+        save_fit(tmp_path, fit.model, None, overwrite=True)
+    with pytest.raises(ValueError, match=r"model\.json: missing"):
+        load_fit(tmp_path)

@@ -28,6 +28,7 @@ __all__ = [
     "FLOAT_DTYPES",
     "MODEL_FILE",
     "STREAM_FILE",
+    "check_model_file",
     "load_stream_fit",
     "read_config",
     "write_stream_file",
@@ -43,6 +44,40 @@ _HASH = "model_sha256"
 
 def _sha256(path: Path) -> np.ndarray:
     return np.frombuffer(hashlib.sha256(path.read_bytes()).digest(), dtype=np.uint8)
+
+
+def _check_digest(digest: np.ndarray | None, pt_path: Path, path: Path) -> None:
+    """Refuse ``pt_path`` unless its SHA-256 is ``digest`` (read from ``path``)."""
+    if digest is None or not np.array_equal(digest, _sha256(pt_path)):
+        raise ValueError(
+            f"{pt_path} is not the file {path} was made from; the files come "
+            "from different fits (save the fit again)."
+        )
+
+
+def _read_arrays(path: Path) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            return {k: npz[k] for k in npz.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+        msg = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise ValueError(f"{path}: cannot read arrays ({msg}).") from None
+
+
+def check_model_file(fit_dir: str | Path) -> None:
+    """Refuse a ``model.pt`` other than the one the folder's ``stream.npz`` records.
+
+    ``stream.npz`` records the SHA-256 of ``model.pt``; a folder without
+    ``stream.npz`` (saved before it existed) is not checked.
+
+    Raises:
+        ValueError: naming both files if ``model.pt`` differs from the recorded
+            one, or if ``stream.npz`` cannot be read.
+    """
+    fit_dir = Path(fit_dir)
+    path, pt_path = fit_dir / STREAM_FILE, fit_dir / MODEL_FILE
+    if path.is_file():
+        _check_digest(_read_arrays(path).get(_HASH), pt_path, path)
 
 
 def read_config(fit_dir: str | Path) -> dict:
@@ -98,18 +133,8 @@ def load_stream_fit(fit_dir: str | Path) -> tuple[StreamSpec, dict]:
         raise FileNotFoundError(f"{path}: missing.")
     if not pt_path.is_file():
         raise ValueError(f"{pt_path}: missing; is {fit_dir} a hysteresis fit folder?")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            arrays = {k: npz[k] for k in npz.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
-        msg = str(err).splitlines()[0] if str(err) else type(err).__name__
-        raise ValueError(f"{path}: cannot read arrays ({msg}).") from None
-    digest = arrays.pop(_HASH, None)
-    if digest is None or not np.array_equal(digest, _sha256(pt_path)):
-        raise ValueError(
-            f"{pt_path} is not the file {path} was made from; the files come "
-            "from different fits (save the fit again)."
-        )
+    arrays = _read_arrays(path)
+    _check_digest(arrays.pop(_HASH, None), pt_path, path)
     try:
         spec = StreamSpec.from_arrays(arrays)
     except ValueError as err:

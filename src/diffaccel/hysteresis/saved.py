@@ -17,6 +17,7 @@ from diffaccel.hysteresis.band import LaplaceBand
 from diffaccel.hysteresis.fit_folder import (
     CONFIG_FILE,
     MODEL_FILE,
+    check_model_file,
     read_config,
     write_stream_file,
 )
@@ -32,11 +33,18 @@ def save_fit(
     model: PreisachModel,
     band: LaplaceBand | None = None,
     extra: dict | None = None,
+    *,
+    overwrite: bool = False,
 ) -> None:
     """Write ``model.pt``, ``model.json`` and ``stream.npz`` into ``fit_dir``.
 
-    Each file is written atomically; ``stream.npz`` (the model's numbers for
-    ``diffaccel hysteresis predict``, which runs without torch) last.
+    Each file is written atomically: ``model.pt``, then ``stream.npz`` (the
+    model's numbers for ``diffaccel hysteresis predict``, which runs without
+    torch, with the SHA-256 of ``model.pt``), then ``model.json``, so that a
+    folder whose writing was interrupted has no ``model.json`` and is refused
+    by :func:`load_fit` and ``predict``. Overwriting removes the old
+    ``model.json`` first for the same reason; other files in the folder are
+    left alone.
 
     Args:
         fit_dir: Folder (created if missing).
@@ -44,18 +52,31 @@ def save_fit(
         band: Its predictive band, if any.
         extra: JSON-serialisable entries added to ``model.json`` (e.g. column
             names); they must not shadow the model's own settings.
+        overwrite: Write into a folder that is not empty (replacing an earlier
+            fit there). The CLI writes results all-or-nothing instead (see
+            :func:`diffaccel.data.result_folder`).
+
+    Raises:
+        FileExistsError: if ``fit_dir`` exists, is not empty and ``overwrite``
+            is False.
     """
     fit_dir = Path(fit_dir)
+    if fit_dir.is_dir() and any(fit_dir.iterdir()) and not overwrite:
+        raise FileExistsError(
+            f"{fit_dir} is not empty; pass overwrite=True to replace a fit there "
+            "(or choose a new or empty folder)."
+        )
     fit_dir.mkdir(parents=True, exist_ok=True)
     tensors = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
     if band is not None:
         for k, v in band.state_dict().items():
             tensors[_BAND + k] = v.detach().cpu().clone()
     config = {**(extra or {}), **model.config(), "band": band is not None}
-    atomic_write(fit_dir / MODEL_FILE, lambda p: torch.save(tensors, p))
-    atomic_write_json(fit_dir / CONFIG_FILE, config)
     spec = band.stream_spec(model) if band is not None else model.stream_spec()
+    (fit_dir / CONFIG_FILE).unlink(missing_ok=True)  # written last: the fit is whole
+    atomic_write(fit_dir / MODEL_FILE, lambda p: torch.save(tensors, p))
     write_stream_file(fit_dir, spec)
+    atomic_write_json(fit_dir / CONFIG_FILE, config)
 
 
 def load_fit(fit_dir: str | Path) -> tuple[PreisachModel, LaplaceBand | None, dict]:
@@ -66,7 +87,8 @@ def load_fit(fit_dir: str | Path) -> tuple[PreisachModel, LaplaceBand | None, di
 
     Raises:
         ValueError: for a missing, unreadable or inconsistent file (e.g. a
-            ``model.pt`` whose hysteron count differs from ``model.json``).
+            ``model.pt`` whose hysteron count differs from ``model.json``, or
+            that is not the one ``stream.npz`` records).
     """
     fit_dir = Path(fit_dir)
     cfg_path, pt_path = fit_dir / CONFIG_FILE, fit_dir / MODEL_FILE
@@ -113,4 +135,6 @@ def load_fit(fit_dir: str | Path) -> tuple[PreisachModel, LaplaceBand | None, di
                 f"{pt_path}: band has {band.n_hysterons} hysterons, the model "
                 f"{raw.numel()}."
             )
+    # last, so that a damaged model.pt is named for what is wrong with it
+    check_model_file(fit_dir)
     return model, band, config
