@@ -330,3 +330,19 @@ def test_predict_out_folder_that_is_a_file_is_one_line(tmp_path: Path) -> None:
         "--out", str(blocker / "p.csv"),
     )  # fmt: skip
     _one_line_error(result, "--out", "cannot create its folder")
+
+
+@pytest.mark.parametrize(("size", "memory"), [("101", "1.49 GB"), ("500", "879 GB")])
+def test_fit_refuses_a_mesh_its_band_cannot_hold_up_front(
+    tmp_path: Path, size: str, memory: str
+) -> None:
+    # 500 used to fit and then fail allocating 125 GB for the band, reported
+    # as an "unexpected RuntimeError ... bug in diffaccel"
+    data = _csv(tmp_path / "m.csv")
+    out = tmp_path / "o"
+    result = _invoke(
+        "fit", str(data), "--train-rows", "20", "--out", str(out),
+        "--mesh-size", size, "--steps", "1", "--no-figures",
+    )  # fmt: skip
+    _one_line_error(result, "--mesh-size", memory, "at most 100")
+    assert not out.exists()

@@ -17,7 +17,12 @@ from diffaccel.hysteresis import (
     next_step_output,
     synthetic_measurement,
 )
-from diffaccel.hysteresis.predictive import default_input_range, symmetric_default
+from diffaccel.hysteresis.predictive import (
+    MAX_MESH_SIZE,
+    band_memory_bytes,
+    default_input_range,
+    symmetric_default,
+)
 
 DT = torch.float64
 NAN = float("nan")
@@ -111,6 +116,29 @@ def test_bo_ask_refuses_bad_q(q) -> None:
     bo.tell(X, torch.tensor([[0.0], [1.0], [0.0]], dtype=DT))
     with pytest.raises(ValueError, match="q must be"):
         bo.ask(q)
+
+
+# 3b. fit_magnet mesh_size beyond what its band can hold ----------------------
+@pytest.mark.parametrize(
+    ("mesh_size", "memory"),
+    [(101, "1.49 GB"), (500, "879 GB"), (10**6, "1.4e+16 GB")],
+    ids=["101", "500", "1e6"],
+)
+def test_fit_magnet_refuses_a_mesh_its_band_cannot_hold(
+    measured, mesh_size: int, memory: str
+) -> None:
+    # the band's dense (M + 3)^2 matrices: 500 failed after the fit with a
+    # 125 GB allocation, 10**6 with a raw torch error building the mesh
+    u, y, _ = measured
+    with pytest.raises(ValueError, match=f"mesh_size {mesh_size} is beyond 100") as e:
+        fit_magnet(u, y, mesh_size=mesh_size, steps=3)
+    assert memory in str(e.value)
+
+
+def test_band_memory_is_that_of_dense_hysteron_matrices() -> None:
+    # 7 float64 matrices of (M + 3)^2, M = n (n + 1) / 2: n = 100 -> 5050
+    assert band_memory_bytes(100) == 7 * 8 * 5053**2
+    assert MAX_MESH_SIZE == 100
 
 
 # 3. fit_magnet validation_fraction ------------------------------------------

@@ -30,8 +30,12 @@ from diffaccel.hysteresis import (
     fit_magnet,
     save_fit,
 )
-from diffaccel.hysteresis.mesh import MAX_CLI_MESH_SIZE
-from diffaccel.hysteresis.predictive import min_training_rows, rms
+from diffaccel.hysteresis.predictive import (
+    MAX_MESH_SIZE,
+    band_memory_bytes,
+    min_training_rows,
+    rms,
+)
 from diffaccel.plotting.hysteresis import plot_preisach_density, plot_preisach_fit
 
 __all__ = ["fit_command"]
@@ -41,6 +45,17 @@ FIGURES = ("fit.png", "density.png")
 # beyond it the data term (a normalised mse, ~1 at most) is lost in the float64
 # round-off of the penalty, and far beyond it the loss overflows
 MAX_SMOOTHNESS = 1e12
+
+
+def _check_mesh_size(ctx: click.Context, param: click.Parameter, value: int) -> int:
+    """Click callback: a mesh whose predictive band fits in memory (the size named)."""
+    if value > MAX_MESH_SIZE:
+        raise click.BadParameter(
+            f"{value} cells per axis ({value * (value + 1) // 2:,} hysterons) would "
+            f"need ~{band_memory_bytes(value) / 1e9:.3g} GB for the predictive band "
+            f"(dense hysteron x hysteron matrices); use at most {MAX_MESH_SIZE}."
+        )
+    return value
 
 
 @click.command("fit")
@@ -65,12 +80,14 @@ MAX_SMOOTHNESS = 1e12
 )
 @click.option(
     "--mesh-size",
-    type=click.IntRange(min=2, max=MAX_CLI_MESH_SIZE),
+    type=click.IntRange(min=2),
     default=20,
     show_default=True,
+    callback=_check_mesh_size,
     help="Cells per axis of the triangular Preisach mesh (20: 210 hysterons; "
     "chosen on validation rows held out of the training rows, see "
-    "benchmarks/preisach_acceptance.py).",
+    f"benchmarks/preisach_acceptance.py); at most {MAX_MESH_SIZE}, as the "
+    "predictive band needs dense hysteron x hysteron matrices.",
 )
 @click.option(
     "--symmetric/--no-symmetric",

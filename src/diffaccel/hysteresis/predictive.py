@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from diffaccel.dynamics import is_integer
 from diffaccel.hysteresis.band import LaplaceBand, laplace_band
 from diffaccel.hysteresis.fit import (
     MIN_FIT_POINTS,
@@ -32,8 +33,10 @@ from diffaccel.hysteresis.preisach import PreisachModel
 from diffaccel.hysteresis.stream import StreamPredictor
 
 __all__ = [
+    "MAX_MESH_SIZE",
     "RANGE_MARGIN",
     "MagnetFit",
+    "band_memory_bytes",
     "default_input_range",
     "fit_magnet",
     "min_training_rows",
@@ -45,6 +48,29 @@ __all__ = [
 RANGE_MARGIN = 0.01
 # rows held out of the training rows for validation (at least 2)
 VALIDATION_FRACTION = 0.25
+#: Largest ``mesh_size`` :func:`fit_magnet` takes. Its predictive band
+#: (:func:`~diffaccel.hysteresis.band.laplace_band`) works with dense
+#: ``(M + 3) x (M + 3)`` float64 matrices of the ``M = n (n + 1) / 2`` hysterons
+#: (see :func:`band_memory_bytes`) and diagonalises one (time ~ M^3): 100 cells
+#: per axis (5050 hysterons) need ~1.4 GB and tens of seconds; 500 would need
+#: ~880 GB. The default (20) and the acceptance benchmark's best sizes are far
+#: below it.
+MAX_MESH_SIZE = 100
+# dense (M + 3)^2 float64 matrices alive at the band's peak (measured: ~6.7)
+_BAND_MATRICES = 7
+
+
+def band_memory_bytes(mesh_size: int) -> int:
+    """Peak memory of the predictive band of a triangular mesh [bytes].
+
+    Args:
+        mesh_size: Cells per axis ``n`` (``M = n (n + 1) / 2`` hysterons).
+
+    Returns:
+        About ``7 * 8 * (M + 3)^2`` bytes (dense float64 matrices).
+    """
+    m = mesh_size * (mesh_size + 1) // 2
+    return _BAND_MATRICES * 8 * (m + 3) ** 2
 
 
 def _held_out(n: int, validation_fraction: float) -> int:
@@ -193,8 +219,10 @@ def fit_magnet(
         A :class:`MagnetFit`.
 
     Raises:
-        ValueError: for bad series (see :func:`fit_preisach`), an input range
-            that misses training inputs, or too few rows to validate.
+        ValueError: for bad series (see :func:`fit_preisach`), a ``mesh_size``
+            beyond ``MAX_MESH_SIZE`` (the message gives the memory its band
+            would need), an input range that misses training inputs, or too
+            few rows to validate.
     """
     start = time.perf_counter()
     if not 0 <= validation_fraction < 1:  # also refuses NaN
@@ -206,6 +234,14 @@ def fit_magnet(
     if rng is None:
         rng = default_input_range(u, initial_state)
     # every check that can fail runs before the first fit
+    if is_integer(mesh_size) and int(mesh_size) > MAX_MESH_SIZE:
+        raise ValueError(
+            f"mesh_size {int(mesh_size)} is beyond {MAX_MESH_SIZE}: its "
+            f"{int(mesh_size) * (int(mesh_size) + 1) // 2:,} hysterons would need "
+            f"~{band_memory_bytes(int(mesh_size)) / 1e9:.3g} GB for the predictive "
+            f"band (dense hysteron x hysteron matrices); use at most "
+            f"{MAX_MESH_SIZE} (default 20)."
+        )
     _build(mesh_size, rng, initial_state, bool(symmetric)).check_input_range(
         u, "training inputs"
     )
