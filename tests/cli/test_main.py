@@ -136,3 +136,31 @@ def test_program_keeps_output_and_exit_status_when_it_ends_at_once() -> None:
     bad = program("no-such-command")
     assert bad.returncode == 2
     assert "no-such-command" in bad.stderr
+
+
+@pytest.mark.parametrize("verbose", [[], ["-vv"]], ids=["quiet", "vv"])
+def test_vv_shows_the_traceback_of_a_nested_subcommand(
+    tmp_path, monkeypatch: pytest.MonkeyPatch, verbose: list[str]
+) -> None:
+    # the nested lazy group (hysteresis) caught the error first, and -v is not
+    # among its own parameters: -vv never raised
+    import importlib
+
+    predict = importlib.import_module("diffaccel.cli.hysteresis_predict")
+
+    def boom(fit_dir):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(predict, "_load", boom)
+    (tmp_path / "fit").mkdir()
+    data = tmp_path / "in.csv"
+    data.write_text("current_A\n1.0\n")
+    out = tmp_path / "p.csv"
+    args = ["hysteresis", "predict", str(tmp_path / "fit"), "--input", str(data)]
+    result = CliRunner().invoke(main, [*verbose, *args, "--out", str(out)])
+    if verbose:
+        assert isinstance(result.exception, RuntimeError), result.output
+        assert str(result.exception) == "boom"
+    else:
+        assert result.exit_code == 1
+        assert "unexpected RuntimeError: boom (this is a bug" in result.output

@@ -162,7 +162,9 @@ class _LazyGroup(click.Group):
         except (click.ClickException, click.exceptions.Exit, click.Abort):
             raise
         except Exception as err:
-            if ctx.params.get("verbose", 0) >= 2:
+            # -v is an option of the top-level group: a nested group (hysteresis)
+            # reads it from the root context
+            if ctx.find_root().params.get("verbose", 0) >= 2:
                 raise
             first = str(err).strip().splitlines()[0] if str(err).strip() else ""
             raise click.ClickException(
