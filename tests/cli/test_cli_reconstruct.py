@@ -790,3 +790,26 @@ def test_6d_run_states_what_the_prior_sets(tmp_path: Path, monkeypatch) -> None:
         low, high = (a["relative_change"]["emit_z"] for a in at)
         assert low * high < 0 and min(abs(low), abs(high)) > 0.01
     assert r.output.count("set by the prior, not the images:") == 2
+
+
+def test_reconstruct_warns_when_the_fit_misses_its_training_images(
+    scan_file: Path, tmp_path: Path
+) -> None:
+    # settings 200x too large (the audit's k1_big.h5: units mistaken): training
+    # cannot reproduce the images, and the run must say so, not just end
+    bad = tmp_path / "k1_big.h5"
+    bad.write_bytes(scan_file.read_bytes())
+    with h5py.File(bad, "r+") as f:
+        f["settings"][...] = f["settings"][...] * 200.0
+    out = tmp_path / "out"
+    r = CliRunner().invoke(
+        main,
+        ["reconstruct", str(bad), "--out", str(out), "--no-figures", *FAST],
+    )
+    assert r.exit_code == 0, r.output
+    s = json.loads((out / "summary.json").read_text())
+    assert s["metrics"]["images_train"]["relative_l1"] > 0.5
+    assert len(s["warnings"]) == 1
+    assert "does not reproduce its training images" in s["warnings"][0]
+    assert "warning: the reconstruction does not reproduce" in r.output
+    assert "settings in the wrong units" in r.output

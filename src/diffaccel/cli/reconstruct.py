@@ -759,6 +759,8 @@ def reconstruct_command(
             f"held-out image relative L1: {m['images_held_out']['relative_l1']:.4f}"
         )
     click.echo(f"train image relative L1: {m['images_train']['relative_l1']:.4f}")
+    for warning in summary.get("warnings", []):
+        click.echo(f"warning: {warning}", err=True)
     if summary["unconstrained_coordinates"]:
         click.echo(
             "not constrained by the scan: "

@@ -8,6 +8,7 @@ Example:
 
 from diffaccel.reconstruction.ensemble import Reconstruction, load
 from diffaccel.reconstruction.evaluation import (
+    POOR_FIT_RELATIVE_L1,
     check_on_screen,
     clean_json,
     evaluate,
@@ -46,6 +47,7 @@ from diffaccel.reconstruction.training import (
 )
 
 __all__ = [
+    "POOR_FIT_RELATIVE_L1",
     "BeamGenerator",
     "GaussianGuess",
     "Reconstruction",

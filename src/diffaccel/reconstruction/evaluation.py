@@ -30,12 +30,25 @@ from diffaccel.reconstruction.pipeline import as_scans
 from diffaccel.reconstruction.prior_dependence import prior_dependence
 
 __all__ = [
+    "POOR_FIT_RELATIVE_L1",
     "check_on_screen",
     "clean_json",
     "evaluate",
     "predict_dataset",
     "predicted_dataset",
 ]
+
+# pooled training-image relative L1 above which a reconstruction is reported as
+# not reproducing its own training images: good runs end near 0.02-0.10 on the
+# images they trained on (held-out 0.07-0.15, benchmarks and
+# docs/generalisation_6d.md); 0.5 means half of the image intensity is misplaced
+POOR_FIT_RELATIVE_L1 = 0.5
+POOR_FIT_CAUSES = (
+    "likely causes: settings in the wrong units or scale (e.g. k1 in 1/m^2 vs "
+    "T/m or a current), a beamline that is not the measurement's (element "
+    "lengths, order, drift to the screen), a wrong screen calibration (pixel "
+    "size, centre) or a wrong beam energy (p0c)"
+)
 
 UNCONSTRAINED_NOTE = (
     "coordinates the scans do not see to first order (their column of the "
@@ -185,7 +198,11 @@ def evaluate(
         ``prior_dependence`` (6D: what the prior sets, see
         :func:`~diffaccel.reconstruction.prior_dependence.prior_dependence`;
         4D: empty), notes,
-        ``config``, ``snapshots`` and ``timings_s``; for a single scan also
+        ``config``, ``snapshots``, ``timings_s`` and ``warnings`` (a list of
+        sentences; one when a scan's training images or all of them together
+        have a relative L1 above :data:`POOR_FIT_RELATIVE_L1`: the
+        reconstruction does not reproduce its own data, and its moments are
+        not a measurement); for a single scan also
         ``train_indices``/``held_out_indices`` at the top level.
     """
     scans = as_scans(dataset)
@@ -234,7 +251,9 @@ def evaluate(
             sliced_wasserstein(sample[:20_000, :dims], truth[:, :dims], generator=g)
         )
         metrics["ground_truth"] = gt
+    warnings = _poor_fit_warnings(per_scan, metrics)
     summary: dict[str, Any] = {
+        "warnings": warnings,
         "config": result.config.to_dict(),
         "scans": per_scan,
         "snapshots": result.n_snapshots,
@@ -263,6 +282,28 @@ def evaluate(
         summary["train_indices"] = only["train_indices"]
         summary["held_out_indices"] = only["held_out_indices"]
     return clean_json(summary)
+
+
+def _poor_fit_warnings(
+    per_scan: Mapping[str, Any], metrics: Mapping[str, Any]
+) -> list[str]:
+    """Warnings for training images the reconstruction does not reproduce."""
+    bad = {
+        name: entry["images_train"]["relative_l1"]
+        for name, entry in per_scan.items()
+        if "images_train" in entry
+        and not entry["images_train"]["relative_l1"] <= POOR_FIT_RELATIVE_L1
+    }
+    pooled = metrics.get("images_train", {}).get("relative_l1")
+    if not bad and (pooled is None or pooled <= POOR_FIT_RELATIVE_L1):
+        return []
+    where = "".join(f", scan {n!r}: {v:.3g}" for n, v in bad.items())
+    return [
+        "the reconstruction does not reproduce its training images: relative L1 "
+        f"{pooled:.3g} over all training images{where} (good fits end below "
+        f"~0.15; warned above {POOR_FIT_RELATIVE_L1}), so its moments are not a "
+        f"measurement of the beam; {POOR_FIT_CAUSES}."
+    ]
 
 
 def check_on_screen(images: Tensor, settings: Tensor, *, scan: str = "") -> Tensor:
