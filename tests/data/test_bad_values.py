@@ -73,6 +73,12 @@ BAD_FILES = {
         lambda h: h["screen"].attrs.__setitem__("pixel_size_x", "1e-3"),
         r"/screen\.pixel_size_x: expected a number",
     ),
+    # a denormal pixel passed as > 0, then its image moments underflowed to 0
+    # ("scale must be finite and > 0" at reconstruct, no field named)
+    "pixel_denormal": (
+        lambda h: h["screen"].attrs.__setitem__("pixel_size_x", 1e-300),
+        r"screen\.pixel_size: .*at least 1e-09 m.*\(pixel_size_x = 1e-300\)",
+    ),
     "version_str": (
         lambda h: h.attrs.__setitem__("format_version", "1"),
         r"/\.format_version: expected an integer",

@@ -83,7 +83,10 @@ PARAMETER_LIMITS: dict[str, float] = {
     "voltage": 1e10,  # V
     "frequency": 1e12,  # Hz
 }
-#: Largest pixel size and screen-centre offset accepted [m].
+#: Pixel sizes accepted [m]: 1 nm (below any camera pixel; image moments square
+#: the pixel size, and a denormal one underflows to 0) to 10 m. Largest
+#: screen-centre offset accepted [m].
+MIN_PIXEL_SIZE = 1e-9
 MAX_PIXEL_SIZE = 10.0
 MAX_CENTER = 1.0
 #: Largest accepted screen resolution (point-spread rms) [pixels].
@@ -598,11 +601,13 @@ def _validate(ds: QuadScanDataset) -> None:
             f"images: image of setting {k} (shot {s}) sums to {float(sums[k, s]):g}; "
             "expected a positive total intensity (over-subtracted background?)"
         )
-    if not all(0 < v <= MAX_PIXEL_SIZE for v in ds.pixel_size):
-        raise FormatError(
-            f"screen.pixel_size: expected (x, y) > 0 and <= {MAX_PIXEL_SIZE:g} m; "
-            f"found {ds.pixel_size}"
-        )
+    for axis, v in zip("xy", ds.pixel_size, strict=True):
+        if not MIN_PIXEL_SIZE <= v <= MAX_PIXEL_SIZE:
+            raise FormatError(
+                f"screen.pixel_size: expected (x, y) > 0 and <= {MAX_PIXEL_SIZE:g} m, "
+                f"at least {MIN_PIXEL_SIZE:g} m (sizes are in m: 20 um is 2e-05); "
+                f"found {ds.pixel_size} (pixel_size_{axis} = {v:g})"
+            )
     if not all(abs(v) <= MAX_CENTER for v in ds.center):
         raise FormatError(
             f"screen.center: expected |x|, |y| <= {MAX_CENTER:g} m; found {ds.center}"
