@@ -140,6 +140,11 @@ BAD_WRITE = [
     ("p0c", {"p0c": 0.0}, r"p0c: expected > 0"),
     ("charge", {"charge_C": -1e-12}, r"charge_C: expected > 0"),
     ("species", {"species": "muon"}, "Unknown species"),
+    (
+        "no_forward_motion",
+        {"particles_bmad": torch.tensor([[0.0, 1.5, 0.0, 0.0, 0.0, 0.0]] * 3)},
+        r"3 of 3 particles have \|\(px, py\)\| >= 1 \+ pz .*screen calibration",
+    ),
 ]
 
 

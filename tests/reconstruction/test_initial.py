@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -152,3 +153,40 @@ def test_6d_guess_of_the_shared_file_is_near_its_truth() -> None:
     assert ((sig / true_sig - 1).abs() < 0.1).all(), sig / true_sig - 1
     corr = guess.cov / sig.outer(sig) - true_cov / true_sig.outer(true_sig)
     assert corr.abs().max() < 0.12, corr
+
+
+@pytest.mark.parametrize(
+    ("pixel", "message"),
+    [
+        (1.0, r"rms px 0\.\d+ rad"),  # 1 mm typed as 1 (m): 1000 x the size
+        (0.1, r"rms x 0\.\d+ m"),
+    ],
+    ids=["pixel_1m", "pixel_10cm"],
+)
+def test_reconstruct_refuses_a_guess_no_scan_could_image(
+    small_scan, pixel: float, message: str
+) -> None:
+    from diffaccel.reconstruction import reconstruct
+
+    # the audit's pix_0.1 / pixel_mm_units: trained fully, then failed to write
+    # particles with |px| >= 1 + pz; now refused before training, naming the
+    # screen calibration
+    bad = dataclasses.replace(small_scan, pixel_size=(pixel, pixel))
+    cfg = ReconstructionConfig(n_particles=64, steps=2, snapshots=1)
+    with pytest.raises(ValueError, match=message) as info:
+        reconstruct(bad, cfg)
+    assert "unphysical beam" in str(info.value)
+    assert "screen calibration" in str(info.value)
+    assert "'scan'" in str(info.value)
+
+
+def test_the_shared_files_guesses_are_plausible() -> None:
+    from diffaccel.reconstruction.initial import check_guess
+
+    for name in ("gpsr_4d_synthetic.h5", "awa_quad_scan_train.h5"):
+        ms = read_scans(DATA / name)
+        fwd = [ScreenForwardModel.from_dataset(s) for _, s in ms]
+        guess = fit_gaussian(
+            fwd, [s.mean_images() for _, s in ms], [s.settings for _, s in ms]
+        )
+        check_guess(guess, ms.names)  # does not raise

@@ -478,13 +478,16 @@ def run_reconstruction(
             sample=particles,
         )
         summary["dataset"] = str(dataset_path)
-        parts = write_openpmd_particles(
-            folder / "particles.h5",
-            particles,
-            ds.p0c,
-            ds.species,
-            overwrite=True,
-        )
+        try:
+            parts = write_openpmd_particles(
+                folder / "particles.h5",
+                particles,
+                ds.p0c,
+                ds.species,
+                overwrite=True,
+            )
+        except ValueError as err:  # e.g. no forward motion: a wrong calibration
+            raise click.ClickException(str(err)) from err
         summary["particles_file"] = parts.name
         if figures_done is not None:
             images = write_image_figures(ds, selection, folder, predicted, spread)

@@ -101,7 +101,8 @@ def write_openpmd_particles(
     Raises:
         FileExistsError: if ``path`` exists and ``overwrite`` is false.
         ValueError: for a wrong shape (or fewer than 2 particles), NaN/inf
-            coordinates, ``p0c <= 0``,
+            coordinates, particles with no forward motion
+            (``|(px, py)| >= 1 + pz``), ``p0c <= 0``,
             ``charge_C <= 0`` or an unknown species.
     """
     particles = torch.as_tensor(particles_bmad).detach()
@@ -123,6 +124,17 @@ def write_openpmd_particles(
             f"{path} exists; pass overwrite=True (CLI: --force) to replace it"
         )
     n = particles.shape[0]
+    p = particles.double()
+    stuck = p[:, 1].square() + p[:, 3].square() >= (1.0 + p[:, 5]).square()
+    if bool(stuck.any()):
+        raise ValueError(
+            f"particles_bmad: {int(stuck.sum())} of {n} particles have "
+            "|(px, py)| >= 1 + pz (no forward motion; largest |px|, |py| "
+            f"{float(p[:, 1].abs().max()):.3g}, {float(p[:, 3].abs().max()):.3g}): "
+            "not a beam. A reconstruction gives this when its images do not match "
+            "the beamline: a wrong screen calibration (pixel_size_x/y in m: 1 mm "
+            "is 1e-3), settings in the wrong units, a wrong beamline or p0c."
+        )
     try:
         data = bmad_to_openpmd(particles.double(), p0c, spec, total_charge=charge_C)
     except ValueError as err:

@@ -62,6 +62,50 @@ class GaussianGuess:
         return scale, mean, corr, prior
 
 
+#: Largest rms size [m] and rms or centroid angle [rad] (px, py) of a
+#: plausible initial guess. Beams a quadrupole scan images are mm-sized with
+#: mrad divergences (the shared files: rms 0.5-5 mm, 0.3-3 mrad); a guess 10-100
+#: times beyond these comes from images read with the wrong scale (a pixel size
+#: in mm typed as m gives rms divergences of 0.2-2 rad, which the tracking and
+#: the openPMD writer cannot hold: |px| >= 1 + pz is no forward motion).
+MAX_GUESS_SIZE = 0.05
+MAX_GUESS_ANGLE = 0.05
+
+
+def check_guess(guess: GaussianGuess, scans: Sequence[str] = ()) -> None:
+    """Refuse an initial guess whose beam no quadrupole scan could image.
+
+    Args:
+        guess: The fit of :func:`fit_gaussian`.
+        scans: Names of the scans it was fitted to (named in the error).
+
+    Raises:
+        ValueError: if an rms size (x, y) exceeds :data:`MAX_GUESS_SIZE` or an
+            rms or centroid angle (px, py) exceeds :data:`MAX_GUESS_ANGLE`,
+            naming the moment, its value and the likely causes.
+    """
+    rms = guess.cov.diagonal().clamp_min(0.0).sqrt()
+    found = []
+    for i, name in ((0, "x"), (2, "y")):
+        if not float(rms[i]) <= MAX_GUESS_SIZE:
+            found.append(f"rms {name} {float(rms[i]):.3g} m")
+    for i, name in ((1, "px"), (3, "py")):
+        if not float(rms[i]) <= MAX_GUESS_ANGLE:
+            found.append(f"rms {name} {float(rms[i]):.3g} rad")
+        if not abs(float(guess.mean[i])) <= MAX_GUESS_ANGLE:
+            found.append(f"mean {name} {float(guess.mean[i]):.3g} rad")
+    if found:
+        where = f" of scan(s) {', '.join(repr(s) for s in scans)}" if scans else ""
+        raise ValueError(
+            f"the image moments{where} imply an unphysical beam ("
+            + ", ".join(found)
+            + f"; expected rms sizes <= {MAX_GUESS_SIZE:g} m and angles <= "
+            f"{MAX_GUESS_ANGLE:g} rad): check the screen calibration first "
+            "(pixel_size_x/y and center_x/y are in m: 1 mm is 1e-3), then the "
+            "settings' units, the beamline (drift to the screen) and p0c."
+        )
+
+
 def _psd_2x2(s00: Tensor, s01: Tensor, s11: Tensor, floor: float) -> tuple:
     """Project a 2x2 (s00, s01, s11) onto positive definite with |r| <= 0.95."""
     s00 = s00.clamp_min(floor**2)

@@ -21,7 +21,7 @@ from diffaccel.reconstruction.ensemble import (
     unconstrained_coordinates,
 )
 from diffaccel.reconstruction.forward import ScreenForwardModel
-from diffaccel.reconstruction.initial import GaussianGuess, fit_gaussian
+from diffaccel.reconstruction.initial import GaussianGuess, check_guess, fit_gaussian
 from diffaccel.reconstruction.metrics import beam_moments
 from diffaccel.reconstruction.probe import probe_members, training_kl
 from diffaccel.reconstruction.rank_members import (
@@ -266,6 +266,7 @@ def reconstruct(
         fwd.transfer_maps(s) for fwd, s in zip(forwards.values(), settings, strict=True)
     ]
     guess = fit_gaussian(list(forwards.values()), measured, settings, maps=maps)
+    check_guess(guess, used)
     t1 = time.perf_counter()
     # the placed members' refit runs where the scans leave longitudinal
     # directions unseen (not when they see z or pz not at all: quad-only 6D);
