@@ -813,3 +813,28 @@ def test_reconstruct_warns_when_the_fit_misses_its_training_images(
     assert "does not reproduce its training images" in s["warnings"][0]
     assert "warning: the reconstruction does not reproduce" in r.output
     assert "settings in the wrong units" in r.output
+
+
+@pytest.mark.parametrize(
+    ("attr", "value", "message"),
+    [
+        ("p0c", 63e6, "p0c = 6.3e+07 eV; the reconstruction was made at p0c"),
+        ("species", "positron", "species 'positron'; the reconstruction is of"),
+    ],
+    ids=["p0c", "species"],
+)
+def test_predict_refuses_a_dataset_of_another_beam(
+    result_dir: Path, scan_file: Path, tmp_path: Path, attr: str, value, message
+) -> None:
+    other = tmp_path / "other.h5"
+    other.write_bytes(scan_file.read_bytes())
+    with h5py.File(other, "r+") as h5:
+        h5.attrs[attr] = value
+    pred = tmp_path / "pred.h5"
+    r = CliRunner().invoke(
+        main,
+        ["predict", str(result_dir), "--dataset", str(other), "--out", str(pred)],
+    )
+    assert r.exit_code != 0
+    assert message in r.output and "this is a bug" not in r.output
+    assert not pred.exists()

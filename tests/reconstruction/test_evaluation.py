@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -41,3 +43,29 @@ def test_a_fit_that_misses_its_training_images_is_warned(
     assert "does not reproduce its training images" in w
     for cause in ("units", "beamline", "screen calibration", "p0c"):
         assert cause in w
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"p0c": 63e6}, r"p0c = 6\.3e\+07 eV; the reconstruction was made at p0c"),
+        ({"p0c": 1e3}, r"p0c = 1000 eV; the reconstruction was made at p0c"),
+        ({"species": "positron"}, r"species 'positron'; the reconstruction is of"),
+    ],
+    ids=["p0c_63MeV", "p0c_keV", "positron"],
+)
+def test_predicting_another_beams_dataset_is_refused(
+    small_scan, small_result, changes: dict, message: str
+) -> None:
+    other = dataclasses.replace(small_scan, **changes)
+    with pytest.raises(ValueError, match=message):
+        predict_dataset(small_result, other)
+    with pytest.raises(ValueError, match=message):
+        evaluate(small_result, other, n_sample=2000)
+
+
+def test_a_p0c_rounded_when_recorded_is_accepted(small_scan, small_result) -> None:
+    # within P0C_RELATIVE_TOLERANCE (1e-3): the same beam, its energy rounded
+    other = dataclasses.replace(small_scan, p0c=small_scan.p0c * (1 + 5e-4))
+    pred = predict_dataset(small_result, other, n_particles=500)
+    assert pred["scan"].shape[0] == small_scan.n_settings

@@ -32,6 +32,7 @@ from diffaccel.reconstruction.prior_dependence import prior_dependence
 __all__ = [
     "POOR_FIT_RELATIVE_L1",
     "check_on_screen",
+    "check_same_beam",
     "clean_json",
     "evaluate",
     "predict_dataset",
@@ -79,6 +80,36 @@ UNCERTAINTY_NOTE_ENSEMBLE_ONLY = (
 )
 
 
+#: Largest relative difference between a dataset's ``p0c`` and that of the
+#: reconstruction that images it (values rounded when recorded).
+P0C_RELATIVE_TOLERANCE = 1e-3
+
+
+def check_same_beam(
+    result: Reconstruction, dataset: QuadScanDataset | MultiScanDataset
+) -> None:
+    """Refuse a dataset of another beam than the reconstruction's.
+
+    Raises:
+        ValueError: naming both species, or both ``p0c`` values, when they
+            differ (``p0c`` by more than :data:`P0C_RELATIVE_TOLERANCE`).
+    """
+    fwd = result.forward
+    if dataset.species != fwd.species:
+        raise ValueError(
+            f"the dataset is of species {dataset.species!r}; the reconstruction "
+            f"is of {fwd.species!r} (its beam cannot be tracked as another species)"
+        )
+    if not abs(dataset.p0c - fwd.p0c) <= P0C_RELATIVE_TOLERANCE * fwd.p0c:
+        raise ValueError(
+            f"the dataset has p0c = {dataset.p0c:.6g} eV; the reconstruction was "
+            f"made at p0c = {fwd.p0c:.6g} eV (a relative difference of "
+            f"{(dataset.p0c - fwd.p0c) / fwd.p0c:+.3g}, over "
+            f"{P0C_RELATIVE_TOLERANCE:g}); its particles' momenta are relative to "
+            "its own p0c: predict a dataset of the same beam energy"
+        )
+
+
 def predict_dataset(
     result: Reconstruction,
     dataset: QuadScanDataset | MultiScanDataset,
@@ -111,8 +142,15 @@ def predict_dataset(
         with ``return_std`` a pair ``(images, spreads)`` of such dicts (the
         spread on the scale of the unit-sum images). The images are the same
         with and without ``return_std``.
+
+    Raises:
+        ValueError: if ``dataset`` is of another species, or its ``p0c``
+            differs from the reconstruction's by more than
+            :data:`P0C_RELATIVE_TOLERANCE` (the beam's coordinates are relative
+            to its own ``p0c``; the forward model takes the dataset's).
     """
     scans = as_scans(dataset)
+    check_same_beam(result, scans)
     out, spread = {}, {}
     for name, scan in scans:
         fwd = ScreenForwardModel.from_dataset(
