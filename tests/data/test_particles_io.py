@@ -170,6 +170,9 @@ def _break(path: Path, action: str) -> None:
             g["position/x"][0] = np.nan
         elif action == "backward":
             g["momentum/z"][0] = -1.0
+        elif action == "unequal_weights":
+            # dropped on reading before: the images ignored them
+            g["weight"][0] = 3 * g["weight"][1]
 
 
 BAD_READ = [
@@ -178,6 +181,7 @@ BAD_READ = [
     ("no_time", "missing record 'time'"),
     ("nan", "record 'x' contains NaN"),
     ("backward", "momentum/z must be > 0"),
+    ("unequal_weights", r"/weight: expected equal macro-particle charges"),
 ]
 
 

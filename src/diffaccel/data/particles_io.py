@@ -258,10 +258,17 @@ def _read_record(group: h5py.Group, name: str, n: int | None, where: str) -> np.
     return values * unit_si
 
 
+#: Largest relative spread of the live particles' weights read as equal (the
+#: round-off of a total charge shared out in float64).
+WEIGHT_RELATIVE_TOLERANCE = 1e-6
+
+
 def read_openpmd_particles(path: str | os.PathLike) -> tuple[Tensor, float, str]:
     """Read particles from an openPMD-beamphysics HDF5 file.
 
-    Particles with ``particleStatus != 1`` (lost) are dropped. The reference
+    Particles with ``particleStatus != 1`` (lost) are dropped. The live
+    particles must carry equal weights (every particle counts once in the
+    images and moments made from them). The reference
     momentum is the file's ``p0c`` attribute when present, else the mean total
     momentum of the live particles.
 
@@ -274,7 +281,8 @@ def read_openpmd_particles(path: str | os.PathLike) -> tuple[Tensor, float, str]
 
     Raises:
         FileNotFoundError: if ``path`` does not exist.
-        FormatError: naming the missing or invalid attribute/record.
+        FormatError: naming the missing or invalid attribute/record, or
+            unequal weights.
     """
     path = Path(path)
     if not path.exists():
@@ -333,6 +341,14 @@ def read_openpmd_particles(path: str | os.PathLike) -> tuple[Tensor, float, str]
         raise FormatError(
             f"{where}/weight: expected macro-particle charges > 0 [C]; found {bad} "
             f"<= 0 (min {si['weight'][alive].min():g})"
+        )
+    w = si["weight"][alive]
+    if not w.max() <= w.min() * (1.0 + WEIGHT_RELATIVE_TOLERANCE):
+        raise FormatError(
+            f"{where}/weight: expected equal macro-particle charges (diffaccel "
+            f"counts every particle once); found {w.min():g} .. {w.max():g} C. "
+            "Resample the beam to equal weights (draw particles with probability "
+            "proportional to their weight) before using it here"
         )
     data = {k: torch.from_numpy(v[alive]) for k, v in si.items()}
     p = torch.sqrt(data["px"] ** 2 + data["py"] ** 2 + data["pz"] ** 2)
