@@ -56,6 +56,21 @@ def _beamline(value: object) -> Callable[[h5py.File], None]:
     return apply
 
 
+def _cheetah_truth_p0c(value: float) -> Callable[[h5py.File], None]:
+    """A ground truth in cheetah coordinates (converted with p0c on reading)."""
+
+    def apply(h5: h5py.File) -> None:
+        if "ground_truth" in h5:
+            del h5["ground_truth"]
+        h5["ground_truth/particles"] = np.zeros((3, 6))
+        h5["ground_truth/particles"].attrs["coordinates"] = json.dumps(
+            ["x", "px", "y", "py", "tau", "delta"]
+        )
+        h5.attrs["p0c"] = value
+
+    return apply
+
+
 BAD_FILES = {
     "p0c_bool": (
         lambda h: h.attrs.__setitem__("p0c", True),
@@ -68,6 +83,20 @@ BAD_FILES = {
     "p0c_tiny": (
         lambda h: h.attrs.__setitem__("p0c", 1e-3),
         r"/\.p0c: expected >= 510\.999 eV for electrons",
+    ),
+    # the cheetah -> Bmad conversion of the truth ran before p0c was checked
+    # ("unexpected ValueError ... this is a bug" at the CLI)
+    "p0c_negative_cheetah_truth": (
+        _cheetah_truth_p0c(-43.36e6),
+        r"/\.p0c: expected a finite value > 0 \[eV\]; found -4\.336e\+07",
+    ),
+    "p0c_zero_cheetah_truth": (
+        _cheetah_truth_p0c(0.0),
+        r"/\.p0c: expected a finite value > 0 \[eV\]; found 0",
+    ),
+    "p0c_huge": (
+        lambda h: h.attrs.__setitem__("p0c", 1e300),
+        r"/\.p0c: expected <= 1e\+15 eV",
     ),
     "pixel_str": (
         lambda h: h["screen"].attrs.__setitem__("pixel_size_x", "1e-3"),

@@ -97,6 +97,9 @@ MIN_PIXELS = 2
 #: 938 keV for protons. Below it ``p0c`` is almost surely in the wrong unit
 #: (43.36 for 43.36 MeV); no beam this tool images is that slow.
 MIN_BETA_GAMMA = 1e-3
+#: Largest accepted ``p0c`` [eV]: 1 PeV, over 100 times the LHC's 7 TeV (a value
+#: beyond it is a unit error, and its Lorentz factors overflow the conversions).
+MAX_P0C = 1e15
 
 
 @dataclass(frozen=True, eq=False)
@@ -350,7 +353,8 @@ def _positive_float(name: str, value: Any, unit: str) -> float:
 
 
 def check_p0c(p0c: float, species: str, where: str = "p0c") -> None:
-    """Refuse a reference momentum far below the particle's rest energy.
+    """Refuse a reference momentum far below the particle's rest energy or
+    above :data:`MAX_P0C`.
 
     Args:
         p0c: Reference momentum times c [eV], already checked to be > 0.
@@ -358,8 +362,8 @@ def check_p0c(p0c: float, species: str, where: str = "p0c") -> None:
         where: Field or option named in the message.
 
     Raises:
-        FormatError: if ``p0c < MIN_BETA_GAMMA * m c^2`` (a unit error: p0c is
-            in eV).
+        FormatError: if ``p0c < MIN_BETA_GAMMA * m c^2`` or ``p0c > MAX_P0C``
+            (a unit error: p0c is in eV).
     """
     if species not in SPECIES:
         return  # reported by the species check
@@ -369,6 +373,11 @@ def check_p0c(p0c: float, species: str, where: str = "p0c") -> None:
             f"{where}: expected >= {low:g} eV for {species}s (p0c / (m c^2) >= "
             f"{MIN_BETA_GAMMA:g}); found {p0c:g} eV (p0c is in eV: 43.36 MeV is "
             "43.36e6)"
+        )
+    if not p0c <= MAX_P0C:
+        raise FormatError(
+            f"{where}: expected <= {MAX_P0C:g} eV (1 PeV); found {p0c:g} eV (p0c is "
+            "in eV: 43.36 MeV is 43.36e6)"
         )
 
 
@@ -763,8 +772,10 @@ def _read_root(h5: h5py.File) -> _Root:
     species = _text_attr(h5, "species", "/")
     if species not in SPECIES:
         raise FormatError(f"/.species: expected one of {SPECIES}; found {species!r}")
-    if p0c > 0:  # <= 0 is reported by the container
-        check_p0c(p0c, species, "/.p0c")
+    # before the ground truth, whose conversion from cheetah coordinates needs it
+    if not p0c > 0:
+        raise FormatError(f"/.p0c: expected a finite value > 0 [eV]; found {p0c:g}")
+    check_p0c(p0c, species, "/.p0c")
     metadata: dict[str, Any] = {}
     if "metadata" in h5.attrs:
         metadata = _json_attr(h5, "metadata", "/")
