@@ -98,6 +98,16 @@ BAD_FILES = {
         lambda h: h.attrs.__setitem__("p0c", 1e300),
         r"/\.p0c: expected <= 1e\+15 eV",
     ),
+    # read, then "AttributeError: 'str' object has no attribute 'append'" at
+    # the first preprocessing step (subset, pool, normalize, predict)
+    "metadata_preprocessing_str": (
+        lambda h: h.attrs.__setitem__("metadata", '{"preprocessing": "bg"}'),
+        r"/\.metadata\.preprocessing: expected a list of step objects.*str 'bg'",
+    ),
+    "metadata_preprocessing_strings": (
+        lambda h: h.attrs.__setitem__("metadata", '{"preprocessing": ["bg"]}'),
+        r"/\.metadata\.preprocessing: expected a list of step objects",
+    ),
     "pixel_str": (
         lambda h: h["screen"].attrs.__setitem__("pixel_size_x", "1e-3"),
         r"/screen\.pixel_size_x: expected a number",

@@ -272,6 +272,11 @@ BAD_FIELDS = [
         r"pixel_size: expected \(x, y\) > 0 and <= 10 m",
     ),
     ("center_nan", {"center": (math.nan, 0.0)}, r"center: expected finite"),
+    (
+        "preprocessing_str",
+        {"metadata": {"preprocessing": "bg"}},
+        r"metadata\.preprocessing: expected a list of step objects",
+    ),
     ("species", {"species": "muon"}, r"species: expected one of"),
     ("gt_shape", {"ground_truth": torch.zeros(10, 4)}, r"ground_truth: expected shape"),
     ("gt_nan", {"ground_truth": torch.full((3, 6), math.nan)}, r"ground_truth: .*NaN"),

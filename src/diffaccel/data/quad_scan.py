@@ -326,6 +326,17 @@ class QuadScanDataset:
 
 
 # ---------------------------------------------------------------------- validation
+def _check_preprocessing(metadata: dict, where: str) -> None:
+    """Refuse a ``preprocessing`` record that is not a list of step objects."""
+    steps = metadata.get("preprocessing", [])
+    if not isinstance(steps, list) or not all(isinstance(s, dict) for s in steps):
+        raise FormatError(
+            f"{where}.preprocessing: expected a list of step objects "
+            '([{"step": name, ...}, ...], the steps applied to the images); '
+            f"found {type(steps).__name__} {steps!r:.80}"
+        )
+
+
 def _pair(name: str, value: Any) -> tuple[float, float]:
     try:
         pair = tuple(float(v) for v in value)
@@ -658,6 +669,7 @@ def _validate(ds: QuadScanDataset) -> None:
             )
     if not isinstance(ds.metadata, dict):
         raise FormatError(f"metadata: expected a dict; found {type(ds.metadata)}")
+    _check_preprocessing(ds.metadata, "metadata")
 
 
 # ---------------------------------------------------------------------- reading
@@ -783,6 +795,7 @@ def _read_root(h5: h5py.File) -> _Root:
             raise FormatError(
                 f"/.metadata: expected a JSON object; found {type(metadata).__name__}"
             )
+        _check_preprocessing(metadata, "/.metadata")
     if "description" in h5.attrs:
         metadata["description"] = _text_attr(h5, "description", "/")
     ground_truth = None

@@ -27,6 +27,7 @@ from diffaccel.data.atomic import atomic_write
 from diffaccel.data.errors import FormatError
 from diffaccel.data.quad_scan import (
     QuadScanDataset,
+    _check_preprocessing,
     _validate,
     read_file_scans,
     write_root,
@@ -128,6 +129,7 @@ class MultiScanDataset:
                 )
         if not isinstance(self.metadata, dict):
             raise FormatError(f"metadata: expected a dict; found {type(self.metadata)}")
+        _check_preprocessing(self.metadata, "metadata")
 
     @classmethod
     def from_scan(
