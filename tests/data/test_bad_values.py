@@ -71,6 +71,14 @@ def _cheetah_truth_p0c(value: float) -> Callable[[h5py.File], None]:
     return apply
 
 
+def _link(key: str, make: Callable[[], object]) -> Callable[[h5py.File], None]:
+    def apply(h5: h5py.File) -> None:
+        del h5[key]
+        h5[key] = make()
+
+    return apply
+
+
 BAD_FILES = {
     "p0c_bool": (
         lambda h: h.attrs.__setitem__("p0c", True),
@@ -107,6 +115,15 @@ BAD_FILES = {
     "metadata_preprocessing_strings": (
         lambda h: h.attrs.__setitem__("metadata", '{"preprocessing": ["bg"]}'),
         r"/\.metadata\.preprocessing: expected a list of step objects",
+    ),
+    # a dangling link escaped as KeyError "Unable to synchronously open object"
+    "images_dangling_external_link": (
+        _link("images", lambda: h5py.ExternalLink("/nonexistent.h5", "/images")),
+        r"/images: cannot be opened \(external link to /nonexistent\.h5:/images\)",
+    ),
+    "screen_dangling_soft_link": (
+        _link("screen", lambda: h5py.SoftLink("/nowhere")),
+        r"/screen: cannot be opened \(soft link to /nowhere\)",
     ),
     "pixel_str": (
         lambda h: h["screen"].attrs.__setitem__("pixel_size_x", "1e-3"),

@@ -718,10 +718,33 @@ def _json_attr(obj: h5py.HLObject, key: str, where: str) -> Any:
         ) from err
 
 
+def _member(group: h5py.Group, key: str, where: str) -> h5py.HLObject | None:
+    """``group[key]``, None if absent; a link that cannot be followed (an
+    external link to a missing file, a dangling soft link) is a FormatError."""
+    if key not in group:
+        # "in" is False for a dangling soft or external link: tell it apart
+        if group.get(key, getlink=True) is None:
+            return None
+    try:
+        return group[key]
+    except (KeyError, OSError) as err:
+        link = group.get(key, getlink=True)
+        target = ""
+        if isinstance(link, h5py.ExternalLink):
+            target = f" (external link to {link.filename}:{link.path})"
+        elif isinstance(link, h5py.SoftLink):
+            target = f" (soft link to {link.path})"
+        raise FormatError(
+            f"{where}{key}: cannot be opened{target}: {err}; store the data in the "
+            "file or make the link's target readable"
+        ) from err
+
+
 def _dataset(group: h5py.Group, key: str, where: str) -> h5py.Dataset:
-    if key not in group or not isinstance(group[key], h5py.Dataset):
+    obj = _member(group, key, where)
+    if not isinstance(obj, h5py.Dataset):
         raise FormatError(f"{where}{key}: missing dataset (found: {sorted(group)})")
-    return group[key]
+    return obj
 
 
 def _float_attr(obj: h5py.HLObject, key: str, where: str) -> float:
@@ -799,12 +822,16 @@ def _read_root(h5: h5py.File) -> _Root:
     if "description" in h5.attrs:
         metadata["description"] = _text_attr(h5, "description", "/")
     ground_truth = None
-    if "ground_truth" in h5:
-        if not isinstance(h5["ground_truth"], h5py.Group) or (
-            "particles" not in h5["ground_truth"]
-        ):
+    truth = _member(h5, "ground_truth", "/")
+    if truth is not None:
+        particles = (
+            _member(truth, "particles", "/ground_truth/")
+            if isinstance(truth, h5py.Group)
+            else None
+        )
+        if particles is None:
             raise FormatError("/ground_truth: missing dataset 'particles'")
-        ground_truth = _read_ground_truth(h5["ground_truth/particles"], p0c, species)
+        ground_truth = _read_ground_truth(particles, p0c, species)
     return _Root(p0c, species, ground_truth, metadata)
 
 
@@ -855,7 +882,7 @@ def _read_scan(group: h5py.Group, where: str, root: _Root) -> QuadScanDataset:
     spec = _json_attr(group, "beamline", where.rstrip("/") or "/")
     images = _read_array(group, "images", where, np.float32)
     settings = _read_array(group, "settings", where, np.float64)
-    settings_ds = group["settings"]
+    settings_ds = _dataset(group, "settings", where)
     names = _string_list(
         _json_attr(settings_ds, "names", f"{where}settings"),
         f"{where}settings.names",
@@ -864,9 +891,9 @@ def _read_scan(group: h5py.Group, where: str, root: _Root) -> QuadScanDataset:
         _json_attr(settings_ds, "units", f"{where}settings"),
         f"{where}settings.units",
     )
-    if "screen" not in group or not isinstance(group["screen"], h5py.Group):
+    screen = _member(group, "screen", where)
+    if not isinstance(screen, h5py.Group):
         raise FormatError(f"{where}screen: missing group (found: {sorted(group)})")
-    screen = group["screen"]
     pixel_size = tuple(
         _float_attr(screen, f"pixel_size_{a}", f"{where}screen") for a in "xy"
     )
