@@ -79,6 +79,16 @@ def _link(key: str, make: Callable[[], object]) -> Callable[[h5py.File], None]:
     return apply
 
 
+def _linear_map(diagonal: float) -> Callable[[h5py.File], None]:
+    def apply(h5: h5py.File) -> None:
+        spec = json.loads(h5.attrs["beamline"])
+        matrix = np.diag([diagonal] * 6).tolist()
+        spec[1] = {"type": "LinearMap", "name": "D1", "matrix": matrix}
+        h5.attrs["beamline"] = json.dumps(spec)
+
+    return apply
+
+
 BAD_FILES = {
     "p0c_bool": (
         lambda h: h.attrs.__setitem__("p0c", True),
@@ -124,6 +134,11 @@ BAD_FILES = {
     "screen_dangling_soft_link": (
         _link("screen", lambda: h5py.SoftLink("/nowhere")),
         r"/screen: cannot be opened \(soft link to /nowhere\)",
+    ),
+    # accepted, then "least squares: the system holds NaN or infinite values"
+    "linear_map_huge": (
+        _linear_map(1e300),
+        r"\(LinearMap 'D1'\)\.matrix: expected \|value\| <= 1e\+06 .*entry 1e\+300",
     ),
     "pixel_str": (
         lambda h: h["screen"].attrs.__setitem__("pixel_size_x", "1e-3"),
@@ -286,3 +301,9 @@ def test_bad_particle_file_is_refused(tmp_path: Path, case: str) -> None:
 def test_write_refuses_empty_beam(tmp_path: Path, n: int) -> None:
     with pytest.raises(ValueError, match=r"N >= 2 particles; got \(" + str(n)):
         write_openpmd_particles(tmp_path / "x.h5", torch.zeros(n, 6).double(), 1e6)
+
+
+def test_a_plausible_linear_map_is_accepted(scan_file: Path) -> None:
+    with h5py.File(scan_file, "r+") as h5:
+        _linear_map(1.0)(h5)
+    read_quad_scan(scan_file)  # does not raise

@@ -72,6 +72,9 @@ PARAMETER_UNITS: dict[str, tuple[str, ...]] = {
 #: (a 1e30 m drift, k1 in T/m) and would silently put the beam off the screen.
 PARAMETER_LIMITS: dict[str, float] = {
     "length": 1e3,  # m
+    # LinearMap entries (m, rad, 1/m, ...: R12 of a 1 km drift is 1e3); 1e300
+    # passed the finite check, then the moment fit's least squares overflowed
+    "matrix": 1e6,
     "k1": 1e4,  # 1/m^2 (a 0.1 m quadrupole of k1 = 1e4 has f = 1 mm)
     "dx": 1.0,  # m
     "dy": 1.0,  # m
@@ -364,8 +367,7 @@ def _positive_float(name: str, value: Any, unit: str) -> float:
 
 
 def check_p0c(p0c: float, species: str, where: str = "p0c") -> None:
-    """Refuse a reference momentum far below the particle's rest energy or
-    above :data:`MAX_P0C`.
+    """Refuse a reference momentum far below the particle's rest energy.
 
     Args:
         p0c: Reference momentum times c [eV], already checked to be > 0.
@@ -373,8 +375,8 @@ def check_p0c(p0c: float, species: str, where: str = "p0c") -> None:
         where: Field or option named in the message.
 
     Raises:
-        FormatError: if ``p0c < MIN_BETA_GAMMA * m c^2`` or ``p0c > MAX_P0C``
-            (a unit error: p0c is in eV).
+        FormatError: if ``p0c < MIN_BETA_GAMMA * m c^2`` (a unit error: p0c is
+            in eV).
     """
     if species not in SPECIES:
         return  # reported by the species check
@@ -385,6 +387,10 @@ def check_p0c(p0c: float, species: str, where: str = "p0c") -> None:
             f"{MIN_BETA_GAMMA:g}); found {p0c:g} eV (p0c is in eV: 43.36 MeV is "
             "43.36e6)"
         )
+
+
+def _check_p0c_max(p0c: float, where: str) -> None:
+    """Refuse a dataset's ``p0c`` above :data:`MAX_P0C` (a unit error)."""
     if not p0c <= MAX_P0C:
         raise FormatError(
             f"{where}: expected <= {MAX_P0C:g} eV (1 PeV); found {p0c:g} eV (p0c is "
@@ -455,10 +461,12 @@ def _validate_spec(spec: list[dict]) -> dict[str, dict]:
             except (TypeError, ValueError):
                 continue  # Beamline.from_spec above reports non-numbers
             if not big <= limit:
+                unit = PARAMETER_UNITS.get(key, ("(SI)",))[0]
+                found = f"{value!r}" if np.ndim(value) == 0 else f"an entry {big:g}"
                 raise FormatError(
                     f"beamline[{i}] ({element['type']} {element['name']!r}).{key}: "
-                    f"expected |value| <= {limit:g} {PARAMETER_UNITS[key][0]}; found "
-                    f"{value!r} (a unit or typing error?)"
+                    f"expected |value| <= {limit:g} {unit}; found {found} (a unit or "
+                    "typing error?)"
                 )
     return by_name
 
@@ -646,6 +654,7 @@ def _validate(ds: QuadScanDataset) -> None:
     if ds.species not in SPECIES:
         raise FormatError(f"species: expected one of {SPECIES}; found {ds.species!r}")
     check_p0c(ds.p0c, ds.species)
+    _check_p0c_max(ds.p0c, "p0c")
     elements = _validate_spec(ds.beamline_spec)
     _validate_settings_names(
         ds.setting_names, ds.setting_units, elements, int(settings.shape[1])
@@ -811,6 +820,7 @@ def _read_root(h5: h5py.File) -> _Root:
     if not p0c > 0:
         raise FormatError(f"/.p0c: expected a finite value > 0 [eV]; found {p0c:g}")
     check_p0c(p0c, species, "/.p0c")
+    _check_p0c_max(p0c, "/.p0c")
     metadata: dict[str, Any] = {}
     if "metadata" in h5.attrs:
         metadata = _json_attr(h5, "metadata", "/")
