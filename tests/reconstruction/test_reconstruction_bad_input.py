@@ -86,3 +86,30 @@ def test_fit_gaussian_names_bad_images_before_the_least_squares(
         fit_gaussian(forwards, [i[:2] for i in images], settings)
     with pytest.raises(ValueError, match="one forward model, image stack"):
         fit_gaussian(forwards[:1] * 3, images, settings)
+
+
+def test_training_selection_refuses_one_quadrupole_value(small_awa6d) -> None:
+    # the audit: --train-indices 0,1 --dims 6 on the shared 6D file (one k1,
+    # TDC off and on) failed in tracking with "NaN or infinite positions" and
+    # no scan named
+    scan = small_awa6d[small_awa6d.names[0]]
+    k1 = scan.settings[:, scan.setting_names.index("SCAN_QUAD.k1")]
+    same = torch.nonzero(k1 == k1[0])[:, 0].tolist()
+    assert len(same) == 2  # TDC off and on
+    with pytest.raises(
+        ValueError, match=r"single value of the scanned quadrupole"
+    ) as e:
+        training_selection(small_awa6d, same)
+    for name in small_awa6d.names:
+        assert f"scan {name!r}: SCAN_QUAD.k1 = {float(k1[0]):g}" in str(e.value)
+    with pytest.raises(ValueError, match=r"single value of the scanned quadrupole"):
+        reconstruct(small_awa6d, ReconstructionConfig(dims=6), train_indices=same)
+
+
+def test_training_selection_takes_one_quadrupole_value_next_to_a_scan(
+    small_awa6d,
+) -> None:
+    # a scan at one setting is fine while another scan varies the quadrupole
+    first, second = small_awa6d.names
+    sel = training_selection(small_awa6d, {first: [0], second: [0, 2, 4]})
+    assert dict(sel) == {first: [0], second: [0, 2, 4]}

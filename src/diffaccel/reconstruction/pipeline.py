@@ -113,12 +113,61 @@ def training_selection(
 
     Raises:
         ValueError: naming the scan for an index out of range, a repeated
-            index, an unknown scan, or an empty selection.
+            index, an unknown scan, or an empty selection; naming the scans and
+            values when every scan that scans a quadrupole's ``k1`` is selected
+            at a single value of it (the divergence is then unconstrained).
     """
     if isinstance(train_indices, TrainingSelection) and train_indices.names == tuple(
         dataset.names
     ):
         return train_indices  # checked already (the CLI checks before its run)
+    selection = _selection(dataset, train_indices)
+    _check_quadrupole_values(dataset, selection)
+    return selection
+
+
+def _check_quadrupole_values(
+    dataset: MultiScanDataset, selection: TrainingSelection
+) -> None:
+    """Refuse a selection that holds one value of the scanned quadrupoles in
+    every scan that scans one: one focusing strength sees a single projection
+    of (x, px), so the divergence and its correlation are not constrained (the
+    fit then finds no positive definite beam, and tracking loses particles)."""
+    single = {}
+    for name, scan in dataset:
+        idx = selection[name]
+        if not idx:
+            continue
+        types = {e["name"]: e["type"] for e in scan.beamline_spec}
+        cols = [
+            j
+            for j, n in enumerate(scan.setting_names)
+            if n.partition(".")[2] == "k1"
+            and types.get(n.partition(".")[0]) == "Quadrupole"
+        ]
+        if not cols:
+            continue
+        values = scan.settings[idx][:, cols]
+        if torch.unique(values, dim=0).shape[0] > 1:
+            return
+        names = [scan.setting_names[j] for j in cols]
+        single[name] = ", ".join(
+            f"{n} = {v:g}" for n, v in zip(names, values[0].tolist(), strict=True)
+        )
+    if single:
+        where = "; ".join(f"scan {n!r}: {v}" for n, v in single.items())
+        raise ValueError(
+            "train_indices select a single value of the scanned quadrupole in "
+            f"every scan ({where}): one focusing strength leaves the beam's "
+            "divergence unconstrained; select settings with at least 2 (better 3 "
+            "or more) distinct quadrupole values."
+        )
+
+
+def _selection(
+    dataset: MultiScanDataset, train_indices: TrainIndices
+) -> TrainingSelection:
+    """The selection of :func:`training_selection`, before the quadrupole check."""
     if train_indices is None:
         sel = {name: list(range(scan.n_settings)) for name, scan in dataset}
         return TrainingSelection(sel)
