@@ -295,6 +295,18 @@ def test_interrupt_before_the_first_checkpoint_says_so(
     assert not out.exists() and not partial_folder(out).exists()
 
 
+def _resume_on_other_images(scan_file: Path, out: Path, tmp_path: Path):
+    """``reconstruct --resume`` into ``out`` with a copy of the scan whose
+    images are flipped (same shapes, other training data)."""
+    other = tmp_path / "other.h5"
+    ds = read_quad_scan(scan_file)
+    write_quad_scan(ds.with_step({"step": "test"}, images=ds.images.flip(-1)), other)
+    return CliRunner().invoke(
+        main,
+        ["reconstruct", str(other), "--out", str(out), "--no-figures", "--resume"],
+    )
+
+
 def test_resume_refuses_other_options_and_other_data(
     scan_file: Path, tmp_path: Path
 ) -> None:
@@ -308,13 +320,7 @@ def test_resume_refuses_other_options_and_other_data(
     assert "--steps 20 (checkpoint: 6)" in r.output, r.output
     assert "--particles" not in r.output.split("options:")[1].split(".")[0]
     # other data: same shapes, other images
-    other = tmp_path / "other.h5"
-    ds = read_quad_scan(scan_file)
-    write_quad_scan(ds.with_step({"step": "test"}, images=ds.images.flip(-1)), other)
-    r = CliRunner().invoke(
-        main,
-        ["reconstruct", str(other), "--out", str(out), "--no-figures", "--resume"],
-    )
+    r = _resume_on_other_images(scan_file, out, tmp_path)
     assert r.exit_code == 1 and "other training data" in r.output, r.output
     assert (out / "summary.json").is_file()
     # nothing to resume
@@ -332,13 +338,7 @@ def test_resume_of_a_finished_result_checks_options_against_its_checkpoint(
     r = CliRunner().invoke(main, [*args, "--resume", "--steps", "8"])
     assert r.exit_code == 1 and "--steps 8 (checkpoint: 6)" in r.output, r.output
     # other data: refused, and no copy of the result is left as a "checkpoint"
-    other = tmp_path / "other.h5"
-    ds = read_quad_scan(scan_file)
-    write_quad_scan(ds.with_step({"step": "test"}, images=ds.images.flip(-1)), other)
-    r = CliRunner().invoke(
-        main,
-        ["reconstruct", str(other), "--out", str(out), "--no-figures", "--resume"],
-    )
+    r = _resume_on_other_images(scan_file, out, tmp_path)
     assert r.exit_code == 1 and "other training data" in r.output, r.output
     assert "--resume continues it" not in r.output
     assert not partial_folder(out).exists()

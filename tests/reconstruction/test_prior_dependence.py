@@ -4,10 +4,8 @@ from __future__ import annotations
 
 import pytest
 import torch
-from test_unseen import _beam_cov, _change, _maps, _screen_moments
+from test_unseen import _beam_cov, _change, _maps, _quad_scan_maps, _screen_moments
 
-from diffaccel.dynamics import Beamline
-from diffaccel.reconstruction import ScreenForwardModel
 from diffaccel.reconstruction.prior_dependence import (
     move_to_partial,
     partial_correlation,
@@ -82,14 +80,7 @@ def test_unreachable_partial_correlation_is_reported_as_none() -> None:
 def test_no_report_without_unseen_directions() -> None:
     # a quadrupole scan alone: z and pz are not seen at all, the prior sets
     # them whole (unconstrained_coordinates), no correlation is traded
-    spec = [
-        {"type": "Quadrupole", "name": "Q", "length": 0.1, "k1": 0.0},
-        {"type": "Drift", "name": "D", "length": 1.0},
-        {"type": "Screen", "name": "S", "shape": [32, 32], "pixel_size": [1e-3, 1e-3]},
-    ]
-    fwd = ScreenForwardModel(Beamline.from_spec(spec), ["Q.k1"], 43e6)
-    maps = [fwd.transfer_maps(torch.linspace(-10, 10, 5, dtype=torch.float64)[:, None])]
-    assert prior_dependence(maps, _beam_cov()) == []
+    assert prior_dependence(_quad_scan_maps(), _beam_cov()) == []
 
 
 @pytest.mark.parametrize(

@@ -169,15 +169,19 @@ def test_unknown_prior_is_refused() -> None:
         place_unseen(cov, unseen_directions(maps, cov), prior="quadratic")
 
 
-def test_no_directions_without_dispersion_or_cavity() -> None:
+def _quad_scan_maps() -> list[torch.Tensor]:
+    """A quadrupole scan alone (no cavity, no dispersion): 5 settings."""
     spec = [
         {"type": "Quadrupole", "name": "Q", "length": 0.1, "k1": 0.0},
         {"type": "Drift", "name": "D", "length": 1.0},
         {"type": "Screen", "name": "S", "shape": [32, 32], "pixel_size": [1e-3, 1e-3]},
     ]
     fwd = ScreenForwardModel(Beamline.from_spec(spec), ["Q.k1"], 43e6)
-    maps = [fwd.transfer_maps(torch.linspace(-10, 10, 5, dtype=torch.float64)[:, None])]
-    assert unseen_directions(maps, _beam_cov()).shape[0] == 0
+    return [fwd.transfer_maps(torch.linspace(-10, 10, 5, dtype=torch.float64)[:, None])]
+
+
+def test_no_directions_without_dispersion_or_cavity() -> None:
+    assert unseen_directions(_quad_scan_maps(), _beam_cov()).shape[0] == 0
 
 
 def test_awa6d_has_one_barely_seen_xy_coupling_direction() -> None:
