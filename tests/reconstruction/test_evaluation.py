@@ -5,10 +5,12 @@ import dataclasses
 import pytest
 import torch
 
+from diffaccel.data import make_synthetic_awa6d
 from diffaccel.reconstruction import (
     POOR_FIT_RELATIVE_L1,
     ReconstructionConfig,
     evaluate,
+    evaluation,
     predict_dataset,
     reconstruct,
 )
@@ -69,3 +71,24 @@ def test_a_p0c_rounded_when_recorded_is_accepted(small_scan, small_result) -> No
     other = dataclasses.replace(small_scan, p0c=small_scan.p0c * (1 + 5e-4))
     pred = predict_dataset(small_result, other, n_particles=500)
     assert pred["scan"].shape[0] == small_scan.n_settings
+
+
+def test_6d_summary_without_a_prior_dependence_warns(monkeypatch) -> None:
+    data = make_synthetic_awa6d(
+        "correlated",
+        n_particles=2000,
+        k1_values=[-12.0, 0.0, 12.0],
+        screen_shape=(24, 24),
+        seed=3,
+    )
+    config = ReconstructionConfig(dims=6, **FAST, place_unseen=False)
+    result = reconstruct(data, config, uncertainty=False)
+
+    def degenerate(maps, cov):
+        raise ValueError("cov is not positive definite: no beam has it.")
+
+    # a covariance no beam has: the summary is still written, with a warning
+    monkeypatch.setattr(evaluation, "prior_dependence", degenerate)
+    s = evaluate(result, data, n_sample=4000)
+    assert s["prior_dependence"] == []
+    assert any("prior_dependence not computed" in w for w in s["warnings"])

@@ -290,6 +290,15 @@ def evaluate(
         )
         metrics["ground_truth"] = gt
     warnings = _poor_fit_warnings(per_scan, metrics)
+    dependence: list[dict] = []
+    if result.config.dims == 6:
+        try:
+            dependence = prior_dependence(
+                result.training_maps(),
+                torch.tensor(moments["cov"]["mean"], dtype=torch.float64),
+            )
+        except ValueError as err:  # a degenerate covariance: no beam to move
+            warnings.append(f"prior_dependence not computed: {err}")
     summary: dict[str, Any] = {
         "warnings": warnings,
         "config": result.config.to_dict(),
@@ -301,12 +310,7 @@ def evaluate(
         "rms_relative_ensemble_spread": rel_spread,
         "unconstrained_coordinates": result.unconstrained_coordinates(),
         "unconstrained_note": UNCONSTRAINED_NOTE,
-        "prior_dependence": prior_dependence(
-            result.training_maps(),
-            torch.tensor(moments["cov"]["mean"], dtype=torch.float64),
-        )
-        if result.config.dims == 6
-        else [],
+        "prior_dependence": dependence,
         "prior_dependence_note": PRIOR_DEPENDENCE_NOTE,
         "uncertainty_note": (
             UNCERTAINTY_NOTE if unc is not None else UNCERTAINTY_NOTE_ENSEMBLE_ONLY
