@@ -346,3 +346,11 @@ def test_fit_refuses_a_mesh_its_band_cannot_hold_up_front(
     )  # fmt: skip
     _one_line_error(result, "--mesh-size", memory, "at most 100")
     assert not out.exists()
+
+
+def test_cli_magnitude_limit_is_the_librarys() -> None:
+    # kept as a copy so that 'hysteresis predict' streams without torch
+    from diffaccel.cli.hysteresis import MAX_MAGNITUDE as cli_limit
+    from diffaccel.hysteresis.fit import MAX_MAGNITUDE
+
+    assert cli_limit == MAX_MAGNITUDE

@@ -16,14 +16,15 @@ import click
 import numpy as np
 
 __all__ = [
-    "MAX_MAGNITUDE",
     "check_finite",
     "check_input_range",
     "check_magnitude",
     "hysteresis",
 ]
 
-# larger magnitudes overflow squares and ranges in float64; no measurement has them
+
+#: The library's limit (``diffaccel.hysteresis.fit.MAX_MAGNITUDE``), kept here so
+#: that ``hysteresis predict`` streams without importing torch.
 MAX_MAGNITUDE = 1e100
 
 

@@ -32,7 +32,7 @@ from diffaccel.hysteresis import (
 )
 from diffaccel.hysteresis.predictive import (
     MAX_MESH_SIZE,
-    band_memory_bytes,
+    check_mesh_size,
     min_training_rows,
     rms,
 )
@@ -49,12 +49,10 @@ MAX_SMOOTHNESS = 1e12
 
 def _check_mesh_size(ctx: click.Context, param: click.Parameter, value: int) -> int:
     """Click callback: a mesh whose predictive band fits in memory (the size named)."""
-    if value > MAX_MESH_SIZE:
-        raise click.BadParameter(
-            f"{value} cells per axis ({value * (value + 1) // 2:,} hysterons) would "
-            f"need ~{band_memory_bytes(value) / 1e9:.3g} GB for the predictive band "
-            f"(dense hysteron x hysteron matrices); use at most {MAX_MESH_SIZE}."
-        )
+    try:
+        check_mesh_size(value)
+    except ValueError as err:
+        raise click.BadParameter(str(err)) from err
     return value
 
 

@@ -219,14 +219,14 @@ def read_dataset(path: Path) -> MultiScanDataset:
 
 
 def resume_config(
-    checkpoint: Path, config: ReconstructionConfig, given: set[str]
+    stored: ReconstructionConfig, config: ReconstructionConfig, given: set[str]
 ) -> ReconstructionConfig:
-    """The config to resume with: the checkpoint's, checked against the options given.
+    """The config to resume with: the checkpoint's (``stored``), checked against
+    the options given.
 
     Options the user gave that differ from the checkpoint's are refused (naming
     both values); options not given are taken from the checkpoint.
     """
-    stored = _stored_config(checkpoint)
     clash = [
         f"{flag} {getattr(config, key)} (checkpoint: {getattr(stored, key)})"
         for key, flag in CONFIG_OPTIONS.items()
@@ -675,10 +675,10 @@ def reconstruct_command(
         "probe_unseen": None if probe is None else PROBE_STEP if probe else 0.0,
     }
     checkpoint = _resume_checkpoint(out) if resume else None
-    if checkpoint is not None:
+    stored = None if checkpoint is None else _stored_config(checkpoint)
+    if stored is not None:
         # options not given are the checkpoint's: a given --steps is checked
         # against its --snapshots, not against the default's
-        stored = _stored_config(checkpoint)
         options.update(
             {k: getattr(stored, k) for k, f in CONFIG_OPTIONS.items() if f not in given}
         )
@@ -691,8 +691,8 @@ def reconstruct_command(
         selection = training_selection(ds, train_indices)
     except ValueError as err:
         raise click.BadParameter(str(err), param_hint="--train-indices") from err
-    if checkpoint is not None:
-        config = resume_config(checkpoint, config, given)
+    if checkpoint is not None and stored is not None:
+        config = resume_config(stored, config, given)
         selection = resume_selection(
             checkpoint.parent,
             ds,

@@ -136,7 +136,7 @@ def write_openpmd_particles(
             "is 1e-3), settings in the wrong units, a wrong beamline or p0c."
         )
     try:
-        data = bmad_to_openpmd(particles.double(), p0c, spec, total_charge=charge_C)
+        data = bmad_to_openpmd(p, p0c, spec, total_charge=charge_C)
     except ValueError as err:
         raise ValueError(f"particles_bmad: {err}") from err
     arrays = {k: np.asarray(v.detach().cpu().double().numpy()) for k, v in data.items()}

@@ -15,6 +15,7 @@ from diffaccel.dynamics.linalg import lstsq
 from diffaccel.hysteresis.preisach import PreisachModel
 
 __all__ = [
+    "MAX_MAGNITUDE",
     "MIN_FIT_POINTS",
     "FitResult",
     "check_series",
@@ -26,8 +27,9 @@ logger = logging.getLogger(__name__)
 
 # offset, slope and scale need at least three points; two more to see a loop
 MIN_FIT_POINTS = 5
-# larger magnitudes overflow squares and ranges in float64; no measurement has them
-_MAX_MAGNITUDE = 1e100
+#: Largest |value| of a measured series (fit, H-GP and the CLI readers): larger
+#: magnitudes overflow squares and ranges in float64; no measurement has them.
+MAX_MAGNITUDE = 1e100
 
 
 @dataclass
@@ -145,11 +147,11 @@ def check_series(
     if not (torch.isfinite(u).all() and torch.isfinite(y).all()):
         raise ValueError("current or output contains NaN or infinite values.")
     for name, v in (("current", u), ("output", y)):
-        big = v.abs() > _MAX_MAGNITUDE
+        big = v.abs() > MAX_MAGNITUDE
         if big.any():
             i = int(big.nonzero()[0, 0])
             raise ValueError(
-                f"{name} row {i} is {float(v[i]):.6g}: beyond {_MAX_MAGNITUDE:.0e} "
+                f"{name} row {i} is {float(v[i]):.6g}: beyond {MAX_MAGNITUDE:.0e} "
                 "in magnitude, not a measurement (a unit or parsing error?)."
             )
     if float(y.max() - y.min()) <= 0:

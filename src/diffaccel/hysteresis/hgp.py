@@ -59,6 +59,7 @@ from gpytorch.utils.warnings import GPInputWarning
 from torch import Tensor, nn
 
 from diffaccel.dynamics import is_integer
+from diffaccel.hysteresis.fit import MAX_MAGNITUDE
 from diffaccel.hysteresis.preisach import PreisachModel
 from diffaccel.hysteresis.states import exact_states, smooth_states
 
@@ -72,9 +73,6 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 _MIN_POINTS = 3
-# larger magnitudes overflow squares and ranges in float64; no measurement has
-# them (the same limit as ``fit_preisach``)
-_MAX_MAGNITUDE = 1e100
 
 
 def _standardize() -> Standardize:
@@ -845,12 +843,12 @@ def _validate_training_data(
             "from the outputs only if you keep their settings in the history."
         )
     for name, v in (("train_X", train_X), ("train_Y", train_Y)):
-        big = v.abs() > _MAX_MAGNITUDE
+        big = v.abs() > MAX_MAGNITUDE
         if big.any():
             i, c = (int(k) for k in big.nonzero()[0])
             raise ValueError(
                 f"{name} row {i}, column {c} is {float(v[i, c]):.6g}: beyond "
-                f"{_MAX_MAGNITUDE:.0e} in magnitude, not a measurement (a unit or "
+                f"{MAX_MAGNITUDE:.0e} in magnitude, not a measurement (a unit or "
                 "parsing error?)."
             )
     if train_Yvar is not None:

@@ -37,6 +37,7 @@ __all__ = [
     "RANGE_MARGIN",
     "MagnetFit",
     "band_memory_bytes",
+    "check_mesh_size",
     "default_input_range",
     "fit_magnet",
     "min_training_rows",
@@ -71,6 +72,23 @@ def band_memory_bytes(mesh_size: int) -> int:
     """
     m = mesh_size * (mesh_size + 1) // 2
     return _BAND_MATRICES * 8 * (m + 3) ** 2
+
+
+def check_mesh_size(mesh_size: int) -> None:
+    """Refuse a mesh whose predictive band would not fit (see :data:`MAX_MESH_SIZE`).
+
+    Raises:
+        ValueError: for ``mesh_size`` beyond ``MAX_MESH_SIZE``, naming the
+            hysterons and the memory the band would need.
+    """
+    if mesh_size > MAX_MESH_SIZE:
+        raise ValueError(
+            f"mesh_size {mesh_size} is beyond {MAX_MESH_SIZE}: its "
+            f"{mesh_size * (mesh_size + 1) // 2:,} hysterons would need "
+            f"~{band_memory_bytes(mesh_size) / 1e9:.3g} GB for the predictive "
+            f"band (dense hysteron x hysteron matrices); use at most "
+            f"{MAX_MESH_SIZE} (default 20)."
+        )
 
 
 def _held_out(n: int, validation_fraction: float) -> int:
@@ -234,14 +252,8 @@ def fit_magnet(
     if rng is None:
         rng = default_input_range(u, initial_state)
     # every check that can fail runs before the first fit
-    if is_integer(mesh_size) and int(mesh_size) > MAX_MESH_SIZE:
-        raise ValueError(
-            f"mesh_size {int(mesh_size)} is beyond {MAX_MESH_SIZE}: its "
-            f"{int(mesh_size) * (int(mesh_size) + 1) // 2:,} hysterons would need "
-            f"~{band_memory_bytes(int(mesh_size)) / 1e9:.3g} GB for the predictive "
-            f"band (dense hysteron x hysteron matrices); use at most "
-            f"{MAX_MESH_SIZE} (default 20)."
-        )
+    if is_integer(mesh_size):
+        check_mesh_size(int(mesh_size))
     _build(mesh_size, rng, initial_state, bool(symmetric)).check_input_range(
         u, "training inputs"
     )

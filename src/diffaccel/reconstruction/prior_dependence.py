@@ -94,26 +94,38 @@ def move_to_partial(
         The moved covariance ``(6, 6)`` float64, or None when no positive
         definite point of the line has that partial correlation.
     """
+    return _moves(cov, direction, pair, [target])[0]
+
+
+def _moves(
+    cov: Tensor, direction: Tensor, pair: tuple[int, int], targets: Sequence[float]
+) -> list[Tensor | None]:
+    """:func:`move_to_partial` for several targets, on one grid of the line."""
     s = cov.to(torch.float64)
     d = direction.to(torch.float64)
     lo, hi = -_edge(s, d, -1.0), _edge(s, d, 1.0)
     lo, hi = max(lo, -64.0), min(hi, 64.0)  # correlation units: far enough
     ts = torch.linspace(lo, hi, _GRID, dtype=torch.float64)[1:-1]
-    vals = partial_correlations(s + ts[:, None, None] * d, *pair) - target
-    brackets = torch.nonzero(vals[:-1] * vals[1:] <= 0).flatten()
-    if brackets.numel() == 0:
-        return None
-    k = int(brackets[ts[brackets].abs().argmin()])
-    a, b = float(ts[k]), float(ts[k + 1])
-    fa = float(vals[k])
-    for _ in range(60):
-        m = 0.5 * (a + b)
-        fm = partial_correlation(s + m * d, *pair) - target
-        if (fm <= 0) == (fa <= 0):
-            a, fa = m, fm
-        else:
-            b = m
-    return s + 0.5 * (a + b) * d
+    grid = partial_correlations(s + ts[:, None, None] * d, *pair)
+    out: list[Tensor | None] = []
+    for target in targets:
+        vals = grid - target
+        brackets = torch.nonzero(vals[:-1] * vals[1:] <= 0).flatten()
+        if brackets.numel() == 0:
+            out.append(None)
+            continue
+        k = int(brackets[ts[brackets].abs().argmin()])
+        a, b = float(ts[k]), float(ts[k + 1])
+        fa = float(vals[k])
+        for _ in range(60):
+            m = 0.5 * (a + b)
+            fm = partial_correlation(s + m * d, *pair) - target
+            if (fm <= 0) == (fa <= 0):
+                a, fa = m, fm
+            else:
+                b = m
+        out.append(s + 0.5 * (a + b) * d)
+    return out
 
 
 def _emittances(cov: Tensor) -> dict[str, float]:
@@ -178,8 +190,7 @@ def prior_dependence(
         k = int(d.diagonal().abs().argmax())
         moves = f"rms_{COORDINATES[k]}"
         at = []
-        for r in partials:
-            moved = move_to_partial(s, d, (i, j), float(r))
+        for r, moved in zip(partials, _moves(s, d, (i, j), partials), strict=True):
             change = None
             if moved is not None:
                 e = _emittances(moved)
