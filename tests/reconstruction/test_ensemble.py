@@ -34,6 +34,42 @@ def test_predict_images_uses_the_settings_passed(result, small_scan) -> None:
     assert a.sum().item() == pytest.approx(1.0, abs=1e-5)
 
 
+def test_predict_images_fraction_on_screen_leaves_the_images(
+    result, small_scan
+) -> None:
+    # the scan's settings and one (k1 = 200) that throws the beam off the screen
+    s = torch.cat([small_scan.settings, torch.tensor([[200.0]])])
+    plain = result.predict_images(s, n_particles=2000)
+    images, fraction = result.predict_images(s, n_particles=2000, return_on_screen=True)
+    assert torch.equal(images, plain)  # the same numbers, bit for bit
+    assert fraction.shape == (7,)
+    mean, std = result.predict_images(s, n_particles=2000, return_std=True, n_draws=2)
+    mean2, std2, fraction2 = result.predict_images(
+        s, n_particles=2000, return_std=True, n_draws=2, return_on_screen=True
+    )
+    assert torch.equal(mean, mean2) and torch.equal(std, std2)
+    torch.testing.assert_close(fraction2, fraction)
+    per, per_fraction = result.predict_images(
+        s, n_particles=2000, per_snapshot=True, return_on_screen=True
+    )
+    assert per.shape == (3, 7, 32, 32) and per_fraction.shape == (3, 7)
+    torch.testing.assert_close(per_fraction.mean(0), fraction)
+    # the particles of the same sample that land inside the screen's pixel area
+    fwd = result.forward
+    scr = fwd.screen
+    (h, w), (psx, psy), (cx, cy) = scr.shape, scr.pixel_size, scr.center
+    at = torch.stack(
+        [fwd.track_to_screen(b, s) for b in result.sample(2000, per_snapshot=True)]
+    )
+    inside = ((at[..., 0] - cx).abs() < w * psx / 2) & (
+        (at[..., 2] - cy).abs() < h * psy / 2
+    )
+    counted = inside.double().mean(-1).mean(0)
+    # the image sums also lose what the blur spreads past the edges: close
+    torch.testing.assert_close(fraction.double(), counted, rtol=0, atol=0.03)
+    assert fraction[:-1].min() > 0.95 and fraction[-1] < 0.5
+
+
 def test_predict_rejects_bad_settings(result) -> None:
     with pytest.raises(ValueError, match="shape"):
         result.predict_images(torch.zeros(2, 3))

@@ -171,7 +171,8 @@ class Reconstruction:
         n_draws: int = 8,
         draw_particles: int = 10_000,
         maps: Tensor | None = None,
-    ) -> Tensor | tuple[Tensor, Tensor]:
+        return_on_screen: bool = False,
+    ) -> Tensor | tuple[Tensor, ...]:
         """Ensemble-mean screen images for arbitrary settings.
 
         The beamline is rebuilt from the settings passed on every call (no state
@@ -200,11 +201,19 @@ class Reconstruction:
             maps: The forward model's ``transfer_maps(settings)`` when the
                 caller has them (a 4D reconstruction images through them where
                 they are exact, instead of tracking).
+            return_on_screen: Also return the fraction of the beam on the screen
+                at each setting (dimensionless, in [0, 1]): the sum of each
+                member's image before it is normalised to 1 (particles deposited
+                inside the screen's pixel area, as the forward model deposits
+                and blurs them), averaged over the members. Taken from the same
+                images: no extra tracking, and the images are unchanged.
 
         Shapes:
             ``settings (K, P)`` -> ``(K, H, W)`` float32, each image summing to 1
             (all-zero if no particle reaches the screen); with ``return_std``
-            a pair ``(mean, std)`` of that shape.
+            a pair ``(mean, std)`` of that shape; with ``return_on_screen`` the
+            fractions ``(K,)`` (``(E, K)`` with ``per_snapshot``) come last:
+            ``(mean, fraction)`` or ``(mean, std, fraction)``.
 
         Raises:
             ValueError: if ``settings`` has the wrong number of columns or NaNs.
@@ -252,9 +261,14 @@ class Reconstruction:
             return fwd.images_linear(b, maps)
 
         with torch.no_grad():
-            imgs = _unit_sum(torch.stack([image(b) for b in beams]))
+            imgs = torch.stack([image(b) for b in beams])
+            on_screen = imgs.sum((-2, -1))  # (E, K): before normalising
+            if not per_snapshot:
+                on_screen = on_screen.mean(0)
+            imgs = _unit_sum(imgs)
             if not return_std:
-                return imgs if per_snapshot else imgs.mean(0)
+                mean = imgs if per_snapshot else imgs.mean(0)
+                return (mean, on_screen) if return_on_screen else mean
             var = _var0(imgs) if len(beams) > 1 else torch.zeros_like(imgs[0])
             unc = self.uncertainty
             if unc is not None and n_draws > 1:
@@ -272,7 +286,8 @@ class Reconstruction:
                     )
                 var = var + within / len(beams)
             std = var.sqrt()
-        return (imgs if per_snapshot else imgs.mean(0)), std
+        mean = imgs if per_snapshot else imgs.mean(0)
+        return (mean, std, on_screen) if return_on_screen else (mean, std)
 
     @property
     def uncertainty(self) -> MomentUncertainty | None:
