@@ -7,10 +7,12 @@ import torch
 
 from diffaccel.data import make_synthetic_awa6d
 from diffaccel.reconstruction import (
+    LOW_ON_SCREEN_FRACTION,
     POOR_FIT_RELATIVE_L1,
     ReconstructionConfig,
     evaluate,
     evaluation,
+    off_screen_warnings,
     predict_dataset,
     reconstruct,
 )
@@ -31,6 +33,7 @@ def test_a_fit_that_reproduces_its_images_has_no_warning(
     s = evaluate(small_result, small_scan, n_sample=2000)
     assert s["metrics"]["images_train"]["relative_l1"] < POOR_FIT_RELATIVE_L1
     assert s["warnings"] == []
+    assert min(s["scans"]["scan"]["fraction_on_screen"]) > 0.95
 
 
 def test_a_fit_that_misses_its_training_images_is_warned(
@@ -45,6 +48,47 @@ def test_a_fit_that_misses_its_training_images_is_warned(
     assert "does not reproduce its training images" in w
     for cause in ("units", "beamline", "screen calibration", "p0c"):
         assert cause in w
+
+
+def test_settings_that_throw_the_beam_off_the_screen_are_warned(
+    small_scan, small_result
+) -> None:
+    # the last setting 20x too strong (k1 = 200): most of the beam misses the
+    # 32 mm screen, and its unit-sum image alone would not show it
+    settings = small_scan.settings.clone()
+    settings[-1] = 200.0
+    other = dataclasses.replace(small_scan, settings=settings)
+    s = evaluate(small_result, other, n_sample=2000)
+    fraction = s["scans"]["scan"]["fraction_on_screen"]
+    assert fraction[-1] < LOW_ON_SCREEN_FRACTION and min(fraction[:-1]) > 0.95
+    (w,) = s["warnings"]
+    assert w.startswith(
+        "scan 'scan': only part of the predicted beam lands on the screen at 1 of "
+        f"6 settings: setting 5 (Q1.k1 = 200) {100 * fraction[-1]:.1f} %"
+    )
+    # predicted images given without their fractions: nothing to check
+    pred = predict_dataset(small_result, other, n_particles=500)
+    assert (
+        evaluate(small_result, other, predicted=pred, n_sample=2000)["warnings"] == []
+    )
+
+
+def test_off_screen_warnings_name_the_scan_settings_and_fractions() -> None:
+    names = ["Q1.k1", "Q2.k1"]
+    settings = torch.arange(24.0).reshape(12, 2)
+    fine = torch.tensor([1.0, 0.97, LOW_ON_SCREEN_FRACTION])  # at the threshold: no
+    assert off_screen_warnings(fine, settings[:3], names, scan="a") == []
+    (w,) = off_screen_warnings(
+        torch.tensor([0.99, 0.098, 0.0]), settings[:3], names, scan="a"
+    )
+    assert w.startswith(
+        "scan 'a': only part of the predicted beam lands on the screen at 2 of 3 "
+        "settings: setting 1 (Q1.k1 = 2, Q2.k1 = 3) 9.8 %, setting 2 (Q1.k1 = 4, "
+        "Q2.k1 = 5) 0.0 % (warned below 50 %)"
+    )
+    (w,) = off_screen_warnings(torch.zeros(12), settings, names, scan="a")
+    assert "at 12 of 12 settings" in w and "setting 7 (" in w
+    assert "setting 8 (" not in w and "and 4 more" in w
 
 
 @pytest.mark.parametrize(

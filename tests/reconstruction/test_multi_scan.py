@@ -132,6 +132,39 @@ def test_predicted_dataset_keeps_the_layout(result, two_scans) -> None:
     assert pred.metadata["preprocessing"][-1]["step"] == "predicted"
 
 
+def test_predicted_dataset_records_the_fraction_on_the_screen(
+    result, two_scans
+) -> None:
+    pred, on_screen = predict_dataset(
+        result, two_scans, n_particles=1000, return_on_screen=True
+    )
+    assert all(float(f.min()) > 0.9 for f in on_screen.values())
+    same = predict_dataset(result, two_scans, n_particles=1000)  # images unchanged
+    assert all(torch.equal(pred[n], same[n]) for n in two_scans.names)
+    # as if the beam missed the bent scan's screen at its second setting
+    low = dict(on_screen, bent=torch.tensor([0.97, 0.2, 0.96]))
+    ds = predicted_dataset(two_scans, pred, source="run", on_screen=low)
+    bent = ds["bent"].metadata["preprocessing"][-1]
+    assert bent["fraction_on_screen"] == [0.97, 0.2, 0.96]
+    (w,) = bent["warnings"]
+    assert w.startswith("scan 'bent': only part of the predicted beam lands on the")
+    assert "1 of 3 settings: setting 1 (Q1.k1 = 0) 20.0 %" in w
+    straight = ds["straight"].metadata["preprocessing"][-1]
+    assert straight["warnings"] == [] and len(straight["fraction_on_screen"]) == 5
+    # the file's own step (version 2) holds the warnings of every scan
+    assert ds.metadata["preprocessing"][-1] == {
+        "step": "predicted",
+        "reconstruction": "run",
+        "warnings": [w],
+    }
+    # without the fractions the step is as before
+    plain = predicted_dataset(two_scans, pred, source="run")
+    assert plain.metadata["preprocessing"][-1] == {
+        "step": "predicted",
+        "reconstruction": "run",
+    }
+
+
 def test_save_load_keeps_every_forward_model(result, tmp_path: Path) -> None:
     result.save(tmp_path)
     back = load(tmp_path)

@@ -8,10 +8,12 @@ Example:
 
 from diffaccel.reconstruction.ensemble import Reconstruction, load
 from diffaccel.reconstruction.evaluation import (
+    LOW_ON_SCREEN_FRACTION,
     POOR_FIT_RELATIVE_L1,
     check_on_screen,
     clean_json,
     evaluate,
+    off_screen_warnings,
     predict_dataset,
     predicted_dataset,
 )
@@ -47,6 +49,7 @@ from diffaccel.reconstruction.training import (
 )
 
 __all__ = [
+    "LOW_ON_SCREEN_FRACTION",
     "POOR_FIT_RELATIVE_L1",
     "BeamGenerator",
     "GaussianGuess",
@@ -69,6 +72,7 @@ __all__ = [
     "load",
     "load_checkpoint",
     "moment_errors",
+    "off_screen_warnings",
     "penalty_schedule",
     "predict_dataset",
     "predicted_dataset",

@@ -30,11 +30,13 @@ from diffaccel.reconstruction.pipeline import as_scans
 from diffaccel.reconstruction.prior_dependence import prior_dependence
 
 __all__ = [
+    "LOW_ON_SCREEN_FRACTION",
     "POOR_FIT_RELATIVE_L1",
     "check_on_screen",
     "check_same_beam",
     "clean_json",
     "evaluate",
+    "off_screen_warnings",
     "predict_dataset",
     "predicted_dataset",
 ]
@@ -50,6 +52,17 @@ POOR_FIT_CAUSES = (
     "lengths, order, drift to the screen), a wrong screen calibration (pixel "
     "size, centre) or a wrong beam energy (p0c)"
 )
+
+#: Fraction of a predicted beam on the screen (dimensionless) below which a
+#: predicted image is reported as showing only part of the beam
+#: (:func:`off_screen_warnings`): predicted images are normalised to unit sum,
+#: so a setting that throws most of the beam off the screen still gives a
+#: plausible-looking image (of the part that hits it). A beam well inside the
+#: screen has ~1 (the blur at the edges takes a little); below 0.5 the image
+#: misses more of the beam than it shows.
+LOW_ON_SCREEN_FRACTION = 0.5
+#: Settings named in one scan's off-screen warning (more are counted).
+MAX_LISTED_SETTINGS = 8
 
 UNCONSTRAINED_NOTE = (
     "coordinates the scans do not see to first order (their column of the "
@@ -118,7 +131,8 @@ def predict_dataset(
     seed: int = 0,
     return_std: bool = False,
     n_draws: int = 4,
-) -> dict[str, Tensor] | tuple[dict[str, Tensor], dict[str, Tensor]]:
+    return_on_screen: bool = False,
+) -> dict[str, Tensor] | tuple[dict[str, Tensor], ...]:
     """Ensemble-mean images of every scan and setting of ``dataset``.
 
     Each scan is imaged with a forward model built from that scan (its
@@ -136,12 +150,17 @@ def predict_dataset(
         return_std: Also return the per-pixel spread of every image
             (``Reconstruction.predict_images(return_std=True)``).
         n_draws: Posterior beams per member for the spread.
+        return_on_screen: Also return the fraction of the beam on the screen
+            at every setting (``Reconstruction.predict_images(
+            return_on_screen=True)``: from the same images, no extra tracking).
 
     Returns:
         ``{scan name: (K_s, H_s, W_s)}`` float32 images, each summing to 1;
         with ``return_std`` a pair ``(images, spreads)`` of such dicts (the
-        spread on the scale of the unit-sum images). The images are the same
-        with and without ``return_std``.
+        spread on the scale of the unit-sum images); with ``return_on_screen``
+        ``{scan name: (K_s,)}`` fractions on the screen come last
+        (``(images, fractions)`` or ``(images, spreads, fractions)``). The
+        images are the same with and without either.
 
     Raises:
         ValueError: if ``dataset`` is of another species, or its ``p0c``
@@ -151,7 +170,7 @@ def predict_dataset(
     """
     scans = as_scans(dataset)
     check_same_beam(result, scans)
-    out, spread = {}, {}
+    out, spread, on_screen = {}, {}, {}
     for name, scan in scans:
         fwd = ScreenForwardModel.from_dataset(
             scan, blur_pixels=result.config.blur_for(scan)
@@ -163,12 +182,17 @@ def predict_dataset(
             seed=seed,
             return_std=return_std,
             n_draws=n_draws,
+            return_on_screen=True,
         )
+        out[name], on_screen[name] = pred[0], pred[-1]
         if return_std:
-            out[name], spread[name] = pred
-        else:
-            out[name] = pred
-    return (out, spread) if return_std else out
+            spread[name] = pred[1]
+    parts = [out]
+    if return_std:
+        parts.append(spread)
+    if return_on_screen:
+        parts.append(on_screen)
+    return tuple(parts) if len(parts) > 1 else out
 
 
 def _train_indices(result: Reconstruction, name: str, k: int) -> list[int]:
@@ -207,6 +231,7 @@ def evaluate(
     predicted: Mapping[str, Tensor] | None = None,
     n_sample: int = 100_000,
     sample: Tensor | None = None,
+    on_screen: Mapping[str, Tensor] | None = None,
 ) -> dict[str, Any]:
     """Moments, image errors per scan and ground-truth errors of a reconstruction.
 
@@ -223,11 +248,16 @@ def evaluate(
         sample: ``result.sample(n_sample)`` when the caller has drawn it (the
             CLI writes the same particles to its particles file); drawn here
             otherwise.
+        on_screen: ``{scan: (K_s,)}`` fractions of the beam on the screen of
+            the ``predicted`` images (``predict_dataset(return_on_screen=True)``);
+            computed with the images when ``predicted`` is None, not checked
+            when only ``predicted`` is given.
 
     Returns:
         JSON-ready dict: ``scans`` (per scan: ``train_indices``,
         ``held_out_indices``, ``images_train``, ``images_held_out`` from
-        :func:`~diffaccel.reconstruction.image_errors`), ``metrics``
+        :func:`~diffaccel.reconstruction.image_errors`, and with the fractions
+        ``fraction_on_screen`` per setting), ``metrics``
         (``images_train``/``images_held_out`` pooled over all scans,
         ``ground_truth`` from :func:`~diffaccel.reconstruction.moment_errors`
         plus the sliced Wasserstein distance when the truth is known),
@@ -240,12 +270,17 @@ def evaluate(
         sentences; one when a scan's training images or all of them together
         have a relative L1 above :data:`POOR_FIT_RELATIVE_L1`: the
         reconstruction does not reproduce its own data, and its moments are
-        not a measurement); for a single scan also
+        not a measurement; one per scan whose predicted beam mostly misses
+        the screen at some of its settings, training or held out, from
+        :func:`off_screen_warnings`); for a single scan also
         ``train_indices``/``held_out_indices`` at the top level.
     """
     scans = as_scans(dataset)
-    pred = dict(predicted) if predicted is not None else predict_dataset(result, scans)
+    if predicted is None:
+        predicted, on_screen = predict_dataset(result, scans, return_on_screen=True)
+    pred = dict(predicted)
     per_scan: dict[str, Any] = {}
+    screen_warnings: list[str] = []
     train_parts, test_parts = [], []
     for name, scan in scans:
         k = scan.n_settings
@@ -263,6 +298,12 @@ def evaluate(
         if test:
             entry["images_held_out"] = image_errors(p[test], meas[test])
             test_parts.append((p[test], meas[test]))
+        if on_screen is not None:
+            fraction = on_screen[name]
+            entry["fraction_on_screen"] = _rounded(fraction)
+            screen_warnings += off_screen_warnings(
+                fraction, scan.settings, scan.setting_names, scan=name
+            )
         per_scan[name] = entry
     metrics: dict[str, Any] = {}
     for key, parts in (("images_train", train_parts), ("images_held_out", test_parts)):
@@ -289,7 +330,7 @@ def evaluate(
             sliced_wasserstein(sample[:20_000, :dims], truth[:, :dims], generator=g)
         )
         metrics["ground_truth"] = gt
-    warnings = _poor_fit_warnings(per_scan, metrics)
+    warnings = _poor_fit_warnings(per_scan, metrics) + screen_warnings
     dependence: list[dict] = []
     if result.config.dims == 6:
         try:
@@ -375,31 +416,95 @@ def check_on_screen(images: Tensor, settings: Tensor, *, scan: str = "") -> Tens
     return sums
 
 
+def off_screen_warnings(
+    on_screen: Tensor,
+    settings: Tensor,
+    names: Sequence[str],
+    *,
+    scan: str = "",
+) -> list[str]:
+    """A warning for the settings of a scan whose predicted beam misses the screen.
+
+    Args:
+        on_screen: Fraction of the beam on the screen at each setting ``(K,)``
+            (dimensionless; ``return_on_screen`` of :func:`predict_dataset`).
+        settings: The settings ``(K, P)`` (their values are named).
+        names: The scanned parameters ``(P,)``, e.g. ``["Q1.k1"]``.
+        scan: Scan name for the warning.
+
+    Returns:
+        One sentence naming the scan and each setting (index, values, fraction
+        on the screen) with a fraction below :data:`LOW_ON_SCREEN_FRACTION`
+        (the first :data:`MAX_LISTED_SETTINGS` of them, then their number), or
+        an empty list if there is none.
+
+    Example:
+        >>> w = off_screen_warnings(torch.tensor([0.99, 0.098]),
+        ...                         torch.tensor([[2.0], [200.0]]), ["Q1.k1"],
+        ...                         scan="scan")
+        >>> print(w[0][: w[0].index(" (warned")])  # doctest: +NORMALIZE_WHITESPACE
+        scan 'scan': only part of the predicted beam lands on the screen at 1 of
+        2 settings: setting 1 (Q1.k1 = 200) 9.8 %
+    """
+    fractions = on_screen.double().tolist()
+    low = [k for k, f in enumerate(fractions) if not f >= LOW_ON_SCREEN_FRACTION]
+    if not low:
+        return []
+    listed = []
+    for k in low[:MAX_LISTED_SETTINGS]:
+        values = ", ".join(
+            f"{n} = {float(v):.6g}" for n, v in zip(names, settings[k], strict=True)
+        )
+        listed.append(f"setting {k} ({values}) {100 * fractions[k]:.1f} %")
+    if len(low) > MAX_LISTED_SETTINGS:
+        listed.append(f"and {len(low) - MAX_LISTED_SETTINGS} more")
+    return [
+        f"scan {scan!r}: only part of the predicted beam lands on the screen at "
+        f"{len(low)} of {len(fractions)} settings: {', '.join(listed)} (warned "
+        f"below {100 * LOW_ON_SCREEN_FRACTION:.0f} %); their images, normalised "
+        "to unit sum, show only that part of the beam (a setting too strong for "
+        "the beam, or a screen too small for it?)."
+    ]
+
+
+def _rounded(fraction: Tensor) -> list[float]:
+    """Fractions on the screen ``(K,)`` as a list, to 6 decimals (for JSON)."""
+    return [round(v, 6) for v in fraction.double().tolist()]
+
+
 def predicted_dataset(
     dataset: QuadScanDataset | MultiScanDataset,
     predicted: Mapping[str, Tensor],
     *,
     source: str = "",
+    on_screen: Mapping[str, Tensor] | None = None,
 ) -> MultiScanDataset:
     """``dataset`` with its images replaced by predictions (one shot, unit sum).
 
     Settings, beamlines, screen calibrations, ground truth and format version
     are kept, so any reader of measurements reads the predictions; the step
     ``{"step": "predicted", "reconstruction": source}`` is appended to
-    ``metadata["preprocessing"]`` (of each scan and of the container).
+    ``metadata["preprocessing"]`` (of each scan and of the container). With
+    ``on_screen`` each scan's step also records ``fraction_on_screen`` (one
+    value per setting) and ``warnings`` (:func:`off_screen_warnings`: settings
+    whose beam mostly misses the screen), and the container's step the
+    warnings of all scans.
 
     Args:
         dataset: The dataset the predictions were made for.
         predicted: ``{scan: (K_s, H_s, W_s)}`` from :func:`predict_dataset`.
         source: Where the reconstruction came from (e.g. its folder).
+        on_screen: ``{scan: (K_s,)}`` fractions of the beam on the screen
+            (``predict_dataset(return_on_screen=True)``).
 
     Raises:
         ValueError: naming the scan and setting if a predicted image is all
             zero (no particle reached the screen) or shapes do not match.
     """
     scans = as_scans(dataset)
-    step = {"step": "predicted", "reconstruction": source}
+    step: dict[str, Any] = {"step": "predicted", "reconstruction": source}
     out = {}
+    warnings: list[str] = []
     for name, scan in scans:
         images = predicted[name].detach().to("cpu", torch.float32)
         k, _, h, w = scan.shape
@@ -409,7 +514,18 @@ def predicted_dataset(
                 f"the scan's (K, H, W) = {(k, h, w)}."
             )
         sums = check_on_screen(images, scan.settings, scan=name)
-        out[name] = scan.with_step(step, images=(images / sums[:, None, None])[:, None])
+        scan_step = dict(step)
+        if on_screen is not None:
+            fraction = on_screen[name]
+            scan_step["fraction_on_screen"] = _rounded(fraction)
+            scan_step["warnings"] = off_screen_warnings(
+                fraction, scan.settings, scan.setting_names, scan=name
+            )
+            warnings += scan_step["warnings"]
+        images = (images / sums[:, None, None])[:, None]
+        out[name] = scan.with_step(scan_step, images=images)
+    if on_screen is not None:
+        step["warnings"] = warnings
     metadata = copy.deepcopy(scans.metadata)  # a version-2 file keeps this one
     metadata.setdefault("preprocessing", []).append(dict(step))
     return MultiScanDataset(out, scans.format_version, metadata)
