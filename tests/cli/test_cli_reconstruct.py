@@ -26,7 +26,7 @@ from diffaccel.data import (
     write_quad_scan,
     write_scans,
 )
-from diffaccel.reconstruction import load
+from diffaccel.reconstruction import LOW_ON_SCREEN_FRACTION, load
 from diffaccel.reconstruction.probe import PROBE_STEP
 
 FAST = ["--particles", "512", "--steps", "6", "--snapshots", "2"]
@@ -607,6 +607,64 @@ def test_predict_h5_of_a_version_1_file_is_version_1(
     assert read_quad_scan(pred).shape == (6, 1, 24, 24)
 
 
+def test_predict_of_settings_on_the_screen_warns_of_nothing(
+    result_dir: Path, scan_file: Path, tmp_path: Path
+) -> None:
+    pred = tmp_path / "pred.h5"
+    r = CliRunner().invoke(
+        main,
+        ["predict", str(result_dir), "--dataset", str(scan_file), "--out", str(pred)],
+    )
+    assert r.exit_code == 0, r.output
+    assert "warning" not in r.output
+    step = read_quad_scan(pred).metadata["preprocessing"][-1]
+    assert step["step"] == "predicted" and step["warnings"] == []
+    assert len(step["fraction_on_screen"]) == 6
+    assert min(step["fraction_on_screen"]) > 0.9
+
+
+def test_predict_warns_when_a_setting_throws_the_beam_off_the_screen(
+    result_dir: Path, scan_file: Path, tmp_path: Path
+) -> None:
+    # the audit's case: at k1 = 200 about a tenth of the beam reaches the
+    # screen, yet its sum-normalised image looks like a beam
+    other = tmp_path / "k1_200.h5"
+    other.write_bytes(scan_file.read_bytes())
+    with h5py.File(other, "r+") as h5:
+        h5["settings"][5] = 200.0
+    pred = tmp_path / "pred.h5"
+    args = ["predict", str(result_dir), "--dataset", str(other)]
+    r = CliRunner().invoke(main, [*args, "--out", str(pred)])
+    assert r.exit_code == 0, r.output
+    step = read_quad_scan(pred).metadata["preprocessing"][-1]
+    fraction = step["fraction_on_screen"]
+    assert fraction[5] < LOW_ON_SCREEN_FRACTION and min(fraction[:5]) > 0.9
+    (w,) = step["warnings"]
+    assert w.startswith(
+        "scan 'scan': only part of the predicted beam lands on the screen at 1 of "
+        f"6 settings: setting 5 (Q1.k1 = 200) {100 * fraction[5]:.1f} %"
+    )
+    assert f"warning: {w}" in r.output
+    # the .npy output has no metadata: the warning is printed all the same
+    r = CliRunner().invoke(main, [*args, "--out", str(tmp_path / "pred.npy")])
+    assert r.exit_code == 0, r.output
+    assert f"warning: {w}" in r.output
+    r = CliRunner().invoke(
+        main,
+        [
+            "predict",
+            str(result_dir),
+            "--settings",
+            "0,200",
+            "--out",
+            str(tmp_path / "k1.npy"),
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    assert "warning: scan 'scan': only part of the predicted beam" in r.output
+    assert "at 1 of 2 settings: setting 1 (Q1.k1 = 200)" in r.output
+
+
 @pytest.mark.parametrize(
     ("rule", "message"),
     [("straight:9", "indices must be distinct and in [0, 4)"), ("x:1", "SCAN:RULE")],
@@ -809,8 +867,11 @@ def test_reconstruct_warns_when_the_fit_misses_its_training_images(
     assert r.exit_code == 0, r.output
     s = json.loads((out / "summary.json").read_text())
     assert s["metrics"]["images_train"]["relative_l1"] > 0.5
-    assert len(s["warnings"]) == 1
-    assert "does not reproduce its training images" in s["warnings"][0]
+    fit, screen = s["warnings"]
+    assert "does not reproduce its training images" in fit
+    # settings 200x too strong also throw the reconstructed beam off the screen
+    assert "only part of the predicted beam lands on the screen at 6 of 6" in screen
+    assert max(s["scans"]["scan"]["fraction_on_screen"]) < 0.5
     assert "warning: the reconstruction does not reproduce" in r.output
     assert "settings in the wrong units" in r.output
 

@@ -46,6 +46,7 @@ from diffaccel.reconstruction import (
     check_on_screen,
     evaluate,
     load,
+    off_screen_warnings,
     predict_dataset,
     predicted_dataset,
     reconstruct,
@@ -361,6 +362,12 @@ def _torch_threads(n: int) -> Iterator[None]:
         torch.set_num_threads(before)
 
 
+def _echo_warnings(warnings: Sequence[str]) -> None:
+    """Each warning on stderr as ``warning: ...`` (``reconstruct`` and ``predict``)."""
+    for warning in warnings:
+        click.echo(f"warning: {warning}", err=True)
+
+
 def run_reconstruction(
     ds: MultiScanDataset,
     dataset_path: Path,
@@ -462,10 +469,12 @@ def run_reconstruction(
         spread = None
         if figures and uncertainty:
             t_std = time.perf_counter()
-            predicted, spread = predict_dataset(result, ds, return_std=True)
+            predicted, spread, on_screen = predict_dataset(
+                result, ds, return_std=True, return_on_screen=True
+            )
             result.info["timings_s"]["image_spread"] = time.perf_counter() - t_std
         else:
-            predicted = predict_dataset(result, ds)
+            predicted, on_screen = predict_dataset(result, ds, return_on_screen=True)
         # the particles file holds the sample that evaluate() compares with
         # the ground truth (n_sample, seed 0): drawn once
         particles = result.sample(100_000)
@@ -476,6 +485,7 @@ def run_reconstruction(
             predicted=predicted,
             n_sample=100_000,
             sample=particles,
+            on_screen=on_screen,
         )
         summary["dataset"] = str(dataset_path)
         try:
@@ -762,8 +772,7 @@ def reconstruct_command(
             f"held-out image relative L1: {m['images_held_out']['relative_l1']:.4f}"
         )
     click.echo(f"train image relative L1: {m['images_train']['relative_l1']:.4f}")
-    for warning in summary.get("warnings", []):
-        click.echo(f"warning: {warning}", err=True)
+    _echo_warnings(summary.get("warnings", []))
     if summary["unconstrained_coordinates"]:
         click.echo(
             "not constrained by the scan: "
@@ -895,7 +904,8 @@ def parse_settings(text: str, names: list[str]) -> torch.Tensor:
     required=True,
     help="Output file: .h5 writes a quad-scan file of the same format version as "
     "--dataset with the predicted images (one shot, each summing to 1); .npy "
-    "writes (K, H, W) float32 (one scan only).",
+    "writes (K, H, W) float32 (one scan only). Settings where less than half of "
+    "the beam lands on the screen are warned (and recorded in the .h5).",
 )
 @click.option(
     "--particles",
@@ -953,10 +963,24 @@ def predict(
         if dataset_path is not None:
             other = read_scans(dataset_path)
             predicted = predict_dataset(
-                result, other, n_particles=particles, seed=seed, return_std=want_std
+                result,
+                other,
+                n_particles=particles,
+                seed=seed,
+                return_std=want_std,
+                return_on_screen=True,
             )
             if want_std:
-                predicted, spread = predicted
+                predicted, spread, on_screen = predicted
+            else:
+                predicted, on_screen = predicted
+            warnings = [
+                w
+                for name, scan in other
+                for w in off_screen_warnings(
+                    on_screen[name], scan.settings, scan.setting_names, scan=name
+                )
+            ]
         else:
             fwd = result.forward
             settings = parse_settings(settings_text, fwd.names)
@@ -967,11 +991,17 @@ def predict(
                 seed=seed,
                 return_std=want_std,
                 n_draws=4,
+                return_on_screen=True,
             )
             if want_std:
-                images, std = images
+                images, std, fraction = images
                 spread = {result.scan_names[0]: std}
+            else:
+                images, fraction = images
             check_on_screen(images, settings)
+            warnings = off_screen_warnings(
+                fraction, settings, fwd.names, scan=result.scan_names[0]
+            )
     except (FormatError, ValueError, FileNotFoundError, OSError) as err:
         raise click.ClickException(str(err)) from err
     # every refusal before the first file or folder is made
@@ -1003,11 +1033,14 @@ def predict(
         click.echo(f"wrote {out}: {k} images of {h} x {w} pixels")
         if std_out is not None:
             _write_spread(std_out, spread)
+        _echo_warnings(warnings)
         return
     out.parent.mkdir(parents=True, exist_ok=True)
     try:
         written = write_scans(
-            predicted_dataset(other, predicted, source=str(result_dir)),
+            predicted_dataset(
+                other, predicted, source=str(result_dir), on_screen=on_screen
+            ),
             out,
             overwrite=force,
         )
@@ -1020,3 +1053,4 @@ def predict(
     )
     if std_out is not None:
         _write_spread(std_out, spread)
+    _echo_warnings(warnings)
