@@ -606,6 +606,36 @@ def test_results_do_not_depend_on_output_units() -> None:
     assert 0.002 < float(sigmas[0].mean()) < 0.1
 
 
+@pytest.mark.parametrize("where", ["history", "dense-q-batch"])
+def test_samples_follow_the_rescaled_variance_in_tiny_units(where: str) -> None:
+    # an output in units of 1e-7 (variances ~1e-17): samples used to be drawn
+    # in those units, where the Cholesky jitter GPyTorch adds to a nearly
+    # singular covariance (absolute, 1e-8) made their spread 10^4-10^5 times
+    # posterior.variance.sqrt(); acquisition functions draw such samples
+    X, Y, _ = _data(0, 0.02, n_cycles=2, n_per_cycle=16)
+    scale = 1e-7
+    model = HysteresisGP(X, 1e-4 + scale * Y, hysteresis={0: _preisach(8)})
+    fit_hysteresis_gp(model, restarts=1, max_iter=30)
+    n = 4000
+    with torch.no_grad():
+        if where == "history":
+            post = model.posterior_on_history()
+        else:  # 40 close settings: a nearly singular joint covariance
+            post = model.posterior(torch.linspace(0.0, I_MAX, 40, dtype=DT)[:, None])
+        sigma = post.variance.sqrt()
+        torch.manual_seed(0)
+        samples = post.rsample(torch.Size([n]))
+        base = torch.randn(n, *post.base_sample_shape, dtype=DT)
+        from_base = post.rsample_from_base_samples(torch.Size([n]), base)
+    assert samples.shape == from_base.shape == (n, *post.mean.shape)
+    assert float(sigma.min()) > 1e-3 * scale  # not GPyTorch's floor
+    for s in (samples, from_base):
+        # sample std within 10 % (its own error is ~1.1 %), the mean within
+        # 5 standard errors of the posterior mean
+        torch.testing.assert_close(s.std(0), sigma, rtol=0.1, atol=0.0)
+        assert ((s.mean(0) - post.mean).abs() <= 5 * sigma / math.sqrt(n)).all()
+
+
 # -------------------------------------------------------------- failures
 
 

@@ -88,29 +88,64 @@ def _standardize() -> Standardize:
 
 
 class _RescaledPosterior(GPyTorchPosterior):
-    """Posterior in units of ``train_Y`` whose variance is scaled from model units.
+    """Posterior in units of ``train_Y``, variance and samples scaled from model units.
 
     GPyTorch rounds variances below an absolute floor (1e-10 in float64) up to
-    it, with a "Negative variance values detected" warning; after the
-    standardisation is undone that floor would swamp the variance of any
-    output in small units (a beam size of 1e-4 m has variances near 1e-13 m^2).
-    The variance is therefore computed in standardised units and multiplied by
-    the squared output scale here.
+    it, with a "Negative variance values detected" warning, and adds an
+    absolute jitter (1e-8 in float64) to a covariance whose Cholesky factor
+    fails (nearly singular: many close settings, the training history); after
+    the standardisation is undone both would swamp an output in small units
+    (a beam size of 1e-4 m has variances near 1e-13 m^2). The variance and the
+    samples (:meth:`rsample`, :meth:`rsample_from_base_samples`, and
+    ``sample``, which BoTorch's samplers and Monte-Carlo acquisition
+    functions use) are therefore taken in standardised units and mapped
+    affinely: ``mean + scale * (s - mean_std)``, variance ``scale^2 var_std``.
+    ``distribution`` itself is BoTorch's un-standardised one (its
+    ``variance`` and samples drawn from it directly keep GPyTorch's floors).
 
     Args:
         distribution: The posterior distribution in units of ``train_Y``.
-        variance: Its marginal variances [units of ``train_Y`` squared], shape
-            ``(*b, q, 1)``.
+        standardised: The same posterior in model (standardised) units.
+        scale: Output scale [units of ``train_Y``], a scalar tensor.
     """
 
-    def __init__(self, distribution: MultivariateNormal, variance: Tensor) -> None:
+    def __init__(
+        self,
+        distribution: MultivariateNormal,
+        standardised: GPyTorchPosterior,
+        scale: Tensor,
+    ) -> None:
         super().__init__(distribution=distribution)
-        self._variance = variance
+        self._standardised = standardised
+        self._scale = scale
 
     @property
     def variance(self) -> Tensor:
         """Marginal variances [units of ``train_Y`` squared], shape ``(*b, q, 1)``."""
-        return self._variance
+        return self._standardised.variance * self._scale.square()
+
+    def _rescale(self, samples: Tensor) -> Tensor:
+        return self.mean + self._scale * (samples - self._standardised.mean)
+
+    def rsample(self, sample_shape: torch.Size | None = None) -> Tensor:
+        """Samples [units of ``train_Y``], shape ``(*sample_shape, *b, q, 1)``."""
+        return self._rescale(self._standardised.rsample(sample_shape))
+
+    def rsample_from_base_samples(
+        self, sample_shape: torch.Size, base_samples: Tensor
+    ) -> Tensor:
+        """Samples [units of ``train_Y``] from ``N(0, I)`` base samples.
+
+        Args:
+            sample_shape: Leading shape of the samples.
+            base_samples: Shape ``(*sample_shape, *base_sample_shape)``.
+
+        Returns:
+            Samples, shape ``(*sample_shape, *b, q, 1)``.
+        """
+        return self._rescale(
+            self._standardised.rsample_from_base_samples(sample_shape, base_samples)
+        )
 
 
 def magnetization_feature(states: Tensor, weights: Tensor) -> Tensor:
@@ -640,12 +675,11 @@ class HysteresisGP(Model):
         posterior = GPyTorchPosterior(distribution=mvn)
         ot = getattr(self, "outcome_transform", None)
         if ot is not None:
-            variance = posterior.variance  # model units: GPyTorch's floor is relative
+            standardised = posterior  # model units: GPyTorch's floors are relative
             posterior = ot.untransform_posterior(posterior, X=X)
             if isinstance(ot, Standardize) and type(posterior) is GPyTorchPosterior:
-                scale = self._outcome_scale()
                 posterior = _RescaledPosterior(
-                    posterior.distribution, variance * scale.square()
+                    posterior.distribution, standardised, self._outcome_scale()
                 )
         if posterior_transform is not None:
             posterior = posterior_transform(posterior)
