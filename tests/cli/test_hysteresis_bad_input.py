@@ -354,3 +354,89 @@ def test_cli_magnitude_limit_is_the_librarys() -> None:
     from diffaccel.hysteresis.fit import MAX_MAGNITUDE
 
     assert cli_limit == MAX_MAGNITUDE
+
+
+def _timed_csv(
+    path: Path,
+    n: int = 30,
+    swap: int | None = None,
+    repeat: int | None = None,
+    time: str = "time_s",
+) -> Path:
+    """:func:`_csv` with a time column that restarts with the second of two runs.
+
+    ``swap``: data rows ``swap`` and ``swap + 1`` exchanged; ``repeat``: data
+    row ``repeat`` written twice.
+    """
+    rows = []
+    for i in range(n):
+        current = 10.0 * math.sin(0.3 * i) + 10.0
+        run, t = ("a", 2.5 * i) if i < n // 2 else ("b", 2.5 * (i - n // 2))
+        rows.append(f"{run},{t},{current},{0.03 * current + 0.001 * i}")
+    if swap is not None:
+        rows[swap - 1], rows[swap] = rows[swap], rows[swap - 1]
+    if repeat is not None:
+        rows.insert(repeat, rows[repeat - 1])
+    path.write_text(f"run,{time},current_A,field_Tm\n" + "\n".join(rows) + "\n")
+    return path
+
+
+def _order_args(command: str, data: Path, tmp_path: Path) -> tuple[list[str], Path]:
+    """Arguments of ``command`` on ``data``, and what it writes."""
+    out = tmp_path / "o"
+    if command == "fit":
+        return ["fit", str(data), "--train-rows", "20", "--out", str(out)], out
+    if command == "gp-fit":
+        return ["gp-fit", str(data), "--x", "current_A", "--y", "field_Tm",
+                "--out", str(out)], out  # fmt: skip
+    fit_dir = tmp_path / "fit"
+    _saved_fit(fit_dir)
+    out = tmp_path / "p.csv"
+    return ["predict", str(fit_dir), "--input", str(data), "--out", str(out),
+            "--chunk-rows", "7"], out  # fmt: skip
+
+
+@pytest.mark.parametrize("command", ["fit", "gp-fit", "predict"])
+@pytest.mark.parametrize(
+    ("swap", "repeat", "needles"),
+    [
+        (20, None, ["'time_s', data row 21:", "'10.0' is not after '12.5' of data "
+                    "row 20 (run 'b')", "measurement order"]),
+        (None, 20, ["data row 21 repeats data row 20 in every cell", "'time_s'"]),
+    ],
+    ids=["shuffled", "repeated"],
+)  # fmt: skip
+def test_rows_out_of_measurement_order_are_refused(
+    tmp_path: Path, command: str, swap: int | None, repeat: int | None, needles
+) -> None:
+    # hysteresis depends on the order of the inputs: shuffled or repeated rows
+    # used to be fitted (and predicted) as if they were a history
+    data = _timed_csv(tmp_path / "m.csv", swap=swap, repeat=repeat)
+    args, out = _order_args(command, data, tmp_path)
+    _one_line_error(_invoke(*args), str(data), *needles)
+    assert not out.exists()
+
+
+def test_predict_accepts_a_time_that_restarts_with_each_run(tmp_path: Path) -> None:
+    data = _timed_csv(tmp_path / "m.csv")
+    args, out = _order_args("predict", data, tmp_path)
+    result = _invoke(*args)
+    assert result.exit_code == 0, result.output
+    assert len(out.read_text().splitlines()) == 31
+
+
+@pytest.mark.parametrize("command", ["fit", "gp-fit", "predict"])
+def test_time_column_option_names_the_column_to_check(
+    tmp_path: Path, command: str
+) -> None:
+    data = _timed_csv(tmp_path / "m.csv", swap=5, time="step")
+    args, out = _order_args(command, data, tmp_path)
+    _one_line_error(
+        _invoke(*args, "--time-column", "step"), str(data), "'step', data row 6:"
+    )
+    _one_line_error(
+        _invoke(*args, "--time-column", "t_s"),
+        "--time-column",
+        f"{data} has no column 't_s'",
+    )
+    assert not out.exists()

@@ -221,3 +221,90 @@ def test_append_columns_falls_back_for_nonfinite_and_huge() -> None:
     neg, pos, mix = (torch.tensor(v) for v in ([-1.5, -2.0], [3.0, 4.0], [5.0, -6.0]))
     text = append_columns(["a", "b"], [neg, pos, mix], [2, 2, 2])
     assert text == "a,-1.5e+00,3.0e+00,5.0e+00\nb,-2.0e+00,4.0e+00,-6.0e+00\n"
+
+
+# ------------------------------------------------------ measurement order
+
+_TIMED = "run,time_s,current_A,field_Tm\n"
+
+
+@pytest.mark.parametrize(
+    ("body", "match"),
+    [
+        (
+            "a,0,1,2\na,1,5,3\na,0.5,2,4\n",
+            r"m\.csv: column 'time_s', data row 3: '0\.5' is not after '1' of data "
+            r"row 2 \(run 'a'\); rows must be in measurement order",
+        ),
+        (
+            "a,0,1,2\na,1,5,3\na,1,2,4\n",
+            r"column 'time_s', data row 3: '1' is not after '1' of data row 2",
+        ),
+        (
+            "a,0,1,2\na,1,5,3\na,1,5,3\na,2,1,2\n",
+            r"m\.csv: data row 3 repeats data row 2 in every cell \(column 'time_s' "
+            r"= '1'\): a row exported twice\?",
+        ),
+    ],
+    ids=["decreasing", "equal-time", "repeated-row"],
+)
+def test_time_must_increase_within_a_run(tmp_path: Path, body: str, match: str) -> None:
+    from diffaccel.data import iter_magnet_csv
+
+    p = _write(tmp_path, _TIMED + body)
+    with pytest.raises(FormatError, match=match):
+        read_magnet_csv(p)
+    for chunk in (1, 2, 100):  # within a chunk and across chunks
+        with pytest.raises(FormatError, match=match):
+            list(iter_magnet_csv(p, "current_A", chunk_rows=chunk)[1])
+    # the csv module's path (a quoted cell) says the same
+    quoted = _write(tmp_path, _TIMED + '"a",' + body[2:])
+    with pytest.raises(FormatError, match=match):
+        list(iter_magnet_csv(quoted, "current_A", chunk_rows=2)[1])
+
+
+def test_time_may_restart_where_the_run_changes(tmp_path: Path) -> None:
+    from diffaccel.data import iter_magnet_csv
+
+    # the SLAC files restart time_s at 0 in each run
+    body = "a,0,1,2\na,1,5,3\nb,0,5,3\nb,2.5,1,2\nc,0,1,2\n"
+    p = _write(tmp_path, _TIMED + body)
+    assert read_magnet_csv(p).input.tolist() == [1.0, 5.0, 5.0, 1.0, 1.0]
+    for chunk in (1, 2, 100):
+        chunks = iter_magnet_csv(p, "current_A", chunk_rows=chunk)[1]
+        assert sum(len(rows) for rows, _ in chunks) == 5
+    # without a run column a restart is a time going back: refused, with a hint
+    p = _write(tmp_path, "time_s,current_A,field_Tm\n0,1,2\n1,5,3\n0,5,3\n")
+    with pytest.raises(FormatError, match=r"data row 3: '0' is not after '1'.*'run'"):
+        read_magnet_csv(p)
+
+
+def test_time_column_cells_must_be_numbers(tmp_path: Path) -> None:
+    from diffaccel.data import iter_magnet_csv
+
+    p = _write(tmp_path, _TIMED + "a,0,1,2\na,later,5,3\n")
+    match = r"column 'time_s', data row 2: expected a number; found 'later'"
+    with pytest.raises(FormatError, match=match):
+        read_magnet_csv(p)
+    with pytest.raises(FormatError, match=match):
+        list(iter_magnet_csv(p, "current_A", chunk_rows=1)[1])
+
+
+def test_order_is_not_checked_without_a_time_column(tmp_path: Path) -> None:
+    from diffaccel.data import iter_magnet_csv
+
+    # repeated currents (a current held) are valid hysteresis data, and
+    # without a time column order cannot be told from the rows themselves
+    body = "r1,5,3\nr1,5,3\nr2,0,1\n"
+    p = _write(tmp_path, "run,current_A,field_Tm\n" + body)
+    assert read_magnet_csv(p).input.tolist() == [5.0, 5.0, 0.0]
+    assert len(list(iter_magnet_csv(p, "current_A")[1])) == 1
+    # another time column by name; or none
+    p = _write(tmp_path, "t,current_A,field_Tm\n1,5,3\n0,5,3\n")
+    with pytest.raises(FormatError, match="column 't', data row 2"):
+        read_magnet_csv(p, time_column="t")
+    with pytest.raises(FormatError, match="column 't', data row 2"):
+        list(iter_magnet_csv(p, "current_A", time_column="t")[1])
+    p = _write(tmp_path, _TIMED + "a,1,5,3\na,0,5,3\n")
+    assert len(read_magnet_csv(p, time_column=None)) == 2
+    assert len(list(iter_magnet_csv(p, "current_A", time_column=None)[1])) == 1

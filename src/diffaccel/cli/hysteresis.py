@@ -10,17 +10,25 @@ Its subcommands live in their own modules (``hysteresis_fit``,
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import click
 import numpy as np
+
+from diffaccel.data import DEFAULT_RUN_COLUMN, DEFAULT_TIME_COLUMN
 
 __all__ = [
     "check_finite",
     "check_input_range",
     "check_magnitude",
+    "check_time_column",
     "hysteresis",
+    "time_column_option",
 ]
+
+F = TypeVar("F", bound=Callable)
 
 
 #: The library's limit (``diffaccel.hysteresis.fit.MAX_MAGNITUDE``), kept here so
@@ -82,4 +90,31 @@ def check_magnitude(
             f"{data}: column {column!r}, data row {first_row + i}: "
             f"{float(v[i]):.6g} is beyond {MAX_MAGNITUDE:.0e} in magnitude, "
             "not a measurement (a unit or parsing error?)."
+        )
+
+
+def time_column_option(command: F) -> F:
+    """The ``--time-column NAME`` option of the commands reading magnet CSV files."""
+    return click.option(
+        "--time-column",
+        default=None,
+        metavar="NAME",
+        help="Column of measurement times [s, or any increasing unit]; they must "
+        f"increase within each run (column {DEFAULT_RUN_COLUMN!r}, where the "
+        "time may restart), so that shuffled or repeated rows are refused. "
+        f"Default: {DEFAULT_TIME_COLUMN!r} if the file has it; without a time "
+        "column the row order cannot be checked.",
+    )(command)
+
+
+def check_time_column(data: Path, header: list[str], name: str | None) -> None:
+    """Refuse a ``--time-column`` that DATA does not have (the default may be absent).
+
+    Raises:
+        click.BadParameter: naming the file, the column and the file's columns.
+    """
+    if name is not None and name not in header:
+        raise click.BadParameter(
+            f"{data} has no column {name!r}; columns are {header}.",
+            param_hint="--time-column",
         )

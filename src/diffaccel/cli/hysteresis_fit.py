@@ -13,11 +13,14 @@ from diffaccel.cli.hysteresis import (
     check_finite,
     check_input_range,
     check_magnitude,
+    check_time_column,
+    time_column_option,
 )
 from diffaccel.cli.output import output_folder, save_png
 from diffaccel.data import (
     DEFAULT_INPUT_COLUMN,
     DEFAULT_OUTPUT_COLUMN,
+    DEFAULT_TIME_COLUMN,
     atomic_write_json,
     read_magnet_csv,
 )
@@ -69,6 +72,7 @@ def _check_mesh_size(ctx: click.Context, param: click.Parameter, value: int) -> 
 @click.option(
     "--output", "output_col", default=DEFAULT_OUTPUT_COLUMN, show_default=True
 )
+@time_column_option
 @click.option(
     "--out",
     "out_dir",
@@ -128,6 +132,7 @@ def fit_command(
     train_rows: int,
     input_col: str,
     output_col: str,
+    time_column: str | None,
     out_dir: Path,
     mesh_size: int,
     symmetric: bool | None,
@@ -138,11 +143,18 @@ def fit_command(
     no_figures: bool,
     force: bool,
 ) -> None:
-    """Fit a Preisach model to the first N rows of DATA (CSV) and test on the rest."""
+    """Fit a Preisach model to the first N rows of DATA (CSV) and test on the rest.
+
+    Rows are measurements in the order they were made (checked with a time
+    column, see --time-column).
+    """
     try:
-        hist = read_magnet_csv(data, input_col, output_col)
+        hist = read_magnet_csv(
+            data, input_col, output_col, time_column=time_column or DEFAULT_TIME_COLUMN
+        )
     except (OSError, ValueError) as err:
         raise click.ClickException(str(err)) from err
+    check_time_column(data, hist.header, time_column)
     if train_rows > len(hist):
         raise click.BadParameter(
             f"{train_rows} exceeds the {len(hist)} rows of {data}.",

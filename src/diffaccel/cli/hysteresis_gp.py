@@ -10,9 +10,14 @@ import click
 import torch
 from tqdm import tqdm
 
-from diffaccel.cli.hysteresis import check_input_range, check_magnitude
+from diffaccel.cli.hysteresis import (
+    check_input_range,
+    check_magnitude,
+    check_time_column,
+    time_column_option,
+)
 from diffaccel.cli.output import output_folder, save_png
-from diffaccel.data import atomic_write_json, read_magnet_csv
+from diffaccel.data import DEFAULT_TIME_COLUMN, atomic_write_json, read_magnet_csv
 from diffaccel.hysteresis import (
     HysteresisGP,
     PreisachMesh,
@@ -43,6 +48,7 @@ SEED_MAX = 2**64 - 1
     help="Column of the hysteretic input (magnet current), rows in time order.",
 )
 @click.option("--y", "y_col", required=True, help="Column of the beam response.")
+@time_column_option
 @click.option(
     "--plain",
     "plain_cols",
@@ -99,6 +105,7 @@ def gp_fit(
     data: Path,
     x_col: str,
     y_col: str,
+    time_column: str | None,
     plain_cols: tuple[str, ...],
     out_dir: Path,
     mesh_size: int,
@@ -111,7 +118,8 @@ def gp_fit(
 ) -> None:
     """Fit a joint hysteresis GP (Preisach state -> response) to DATA.csv.
 
-    Rows are measurements in the order the settings were applied. Writes a
+    Rows are measurements in the order the settings were applied (checked
+    with a time column, see --time-column). Writes a
     summary JSON (noise, fit quality, the plain-GP noise for comparison) and a
     figure of the fit into OUT.
     """
@@ -127,8 +135,10 @@ def gp_fit(
                 "non-hysteretic input columns.",
                 param_hint="--plain",
             )
+    time_col = time_column or DEFAULT_TIME_COLUMN
     try:
-        hist = read_magnet_csv(data, input_column=x_col, output_column=y_col)
+        hist = read_magnet_csv(data, x_col, y_col, time_column=time_col)
+        check_time_column(data, hist.header, time_column)
         check_magnitude(data, x_col, hist.input)
         check_magnitude(data, y_col, hist.output)
         if float(hist.input.max() - hist.input.min()) <= 0:
@@ -138,7 +148,7 @@ def gp_fit(
             )
         cols = [hist.input]
         for col in plain_cols:
-            cols.append(read_magnet_csv(data, col, y_col).input)
+            cols.append(read_magnet_csv(data, col, y_col, time_column=time_col).input)
             check_magnitude(data, col, cols[-1])
         X = torch.stack(cols, dim=-1)
         Y = hist.output.unsqueeze(-1)

@@ -22,10 +22,15 @@ import click
 import numpy as np
 
 import diffaccel.hysteresis as hysteresis
-from diffaccel.cli.hysteresis import check_magnitude
+from diffaccel.cli.hysteresis import (
+    check_magnitude,
+    check_time_column,
+    time_column_option,
+)
 from diffaccel.cli.output import check_out_file
 from diffaccel.data import (
     DEFAULT_INPUT_COLUMN,
+    DEFAULT_TIME_COLUMN,
     append_columns,
     atomic_write,
     iter_magnet_csv,
@@ -57,6 +62,7 @@ MAX_CHUNK_ROWS = 10**9
     required=True,
     help="CSV with the input column of the fit, rows in time order (any length).",
 )
+@time_column_option
 @click.option(
     "--out", "out_file", type=click.Path(dir_okay=False, path_type=Path), required=True
 )
@@ -73,7 +79,12 @@ MAX_CHUNK_ROWS = 10**9
     help="Overwrite OUT if it exists, and replace prediction columns of the input.",
 )
 def predict_command(
-    fit_dir: Path, data: Path, out_file: Path, chunk_rows: int, force: bool
+    fit_dir: Path,
+    data: Path,
+    time_column: str | None,
+    out_file: Path,
+    chunk_rows: int,
+    force: bool,
 ) -> None:
     """Predict every row of a CSV (streamed), from the fit's initial state.
 
@@ -95,10 +106,15 @@ def predict_command(
     in_col = config.get("input_column", DEFAULT_INPUT_COLUMN)
     try:
         header, chunks = iter_magnet_csv(
-            data, in_col, chunk_rows=chunk_rows, drop=(PREDICTION, PREDICTION_STD)
+            data,
+            in_col,
+            chunk_rows=chunk_rows,
+            drop=(PREDICTION, PREDICTION_STD),
+            time_column=time_column or DEFAULT_TIME_COLUMN,
         )
     except (OSError, ValueError) as err:
         raise click.ClickException(str(err)) from err
+    check_time_column(data, header, time_column)
     clash = [c for c in (PREDICTION, PREDICTION_STD) if c in header]
     if clash and not force:
         raise click.ClickException(

@@ -18,6 +18,8 @@ from diffaccel.data.errors import FormatError
 from diffaccel.data.magnet_stream import (
     DEFAULT_INPUT_COLUMN,
     DEFAULT_OUTPUT_COLUMN,
+    DEFAULT_RUN_COLUMN,
+    DEFAULT_TIME_COLUMN,
     append_columns,
     iter_magnet_csv,
 )
@@ -98,6 +100,8 @@ __all__ = [
     "DEFAULT_BEAMLINE",
     "DEFAULT_INPUT_COLUMN",
     "DEFAULT_OUTPUT_COLUMN",
+    "DEFAULT_RUN_COLUMN",
+    "DEFAULT_TIME_COLUMN",
     "FORMAT_VERSION",
     "PRESETS",
     "SINGLE_SCAN_NAME",

@@ -4,7 +4,9 @@ A magnet CSV has a header row and one row per measurement, in time order.
 Column names are free; the defaults follow the SLAC rotating-coil files:
 ``current_A`` (input [A]) and ``field_Tm`` (integrated gradient [T m]). Other
 columns (run labels, times, uncertainties) are kept as text so that they can be
-written back unchanged.
+written back unchanged. A time column (``time_s``) must increase within each
+run (``run``); see :mod:`~diffaccel.data.magnet_stream` for what is checked
+and what cannot be.
 """
 
 from __future__ import annotations
@@ -24,7 +26,10 @@ from diffaccel.data.errors import FormatError
 from diffaccel.data.magnet_stream import (
     DEFAULT_INPUT_COLUMN,
     DEFAULT_OUTPUT_COLUMN,
+    DEFAULT_RUN_COLUMN,
+    DEFAULT_TIME_COLUMN,
     _header,
+    _OrderCheck,
     _parse_column,
     _reader_batches,
 )
@@ -80,6 +85,8 @@ def read_magnet_csv(
     input_column: str = DEFAULT_INPUT_COLUMN,
     output_column: str = DEFAULT_OUTPUT_COLUMN,
     require_output: bool = True,
+    time_column: str | None = DEFAULT_TIME_COLUMN,
+    run_column: str | None = DEFAULT_RUN_COLUMN,
 ) -> MagnetHistory:
     """Read a time-ordered magnet history from a CSV file.
 
@@ -89,6 +96,10 @@ def read_magnet_csv(
         output_column: Name of the output column (e.g. field [T m]).
         require_output: Raise if the output column is missing; otherwise
             ``output`` is ``None`` (files to predict on).
+        time_column: Time column whose values must increase within each run,
+            checked if the file has it; ``None``: no order check.
+        run_column: Column of run labels (the time may restart where it
+            changes), used if the file has it; ``None``: one run.
 
     Returns:
         A :class:`MagnetHistory` with float64 tensors.
@@ -96,8 +107,9 @@ def read_magnet_csv(
     Raises:
         FileNotFoundError: if ``path`` does not exist.
         FormatError: (a ``ValueError``) for an empty file, a missing or
-            repeated column, ragged rows, cells longer than ``MAX_CELL_CHARS``
-            or cells that are not finite numbers.
+            repeated column, ragged rows, cells longer than ``MAX_CELL_CHARS``,
+            cells that are not finite numbers, or a time that does not increase
+            within a run (rows not in measurement order, or repeated).
 
     Example:
         >>> import tempfile, pathlib
@@ -143,6 +155,9 @@ def read_magnet_csv(
         raise FormatError(
             f"{path_s}: no output column {output_column!r}; columns are {header}."
         )
+    order = _OrderCheck(path_s, header, time_column, run_column)
+    if order.time is not None:
+        order([row[order.time] for row in data], data.__getitem__, 0)
     return MagnetHistory(
         input=u,
         output=y,

@@ -5,6 +5,18 @@
 text; :func:`append_columns` writes rows back with float columns appended,
 formatted in bulk. numpy only (no torch), so that a command streaming a long
 file (``diffaccel hysteresis predict``) starts fast.
+
+Measurement order: hysteresis depends on the order of the inputs, so rows must
+be in the order they were measured. Where a file has a time column
+(``time_s`` by default, any increasing unit), its values must increase from
+row to row within a run (consecutive rows with the same ``run`` label, or the
+whole file without a ``run`` column); the time may restart where the label
+changes, as it does in the SLAC files. A non-increasing time is refused,
+naming the file, the column and the first offending data row, and a row equal
+to the one before it in every cell is named as a row exported twice. Without a
+time column nothing is checked: shuffled rows cannot be told from valid ones
+(repeated currents, even identical rows, occur in valid histories; applying the
+same input again switches no hysteron), and the order of runs is not checked.
 """
 
 from __future__ import annotations
@@ -14,7 +26,7 @@ import io
 import itertools
 import operator
 import os
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +36,8 @@ from diffaccel.data.errors import FormatError
 __all__ = [
     "DEFAULT_INPUT_COLUMN",
     "DEFAULT_OUTPUT_COLUMN",
+    "DEFAULT_RUN_COLUMN",
+    "DEFAULT_TIME_COLUMN",
     "MAX_CELL_CHARS",
     "append_columns",
     "iter_magnet_csv",
@@ -31,6 +45,10 @@ __all__ = [
 
 DEFAULT_INPUT_COLUMN = "current_A"
 DEFAULT_OUTPUT_COLUMN = "field_Tm"
+#: Time of each measurement [s, or any unit that increases], checked when present
+DEFAULT_TIME_COLUMN = "time_s"
+#: Label of the run (measurement session) of each row; time restarts per run
+DEFAULT_RUN_COLUMN = "run"
 # longest accepted cell (a number, a label); longer ones are not magnet data
 MAX_CELL_CHARS = 1000
 
@@ -39,9 +57,15 @@ def _parse_column(
     rows: list[list[str]], col: int, name: str, path: str, first: int = 0
 ) -> np.ndarray:
     """Column ``col`` of ``rows`` as finite float64 numbers, or a clear error."""
+    cells = [row[col] if col < len(row) else "<missing>" for row in rows]
+    return _parse_cells(cells, name, path, first)
+
+
+def _parse_cells(cells: list[str], name: str, path: str, first: int = 0) -> np.ndarray:
+    """Cells of column ``name`` (data rows ``first + 1 ...``) as finite float64."""
     try:
-        values = np.array([float(row[col]) for row in rows], dtype=np.float64)
-    except (ValueError, IndexError):
+        values = np.array(list(map(float, cells)), dtype=np.float64)
+    except ValueError:
         values = None
     if values is not None:
         bad = ~np.isfinite(values)
@@ -50,18 +74,101 @@ def _parse_column(
         i = int(np.flatnonzero(bad)[0])
         raise FormatError(
             f"{path}: column {name!r}, data row {first + i + 1}: expected a finite "
-            f"number; found {rows[i][col]!r}."
+            f"number; found {cells[i]!r}."
         )
-    for i, row in enumerate(rows):  # find the first bad cell for the message
+    for i, cell in enumerate(cells):  # find the first bad cell for the message
         try:
-            float(row[col])
-        except (ValueError, IndexError):
-            cell = row[col] if col < len(row) else "<missing>"
+            float(cell)
+        except ValueError:
             raise FormatError(
                 f"{path}: column {name!r}, data row {first + i + 1}: expected a "
                 f"number; found {cell!r}."
             ) from None
     raise AssertionError("unreachable")  # pragma: no cover
+
+
+class _OrderCheck:
+    """Measurement order of a magnet CSV, chunk by chunk (see the module notes).
+
+    Run labels are looked at only where the time does not increase (a run
+    boundary or an error), so that a long file costs one parsed column.
+
+    Args:
+        path_s: The file, for messages.
+        header: Its column names.
+        time_column: Time column, checked if the file has it; ``None``: none.
+        run_column: Run labels, used if the file has it; ``None``: none.
+    """
+
+    def __init__(
+        self,
+        path_s: str,
+        header: list[str],
+        time_column: str | None,
+        run_column: str | None,
+    ) -> None:
+        self._path = path_s
+        self._header = header
+        #: Index of the time column, or ``None`` (nothing to check)
+        self.time = header.index(time_column) if time_column in header else None
+        self._run = header.index(run_column) if run_column in header else None
+        # (time, its cell, all cells) of the last row checked
+        self._last: tuple[float, str, list[str]] | None = None
+
+    def __call__(
+        self, t_cells: list[str], row: Callable[[int], list[str]], first: int
+    ) -> None:
+        """Check one chunk, continuing from the last row of the previous one.
+
+        Args:
+            t_cells: The chunk's cells of column :attr:`time`.
+            row: All cells of the chunk's row ``i``.
+            first: Data rows before the chunk.
+
+        Raises:
+            FormatError: at the first row whose time does not increase within
+                its run.
+        """
+        if self.time is None or not t_cells:
+            return
+        name = self._header[self.time]
+        t = _parse_cells(t_cells, name, self._path, first)
+        last = self._last
+        n0 = 0 if last is None else 1  # rows before the chunk's first in t_all
+        t_all = t if last is None else np.concatenate([[last[0]], t])
+
+        def cells(j: int) -> list[str]:  # all cells of row j of t_all
+            return last[2] if j < n0 else row(j - n0)
+
+        for d in np.flatnonzero(np.diff(t_all) <= 0).tolist():
+            before, here = cells(d), cells(d + 1)
+            run = None
+            if self._run is not None:
+                if before[self._run] != here[self._run]:
+                    continue  # a new run: its time may restart
+                run = here[self._run]
+            k = first + d + 1 - n0 + 1  # data row of the offending row
+            cell, prev = t_cells[d + 1 - n0], before[self.time]
+            if here == before:
+                raise FormatError(
+                    f"{self._path}: data row {k} repeats data row {k - 1} in every "
+                    f"cell (column {name!r} = {cell!r}): a row exported twice? "
+                    "Each measurement must appear once, in measurement order."
+                )
+            where = "" if run is None else f" (run {run!r})"
+            hint = (
+                f"; a file of several runs whose time restarts needs a "
+                f"{DEFAULT_RUN_COLUMN!r} column naming each row's run"
+                if self._run is None and t_all[d + 1] < t_all[d]
+                else ""
+            )
+            raise FormatError(
+                f"{self._path}: column {name!r}, data row {k}: {cell!r} is not "
+                f"after {prev!r} of data row {k - 1}{where}; rows must be in "
+                "measurement order, each measurement once (hysteresis depends on "
+                f"the order of the inputs){hint}."
+            )
+        self._last = (float(t[-1]), t_cells[-1], row(len(t_cells) - 1))
 
 
 def _header(path_s: str, row: list[str]) -> list[str]:
@@ -82,6 +189,8 @@ def iter_magnet_csv(
     input_column: str,
     chunk_rows: int = 50_000,
     drop: Sequence[str] = (),
+    time_column: str | None = DEFAULT_TIME_COLUMN,
+    run_column: str | None = DEFAULT_RUN_COLUMN,
 ) -> tuple[list[str], Iterator[tuple[list[str], np.ndarray]]]:
     """Stream a long magnet CSV: its header and chunks of rows with their inputs.
 
@@ -92,13 +201,18 @@ def iter_magnet_csv(
     returns) are split with ``str`` methods and parsed with ``float`` in bulk;
     a chunk they do not fit (blank lines, bad cells) and everything after a
     quote or a carriage return go through the ``csv`` module, with the same
-    checks and errors.
+    checks and errors, and the measurement order (see the module notes)
+    checked across chunks.
 
     Args:
         path: CSV file with a header row (UTF-8, with or without a BOM).
         input_column: Name of the input column.
         chunk_rows: Rows per chunk (>= 1).
         drop: Columns left out of the returned row texts (not of ``header``).
+        time_column: Time column whose values must increase within each run,
+            checked if the file has it; ``None``: no order check.
+        run_column: Column of run labels (the time may restart where it
+            changes), used if the file has it; ``None``: one run.
 
     Returns:
         ``(header, chunks)``; ``chunks`` yields ``(rows, inputs)``: the rows as
@@ -107,7 +221,7 @@ def iter_magnet_csv(
     Raises:
         FileNotFoundError: if ``path`` does not exist.
         FormatError: as :func:`read_magnet_csv` (raised while iterating for
-            problems in data rows).
+            problems in data rows, a time that does not increase included).
 
     Example:
         >>> import tempfile, pathlib
@@ -122,13 +236,20 @@ def iter_magnet_csv(
         raise FileNotFoundError(f"{path_s}: no such file.")
     if chunk_rows < 1:
         raise ValueError(f"chunk_rows must be >= 1; got {chunk_rows}.")
-    stream = _stream_chunks(path, input_column, chunk_rows, tuple(drop))
+    stream = _stream_chunks(
+        path, input_column, chunk_rows, tuple(drop), time_column, run_column
+    )
     header = next(stream)
     return header, stream
 
 
 def _stream_chunks(
-    path: str | os.PathLike, input_column: str, size: int, drop: tuple[str, ...]
+    path: str | os.PathLike,
+    input_column: str,
+    size: int,
+    drop: tuple[str, ...],
+    time_column: str | None,
+    run_column: str | None,
 ) -> Iterator:
     """Generator behind :func:`iter_magnet_csv`: the header, then the chunks."""
     path_s = str(path)
@@ -150,6 +271,7 @@ def _stream_chunks(
                 )
             col = header.index(input_column)
             keep = [i for i, c in enumerate(header) if c not in drop]
+            order = _OrderCheck(path_s, header, time_column, run_column)
             yield header
             done = 0
             while True:
@@ -161,15 +283,21 @@ def _stream_chunks(
                     # quoted cells may span lines: the csv module from here on
                     reader = csv.reader(itertools.chain(lines, f))
                     for rows in _reader_batches(reader, size, path_s):
-                        texts, x = _parse_rows(rows, header, col, keep, path_s, done)
+                        texts, x = _parse_rows(
+                            rows, header, col, keep, path_s, done, order
+                        )
                         if texts:
                             yield texts, x
                             done += len(texts)
                     break
-                got = _fast_chunk(block, len(header), col, keep)
-                if got is None:  # something to skip or report: the careful way
+                got = _fast_chunk(block, len(header), col, keep, order.time)
+                if got is not None:
+                    texts, x, t_cells, raw = got
+                    order(t_cells, lambda i, raw=raw: raw[i].split(","), done)
+                    got = texts, x
+                else:  # something to skip or report: the careful way
                     rows = _csv_rows(lines, path_s)
-                    got = _parse_rows(rows, header, col, keep, path_s, done)
+                    got = _parse_rows(rows, header, col, keep, path_s, done, order)
                 if got[0]:
                     yield got
                     done += len(got[0])
@@ -182,12 +310,16 @@ def _stream_chunks(
 
 
 def _fast_chunk(
-    block: str, n_cols: int, col: int, keep: list[int]
-) -> tuple[list[str], np.ndarray] | None:
+    block: str, n_cols: int, col: int, keep: list[int], time: int | None
+) -> tuple[list[str], np.ndarray, list[str], list[str]] | None:
     """Rows and inputs of a plain chunk (no quotes), or ``None`` if it is not clean.
 
     Clean: no blank lines, ``n_cols`` cells per row, no cell (line) longer
     than ``MAX_CELL_CHARS``, finite numbers in the input column.
+
+    Returns:
+        The rows' texts (columns ``keep``), their inputs, their cells of column
+        ``time`` (``[]`` for ``None``) and their whole texts.
     """
     texts = block.split("\n")
     if texts[-1] == "":
@@ -197,22 +329,27 @@ def _fast_chunk(
     if n_cols == 1:
         if "," in block:
             return None
-        cells = texts
+        picked = [texts, texts]
     else:
         if block.count(",") != len(texts) * (n_cols - 1) or any(
             t.count(",") != n_cols - 1 for t in texts
         ):
             return None
-        cells = [t.split(",", col + 1)[col] for t in texts]
+        # one comprehension per column: keeping each row's split list alive
+        # for both would wake the garbage collector (~3x slower)
+        wanted = (col,) if time is None else (col, time)
+        picked = [[t.split(",", c + 1)[c] for t in texts] for c in wanted]
     try:
-        x = np.array(list(map(float, cells)), dtype=np.float64)
+        x = np.array(list(map(float, picked[0])), dtype=np.float64)
     except ValueError:  # a blank line or a cell that is not a number
         return None
     if not np.isfinite(x).all():
         return None
+    t_cells = picked[1] if time is not None else []
+    raw = texts
     if len(keep) < n_cols:
         texts = [",".join(t.split(",")[i] for i in keep) for t in texts]
-    return texts, x
+    return texts, x, t_cells, raw
 
 
 def _csv_rows(lines: Iterable[str], path_s: str) -> list[list[str]]:
@@ -251,6 +388,7 @@ def _parse_rows(
     keep: list[int],
     path_s: str,
     done: int,
+    order: _OrderCheck,
 ) -> tuple[list[str], np.ndarray]:
     """Checked rows of a chunk as CSV text, and their inputs."""
     for i, row in enumerate(rows):
@@ -260,6 +398,8 @@ def _parse_rows(
                 f"the header has {len(header)}."
             )
     x = _parse_column(rows, col, header[col], path_s, done)
+    if order.time is not None:
+        order([row[order.time] for row in rows], rows.__getitem__, done)
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     texts = []
