@@ -121,15 +121,20 @@ def test_predict_reproduces_fit_and_keeps_columns(
         rows = list(csv.reader(f))
     with magnet_csv.open() as f:
         original = list(csv.reader(f))
-    assert rows[0] == [*original[0], "prediction", "prediction_std"]
-    assert [r[:-2] for r in rows[1:]] == original[1:]
+    added = ["prediction", "prediction_std", "outside_input_range"]
+    assert rows[0] == [*original[0], *added]
+    assert [r[:-3] for r in rows[1:]] == original[1:]
     model, band, _ = load_fit(out)
     current = torch.tensor([float(r[2]) for r in original[1:]], dtype=torch.float64)
     with torch.no_grad():
         expect = model(current)
         expect_std = band.std(model, current)
-    got = torch.tensor([float(r[-2]) for r in rows[1:]], dtype=torch.float64)
-    got_std = torch.tensor([float(r[-1]) for r in rows[1:]], dtype=torch.float64)
+    got = torch.tensor([float(r[-3]) for r in rows[1:]], dtype=torch.float64)
+    got_std = torch.tensor([float(r[-2]) for r in rows[1:]], dtype=torch.float64)
+    lo, hi = model.input_range
+    assert [r[-1] for r in rows[1:]] == [
+        "1" if not lo <= c <= hi else "0" for c in current.tolist()
+    ]
     # streamed in chunks vs one pass: float64 round-off of the state sums
     torch.testing.assert_close(got, expect, rtol=0, atol=1e-12)
     torch.testing.assert_close(got_std, expect_std, rtol=1e-5, atol=0)  # float32 sums
@@ -157,29 +162,47 @@ def test_predict_refuses_input_with_prediction_column(
     assert not dest.exists()
     forced = CliRunner().invoke(main, [*args, "--out", str(dest), "--force"])
     assert forced.exit_code == 0, forced.output
-    assert dest.read_text().splitlines()[0] == "I,prediction,prediction_std"
+    header = dest.read_text().splitlines()[0]
+    assert header == "I,prediction,prediction_std,outside_input_range"
     assert inputs.read_text().splitlines()[1] == "0.0,1.0"  # input untouched
 
 
-def test_predict_beyond_range_saturates_with_note(
+def test_predict_beyond_range_is_flagged_widened_and_warned(
     magnet_csv: Path, tmp_path: Path
 ) -> None:
+    # rows beyond the fitted range used to get only a note, and a std frozen
+    # at the range's edge while the prediction moved on with the linear term
     out = tmp_path / "fit"
     assert _fit(magnet_csv, out, "--no-figures").exit_code == 0
+    model, band, _ = load_fit(out)
+    lo, hi = model.input_range
     inputs = tmp_path / "inputs.csv"
-    write_csv_atomic(inputs, ["I"], [[0.0], [5.0], [12.0], [14.0]])
+    write_csv_atomic(inputs, ["I"], [[0.0], [5.0], [hi], [12.0], [14.0]])
     pred_csv = tmp_path / "pred.csv"
     args = ["hysteresis", "predict", str(out), "--input", str(inputs)]
     result = CliRunner().invoke(main, [*args, "--out", str(pred_csv)])
     assert result.exit_code == 0, result.output
-    assert "outside the model's input range" in result.output
-    model, _, _ = load_fit(out)
+    warning = next(
+        line for line in result.output.splitlines() if line.startswith("warning:")
+    )
+    assert "2 of 5 rows (the first: data row 4) have I outside" in warning
+    assert f"input range [{lo:.6g}, {hi:.6g}] I, by up to {14.0 - hi:.4g} I" in warning
+    assert "outside_input_range = 1 there" in warning
     rows = list(csv.reader(pred_csv.open()))[1:]
     y = [float(r[1]) for r in rows]
+    std = [float(r[2]) for r in rows]
+    assert [r[3] for r in rows] == ["0", "0", "0", "1", "1"]
     # saturated: beyond the range only the linear term changes the output
-    lo, hi = model.input_range
     slope = float((model.output_scale * model.slope).detach()) / (hi - lo)
-    assert y[3] - y[2] == pytest.approx(2.0 * slope, rel=1e-9)
+    assert y[4] - y[3] == pytest.approx(2.0 * slope, rel=1e-9)
+    # and the std widens there with the linear term's uncertainty
+    assert std[2] < std[3] < std[4]
+    # inside the range: the band of the history as it was
+    u = torch.tensor([0.0, 5.0, hi], dtype=torch.float64)
+    with torch.no_grad():
+        inside = band.std(model, u)
+    got_inside = torch.tensor(std[:3], dtype=torch.float64)
+    torch.testing.assert_close(got_inside, inside, rtol=1e-5, atol=0)  # float32
 
 
 def test_fit_bh_loop_beyond_training_range(tmp_path: Path) -> None:

@@ -315,7 +315,9 @@ def test_predict_creates_a_missing_out_folder(tmp_path: Path) -> None:
     result = _invoke("predict", str(fit_dir), "--input", str(data), "--out", str(out))
     assert result.exit_code == 0, result.output
     lines = out.read_text().splitlines()
-    assert lines[0] == "run,current_A,field_Tm,prediction,prediction_std"
+    assert lines[0] == (
+        "run,current_A,field_Tm,prediction,prediction_std,outside_input_range"
+    )
     assert len(lines) == 31
 
 

@@ -308,3 +308,16 @@ def test_order_is_not_checked_without_a_time_column(tmp_path: Path) -> None:
     p = _write(tmp_path, _TIMED + "a,1,5,3\na,0,5,3\n")
     assert len(read_magnet_csv(p, time_column=None)) == 2
     assert len(list(iter_magnet_csv(p, "current_A", time_column=None)[1])) == 1
+
+
+def test_append_columns_writes_boolean_flags_as_0_and_1() -> None:
+    from diffaccel.data import append_columns
+
+    x = np.array([1.5, -2.0, 3.0])
+    flag = np.array([False, True, False])
+    text = append_columns(["a", "b", "c"], [x, flag, -x], [2, 1, 2])
+    assert text == "a,1.5e+00,0,-1.5e+00\nb,-2.0e+00,1,2.0e+00\nc,3.0e+00,0,-3.0e+00\n"
+    # the fallback of a non-finite chunk writes the same flags
+    x[1] = np.nan
+    text = append_columns(["a", "b", "c"], [x, flag], [2, 1])
+    assert text == "a,1.5e+00,0\nb,nan,1\nc,3.0e+00,0\n"

@@ -16,6 +16,7 @@ from diffaccel.hysteresis import (
     PreisachModel,
     StreamPredictor,
     StreamSpec,
+    outside_input_range,
     predict_stream,
 )
 from diffaccel.hysteresis.band import _features
@@ -190,6 +191,29 @@ def test_beyond_the_range_saturates_with_the_linear_term_and_warns() -> None:
     assert abs(float(first[3] - first[1]) - float(lin)) < 1e-12
     with pytest.raises(ValueError, match="NaN or infinite"):
         p(np.array([0.0, np.nan]))
+
+
+def test_band_widens_beyond_the_range_with_the_slope() -> None:
+    # the band used to freeze the linear term at the edge of the range: beyond
+    # it the prediction moved on (slope * u_n) while its std stayed constant.
+    # A band of the slope alone: std = scale * cal * sqrt((d u_n)^2 + noise^2)
+    # at every input, inside the range and beyond it
+    model, _ = _fitted_like(False, "negative", seed=3)
+    directions = torch.zeros(1, len(model.alpha) + 3, dtype=F64)
+    directions[0, 1] = 0.2
+    spec = LaplaceBand(directions, 0.02, calibration=1.3).stream_spec(model)
+    u = np.array([-3.0, 0.0, 5.0, 7.0, 9.0, 13.0, -7.0])  # range (-3, 5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputRangeWarning)
+        _, std = StreamPredictor(spec, band_dtype=np.float64)(u)
+    un = (u + 3.0) / 8.0
+    expect = 1.5 * 1.3 * np.sqrt((0.2 * un) ** 2 + 0.02**2)
+    np.testing.assert_allclose(std, expect, rtol=1e-12, atol=0)
+    assert std[2] < std[3] < std[4] < std[5]
+    flags = outside_input_range(u, spec.input_range)
+    assert flags.tolist() == [False, False, False, True, True, True, True]
+    # round-off of the affine map is not "outside"
+    assert not outside_input_range(np.array([5.0 + 1e-12, -3.0 - 1e-12]), (-3, 5)).any()
 
 
 def test_spec_round_trip_and_refusals() -> None:

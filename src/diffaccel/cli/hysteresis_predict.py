@@ -5,6 +5,13 @@ Imports only what predicting needs: numpy, the streaming code of fitted models
 :mod:`diffaccel.data.magnet_stream`; no torch (~2 s of start-up), no plotting,
 no GP libraries (see ``benchmarks/preisach_stream.py``). A fit folder saved
 before ``stream.npz`` existed is read with torch instead.
+
+Rows whose input lies beyond the fit's input range are extrapolated: every
+hysteron switched (saturation) plus the linear term. They are flagged per row
+(``outside_input_range``) and counted in a warning; their ``prediction_std``
+widens only with the uncertainty of the model's linear term (see
+:mod:`diffaccel.hysteresis.band`), not with any doubt about the saturation,
+which no fitted number can measure. Rows inside the range are unaffected.
 """
 
 from __future__ import annotations
@@ -40,12 +47,15 @@ from diffaccel.hysteresis import (
     StreamPredictor,
     StreamSpec,
     load_stream_fit,
+    outside_input_range,
 )
 
 __all__ = ["predict_command", "read_ahead"]
 
 PREDICTION = "prediction"
 PREDICTION_STD = "prediction_std"
+OUTSIDE = "outside_input_range"
+COLUMNS = (PREDICTION, PREDICTION_STD, OUTSIDE)
 CHUNK_ROWS = 20_000
 # cap of --chunk-rows: a chunk is held in memory (10^9 rows: tens of GB)
 MAX_CHUNK_ROWS = 10**9
@@ -76,7 +86,8 @@ MAX_CHUNK_ROWS = 10**9
 @click.option(
     "--force",
     is_flag=True,
-    help="Overwrite OUT if it exists, and replace prediction columns of the input.",
+    help=f"Overwrite OUT if it exists, and replace the columns {', '.join(COLUMNS)} "
+    "of the input.",
 )
 def predict_command(
     fit_dir: Path,
@@ -89,8 +100,12 @@ def predict_command(
     """Predict every row of a CSV (streamed), from the fit's initial state.
 
     Writes the input's columns plus ``prediction`` and ``prediction_std`` (one
-    standard deviation, including measurement noise) [output units]. A missing
-    folder of OUT is created.
+    standard deviation, including measurement noise) [output units] and
+    ``outside_input_range`` (1 where the input lies beyond the fit's input
+    range, else 0). Such rows are extrapolated as saturated (every hysteron
+    switched) plus the linear term, with a warning giving their count; their
+    ``prediction_std`` widens with the linear term's uncertainty only, not
+    with any doubt about the saturation. A missing folder of OUT is created.
     """
     # the refusals --force does not lift come first, so that the first is true
     check_out_file(out_file, True, {"--input": data})
@@ -109,20 +124,21 @@ def predict_command(
             data,
             in_col,
             chunk_rows=chunk_rows,
-            drop=(PREDICTION, PREDICTION_STD),
+            drop=COLUMNS,
             time_column=time_column or DEFAULT_TIME_COLUMN,
         )
     except (OSError, ValueError) as err:
         raise click.ClickException(str(err)) from err
     check_time_column(data, header, time_column)
-    clash = [c for c in (PREDICTION, PREDICTION_STD) if c in header]
+    clash = [c for c in COLUMNS if c in header]
     if clash and not force:
         raise click.ClickException(
             f"{data} already has column(s) {clash}; pass --force to replace them "
             "in the output (the input file is never changed)."
         )
-    out_header = [c for c in header if c not in clash] + [PREDICTION, PREDICTION_STD]
+    out_header = [c for c in header if c not in clash] + list(COLUMNS)
     stats = {"rows": 0, "finite": True, "min": math.inf, "max": -math.inf}
+    outside = {"rows": 0, "first": 0}  # count, first data row (0: none)
 
     def write(path: Path) -> None:
         pending: list[list[str]] = []
@@ -145,19 +161,24 @@ def predict_command(
                 # numpy and scipy release the GIL
                 for x in read_ahead(inputs()):
                     pred, std = predictor(x)
+                    flag = outside_input_range(x, spec.input_range)
+                    n_out = int(flag.sum())
+                    if n_out and not outside["first"]:
+                        outside["first"] = stats["rows"] + int(flag.argmax()) + 1
+                    outside["rows"] += n_out
                     rows = pending.pop(0)
                     stats["rows"] += len(rows)
                     stats["finite"] &= bool(np.isfinite(pred).all())
                     if std is None:
                         std = np.full_like(pred, math.nan)
                     # 15 significant digits (all a float64 keeps in decimal);
-                    # the std (float32 sums) to 7
-                    yield rows, [pred, std]
+                    # the std (float32 sums) to 7; the flag as 0 or 1
+                    yield rows, [pred, std, flag]
 
         with open(path, "w", newline="", encoding="utf-8") as f:
             csv.writer(f, lineterminator="\n").writerow(out_header)
             for rows, columns in read_ahead(texts()):
-                f.write(append_columns(rows, columns, [15, 7]))
+                f.write(append_columns(rows, columns, [15, 7, 1]))
 
     try:
         # as fit and gp-fit create their --out folder
@@ -170,19 +191,21 @@ def predict_command(
         atomic_write(out_file, write)
     except ValueError as err:
         raise click.ClickException(str(err)) from err
-    lo, hi = spec.input_range
-    beyond = max(lo - stats["min"], stats["max"] - hi, 0.0)
-    if beyond > 0:
+    if outside["rows"]:
+        lo, hi = spec.input_range
+        beyond = max(lo - stats["min"], stats["max"] - hi, 0.0)
         click.echo(
-            f"note: inputs reach up to {beyond:.4g} "
-            f"({100 * beyond / (hi - lo):.3g} % of the range) outside the "
-            f"model's input range [{lo:.6g}, {hi:.6g}]; predicted as saturated "
-            "(every hysteron switched) plus the linear term.",
+            f"warning: {outside['rows']} of {stats['rows']} rows (the first: data "
+            f"row {outside['first']}) have {in_col} outside the fit's input range "
+            f"[{lo:.6g}, {hi:.6g}] {in_col}, by up to {beyond:.4g} {in_col} "
+            f"({100 * beyond / (hi - lo):.3g} % of the range); {OUTSIDE} = 1 "
+            "there. They are extrapolated as saturated (every hysteron switched) "
+            f"plus the linear term; their {PREDICTION_STD} widens with the linear "
+            "term's uncertainty only, not with any doubt about the saturation.",
             err=True,
         )
     click.echo(
-        f"predicted {stats['rows']} rows ({PREDICTION}, {PREDICTION_STD}); "
-        f"wrote {out_file}"
+        f"predicted {stats['rows']} rows ({', '.join(COLUMNS)}); wrote {out_file}"
     )
     if not stats["finite"]:
         raise click.ClickException("predictions contain non-finite values.")

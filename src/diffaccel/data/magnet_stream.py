@@ -414,7 +414,7 @@ def _parse_rows(
 def append_columns(
     rows: Sequence[str], columns: Sequence[np.ndarray], digits: Sequence[int]
 ) -> str:
-    """CSV text of ``rows`` with float columns appended, formatted in bulk.
+    """CSV text of ``rows`` with float (or flag) columns appended, formatted in bulk.
 
     Row ``i`` becomes ``f"{rows[i]},{c1[i]},{c2[i]}...\\n"``, each number in
     scientific notation with ``digits`` significant digits (at most 15, the
@@ -423,11 +423,13 @@ def append_columns(
     digits come from integer arithmetic on whole columns (numpy), not one
     ``format`` call per number; a chunk holding non-finite values or exponents
     beyond +-99 is formatted by Python's ``format`` instead (``nan``, ``inf``).
+    A boolean column is written as ``0`` and ``1`` (its ``digits`` unused).
 
     Args:
         rows: CSV text of each row, without the line end.
         columns: Values to append, each shape ``(len(rows),)`` (numpy arrays,
-            or anything ``numpy.asarray`` takes, e.g. CPU tensors).
+            or anything ``numpy.asarray`` takes, e.g. CPU tensors); boolean
+            ones are flags.
         digits: Significant digits per column, ``1 <= d <= 15``.
 
     Returns:
@@ -436,13 +438,22 @@ def append_columns(
     Example:
         >>> append_columns(["a", "b"], [np.array([1.5, -0.00025])], [3])
         'a,1.50e+00\\nb,-2.50e-04\\n'
+        >>> append_columns(["a", "b"], [np.array([2.0, 3.0]), [False, True]], [2, 1])
+        'a,2.0e+00,0\\nb,3.0e+00,1\\n'
     """
     if not rows:
         return ""
-    columns = [np.asarray(c, dtype=np.float64).reshape(-1) for c in columns]
-    parts = [_scientific(c, d) for c, d in zip(columns, digits, strict=True)]
+    columns = [np.asarray(c).reshape(-1) for c in columns]
+    columns = [c if c.dtype == np.bool_ else c.astype(np.float64) for c in columns]
+    parts = [
+        _flags(c) if c.dtype == np.bool_ else _scientific(c, d)
+        for c, d in zip(columns, digits, strict=True)
+    ]
     if any(p is None for p in parts):
-        fmts = [f"{{:.{d - 1}e}}" for d in digits]
+        fmts = [
+            "{:d}" if c.dtype == np.bool_ else f"{{:.{d - 1}e}}"
+            for c, d in zip(columns, digits, strict=True)
+        ]
         values = [c.tolist() for c in columns]
         lines = [
             ",".join(
@@ -484,6 +495,18 @@ _FOUR_DIGITS = (
     .view(np.complex128)
     .ravel()
 )
+
+
+def _flags(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``,0`` or ``,1`` code points of booleans in :func:`_scientific`'s layout.
+
+    Shape ``(N, 3)`` with a sign slot (column 1), and no value negative.
+    """
+    mat = np.empty((x.shape[0], 3), dtype=np.uint32)
+    mat[:, 0] = ord(",")
+    mat[:, 1] = ord("-")
+    mat[:, 2] = ord("0") + x
+    return mat, np.zeros(x.shape[0], dtype=bool)
 
 
 def _scientific(x: np.ndarray, digits: int) -> tuple[np.ndarray, np.ndarray] | None:

@@ -24,6 +24,7 @@ from diffaccel.hysteresis.stream import (
     InputRangeWarning,
     StreamPredictor,
     StreamSpec,
+    outside_input_range,
     predict_chunks,
 )
 
@@ -130,6 +131,7 @@ __all__ = [
     "load_stream_fit",
     "magnetic_rigidity",
     "next_step_output",
+    "outside_input_range",
     "predict_chunks",
     "predict_stream",
     "save_fit",

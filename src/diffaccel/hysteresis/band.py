@@ -18,7 +18,10 @@ variance of a long history is a handful of weighted sums of hysteron states,
 streamed with the model's own output
 (:class:`~diffaccel.hysteresis.stream.StreamPredictor`). A calibration factor
 (>= 1), measured on validation rows held out of the training rows, scales the
-whole band.
+whole band. Beyond the input range the features are the saturated states and
+the unclipped ``u_n`` of the model's linear term, so the band widens with the
+uncertainty of the slope; it holds no doubt about the saturation itself (that
+no hysteron lies beyond the range).
 """
 
 from __future__ import annotations
@@ -160,13 +163,16 @@ class LaplaceBand(nn.Module):
 
 
 def _features(model: PreisachModel, un: Tensor, initial_state) -> Tensor:
-    """Rows ``f_t = (1, u_n, mean-density state, a_i s_i / sum(a))``, ``(T, M + 3)``."""
+    """Rows ``f_t = (1, u_n, mean-density state, a_i s_i / sum(a))``, ``(T, M + 3)``.
+
+    ``u_n`` unclipped, as in the model's linear term; the states saturate.
+    """
     s = model._normalized_states(un, initial_state)
     a = model.area / model.area.sum()
     phi = s * a
     if model.symmetric:
         phi = 0.5 * (phi + phi[:, model.mirror])
-    lin = torch.stack([torch.ones_like(un), un.clamp(0.0, 1.0), phi.sum(1)], dim=1)
+    lin = torch.stack([torch.ones_like(un), un, phi.sum(1)], dim=1)
     return torch.cat([lin, phi], dim=1)
 
 

@@ -19,7 +19,11 @@ lookup per row in a table built once (:func:`stream_table`), summed over rows;
 :class:`RowGroups` merges rows into fewer, larger tables.
 
 Inputs beyond the model's input range saturate (every hysteron switched) while
-the linear term continues; they warn (:class:`InputRangeWarning`).
+the linear term continues; they warn (:class:`InputRangeWarning`), and
+:func:`outside_input_range` tells which they are. There the band's standard
+deviation is that of the same linear model, so it widens with the uncertainty
+of the slope (and offset); the assumption that no hysteron lies beyond the
+range is the model's, and no part of the band.
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ __all__ = [
     "RowGroups",
     "StreamPredictor",
     "StreamSpec",
+    "outside_input_range",
     "permute_rows",
     "predict_chunks",
     "row_layout",
@@ -53,6 +58,26 @@ RANGE_TOL = 1e-9
 
 class InputRangeWarning(UserWarning):
     """Inputs beyond a model's input range, predicted as saturated."""
+
+
+def outside_input_range(u: np.ndarray, input_range: tuple[float, float]) -> np.ndarray:
+    """Which inputs lie beyond the input range (as :class:`InputRangeWarning` counts).
+
+    Args:
+        u: Inputs [input units], shape ``(T,)``.
+        input_range: ``(lo, hi)`` [input units].
+
+    Returns:
+        Boolean, shape ``(T,)``: ``True`` where ``u`` lies more than
+        ``RANGE_TOL`` of the range's width below ``lo`` or above ``hi``.
+
+    Example:
+        >>> outside_input_range(np.array([-1.0, 0.0, 5.0, 10.0, 10.5]), (0.0, 10.0))
+        array([ True, False, False, False,  True])
+    """
+    lo, hi = input_range
+    un = (np.asarray(u, dtype=np.float64) - lo) / (hi - lo)
+    return (un < -RANGE_TOL) | (un > 1.0 + RANGE_TOL)
 
 
 def warn_outside_range(
@@ -414,8 +439,10 @@ class StreamSpec:
     The output is ``output_loc + output_scale * (offset + slope u_n + scale m)``
     with ``u_n = (u - lo) / (hi - lo)`` and ``m = sum_i weights_i s_i`` (weights
     normalised to sum 1); the band's standard deviation is
-    ``output_scale * calibration * sqrt(|a_0 + a_1 clip(u_n) + sum_i W_i s_i|^2 +
-    noise_std^2)`` over its ``K`` directions (see
+    ``output_scale * calibration * sqrt(|a_0 + a_1 u_n + sum_i W_i s_i|^2 +
+    noise_std^2)`` over its ``K`` directions (the same unclipped ``u_n`` as the
+    output's linear term: beyond the range the band widens with the slope's
+    uncertainty; see
     :class:`~diffaccel.hysteresis.LaplaceBand`).
 
     Attributes:
@@ -603,7 +630,10 @@ class StreamPredictor:
 
         Returns:
             ``(prediction, std)`` [output units], shapes ``(T,)``; ``std`` is
-            ``None`` without a band. Inputs beyond the range warn.
+            ``None`` without a band. Inputs beyond the range warn; there the
+            prediction is saturated plus the linear term, and ``std`` includes
+            the linear term's uncertainty at the (unclipped) input, not that of
+            the saturation itself.
         """
         s = self.spec
         u = np.asarray(u, dtype=np.float64).reshape(-1)
@@ -620,7 +650,8 @@ class StreamPredictor:
             proj = _row_sums(code, self._band)  # (T, K) in the table's dtype
             a = s.band_affine.astype(self._band.dtype)
             proj += a[:, 0]
-            proj += un_c.astype(self._band.dtype)[:, None] * a[:, 1]
+            # the unclipped input, as in the prediction's linear term
+            proj += un.astype(self._band.dtype)[:, None] * a[:, 1]
             # the norm accumulated in float64, rounded to the sums' dtype
             norm2 = np.einsum("tk,tk->t", proj, proj, dtype=np.float64)
             norm = np.sqrt(norm2).astype(self._band.dtype).astype(np.float64)
