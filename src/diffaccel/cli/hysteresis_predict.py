@@ -102,10 +102,12 @@ def predict_command(
     Writes the input's columns plus ``prediction`` and ``prediction_std`` (one
     standard deviation, including measurement noise) [output units] and
     ``outside_input_range`` (1 where the input lies beyond the fit's input
-    range, else 0). Such rows are extrapolated as saturated (every hysteron
-    switched) plus the linear term, with a warning giving their count; their
-    ``prediction_std`` widens with the linear term's uncertainty only, not
-    with any doubt about the saturation. A missing folder of OUT is created.
+    range, else 0; the range is ``input_range`` of its model.json: the
+    training inputs +- 1 % unless the fit was given --input-range). Such rows
+    are extrapolated as saturated (every hysteron switched) plus the linear
+    term, with a warning giving their count; their ``prediction_std`` widens
+    with the linear term's uncertainty only, not with any doubt about the
+    saturation. A missing folder of OUT is created.
     """
     # the refusals --force does not lift come first, so that the first is true
     check_out_file(out_file, True, {"--input": data})
