@@ -23,6 +23,7 @@ from diffaccel.reconstruction.ensemble import (
 from diffaccel.reconstruction.forward import ScreenForwardModel
 from diffaccel.reconstruction.initial import GaussianGuess, check_guess, fit_gaussian
 from diffaccel.reconstruction.metrics import beam_moments
+from diffaccel.reconstruction.moment_polish import PolishReport, polish_members
 from diffaccel.reconstruction.probe import probe_members, training_kl
 from diffaccel.reconstruction.rank_members import (
     gather_members,
@@ -33,6 +34,7 @@ from diffaccel.reconstruction.training import (
     ReconstructionConfig,
     StepInfo,
     checkpoint_config,
+    smoothed_for_loss,
     train_generator,
 )
 from diffaccel.reconstruction.uncertainty import analyse_moments
@@ -346,6 +348,7 @@ def reconstruct(
     snapshots = state.snapshots
     t_place = time.perf_counter()
     probe: dict = {}
+    polish: list[PolishReport] = []
     if config.dims == 6 and config.place_unseen:
         # longitudinal directions the scans cannot see: placed by a stated
         # prior, not wherever training drifted (see reconstruction.unseen)
@@ -368,6 +371,11 @@ def reconstruct(
             )
             for fwd in forwards.values():
                 fwd.to("cpu")
+            if config.polish_moments:
+                snapshots, polish = polish_placed(
+                    snapshots, list(forwards.values()), measured, settings, run_config
+                )
+                snapshots = place_configured(snapshots, run_config, maps)
     t_place = time.perf_counter() - t_place
     if members:
         snapshots = gather_members(snapshots)
@@ -395,6 +403,8 @@ def reconstruct(
     }
     if probe:
         info["unseen_probe"] = probe
+    if polish:
+        info["moment_polish"] = [r.to_dict() for r in polish]
     if len(scans) == 1:
         info.update(per_scan[used[0]])
     result = Reconstruction(config, snapshots, forwards, state.history, info)
@@ -531,6 +541,31 @@ def member_refit(
         ).model
 
     return refit
+
+
+def polish_placed(
+    snapshots: Sequence[dict],
+    forwards: Sequence[ScreenForwardModel],
+    measured: Sequence[torch.Tensor],
+    settings: Sequence[torch.Tensor],
+    config: ReconstructionConfig,
+) -> tuple[list[dict], list[PolishReport]]:
+    """:func:`~diffaccel.reconstruction.moment_polish.polish_members` on the
+    CPU, with the training loss's point spread and smoothing (measured and
+    simulated images alike) and the run's generator size and seed."""
+    fwds = [f.to("cpu") for f in forwards]
+    meas = [m.detach().to("cpu", torch.float32) for m in measured]
+    if config.loss_smoothing > 0:
+        fwds, meas = smoothed_for_loss(fwds, meas, config.loss_smoothing)
+    return polish_members(
+        snapshots,
+        fwds,
+        meas,
+        [s.to("cpu") for s in settings],
+        width=config.width,
+        depth=config.depth,
+        seed=config.seed,
+    )
 
 
 def refit_config(config: ReconstructionConfig) -> ReconstructionConfig:
