@@ -4,9 +4,11 @@ second moments, tracked exactly, equal the measured ones.
 Training fits the *shapes* of the images (a KL distance), which leaves their
 second moments a few tenths of a percent off per setting; the linear moment
 design of :mod:`~diffaccel.reconstruction.unseen` does not describe how the
-exact images respond to the pz entries of the covariance (chromatic terms:
-on tilted3100_2 its predicted response to px-pz and pz-pz is half the
-tracked one). On a strongly chirped beam those small errors, carried along
+exact (smoothed) images respond to some entries of the covariance (on
+tilted3100_2's first member, a 0.01 change of px-pz, pz-pz or x-z moved the
+tracked moments by 3.4e-3, 1.0e-3 and 2.4e-3 rms, the design predicted
+1.8e-3, 0.5e-3 and 2.9e-3; the cause, chromatic terms or the screen edges,
+is not isolated). On a strongly chirped beam those small errors, carried along
 the barely seen directions, move the z emittance by tens of percent
 (tilted3100_2, z-pz +0.949 and 0.03 % uncorrelated spread: -30 %).
 
