@@ -848,6 +848,12 @@ def test_6d_run_states_what_the_prior_sets(tmp_path: Path, monkeypatch) -> None:
         low, high = (a["relative_change"]["emit_z"] for a in at)
         assert low * high < 0 and min(abs(low), abs(high)) > 0.01
     assert r.output.count("set by the prior, not the images:") == 2
+    # the members' image second moments polished to the measured ones (also
+    # without the refit), reported per member and printed
+    (polish,) = s["moment_polish"]
+    assert polish["applied"]
+    assert polish["residual_after"] < 0.5 * polish["residual_before"]
+    assert "moment polish: training images' second moments off by" in r.output
 
 
 def test_reconstruct_warns_when_the_fit_misses_its_training_images(

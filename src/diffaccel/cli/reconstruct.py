@@ -780,6 +780,14 @@ def reconstruct_command(
         )
     for line in prior_dependence_lines(summary.get("prior_dependence", [])):
         click.echo(line)
+    polish = summary.get("moment_polish", [])
+    if polish:
+        before = ", ".join(f"{100 * p['residual_before']:.2f}" for p in polish)
+        after = ", ".join(f"{100 * p['residual_after']:.2f}" for p in polish)
+        click.echo(
+            "moment polish: training images' second moments off by "
+            f"{before} % rms (per member) before, {after} % after"
+        )
 
 
 def _percent(change: dict | None, key: str) -> str:

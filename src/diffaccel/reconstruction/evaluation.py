@@ -265,7 +265,9 @@ def evaluate(
         ``rms_relative_ensemble_spread``, ``unconstrained_coordinates``,
         ``prior_dependence`` (6D: what the prior sets, see
         :func:`~diffaccel.reconstruction.prior_dependence.prior_dependence`;
-        4D: empty), notes,
+        4D: empty), ``moment_polish`` (6D: each member's
+        :class:`~diffaccel.reconstruction.moment_polish.PolishReport`; empty
+        where none ran), notes,
         ``config``, ``snapshots``, ``timings_s`` and ``warnings`` (a list of
         sentences; one when a scan's training images or all of them together
         have a relative L1 above :data:`POOR_FIT_RELATIVE_L1`: the
@@ -353,6 +355,7 @@ def evaluate(
         "unconstrained_note": UNCONSTRAINED_NOTE,
         "prior_dependence": dependence,
         "prior_dependence_note": PRIOR_DEPENDENCE_NOTE,
+        "moment_polish": list(result.info.get("moment_polish", [])),
         "uncertainty_note": (
             UNCERTAINTY_NOTE if unc is not None else UNCERTAINTY_NOTE_ENSEMBLE_ONLY
         ),

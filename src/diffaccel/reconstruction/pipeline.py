@@ -322,12 +322,12 @@ def reconstruct(
     # the placed members' refit runs where the scans leave longitudinal
     # directions unseen (not when they see z or pz not at all: quad-only 6D);
     # progress counts training and refit together
-    refit = (
+    unseen = (
         config.dims == 6
         and config.place_unseen
-        and config.refit_steps > 0
         and unseen_directions(maps, guess.cov).shape[0] > 0
     )
+    refit = unseen and config.refit_steps > 0
     total = run_config.total_steps if refit else run_config.steps
     report = _progress(callback, 0, total)
     state = train_generator(
@@ -371,11 +371,11 @@ def reconstruct(
             )
             for fwd in forwards.values():
                 fwd.to("cpu")
-            if config.polish_moments:
-                snapshots, polish = polish_placed(
-                    snapshots, list(forwards.values()), measured, settings, run_config
-                )
-                snapshots = place_configured(snapshots, run_config, maps)
+        if unseen and config.polish_moments:
+            snapshots, polish = polish_placed(
+                snapshots, list(forwards.values()), measured, settings, run_config
+            )
+            snapshots = place_configured(snapshots, run_config, maps)
     t_place = time.perf_counter() - t_place
     if members:
         snapshots = gather_members(snapshots)

@@ -434,8 +434,8 @@ class ReconstructionConfig:
             gain toward it is no evidence; one away from it is. It also
             halves the probe's refits.
         polish_moments: With ``place_unseen`` in 6D where the scans leave
-            longitudinal directions unseen (the refit's condition), correct
-            each refitted member's covariance so that the second moments of
+            longitudinal directions unseen (as the refit), correct each placed
+            (and refitted) member's covariance so that the second moments of
             its exactly tracked training images equal the measured ones (one
             Gauss-Newton step, finite-difference Jacobian of the exact images;
             :mod:`~diffaccel.reconstruction.moment_polish`), then place it
