@@ -24,10 +24,12 @@ sets them afterwards. Measured and simulated images are compared after the
 training's loss smoothing, so the point spreads agree
 (:func:`~diffaccel.reconstruction.training.smoothed_for_loss`).
 
-Measured on saved default runs (docs/generalisation_6d.md, stop 30), emit z
-before / after polish and placement: tilted3100_2 -30.2 / +0.4 %,
-tilted3100_7 -7.5 / -2.9 % (6D -15.6 / -9.3 %), tilted3000_13 -1.2 / +0.4 %,
-the shared 6D file -0.7 / +0.2 % (6D +2.6 / +0.4 %).
+Measured with the default settings (``benchmarks/reconstruction_6d_beams.py``
+and ``reconstruction_6d.py``, stop 30; docs/generalisation_6d.md), emit z
+without / with the polish: tilted3100_2 -30.1 / +0.3 %, tilted3100_7 -7.4 /
+-2.7 % (6D -15.4 / -8.9 %), tilted3000_13 -1.0 / +0.5 %, the shared 6D file
+-1.1 / -0.3 % (6D +2.1 / +0.0 %). Beams whose truth the placement's prior
+misplaces stay off (family_draw_b -38.4 / -34.5 %).
 """
 
 from __future__ import annotations

@@ -441,9 +441,10 @@ class ReconstructionConfig:
             :mod:`~diffaccel.reconstruction.moment_polish`), then place it
             again. Training fits image shapes and leaves the moments a few
             tenths of a percent off, which a strong chirp turns into tens of
-            percent of z emittance. Stop 30, saved default runs: tilted3100_2
-            emit z -30.2 -> +0.4 %, tilted3100_7 6D -15.6 -> -9.3 %, the
-            shared file 6D +2.6 -> +0.4 % (docs/generalisation_6d.md).
+            percent of z emittance. Stop 30 (default settings, seed 0):
+            tilted3100_2 emit z -30.1 -> +0.3 %, tilted3100_7 6D -15.4 ->
+            -8.9 %, the shared file 6D +2.1 -> +0.0 %, about 7 s more
+            (docs/generalisation_6d.md).
         seed: Seed of the explicit ``torch.Generator`` (weights and samples).
         checkpoint_every: Steps between checkpoints (also at every snapshot).
         report_every: Steps between reads of the losses from the device (the
