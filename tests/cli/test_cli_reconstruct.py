@@ -593,15 +593,20 @@ def test_reconstruct_and_predict_version_2(two_scan_file: Path, tmp_path) -> Non
             assert spread[name].shape == (scan.n_settings, *scan.screen_shape)
 
 
+def _predict_ok(result_dir: Path, dataset: Path, out: Path):
+    """``diffaccel predict RESULT --dataset DATASET --out OUT``, exit code 0."""
+    r = CliRunner().invoke(
+        main, ["predict", str(result_dir), "--dataset", str(dataset), "--out", str(out)]
+    )
+    assert r.exit_code == 0, r.output
+    return r
+
+
 def test_predict_h5_of_a_version_1_file_is_version_1(
     result_dir: Path, scan_file: Path, tmp_path: Path
 ) -> None:
     pred = tmp_path / "pred.h5"
-    r = CliRunner().invoke(
-        main,
-        ["predict", str(result_dir), "--dataset", str(scan_file), "--out", str(pred)],
-    )
-    assert r.exit_code == 0, r.output
+    _predict_ok(result_dir, scan_file, pred)
     with h5py.File(pred, "r") as h5:
         assert int(h5.attrs["format_version"]) == 1
     assert read_quad_scan(pred).shape == (6, 1, 24, 24)
@@ -611,11 +616,7 @@ def test_predict_of_settings_on_the_screen_warns_of_nothing(
     result_dir: Path, scan_file: Path, tmp_path: Path
 ) -> None:
     pred = tmp_path / "pred.h5"
-    r = CliRunner().invoke(
-        main,
-        ["predict", str(result_dir), "--dataset", str(scan_file), "--out", str(pred)],
-    )
-    assert r.exit_code == 0, r.output
+    r = _predict_ok(result_dir, scan_file, pred)
     assert "warning" not in r.output
     step = read_quad_scan(pred).metadata["preprocessing"][-1]
     assert step["step"] == "predicted" and step["warnings"] == []

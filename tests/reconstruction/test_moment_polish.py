@@ -41,13 +41,18 @@ def _corr_units(cov: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     return cov / (sig[:, None] * sig[None, :])
 
 
-def test_polish_undoes_a_change_the_images_see(small_awa6d) -> None:
-    forwards = _forwards_of(small_awa6d)
-    settings = [s.settings for _, s in small_awa6d]
-    truth = small_awa6d.ground_truth.to(torch.float64)
-    # "measured": the truth imaged by the same forward models (same rendering)
+def _truth_imaged(data: MultiScanDataset) -> tuple:
+    """``(forwards, settings, truth, measured, mu, cov)``: "measured" is the
+    truth imaged by the same forward models (the same rendering)."""
+    forwards = _forwards_of(data)
+    settings = [s.settings for _, s in data]
+    truth = data.ground_truth.to(torch.float64)
     measured = [f.images(truth, s) for f, s in zip(forwards, settings, strict=True)]
-    mu, cov = truth.mean(0), torch.cov(truth.T)
+    return forwards, settings, truth, measured, truth.mean(0), torch.cov(truth.T)
+
+
+def test_polish_undoes_a_change_the_images_see(small_awa6d) -> None:
+    forwards, settings, truth, measured, mu, cov = _truth_imaged(small_awa6d)
     sig = cov.diagonal().sqrt()
     d = torch.zeros(6, 6, dtype=torch.float64)
     # +4 % of x variance, a z-pz and an x-z correlation 0.03 off: all seen
@@ -59,19 +64,15 @@ def test_polish_undoes_a_change_the_images_see(small_awa6d) -> None:
     before = (_corr_units(torch.cov(moved.T) - cov, cov)).abs().max()
     after = (_corr_units(torch.cov(polished.T) - cov, cov)).abs().max()
     assert before > 0.029
-    # one Gauss-Newton step on exact images: back within 0.005 (a tenth of
-    # nothing would be 0.04)
+    # one Gauss-Newton step on exact images: back within 0.005 (no correction
+    # leaves 0.04)
     assert after < 0.005, (before, after)
     assert report.applied and report.kept < 21
     assert report.residual_after < 0.2 * report.residual_before
 
 
 def test_polish_leaves_what_the_images_do_not_see(small_awa6d) -> None:
-    forwards = _forwards_of(small_awa6d)
-    settings = [s.settings for _, s in small_awa6d]
-    truth = small_awa6d.ground_truth.to(torch.float64)
-    measured = [f.images(truth, s) for f, s in zip(forwards, settings, strict=True)]
-    mu, cov = truth.mean(0), torch.cov(truth.T)
+    forwards, settings, truth, measured, mu, cov = _truth_imaged(small_awa6d)
     maps = [f.transfer_maps(s) for f, s in zip(forwards, settings, strict=True)]
     direction = unseen_directions(maps, cov)[0]
     # a move along an unseen direction leaves every screen's moments: the
