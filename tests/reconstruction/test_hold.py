@@ -119,7 +119,13 @@ def placed(small_awa6d):
     """A small AWA 6D run's placed members (no refit) and its training inputs."""
     data = small_awa6d
     cfg = ReconstructionConfig(
-        dims=6, n_particles=1024, steps=60, snapshots=1, burn_in=0, refit_steps=0
+        dims=6,
+        n_particles=1024,
+        steps=60,
+        snapshots=1,
+        burn_in=0,
+        refit_steps=0,
+        polish_moments=False,  # the members as placed: the refit's input
     )
     result = reconstruct(data, cfg, uncertainty=False)
     names = result.scan_names
