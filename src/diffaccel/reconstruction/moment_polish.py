@@ -42,6 +42,7 @@ from torch import Tensor
 
 from diffaccel.reconstruction.forward import ScreenForwardModel
 from diffaccel.reconstruction.generator import BeamGenerator
+from diffaccel.reconstruction.uncertainty import image_moments
 from diffaccel.reconstruction.unseen import _fold, transport_map
 
 __all__ = [
@@ -103,18 +104,9 @@ def image_second_moments(images: Tensor, forward: ScreenForwardModel) -> Tensor:
     Shapes:
         ``(K, H, W) -> (K, 3)`` float64: ``<xx>, <yy>, <xy>`` [m^2].
     """
-    img = images.to(torch.float64)
-    img = img / img.sum((-2, -1), keepdim=True).clamp_min(1e-300)
     xs, ys = forward.screen.pixel_centers(dtype=torch.float64)
-    xs, ys = xs.to(img.device), ys.to(img.device)
-    px, py = img.sum(-2), img.sum(-1)
-    mx, my = (px * xs).sum(-1), (py * ys).sum(-1)
-    dx = xs[None, :] - mx[:, None]
-    dy = ys[None, :] - my[:, None]
-    vxx = (px * dx.square()).sum(-1)
-    vyy = (py * dy.square()).sum(-1)
-    vxy = (img * dx[:, None, :] * dy[:, :, None]).sum((-2, -1))
-    return torch.stack([vxx, vyy, vxy], -1)
+    m = image_moments(images, xs.to(images.device), ys.to(images.device))
+    return m[:, [2, 4, 3]]  # <x>, <y>, <xx>, <xy>, <yy> -> <xx>, <yy>, <xy>
 
 
 def _relative(moments: Tensor, scale: Tensor) -> Tensor:
@@ -178,16 +170,14 @@ def polish_transport(
         out = mu + (x0.to(torch.float64) - mu) @ a.T
         return out.to(x0.dtype)
 
-    m0 = moments(x0)
+    m = moments(x0)  # of the current particles: updated with each step taken
     scale = _scale(target)
-    resid = _relative(target - m0, scale)
-    before = float(resid.square().mean().sqrt())
+    before = float(_relative(target - m, scale).square().mean().sqrt())
     best, kept, applied = before, 0, False
     for _ in range(iterations):
         x = moved(total)
         cov = torch.cov(x.to(torch.float64).T)
         sig = cov.diagonal().clamp_min(1e-300).sqrt()
-        m = moments(x)
         columns = []
         for i, j in _ENTRIES:
             d = torch.zeros(6, 6, dtype=torch.float64)
@@ -208,10 +198,10 @@ def polish_transport(
             if float(torch.linalg.eigvalsh(new).min()) <= 0:
                 continue
             a = transport_map(cov, new) @ total
-            r_new = _relative(target - moments(moved(a)), scale)
-            r = float(r_new.square().mean().sqrt())
+            m_new = moments(moved(a))
+            r = float(_relative(target - m_new, scale).square().mean().sqrt())
             if r < best:
-                best, total, applied = r, a, True
+                best, total, applied, m = r, a, True, m_new
                 break
         else:
             break
