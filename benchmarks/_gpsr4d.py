@@ -8,7 +8,7 @@ particles), ``GPSRQuadScanLattice`` (quadrupole + drift) with a cheetah
 cloud-in-cell ``Screen``, ``train_gpsr`` (Adam 1e-3, MAE on sum-normalised
 images, one batch of all training images) for 2000 epochs.
 
-The data are read with h5py only (the layout of ``/work/shared/data/README.md``),
+The data are read with h5py only (the layout of ``data/README.md``),
 so this process imports neither diffaccel nor anything gpsr does not need.
 
 ``--device cuda`` trains on the GPU (Lightning's ``accelerator="gpu"``); the

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "phase_space"
+DATA = Path(__file__).resolve().parents[1] / "data" / "phase_space"
 TRAIN = DATA / "sixd_synthetic_train.h5"
 TEST = DATA / "sixd_synthetic_test.h5"
 KEYS = (

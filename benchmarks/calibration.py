@@ -9,7 +9,7 @@ quantities (those not involving a coordinate listed by
 ``Reconstruction.unconstrained_coordinates``).
 
 Datasets:
-- ``gpsr4d``: ``../shared/data/phase_space/gpsr_4d_synthetic.h5``, even settings
+- ``gpsr4d``: ``data/phase_space/gpsr_4d_synthetic.h5``, even settings
   (check only: nothing was tuned on it);
 - ``sixd``: ``sixd_synthetic_train.h5`` with ``--dims 6`` (``--sixd``; slow);
 - ``awa6d-<preset>-s<seed>``: the AWA 6D layout of the shared file (two
@@ -67,7 +67,7 @@ from diffaccel.data import make_synthetic_quad_scan, read_quad_scan
 from diffaccel.reconstruction import ReconstructionConfig, beam_moments, reconstruct
 from diffaccel.reconstruction.pipeline import as_scans
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "phase_space"
+DATA = Path(__file__).resolve().parents[1] / "data" / "phase_space"
 COORDS = ("x", "px", "y", "py", "z", "pz")
 
 

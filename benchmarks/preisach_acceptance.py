@@ -42,8 +42,6 @@ from diffaccel.hysteresis.synthetic import bh_loop_case, bipolar_quadrupole_case
 
 SLAC = (
     Path(__file__).resolve().parents[1]
-    / ".."
-    / "shared"
     / "data"
     / "hysteresis"
     / "slac_lcls2_quad_4194"

@@ -34,8 +34,6 @@ from diffaccel.hysteresis import PreisachMesh, PreisachModel, fit_magnet, fit_pr
 
 DATA = (
     Path(__file__).resolve().parents[1]
-    / ".."
-    / "shared"
     / "data"
     / "hysteresis"
     / "slac_lcls2_quad_4194"

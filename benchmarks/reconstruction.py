@@ -1,6 +1,6 @@
 """Phase-space reconstruction on the GPSR 4D benchmark: diffaccel vs gpsr 0.2.0.
 
-Both are trained on the even settings of ``../shared/data/phase_space/
+Both are trained on the even settings of ``data/phase_space/
 gpsr_4d_synthetic.h5`` and tested on the odd ones, in the same process, on the
 same threads. diffaccel runs with its default options (as ``diffaccel
 reconstruct`` would); gpsr runs its documented 4D recipe: ``NNParticleBeam
@@ -47,7 +47,7 @@ from diffaccel.reconstruction import (
     reconstruct,
 )
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "phase_space"
+DATA = Path(__file__).resolve().parents[1] / "data" / "phase_space"
 DATASET = DATA / "gpsr_4d_synthetic.h5"
 KEYS = ("rms_x", "rms_px", "rms_y", "rms_py", "emit_x", "emit_y", "emit_4d")
 

@@ -1,6 +1,6 @@
 """6D phase-space reconstruction on the shared 6D benchmark: diffaccel vs gpsr 0.2.0.
 
-Data: ``../shared/data/phase_space/sixd_synthetic_train.h5`` (training: even
+Data: ``data/phase_space/sixd_synthetic_train.h5`` (training: even
 quadrupole settings, TDC off/on, dipole off/on: 20 images) and
 ``sixd_synthetic_test.h5`` (held out: the odd quadrupole settings, 16 images),
 both with the 50 000-particle ground truth.

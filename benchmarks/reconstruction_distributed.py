@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 from _meta import emit, git_commit
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "phase_space"
+DATA = Path(__file__).resolve().parents[1] / "data" / "phase_space"
 DATASET = DATA / "gpsr_4d_synthetic.h5"
 
 

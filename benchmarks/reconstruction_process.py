@@ -4,7 +4,7 @@ Issue 12: the default ``reconstruct`` on the GPSR 4D training split, whole proce
 at least 8x faster than the gpsr 0.2.0 recipe as a whole process, measured in
 the same run.
 
-The training split (the even settings of ``../shared/data/phase_space/
+The training split (the even settings of ``data/phase_space/
 gpsr_4d_synthetic.h5``) is written to a temporary ``TRAIN.h5``; then, each as a
 subprocess timed from outside (wall clock and the child's CPU time):
 
@@ -50,7 +50,7 @@ from pathlib import Path
 from _meta import emit, git_commit
 
 HERE = Path(__file__).resolve().parent
-DATA = HERE.parents[0] / ".." / "shared" / "data" / "phase_space"
+DATA = HERE.parents[0] / "data" / "phase_space"
 DATASET = DATA / "gpsr_4d_synthetic.h5"
 TARGET = {"cpu": 8.0, "cuda": 5.0}
 

@@ -1,7 +1,7 @@
 """One training step of the default 4D reconstruction: time, ATen ops, host syncs.
 
 Trains the default configuration on the even settings of the GPSR 4D benchmark
-(``../shared/data/phase_space/gpsr_4d_synthetic.h5``) for ``--steps`` and for
+(``data/phase_space/gpsr_4d_synthetic.h5``) for ``--steps`` and for
 twice as many steps, under ``torch.profiler``; per-step figures are the
 differences divided by ``--steps`` (set-up, initial fit and the per-snapshot
 bookkeeping cancel; progress reads every ``report_every`` steps are included).
@@ -45,7 +45,7 @@ from _meta import emit, git_commit
 from diffaccel.data import read_quad_scan
 from diffaccel.reconstruction import ReconstructionConfig, reconstruct
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "phase_space"
+DATA = Path(__file__).resolve().parents[1] / "data" / "phase_space"
 DATASET = DATA / "gpsr_4d_synthetic.h5"
 SYNC_OPS = ("aten::item", "aten::_local_scalar_dense")
 

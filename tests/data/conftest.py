@@ -9,7 +9,7 @@ import torch
 
 from diffaccel.data import QuadScanDataset
 
-SHARED = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "phase_space"
+REFERENCE = Path(__file__).resolve().parents[2] / "data" / "phase_space"
 
 SPEC = [
     {"type": "Quadrupole", "name": "Q1", "length": 0.1, "k1": 0.0},
@@ -72,13 +72,12 @@ def dataset_factory():
 
 
 @pytest.fixture
-def shared_file():
-    """Path to a file of the shared reference data; skips when it is absent."""
+def reference_file():
+    """Path to a quad-scan file of the reference data in ``data/phase_space``."""
 
     def get(name: str) -> Path:
-        path = SHARED / name
-        if not path.exists():
-            pytest.skip(f"shared reference data not available: {path}")
+        path = REFERENCE / name
+        assert path.exists(), f"reference data missing from the repository: {path}"
         return path
 
     return get

@@ -12,8 +12,6 @@ from diffaccel.data import FormatError, read_magnet_csv, write_csv_atomic
 
 SLAC = (
     Path(__file__).resolve().parents[2]
-    / ".."
-    / "shared"
     / "data"
     / "hysteresis"
     / "slac_lcls2_quad_4194"
@@ -82,7 +80,6 @@ def test_float_round_trip(tmp_path: Path) -> None:
     assert read_magnet_csv(p, require_output=False).input.tolist() == x
 
 
-@pytest.mark.skipif(not SLAC.exists(), reason="needs /work/shared reference data")
 def test_reads_slac_measurements() -> None:
     h = read_magnet_csv(SLAC)
     assert len(h) == 187

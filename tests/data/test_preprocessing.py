@@ -242,10 +242,10 @@ def test_chain_records_every_step(raw) -> None:
     ]
 
 
-def test_chain_on_measured_awa_images(shared_file) -> None:
+def test_chain_on_measured_awa_images(reference_file) -> None:
     from diffaccel.data import read_quad_scan
 
-    ds = read_quad_scan(shared_file("awa_quad_scan_train.h5"))
+    ds = read_quad_scan(reference_file("awa_quad_scan_train.h5"))
     out = normalize(pool(center_centroids(ds), factor=2))
     assert out.shape == (11, 3, 42, 42)
     assert out.pixel_size == pytest.approx((2 * 124.86e-6, 2 * 124.86e-6))

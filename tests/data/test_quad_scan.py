@@ -17,8 +17,8 @@ ELECTRON_MC2 = 0.51099895069e6  # [eV], CODATA 2018
 
 
 # ------------------------------------------------------------------ shared files
-def test_read_gpsr_benchmark(shared_file) -> None:
-    ds = read_quad_scan(shared_file("gpsr_4d_synthetic.h5"))
+def test_read_gpsr_benchmark(reference_file) -> None:
+    ds = read_quad_scan(reference_file("gpsr_4d_synthetic.h5"))
     assert ds.shape == (20, 1, 100, 100)
     assert ds.images.dtype == torch.float32
     assert ds.settings.dtype == torch.float64
@@ -38,10 +38,10 @@ def test_read_gpsr_benchmark(shared_file) -> None:
     assert "GPSR" in ds.metadata["description"]
 
 
-def test_gpsr_ground_truth_converted_from_cheetah(shared_file) -> None:
+def test_gpsr_ground_truth_converted_from_cheetah(reference_file) -> None:
     """The file stores cheetah (tau, delta); we must return Bmad (z, pz)."""
     bmadx = pytest.importorskip("cheetah.utils.bmadx")
-    path = shared_file("gpsr_4d_synthetic.h5")
+    path = reference_file("gpsr_4d_synthetic.h5")
     ds = read_quad_scan(path)
     with h5py.File(path, "r") as h5:
         raw = torch.from_numpy(h5["ground_truth/particles"][()])
@@ -54,8 +54,8 @@ def test_gpsr_ground_truth_converted_from_cheetah(shared_file) -> None:
     torch.testing.assert_close(ds.ground_truth, expected, rtol=1e-10, atol=1e-15)
 
 
-def test_read_awa_measured(shared_file) -> None:
-    ds = read_quad_scan(shared_file("awa_quad_scan_train.h5"))
+def test_read_awa_measured(reference_file) -> None:
+    ds = read_quad_scan(reference_file("awa_quad_scan_train.h5"))
     assert ds.shape == (11, 3, 84, 84)
     assert ds.ground_truth is None
     assert ds.screen_name == "YAG"
@@ -68,8 +68,8 @@ def test_read_awa_measured(shared_file) -> None:
 @pytest.mark.parametrize(
     "name", ["gpsr_4d_synthetic.h5", "awa_quad_scan_train.h5"], ids=["gpsr", "awa"]
 )
-def test_shared_file_round_trip(shared_file, tmp_path: Path, name: str) -> None:
-    ds = read_quad_scan(shared_file(name))
+def test_reference_file_round_trip(reference_file, tmp_path: Path, name: str) -> None:
+    ds = read_quad_scan(reference_file(name))
     out = write_quad_scan(ds, tmp_path / "copy.h5")
     _assert_same(read_quad_scan(out), ds)
 

@@ -93,8 +93,8 @@ def test_write_v1_refuses_several_scans(dataset_factory, tmp_path) -> None:
         write_scans(_two_scans(dataset_factory), tmp_path / "x.h5", format_version=1)
 
 
-def test_read_shared_6d_benchmark(shared_file) -> None:
-    ms = read_scans(shared_file("sixd_synthetic_train.h5"))
+def test_read_shared_6d_benchmark(reference_file) -> None:
+    ms = read_scans(reference_file("sixd_synthetic_train.h5"))
     assert ms.names == ["dipole_off", "dipole_on"]
     for _, scan in ms:
         assert scan.shape == (10, 1, 96, 96)

@@ -21,8 +21,6 @@ from diffaccel.hysteresis.synthetic import synthetic_measurement
 F64 = torch.float64
 SLAC = (
     Path(__file__).resolve().parents[2]
-    / ".."
-    / "shared"
     / "data"
     / "hysteresis"
     / "slac_lcls2_quad_4194"
@@ -158,7 +156,6 @@ def _line_rms(current: torch.Tensor, field: torch.Tensor, n: int) -> float:
     return float(((basis @ coef).squeeze(1)[n:] - field[n:]).pow(2).mean().sqrt())
 
 
-@pytest.mark.skipif(not SLAC.exists(), reason="needs /work/shared reference data")
 def test_slac_quadrupole_acceptance() -> None:
     # issue 11: fit the first 62 points, predict the other 125 with less than
     # half the straight line's rms (line 0.197 % of range; the CLI default

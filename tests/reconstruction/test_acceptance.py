@@ -1,4 +1,4 @@
-"""Acceptance runs on the shared reference data, against the numbers the README claims.
+"""Acceptance runs on the reference data in ``data/``, against the README claims.
 
 The GPSR 4D case (one default reconstruction, ~2.5 s on two quiet cores) runs in
 ``make test``; the measured AWA scan is marked slow. README (benchmarks table):
@@ -23,15 +23,13 @@ from diffaccel.reconstruction import (
     reconstruct,
 )
 
-DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "phase_space"
+DATA = Path(__file__).resolve().parents[2] / "data" / "phase_space"
 GPSR = DATA / "gpsr_4d_synthetic.h5"
 AWA = DATA / "awa_quad_scan_train.h5"
 
 
 @pytest.fixture(scope="module")
 def gpsr_errors() -> dict[str, float]:
-    if not GPSR.exists():
-        pytest.skip("shared reference data not present")
     ds = read_quad_scan(GPSR)
     r = reconstruct(ds, ReconstructionConfig(), train_indices=range(0, 20, 2))
     errors = moment_errors(r.sample(100_000), ds.ground_truth)
@@ -56,7 +54,6 @@ def test_gpsr_4d_held_out_images_as_claimed(gpsr_errors) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not AWA.exists(), reason="shared reference data not present")
 def test_awa_measured_scan_predicts_its_images() -> None:
     ds = read_quad_scan(AWA)
     r = reconstruct(ds, ReconstructionConfig(), train_indices=range(0, 11, 2))

@@ -21,16 +21,11 @@ from diffaccel.reconstruction import (
     reconstruct,
 )
 
-DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "phase_space"
+DATA = Path(__file__).resolve().parents[2] / "data" / "phase_space"
 TRAIN = DATA / "sixd_synthetic_train.h5"
 TEST = DATA / "sixd_synthetic_test.h5"
 
-pytestmark = [
-    pytest.mark.slow,
-    pytest.mark.skipif(
-        not (TRAIN.exists() and TEST.exists()), reason="shared 6D data not present"
-    ),
-]
+pytestmark = [pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ from diffaccel.reconstruction import (
 )
 from diffaccel.reconstruction.unseen import unseen_directions
 
-DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "phase_space"
+DATA = Path(__file__).resolve().parents[2] / "data" / "phase_space"
 SHARED_6D = DATA / "sixd_synthetic_train.h5"
 
 SPEC = [
@@ -137,7 +137,6 @@ def test_6d_guess_is_widest_where_the_moments_leave_it_free() -> None:
     assert abs(float(torch.einsum("ij,ji->", prec, v))) < 0.01 * float(scale)
 
 
-@pytest.mark.skipif(not SHARED_6D.exists(), reason="shared 6D data not present")
 def test_6d_guess_of_the_shared_file_is_near_its_truth() -> None:
     """The shared 6D training file: the least squares' minimum-norm point,
     projected onto positive definite matrices, started training at rms pz
