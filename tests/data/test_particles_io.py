@@ -40,10 +40,15 @@ def test_layout_and_units(tmp_path: Path, beam) -> None:
     p0c = 43.36e6
     path = write_openpmd_particles(tmp_path / "b.h5", beam, p0c=p0c, charge_C=2e-12)
     with h5py.File(path, "r") as h5:
-        assert h5.attrs["openPMD"] == "2.0.0"
-        assert h5.attrs["openPMDextension"] == "BeamPhysics;SpeciesType"
+        # text attributes: fixed-length strings, read back as bytes (openPMD)
+        assert h5.attrs["openPMD"] == b"2.0.0"
+        assert h5.attrs["openPMDextension"] == b"BeamPhysics;SpeciesType"
+        assert h5.attrs["basePath"] == b"/data/%T/"
+        for key in ("openPMD", "basePath", "particlesPath", "dataType"):
+            assert not h5.attrs.get_id(key).get_type().is_variable_str()
         g = h5["data/0/particles"]
-        assert g.attrs["speciesType"] == "electron"
+        assert g.attrs["speciesType"] == b"electron"
+        assert g["position/x"].attrs["unitSymbol"] == b"m"
         assert g.attrs["numParticles"] == 1000
         assert g.attrs["totalCharge"] == pytest.approx(2e-12)
         assert g["weight"][()].sum() == pytest.approx(2e-12, rel=1e-12)

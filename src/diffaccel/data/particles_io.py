@@ -14,7 +14,9 @@ written by the openPMD-beamphysics package)::
         weight             [C]     (macro-particle charge, positive)
         particleStatus     1 = alive
 
-Records carry ``unitSI``, ``unitDimension`` and ``unitSymbol``; the reader
+Text attributes are fixed-length ASCII strings, openPMD's type for text (what
+openPMD-beamphysics, and cheetah's ``ParticleBeam.from_openpmd_file`` through
+it, read). Records carry ``unitSI``, ``unitDimension`` and ``unitSymbol``; the reader
 applies ``unitSI`` and accepts constant records (groups with ``value`` and
 ``shape`` attributes). Coordinates in memory are Bmad's, converted with
 :mod:`diffaccel.dynamics.coordinates` (z = -beta c (t - t_ref),
@@ -24,7 +26,9 @@ pz = |P| / P0 - 1, particles at one longitudinal position).
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
@@ -37,7 +41,7 @@ from diffaccel.data.quad_scan import check_p0c
 from diffaccel.dynamics import Species
 from diffaccel.dynamics.coordinates import bmad_to_openpmd, openpmd_to_bmad
 
-__all__ = ["read_openpmd_particles", "write_openpmd_particles"]
+__all__ = ["particle_group", "read_openpmd_particles", "write_openpmd_particles"]
 
 _ELEMENTARY_CHARGE = 1.602176634e-19  # [C], exact (SI 2019)
 _SPEED_OF_LIGHT = 299_792_458.0  # [m/s], exact
@@ -144,15 +148,15 @@ def write_openpmd_particles(
 
     def _write(tmp: Path) -> None:
         with h5py.File(tmp, "w") as h5:
-            h5.attrs["openPMD"] = "2.0.0"
-            h5.attrs["openPMDextension"] = "BeamPhysics;SpeciesType"
-            h5.attrs["basePath"] = "/data/%T/"
-            h5.attrs["particlesPath"] = "particles/"
-            h5.attrs["dataType"] = "openPMD"
-            h5.attrs["iterationEncoding"] = "groupBased"
-            h5.attrs["iterationFormat"] = "/data/%T/"
+            h5.attrs["openPMD"] = _fixed("2.0.0")
+            h5.attrs["openPMDextension"] = _fixed("BeamPhysics;SpeciesType")
+            h5.attrs["basePath"] = _fixed("/data/%T/")
+            h5.attrs["particlesPath"] = _fixed("particles/")
+            h5.attrs["dataType"] = _fixed("openPMD")
+            h5.attrs["iterationEncoding"] = _fixed("groupBased")
+            h5.attrs["iterationFormat"] = _fixed("/data/%T/")
             g = h5.create_group("data/0/particles")
-            g.attrs["speciesType"] = spec.name
+            g.attrs["speciesType"] = _fixed(spec.name)
             g.attrs["numParticles"] = np.int64(n)
             g.attrs["totalCharge"] = float(charge_C)
             g.attrs["chargeLive"] = float(charge_C)
@@ -171,12 +175,18 @@ def write_openpmd_particles(
     return atomic_write(path, _write)
 
 
+def _fixed(text: str) -> np.bytes_:
+    """A text attribute as a fixed-length ASCII string (HDF5 ``H5T_STRING`` of
+    fixed size, not variable-length UTF-8); h5py reads it back as bytes."""
+    return np.bytes_(text.encode("ascii"))
+
+
 def _write_record(group: h5py.Group, name: str, values: np.ndarray, kind: str) -> None:
     unit_si, dim, symbol = _UNITS[kind]
     dset = group.create_dataset(name, data=values)
     dset.attrs["unitSI"] = unit_si
     dset.attrs["unitDimension"] = np.asarray(dim, dtype=np.float64)
-    dset.attrs["unitSymbol"] = symbol
+    dset.attrs["unitSymbol"] = _fixed(symbol)
     record = dset.parent if "/" in name else dset
     record.attrs["unitDimension"] = np.asarray(dim, dtype=np.float64)
     record.attrs["timeOffset"] = 0.0
@@ -369,3 +379,45 @@ def read_openpmd_particles(path: str | os.PathLike) -> tuple[Tensor, float, str]
             f"drifting to the mean z); found {float(far):g} m (a unit error?)"
         )
     return particles, p0c_attr, spec.name
+
+
+def particle_group(
+    particles_bmad: Tensor,
+    p0c: float,
+    species: str = "electron",
+    charge_C: float = 1e-12,
+) -> Any:
+    """The particles as an openPMD-beamphysics ``ParticleGroup``.
+
+    The particles are written with :func:`write_openpmd_particles` to a
+    temporary file and read back by ``beamphysics.ParticleGroup``: the object is
+    what openPMD-beamphysics makes of a ``particles.h5`` of these particles.
+
+    Args:
+        particles_bmad: Bmad coordinates (x [m], px, y [m], py, z [m], pz).
+        p0c: Reference momentum times c [eV].
+        species: ``"electron"``, ``"positron"`` or ``"proton"``.
+        charge_C: Total bunch charge [C] (> 0), shared equally by the particles.
+
+    Shapes:
+        ``particles_bmad`` (N, 6).
+
+    Returns:
+        A ``beamphysics.ParticleGroup`` (SI units: m, eV/c, s, C).
+
+    Raises:
+        ImportError: if openPMD-beamphysics is not installed
+            (``pip install diffaccel[pmd]``).
+        ValueError: as :func:`write_openpmd_particles`.
+    """
+    try:
+        from beamphysics import ParticleGroup
+    except ImportError as err:
+        raise ImportError(
+            "particle_group needs openPMD-beamphysics: pip install diffaccel[pmd]"
+        ) from err
+    with tempfile.TemporaryDirectory(prefix="diffaccel-pmd-") as tmp:
+        path = write_openpmd_particles(
+            Path(tmp) / "particles.h5", particles_bmad, p0c, species, charge_C
+        )
+        return ParticleGroup(str(path))

@@ -34,6 +34,7 @@ from diffaccel.reconstruction.metrics import (
     moment_errors,
     sliced_wasserstein,
 )
+from diffaccel.reconstruction.particles import to_particle_group
 from diffaccel.reconstruction.pipeline import (
     as_scans,
     reconstruct,
@@ -80,6 +81,7 @@ __all__ = [
     "robust_covariance",
     "save_checkpoint",
     "sliced_wasserstein",
+    "to_particle_group",
     "train_generator",
     "training_selection",
 ]
