@@ -248,7 +248,12 @@ class ImagePenalty:
     kinds use :func:`image_penalty` itself.
 
     Args:
-        measured: Sum-normalised measured images ``(K, H, W)``.
+        measured: Sum-normalised measured images ``(K, H, W)``. With ``kind =
+            "kl"`` pixels may be negative (the zero-mean noise of a
+            background-subtracted image): the distance is ``sum m log m+ -
+            sum m log s`` (``m+`` the positive pixels, a constant), linear in
+            ``m``, so the noise leaves its expectation and minimum unbiased;
+            images without negative pixels give the plain KL.
         kind: Image distance, see :func:`image_distance`.
         allowance: Off-screen fraction allowed per image ``(K,)``; 0 if None.
         weight: Factor of the sum over images (e.g. 1 / number of images of
@@ -292,7 +297,16 @@ class ImagePenalty:
         allow = torch.zeros(self.k) if allowance is None else allowance
         allow = allow.to(dtype=measured.dtype, device=measured.device)
         self.one_minus_allowance = torch.sub(1.0, allow)  # (K,)
-        self.m = measured.clamp_min(1e-12)  # as image_distance's "kl"
+        # pixels >= 0 floored at 1e-12 as in image_distance's "kl"; negative
+        # pixels (zero-mean noise of a background-subtracted image) are kept:
+        # the distance's dependence on s, -sum m log s, is linear in m, so
+        # noise of zero mean leaves its expectation (and minimum) unbiased,
+        # where clipping it at 0 would add a positive floor to the tails
+        self.m = torch.where(measured < 0, measured, measured.clamp_min(1e-12))
+        self.signed = bool((measured < 0).any())
+        # sum m log m over the pixels > 0: the constant part of the distance
+        # (for images without negative pixels the value is the plain KL)
+        self.m_log_m = (self.m.clamp_min(1e-12).log() * self.m.clamp_min(0)).sum()
         kw = {"dtype": measured.dtype, "device": measured.device}
         self.constants = {
             name: torch.tensor(v, **kw)
@@ -339,10 +353,14 @@ class _KLPenaltyFn(torch.autograd.Function):
         t = total.clamp_min(1e-6).view(k, 1, 1)
         s_raw = sim / t
         if spec.offset > 0.0:  # m / (s + eps): positive, no clamp
-            q = torch.div(spec.m, s_raw.add(spec.constants["offset"]))
+            s_eff = s_raw.add(spec.constants["offset"])
         else:
-            q = torch.div(spec.m, s_raw.clamp_min(1e-12))  # m / s
-        kl = torch.mul(spec.m, q.log()).sum()
+            s_eff = s_raw.clamp_min(1e-12)
+        q = torch.div(spec.m, s_eff)  # m / s
+        if spec.signed:  # m log(m / s) = m log m - m log s; q < 0 where m < 0
+            kl = torch.sub(spec.m_log_m, torch.mul(spec.m, s_eff.log()).sum())
+        else:
+            kl = torch.mul(spec.m, q.log()).sum()
         if spec.offset > 0.0:
             kl = torch.add(kl, spec.constants["kl_shift"])
         off = torch.sub(spec.one_minus_allowance, total)

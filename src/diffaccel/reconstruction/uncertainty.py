@@ -138,7 +138,11 @@ def image_moments(
     """Centroids and second central moments of screen images.
 
     Args:
-        images: Non-negative images ``(K, H, W)`` (any normalisation).
+        images: Images ``(K, H, W)`` (any normalisation, positive sums).
+            Pixels are signed weights: the zero-mean negative noise of a
+            background-subtracted image is kept, so that the moments stay
+            linear in the image (unbiased by the noise); clipping it at 0 would
+            leave a positive floor that widens the second moments.
         xs: Pixel-centre x [m] ``(W,)``; ``ys``: pixel-centre y [m] ``(H,)``.
         window: Optional 0/1 weights ``(K, H, W)``: only these pixels count
             (the same window for measured and predicted images keeps far-off
@@ -147,7 +151,7 @@ def image_moments(
     Returns:
         ``(K, 5)`` float64: ``<x>, <y>, <xx>, <xy>, <yy>`` [m, m, m^2...].
     """
-    w = images.to(torch.float64).clamp_min(0)
+    w = images.to(torch.float64)
     if window is not None:
         w = w * window.to(torch.float64)
     total = w.sum((-2, -1)).clamp_min(1e-300)
