@@ -75,9 +75,14 @@ def test_background_edge_estimate_removes_known_level(raw) -> None:
 
 def test_background_dark_frame(raw) -> None:
     dark = torch.full((32, 40), 0.25)
-    dark[0, 0] = 0.3  # a warm pixel in the dark frame: clamped at 0 afterwards
+    dark[0, 0] = 0.3  # a warm pixel in the dark frame: over-subtracted by 0.05
     out = subtract_background(raw, dark=dark)
-    assert out.images[0, 0, 0, 0].item() == 0.0
+    # kept signed by default (unbiased); clamped at 0 only with clip=True
+    assert out.images[0, 0, 0, 0].item() == pytest.approx(-0.05, abs=1e-6)
+    assert out.metadata["preprocessing"][-1]["clip"] is False
+    clipped = subtract_background(raw, dark=dark, clip=True)
+    assert clipped.images[0, 0, 0, 0].item() == 0.0
+    assert clipped.metadata["preprocessing"][-1]["clip"] is True
     torch.testing.assert_close(
         out.images[..., 5:, 5:], (raw.images - 0.25)[..., 5:, 5:], rtol=0, atol=1e-7
     )

@@ -12,6 +12,16 @@ one (the input is never modified) with the step and its parameters appended to
     ds = normalize(ds)
 
 Pixel intensities are in arbitrary camera units until :func:`normalize`.
+
+Background-subtracted images keep their negative pixels (the zero-mean noise
+around the true level): :func:`subtract_background`, :func:`median_filter`,
+:func:`center_centroids`, :func:`crop_to_beam` and :func:`pool` are linear or
+noise-symmetric and leave that noise signed, so image moments and the
+reconstruction's image term (which accept signed pixels) stay unbiased.
+Clipping the noise at zero instead leaves a positive floor under the whole
+image that widens the second moments (``subtract_background(clip=True)``
+does it on request). :func:`threshold` zeroes pixels by design: it removes
+the noise and also the halo below the threshold, which narrows the beam.
 """
 
 from __future__ import annotations
@@ -44,15 +54,24 @@ def _check(ds: QuadScanDataset) -> None:
         raise TypeError(f"expected a QuadScanDataset; got {type(ds).__name__}")
 
 
-def _positive_images(images: Tensor, step: str) -> Tensor:
-    """Clamp at zero; raise if a whole image vanished (nothing left to fit)."""
-    images = images.clamp_min(0.0)
+def _positive_images(images: Tensor, step: str, clip: bool = True) -> Tensor:
+    """Clamp at zero if ``clip``; raise if a whole image vanished or its sum is
+    not positive (nothing left to fit)."""
+    if clip:
+        images = images.clamp_min(0.0)
     empty = (images <= 0).flatten(2).all(dim=-1)
     if bool(empty.any()):
         k, s = (int(v) for v in torch.nonzero(empty)[0])
         raise ValueError(
             f"{step}: image of setting {k} (shot {s}) is all zero afterwards; "
             "use a weaker setting"
+        )
+    sums = images.sum(dim=(-2, -1), dtype=torch.float64)
+    if bool((sums <= 0).any()):
+        k, s = (int(v) for v in torch.nonzero(sums <= 0)[0])
+        raise ValueError(
+            f"{step}: image of setting {k} (shot {s}) sums to "
+            f"{float(sums[k, s]):g} afterwards (no beam above the background?)"
         )
     return images
 
@@ -62,8 +81,16 @@ def subtract_background(
     ds: QuadScanDataset,
     dark: Tensor | None = None,
     edge_pixels: int = 4,
+    clip: bool = False,
 ) -> QuadScanDataset:
-    """Remove the camera background and clamp negative pixels to zero.
+    """Remove the camera background; the noise stays signed unless ``clip``.
+
+    Without clipping the result is unbiased: where there is no beam, pixels
+    scatter around 0 (negative and positive) and their contribution to image
+    moments and to the reconstruction's image term averages out. Clipping at 0
+    keeps only the positive half of that noise, a floor under the whole image
+    that inflates rms sizes (and emittances) by tens of percent on a camera
+    frame where the beam fills a small part of the image.
 
     Args:
         ds: Dataset with raw images.
@@ -72,13 +99,16 @@ def subtract_background(
             median of a border band ``edge_pixels`` wide (the beam must not
             touch the border).
         edge_pixels: Width of the border band used by the edge estimate [pixels].
+        clip: Clamp negative pixels to 0 afterwards (biased; see above).
 
     Returns:
-        New dataset; the step records the method and the mean level removed.
+        New dataset; the step records the method, ``clip`` and the mean level
+        removed.
 
     Raises:
         ValueError: if ``dark`` does not broadcast, contains NaN/inf, the band
-            is wider than half the image, or an image is all zero afterwards.
+            is wider than half the image, or an image is all zero or sums to
+            <= 0 afterwards.
     """
     _check(ds)
     images = ds.images
@@ -113,8 +143,9 @@ def subtract_background(
         )
         level = band.median(dim=-1).values[..., None, None]
         step = {"step": "subtract_background", "method": "edge", "edge_pixels": e}
+    step["clip"] = bool(clip)
     step["mean_level"] = float(level.mean())
-    out = _positive_images(images - level, "subtract_background")
+    out = _positive_images(images - level, "subtract_background", clip=clip)
     return ds.with_step(step, images=out)
 
 
@@ -216,7 +247,8 @@ def threshold(
 def median_filter(ds: QuadScanDataset, size: int = 3) -> QuadScanDataset:
     """Replace each pixel by the median of its ``size x size`` neighbourhood.
 
-    Removes isolated hot pixels; borders are reflected.
+    Removes isolated hot pixels; borders are reflected. Signed (background-
+    subtracted) pixels stay signed: the median of zero-mean noise is ~0.
 
     Args:
         ds: Dataset.
@@ -236,7 +268,7 @@ def median_filter(ds: QuadScanDataset, size: int = 3) -> QuadScanDataset:
     x = F.pad(ds.images.reshape(k * s, 1, h, w), (r, r, r, r), mode="reflect")
     windows = F.unfold(x, kernel_size=size)  # (K*S, size*size, H*W)
     out = windows.median(dim=1).values.reshape(k, s, h, w)
-    out = _positive_images(out, "median_filter")
+    out = _positive_images(out, "median_filter", clip=False)
     return ds.with_step({"step": "median_filter", "size": size}, images=out)
 
 
@@ -322,7 +354,7 @@ def center_centroids(
         shifts = shifts + error
         shifted = _shift(flat, shifts)
     out = shifted.to(ds.images.dtype).reshape(k, s, h, w)
-    out = _positive_images(out, "center_centroids")
+    out = _positive_images(out, "center_centroids", clip=False)
     step = {
         "step": "center_centroids",
         "mode": mode,
@@ -354,7 +386,9 @@ def crop_to_beam(
     """
     _check(ds)
     h, w = ds.screen_shape
-    imgs = ds.images.double()
+    # the window (not the kept pixel values) from the images clipped at 0:
+    # signed noise far from the beam could make an rms extent imaginary
+    imgs = ds.images.double().clamp_min(0.0)
     cent = image_centroids(imgs)  # (K, S, 2)
     rows = torch.arange(h, dtype=torch.float64)
     cols = torch.arange(w, dtype=torch.float64)
@@ -378,7 +412,7 @@ def crop_to_beam(
     i0 = min(max(round(ci - (hh - 1) / 2), 0), h - hh)
     j0 = min(max(round(cj - (ww - 1) / 2), 0), w - ww)
     out = ds.images[..., i0 : i0 + hh, j0 : j0 + ww]
-    out = _positive_images(out, "crop_to_beam")
+    out = _positive_images(out, "crop_to_beam", clip=False)
     px, py = ds.pixel_size
     center = (
         ds.center[0] + (j0 + (ww - 1) / 2 - (w - 1) / 2) * px,
