@@ -23,6 +23,11 @@ from diffaccel import __version__
 
 #: command name -> (module, attribute, one-line help shown by ``diffaccel --help``)
 COMMANDS: dict[str, tuple[str, str, str]] = {
+    "data": (
+        "diffaccel.cli.data_cmd",
+        "data",
+        "Quad-scan files from DAQ output: camera frames, knob tables, backgrounds.",
+    ),
     "demo": (
         "diffaccel.cli.demo",
         "demo",
@@ -54,6 +59,14 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
 #: subcommand's module is imported only when it runs (``hysteresis predict``
 #: must not pay for the plotting of ``fit`` or the GP libraries of ``gp-fit``)
 SUBCOMMANDS: dict[str, dict[str, tuple[str, str, str]]] = {
+    "data": {
+        "import": (
+            "diffaccel.cli.data_cmd",
+            "import_command",
+            "Build a quad-scan file (format 2) from the DAQ files EXPERIMENT.yaml "
+            "names.",
+        ),
+    },
     "hysteresis": {
         "fit": (
             "diffaccel.cli.hysteresis_fit",
