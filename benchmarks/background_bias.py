@@ -112,9 +112,7 @@ def main() -> None:
             path.write_text(yaml.safe_dump(doc))
             imported = import_experiment(path)["scan"]
             got = _summary(imported)
-            out["cases"][name] = {
-                k: round(got[k] / truth[k] - 1.0, 4) for k in truth
-            }
+            out["cases"][name] = {k: round(got[k] / truth[k] - 1.0, 4) for k in truth}
             if args.reconstruct:
                 out["reconstruction"][name] = _reconstructed(
                     imported, scan.ground_truth

@@ -1,4 +1,4 @@
-"""``diffaccel data import``: a DAQ-like folder of camera frames into a quad-scan file."""
+"""``diffaccel data import``: a DAQ-like folder of camera frames, into a quad scan."""
 
 from __future__ import annotations
 
@@ -349,8 +349,8 @@ def test_lattice_key_without_from_lattice_is_a_clear_error(tmp_path) -> None:
     doc["scans"]["s"]["beamline"] = {"lattice": "line.lte", "start": "Q1", "end": "S"}
     path.write_text(yaml.safe_dump(doc))
     if hasattr(Beamline, "from_lattice"):
-        with pytest.raises(ExperimentError, match="line.lte"):
+        with pytest.raises(ExperimentError, match=r"line\.lte"):
             import_experiment(path)
     else:
-        with pytest.raises(ExperimentError, match="needs Beamline.from_lattice"):
+        with pytest.raises(ExperimentError, match=r"needs Beamline\.from_lattice"):
             import_experiment(path)

@@ -109,8 +109,9 @@ def write_daq_folder(
         sub = folder / name
         sub.mkdir(exist_ok=True)
 
-        def camera(signal: np.ndarray) -> np.ndarray:
-            counts = ped_map + signal + rng.normal(0.0, read_noise, (h, w))
+        def camera(signal: np.ndarray, ped_map: np.ndarray = ped_map) -> np.ndarray:
+            noise = rng.normal(0.0, read_noise, ped_map.shape)
+            counts = ped_map + signal + noise
             # camera row 0 is the top of the screen: +y
             return np.clip(np.rint(counts), 0, top).astype(dtype)[::-1, :]
 
