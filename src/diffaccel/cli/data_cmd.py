@@ -3,78 +3,17 @@
 ``data import EXPERIMENT.yaml --out DATA.h5`` reads the camera frames, knob
 tables and background frames an experiment description names (schema in
 ``docs/file_formats.md``), preprocesses them and writes one quad-scan file
-(format version 2). Nothing is written when an input is bad.
+(format version 2). Nothing is written when an input is bad. The subcommand
+lives in ``cli/data_import.py`` and is imported when it runs.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 
-from diffaccel.cli.output import check_out_file
-
-__all__ = ["data", "import_command"]
+__all__ = ["data"]
 
 
 @click.group("data")
 def data() -> None:
     """Quad-scan files from DAQ output: camera frames, knob tables, backgrounds."""
-
-
-@click.command("import")
-@click.argument(
-    "experiment", type=click.Path(exists=True, dir_okay=False, path_type=Path)
-)
-@click.option(
-    "--out",
-    required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="Quad-scan file to write (HDF5, format version 2).",
-)
-@click.option("--force", is_flag=True, help="Replace an existing --out file.")
-@click.option(
-    "--progress/--no-progress",
-    default=True,
-    show_default=True,
-    help="Show a progress bar while the frames are read.",
-)
-def import_command(experiment: Path, out: Path, force: bool, progress: bool) -> None:
-    """Build a quad-scan file (format 2) from the DAQ files EXPERIMENT.yaml names."""
-    from tqdm import tqdm
-
-    from diffaccel.data import FormatError, write_scans
-    from diffaccel.data.experiment import (
-        count_frames,
-        import_experiment,
-        load_experiment,
-    )
-
-    check_out_file(out, force, {"EXPERIMENT": experiment})
-    try:
-        total = count_frames(load_experiment(experiment), experiment.parent)
-        with tqdm(
-            total=total or None,
-            unit="frame",
-            desc="reading frames",
-            disable=not progress,
-            leave=False,
-        ) as bar:
-            dataset = import_experiment(experiment, progress=bar.update)
-        path = write_scans(dataset, out, overwrite=force)
-    except (FormatError, FileNotFoundError, ImportError, FileExistsError) as err:
-        raise click.ClickException(str(err).strip().splitlines()[0]) from err
-    click.echo(f"wrote {path}")
-    for name, scan in dataset:
-        k, s, h, w = scan.shape
-        px, py = scan.pixel_size
-        click.echo(
-            f"  scan {name}: {k} settings x {s} shots, {h} x {w} pixels of "
-            f"{px * 1e6:.4g} x {py * 1e6:.4g} um, knobs {', '.join(scan.setting_names)}"
-        )
-    steps = [
-        s["step"]
-        for s in dataset.metadata.get("preprocessing", [])
-        if s.get("scan") == dataset.names[0]
-    ]
-    click.echo(f"  preprocessing ({dataset.names[0]}): {' -> '.join(steps)}")

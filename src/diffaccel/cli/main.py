@@ -61,7 +61,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
 SUBCOMMANDS: dict[str, dict[str, tuple[str, str, str]]] = {
     "data": {
         "import": (
-            "diffaccel.cli.data_cmd",
+            "diffaccel.cli.data_import",
             "import_command",
             "Build a quad-scan file (format 2) from the DAQ files EXPERIMENT.yaml "
             "names.",

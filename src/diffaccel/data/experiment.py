@@ -45,6 +45,7 @@ from diffaccel.data.errors import FormatError
 from diffaccel.data.images_io import Frame, read_frame
 from diffaccel.data.quad_scan import QuadScanDataset
 from diffaccel.data.scans import MultiScanDataset
+from diffaccel.dynamics import Beamline
 
 __all__ = [
     "DEFAULT_PREPROCESSING",
@@ -186,8 +187,6 @@ def _beamline_spec(value: Any, base: Path, where: str) -> list[dict]:
         if not isinstance(spec, list):
             raise ExperimentError(f"{path}: expected a JSON list of elements")
         return spec
-    from diffaccel.dynamics import Beamline
-
     path = base / str(cfg["lattice"])
     if not hasattr(Beamline, "from_lattice"):
         raise ExperimentError(
