@@ -24,6 +24,8 @@ from diffaccel.reconstruction.metrics import (
     COORDINATES,
     image_errors,
     moment_errors,
+    prediction_noise_l1,
+    shot_noise_l1,
     sliced_wasserstein,
 )
 from diffaccel.reconstruction.pipeline import as_scans
@@ -232,6 +234,7 @@ def evaluate(
     n_sample: int = 100_000,
     sample: Tensor | None = None,
     on_screen: Mapping[str, Tensor] | None = None,
+    prediction_particles: int = 50_000,
 ) -> dict[str, Any]:
     """Moments, image errors per scan and ground-truth errors of a reconstruction.
 
@@ -252,11 +255,19 @@ def evaluate(
             the ``predicted`` images (``predict_dataset(return_on_screen=True)``);
             computed with the images when ``predicted`` is None, not checked
             when only ``predicted`` is given.
+        prediction_particles: Particles per member behind ``predicted``
+            (:func:`predict_dataset`'s ``n_particles``), for the predictions'
+            own noise.
 
     Returns:
         JSON-ready dict: ``scans`` (per scan: ``train_indices``,
         ``held_out_indices``, ``images_train``, ``images_held_out`` from
-        :func:`~diffaccel.reconstruction.image_errors`, and with the fractions
+        :func:`~diffaccel.reconstruction.image_errors` with, beside each
+        error, ``prediction_noise_l1`` (what the predicted images' own sampling
+        noise adds, :func:`~diffaccel.reconstruction.metrics.prediction_noise_l1`)
+        and ``data_noise_l1`` (the measurement's floor from its shots,
+        :func:`~diffaccel.reconstruction.metrics.shot_noise_l1`; None for
+        single-shot data), and with the fractions
         ``fraction_on_screen`` per setting), ``metrics``
         (``images_train``/``images_held_out`` pooled over all scans,
         ``ground_truth`` from :func:`~diffaccel.reconstruction.moment_errors`
@@ -294,12 +305,23 @@ def evaluate(
         meas = scan.mean_images()
         p = pred[name]
         entry: dict[str, Any] = {"train_indices": train, "held_out_indices": test}
-        if train:
-            entry["images_train"] = image_errors(p[train], meas[train])
-            train_parts.append((p[train], meas[train]))
-        if test:
-            entry["images_held_out"] = image_errors(p[test], meas[test])
-            test_parts.append((p[test], meas[test]))
+        kappa = ScreenForwardModel.from_dataset(
+            scan, blur_pixels=result.config.blur_for(scan)
+        ).pixel_kernel_sum_sq()
+        own = prediction_noise_l1(p, kappa, prediction_particles * result.n_snapshots)
+        floor = shot_noise_l1(scan.images)
+        for key, rows, parts in (
+            ("images_train", train, train_parts),
+            ("images_held_out", test, test_parts),
+        ):
+            if not rows:
+                continue
+            entry[key] = image_errors(p[rows], meas[rows])
+            entry[key]["prediction_noise_l1"] = float(own[rows].mean())
+            entry[key]["data_noise_l1"] = (
+                None if floor is None else float(floor[rows].mean())
+            )
+            parts.append((p[rows], meas[rows]))
         if on_screen is not None:
             fraction = on_screen[name]
             entry["fraction_on_screen"] = _rounded(fraction)

@@ -512,8 +512,6 @@ class ReconstructionConfig:
         ):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, getattr(defaults, name))
-        if self.loss_smoothing is None:
-            object.__setattr__(self, "loss_smoothing", defaults.loss_smoothing)
         if self.penalty_end is None:
             object.__setattr__(self, "penalty_end", defaults.penalty_end)
         if not (self.penalty_start > 0 and self.penalty_end > 0):
@@ -593,8 +591,14 @@ class ReconstructionConfig:
             raise ValueError(
                 f"image_loss must be 'l1', 'l2' or 'kl'; got {self.image_loss!r}."
             )
-        if not self.loss_smoothing >= 0:
-            raise ValueError(f"loss_smoothing must be >= 0; got {self.loss_smoothing}.")
+        if self.loss_smoothing is not None and not (
+            math.isfinite(self.loss_smoothing)
+            and 0 <= self.loss_smoothing <= MAX_BLUR_PIXELS
+        ):
+            raise ValueError(
+                f"loss_smoothing must be in [0, {MAX_BLUR_PIXELS:g}] pixels or None "
+                f"(sized by the data); got {self.loss_smoothing}."
+            )
         if (
             self.blur_pixels is not None
             and not 0 <= self.blur_pixels <= MAX_BLUR_PIXELS
@@ -844,20 +848,171 @@ def _kl_offset(c: float, forward: ScreenForwardModel, n: int) -> float:
     return c * forward.pixel_kernel_sum_sq() / n if c > 0 else 0.0
 
 
+def image_rms_pixels(measured: Tensor) -> float:
+    """Largest rms beam size [pixels] over images ``(K, H, W)`` and both axes.
+
+    Negative pixels (noise left by a background subtraction) count as zero.
+
+    Example:
+        >>> im = torch.zeros(1, 5, 5); im[0, 2, 1] = im[0, 2, 3] = 0.5
+        >>> image_rms_pixels(im)
+        1.0
+    """
+    w = measured.detach().to(torch.float64).clamp_min(0.0)
+    total = w.sum((-2, -1)).clamp_min(1e-300)
+    rms = []
+    for axis, n in ((-1, w.shape[-1]), (-2, w.shape[-2])):
+        marginal = w.sum(-2 if axis == -1 else -1) / total[:, None]  # (K, n)
+        idx = torch.arange(n, dtype=torch.float64, device=w.device)
+        mean = (marginal * idx).sum(-1, keepdim=True)
+        rms.append(((marginal * (idx - mean) ** 2).sum(-1)).sqrt())
+    return float(torch.stack(rms).max())
+
+
+def sampling_smoothing(measured: Tensor, n_particles: int, floor: float = 0.0) -> float:
+    """Rms [pixels] of the Gaussian that compares ``n_particles``' images fairly.
+
+    An image of ``N`` sampled particles is a histogram whose pixel noise grows as
+    the pixels get finer or the beam larger; a divergence between such a sparse
+    image and a measured one is lowest for a beam wider than the one sampled
+    (its tails cover more measured pixels), so the fitted beam would depend on
+    the camera's pixel size. Smoothing both images with the bandwidth at which
+    a kernel density estimate of ``N`` samples is consistent removes that
+    dependence: Scott's/Silverman's rule for two dimensions,
+    ``h = sigma N^(-1/6)``, with ``sigma`` the largest rms size of the scan's
+    images (:func:`image_rms_pixels`), so that every image of the scan is
+    compared at a resolution its sample supports. Both sides get the same
+    Gaussian, so second moments are unchanged (each gains ``h^2``); the result
+    depends on the beam size in pixels and ``N`` only, not on how finely the
+    camera samples it. ``floor`` (the point spread the images need anyway) is
+    added in quadrature.
+
+    Args:
+        measured: Measured images of one scan ``(K, H, W)``.
+        n_particles: Particles per training step ``N``.
+        floor: Smoothing applied regardless [pixels].
+
+    Returns:
+        ``hypot(floor, sigma N^(-1/6))`` [pixels].
+
+    Example:
+        >>> im = torch.zeros(1, 64, 64); im[0, 32, 22] = im[0, 32, 42] = 0.5
+        >>> round(sampling_smoothing(im, 4096), 3)
+        2.5
+    """
+    if n_particles < 1:
+        raise ValueError(f"n_particles must be >= 1; got {n_particles}.")
+    h = image_rms_pixels(measured) * float(n_particles) ** (-1.0 / 6.0)
+    return float(min(math.hypot(floor, h), MAX_BLUR_PIXELS))
+
+
+def loss_smoothing_for(
+    config: ReconstructionConfig, measured: Sequence[Tensor]
+) -> list[float]:
+    """Loss smoothing [pixels] of each scan: ``config.loss_smoothing`` when set,
+    else :func:`sampling_smoothing` of the scan's images at ``n_particles`` with
+    the floor of ``config.dims`` (0 for 4D; 1 pixel for 6D, whose images are
+    histograms of spots down to about a pixel)."""
+    if config.loss_smoothing is not None:
+        return [float(config.loss_smoothing)] * len(measured)
+    floor = _DIMS_DEFAULTS[config.dims].loss_smoothing
+    return [sampling_smoothing(m, config.n_particles, floor) for m in measured]
+
+
+#: Loss-smoothing rms per pixel of the compared images: a scan whose smoothing
+#: is ``sigma`` camera pixels is compared on pixels ``p = floor(sigma /
+#: LOSS_SMOOTHING_PER_PIXEL)`` times larger (sums of ``p x p`` camera pixels),
+#: where the Gaussian is still sampled by two pixels per rms; the comparison
+#: keeps its resolution and costs ``p^2`` times fewer pixels.
+LOSS_SMOOTHING_PER_PIXEL = 2.0
+
+
+def pool_images(images: Tensor, factor: int) -> tuple[Tensor, tuple[int, int]]:
+    """Sums of ``factor x factor`` pixels of images ``(*K, H, W)``.
+
+    The images are padded with zeros to a multiple of ``factor`` (half of the
+    padding before, the rest after, per axis). Returns the pooled images
+    ``(*K, ceil(H / f), ceil(W / f))`` and the padding before ``(rows,
+    columns)``, from which :func:`pooled_screen` places the coarse pixels.
+
+    Example:
+        >>> pool_images(torch.ones(1, 4, 5), 2)[0]
+        tensor([[[4., 4., 2.],
+                 [4., 4., 2.]]])
+    """
+    f = int(factor)
+    h, w = images.shape[-2:]
+    ph, pw = (-h) % f, (-w) % f
+    before = (ph // 2, pw // 2)
+    padded = torch.nn.functional.pad(
+        images, (before[1], pw - before[1], before[0], ph - before[0])
+    )
+    lead = padded.shape[:-2]
+    hp, wp = padded.shape[-2:]
+    pooled = padded.reshape(*lead, hp // f, f, wp // f, f).sum((-3, -1))
+    return pooled, before
+
+
+def pooled_screen(
+    forward: ScreenForwardModel, factor: int, before: tuple[int, int]
+) -> tuple[tuple[int, int], tuple[float, float], tuple[float, float]]:
+    """Shape, pixel size [m] and centre [m] of ``forward``'s screen pooled by
+    ``factor`` with the padding ``before`` of :func:`pool_images`."""
+    f = int(factor)
+    h, w = forward.screen.shape
+    psx, psy = forward.screen.pixel_size
+    cx, cy = forward.screen.center
+    hc, wc = -(-h // f), -(-w // f)
+    shift_y = ((hc * f - h) / 2 - before[0]) * psy
+    shift_x = ((wc * f - w) / 2 - before[1]) * psx
+    return (hc, wc), (f * psx, f * psy), (cx + shift_x, cy + shift_y)
+
+
 def smoothed_for_loss(
-    forwards: list[ScreenForwardModel], measured: list[Tensor], sigma_px: float
+    forwards: list[ScreenForwardModel],
+    measured: list[Tensor],
+    sigma_px: float | Sequence[float],
 ) -> tuple[list[ScreenForwardModel], list[Tensor]]:
-    """Forward models and measured images both smoothed by ``sigma_px`` pixels."""
+    """Forward models and measured images both smoothed by ``sigma_px`` camera
+    pixels (one value for all scans, or one per scan), as the image term
+    compares them.
+
+    A scan smoothed by at least ``2 LOSS_SMOOTHING_PER_PIXEL`` pixels is
+    compared on pooled pixels (:func:`pool_images`): the measured images are
+    summed over ``p x p`` pixels and the simulated ones are deposited on the
+    coarse pixels, with point spreads that keep both sides' total variance
+    equal: the camera's own (``blur_pixels``), the pooling's ``(p^2 - 1) / 12``
+    and the smoothing's ``sigma^2`` [camera pixels^2].
+    """
+    sigmas = (
+        [float(sigma_px)] * len(forwards)
+        if isinstance(sigma_px, int | float)
+        else [float(v) for v in sigma_px]
+    )
     out_f, out_m = [], []
-    for f, m in zip(forwards, measured, strict=True):
-        total = math.hypot(f.blur_pixels, sigma_px)
+    for f, m, sigma in zip(forwards, measured, sigmas, strict=True):
+        if sigma <= 0:
+            out_f.append(f)
+            out_m.append(m)
+            continue
+        p = max(1, int(sigma // LOSS_SMOOTHING_PER_PIXEL))
+        beamline = f.beamline
+        if p > 1:
+            m, before = pool_images(m, p)
+            shape, pixel, center = pooled_screen(f, p, before)
+            beamline = beamline.with_screen(f.screen.name, shape, pixel, center)
+        variance = f.blur_pixels**2 + (p * p - 1) / 12.0 + sigma**2
         out_f.append(
             ScreenForwardModel(
-                f.beamline, f.names, f.p0c, species=f.species, blur_pixels=total
+                beamline,
+                f.names,
+                f.p0c,
+                species=f.species,
+                blur_pixels=min(math.sqrt(variance) / p, MAX_BLUR_PIXELS),
             )
         )
-        psx, psy = f.screen.pixel_size
-        blurred = gaussian_blur(m, (sigma_px * psx, sigma_px * psy), (psx, psy))
+        psx, psy = (v * p for v in f.screen.pixel_size)
+        blurred = gaussian_blur(m, (sigma * psx / p, sigma * psy / p), (psx, psy))
         # not renormalised: mass blurred off the screen is lost on both sides
         out_m.append(blurred)
     return out_f, out_m
@@ -1027,10 +1182,9 @@ def train_generator(
     device = torch.device(device) if device is not None else measured_list[0].device
     measured_list = [m.to(device=device, dtype=torch.float32) for m in measured_list]
     settings_list = [s.to(device=device) for s in settings_list]
-    if config.loss_smoothing > 0:
-        forwards, measured_list = smoothed_for_loss(
-            forwards, measured_list, config.loss_smoothing
-        )
+    forwards, measured_list = smoothed_for_loss(
+        forwards, measured_list, loss_smoothing_for(config, measured_list)
+    )
     forwards = [f.to(device) for f in forwards]
     gen_rng = torch.Generator(device=device).manual_seed(config.seed)
     init_rng = torch.Generator().manual_seed(config.seed)
