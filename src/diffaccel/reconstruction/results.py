@@ -1,0 +1,411 @@
+"""A reconstruction as a result folder, and the policy that resumes one.
+
+:func:`write_result` turns a trained :class:`Reconstruction` into the files
+of a result folder: ``ensemble.pt``, ``particles.h5`` (openPMD), the figures
+(drawn by callbacks, see :class:`ResultFigures`) and ``summary.json`` (the
+numbers of :func:`~diffaccel.reconstruction.evaluate`). It writes into a
+folder it is given, normally the staging folder of
+:func:`diffaccel.data.result_folder`, which swaps the files in together.
+
+A run that trains with a checkpoint stores its training settings beside it
+(:data:`SELECTION`), so that a resume needs no ``train_indices``; the
+``resume_*`` functions decide what a resume continues and refuse what it
+cannot (other options, other settings, no checkpoint), each with a one-line
+:class:`ResumeError`.
+
+Example:
+    >>> import tempfile
+    >>> from diffaccel.data import make_synthetic_quad_scan, result_folder
+    >>> from diffaccel.reconstruction import (
+    ...     ReconstructionConfig, as_scans, reconstruct, training_selection)
+    >>> ds = as_scans(make_synthetic_quad_scan(
+    ...     "gaussian", n_particles=500, n_settings=4, screen_shape=(16, 16),
+    ...     pixel_size=(1e-3, 1e-3), seed=1))
+    >>> config = ReconstructionConfig(n_particles=256, steps=4, snapshots=2)
+    >>> selection = training_selection(ds, "all")
+    >>> result = reconstruct(ds, config, train_indices=selection, uncertainty=False)
+    >>> out = Path(tempfile.mkdtemp()) / "run"
+    >>> with result_folder(out, command="reconstruct", owned=OWNED) as folder:
+    ...     summary = write_result(result, ds, folder.path, dataset_path="scan.h5",
+    ...                            train_indices=selection, uncertainty=False)
+    >>> sorted(p.name for p in out.iterdir())  # doctest: +NORMALIZE_WHITESPACE
+    ['.diffaccel-result', 'ensemble.pt', 'particles.h5', 'summary.json']
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from diffaccel.data import MultiScanDataset, atomic_write_json, partial_folder
+from diffaccel.data.particles_io import write_openpmd_particles
+from diffaccel.reconstruction.background import can_fork, in_child
+from diffaccel.reconstruction.ensemble import Reconstruction
+from diffaccel.reconstruction.evaluation import evaluate, predict_dataset
+from diffaccel.reconstruction.pipeline import training_selection
+from diffaccel.reconstruction.training import ReconstructionConfig, checkpoint_config
+
+__all__ = [
+    "CHECKPOINT",
+    "CONFIG_OPTIONS",
+    "OWNED",
+    "PARTICLES_SAMPLE",
+    "SELECTION",
+    "ResultFigures",
+    "ResultWriteError",
+    "ResumeError",
+    "discard_selection",
+    "prior_dependence_lines",
+    "resume_checkpoint",
+    "resume_config",
+    "resume_selection",
+    "store_selection",
+    "stored_config",
+    "write_result",
+]
+
+#: The checkpoint file of a run, in its (staging) folder.
+CHECKPOINT = "checkpoint.pt"
+#: The training settings of a run, written beside its checkpoint so that a
+#: resume needs no ``train_indices``: JSON ``{"train_indices": {scan: [i, ...]}}``.
+SELECTION = "selection.json"
+#: Files a reconstruction writes (a folder of only these is an earlier result).
+OWNED = (
+    "ensemble.pt",
+    "summary.json",
+    "particles.h5",
+    CHECKPOINT,
+    SELECTION,
+    "checkpoint.rank*.pt",  # the other processes' of a members-split run
+    "*.png",
+)
+#: Config fields that the ``reconstruct`` command sets, and its options for them.
+CONFIG_OPTIONS = {
+    "dims": "--dims",
+    "n_particles": "--particles",
+    "steps": "--steps",
+    "snapshots": "--snapshots",
+    "seed": "--seed",
+    "image_loss": "--image-loss",
+    "blur_pixels": "--blur",
+    "place_coupling": "--uncoupled",
+    "probe_unseen": "--probe",
+}
+#: Particles of ``particles.h5``: the sample that :func:`evaluate` compares
+#: with the ground truth (drawn once, seed 0).
+PARTICLES_SAMPLE = 100_000
+
+
+class ResumeError(ValueError):
+    """A run cannot be resumed as asked (the message says why, in one line)."""
+
+
+class ResultWriteError(ValueError):
+    """The result cannot be written as computed (e.g. particles not moving forward)."""
+
+
+@dataclass(frozen=True)
+class ResultFigures:
+    """The figures of a result folder, drawn by callbacks (plotting lives above).
+
+    Attributes:
+        summary: ``summary(result, dataset, folder) -> names``: the figures
+            that need only the result (corner plot, training curves...). Run
+            in a forked child (:func:`~diffaccel.reconstruction.background.in_child`)
+            while the parent predicts and evaluates, where that is possible.
+        images: ``images(dataset, train_indices, folder, predicted,
+            predicted_std) -> names``: the measured-vs-predicted image figures
+            (``predicted_std`` None without uncertainty).
+    """
+
+    summary: Callable[[Reconstruction, MultiScanDataset, Path], list[str]]
+    images: Callable[
+        [
+            MultiScanDataset,
+            Mapping[str, Sequence[int]],
+            Path,
+            dict[str, torch.Tensor],
+            dict[str, torch.Tensor] | None,
+        ],
+        list[str],
+    ]
+
+
+@contextmanager
+def _torch_threads(n: int) -> Iterator[None]:
+    """torch's intra-op threads at most ``n`` in the block."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(min(n, before))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def write_result(
+    result: Reconstruction,
+    dataset: MultiScanDataset,
+    folder: str | os.PathLike,
+    *,
+    dataset_path: str | os.PathLike,
+    train_indices: Mapping[str, Sequence[int]],
+    uncertainty: bool = True,
+    figures: ResultFigures | None = None,
+    fork: bool = True,
+    started: float | None = None,
+    train_seconds: float | None = None,
+) -> dict[str, Any]:
+    """Write a trained reconstruction into ``folder``; returns the summary.
+
+    Writes ``ensemble.pt`` (:meth:`Reconstruction.save`), ``particles.h5``
+    (:data:`PARTICLES_SAMPLE` particles in openPMD, seed 0), the figures of
+    ``figures`` and ``summary.json`` (:func:`evaluate` of the dataset, plus
+    ``dataset``, ``particles_file``, ``figures`` and the wall times
+    ``timings_s.total_wall``/``reconstruct_wall`` [s]), each atomically.
+    ``folder`` must exist; files of these names are replaced.
+
+    With ``figures`` and ``uncertainty`` the predicted images carry their
+    per-pixel spread (drawn by ``figures.images``; its time is
+    ``timings_s.image_spread``). The summary figures are drawn in a forked
+    child while this process evaluates (``fork`` and where
+    :func:`~diffaccel.reconstruction.background.can_fork`), torch running on
+    one thread meanwhile; an error there fails the call.
+
+    Args:
+        result: The trained reconstruction (its ``info`` gets ``dataset``).
+        dataset: The scans it was trained on (all settings: the held-out ones
+            are scored).
+        folder: Where to write.
+        dataset_path: The dataset's file, recorded in the summary.
+        train_indices: The training settings per scan (the others are held out).
+        uncertainty: Predict the per-pixel spread for the image figures.
+        figures: The figure callbacks; None writes no figure.
+        fork: Allow the summary figures to be drawn in a forked child.
+        started: ``time.perf_counter()`` at the start of the run (default: now).
+        train_seconds: Wall time of training [s] (default: 0 when not given).
+
+    Raises:
+        ResultWriteError: the particles cannot be written (e.g. no forward
+            motion, a wrong calibration).
+        RuntimeError: a figure drawn in the child failed (its error as one line).
+        OSError: a file cannot be written (the folder's files may be partial:
+            write into a staging folder).
+    """
+    folder = Path(folder)
+    t0 = time.perf_counter() if started is None else started
+    result.info["dataset"] = str(dataset_path)
+    result.save(folder, overwrite=True)
+    with ExitStack() as stack:
+        figures_done = None
+        if figures is not None:
+            in_fork = fork and can_fork()
+            figures_done = stack.enter_context(
+                in_child(
+                    partial(figures.summary, result, dataset, folder), fork=in_fork
+                )
+            )
+            if in_fork:
+                # an OpenMP team that shares its cores with the child waits
+                # for it at every kernel
+                stack.enter_context(_torch_threads(1))
+        spread = None
+        if figures is not None and uncertainty:
+            t_std = time.perf_counter()
+            predicted, spread, on_screen = predict_dataset(
+                result, dataset, return_std=True, return_on_screen=True
+            )
+            result.info["timings_s"]["image_spread"] = time.perf_counter() - t_std
+        else:
+            predicted, on_screen = predict_dataset(
+                result, dataset, return_on_screen=True
+            )
+        particles = result.sample(PARTICLES_SAMPLE)
+        summary = evaluate(
+            result,
+            dataset,
+            train_indices=train_indices,
+            predicted=predicted,
+            n_sample=PARTICLES_SAMPLE,
+            sample=particles,
+            on_screen=on_screen,
+        )
+        summary["dataset"] = str(dataset_path)
+        try:
+            parts = write_openpmd_particles(
+                folder / "particles.h5",
+                particles,
+                dataset.p0c,
+                dataset.species,
+                overwrite=True,
+            )
+        except ValueError as err:
+            raise ResultWriteError(str(err)) from err
+        summary["particles_file"] = parts.name
+        if figures_done is not None:
+            images = figures.images(dataset, train_indices, folder, predicted, spread)
+            summary["figures"] = figures_done() + images
+    summary["timings_s"]["total_wall"] = time.perf_counter() - t0
+    summary["timings_s"]["reconstruct_wall"] = (
+        0.0 if train_seconds is None else train_seconds
+    )
+    atomic_write_json(folder / "summary.json", summary)
+    return summary
+
+
+# ----------------------------------------------------------------- resume policy
+def store_selection(folder: str | os.PathLike, selection: Mapping[str, Any]) -> Path:
+    """Write the run's training settings (:data:`SELECTION`) into ``folder``."""
+    return atomic_write_json(
+        Path(folder) / SELECTION, {"train_indices": dict(selection)}
+    )
+
+
+def discard_selection(folder: str | os.PathLike) -> None:
+    """Remove :data:`SELECTION` from ``folder`` (a run that left nothing to resume)."""
+    (Path(folder) / SELECTION).unlink(missing_ok=True)
+
+
+def resume_checkpoint(out: str | os.PathLike) -> Path:
+    """The checkpoint a resume into ``out`` continues: staging folder's, else ``out``'s.
+
+    Raises:
+        ResumeError: neither holds a checkpoint (naming what to do instead).
+    """
+    out = Path(out)
+    found = [
+        d / CHECKPOINT for d in (partial_folder(out), out) if (d / CHECKPOINT).is_file()
+    ]
+    if not found:
+        # a run killed before its first checkpoint leaves a staging folder
+        # that a run without --resume refuses until --force discards it
+        fresh = "run without --resume"
+        if partial_folder(out).exists():
+            fresh = "run with --force instead of --resume to discard it"
+        raise ResumeError(
+            f"--resume: no {CHECKPOINT} in {out} or {partial_folder(out)} (an "
+            f"interrupted run keeps it there); {fresh}."
+        )
+    return found[0]
+
+
+def stored_config(checkpoint: str | os.PathLike) -> ReconstructionConfig:
+    """The config stored in ``checkpoint``.
+
+    Raises:
+        ResumeError: the file is not a checkpoint or its config is damaged.
+    """
+    try:
+        return checkpoint_config(checkpoint)
+    except ValueError as err:
+        raise ResumeError(f"cannot resume: {err}") from err
+
+
+def resume_config(
+    stored: ReconstructionConfig, config: ReconstructionConfig, given: set[str]
+) -> ReconstructionConfig:
+    """The config to resume with: the checkpoint's (``stored``), checked against
+    the options given.
+
+    ``given`` holds the option flags the user gave (:data:`CONFIG_OPTIONS`'
+    values); those whose value in ``config`` differs from the checkpoint's are
+    refused, naming both values.
+
+    Raises:
+        ResumeError: naming each option that differs.
+    """
+    clash = [
+        f"{flag} {getattr(config, key)} (checkpoint: {getattr(stored, key)})"
+        for key, flag in CONFIG_OPTIONS.items()
+        if flag in given and getattr(config, key) != getattr(stored, key)
+    ]
+    if clash:
+        raise ResumeError(
+            "--resume continues the checkpoint's run, which used other options: "
+            + "; ".join(clash)
+            + ". Drop these options (or give the checkpoint's values) to resume, or "
+            "use --force without --resume to start a new run."
+        )
+    return stored
+
+
+def resume_selection(
+    folder: str | os.PathLike,
+    dataset: MultiScanDataset,
+    selection: dict[str, list[int]],
+    given: bool,
+) -> dict[str, list[int]]:
+    """The training settings to resume with: those the run stored in ``folder``.
+
+    A run that stored its selection (:data:`SELECTION`) resumes with it:
+    without ``train_indices`` given (``given`` False) it is taken from there,
+    a different one given is refused naming both. A run without the file
+    resumes with the ``selection`` given (default: all).
+
+    Raises:
+        ResumeError: the stored file does not fit the dataset, or another
+            selection was given.
+    """
+    path = Path(folder) / SELECTION
+    if not path.is_file():
+        return selection
+    try:
+        stored = json.loads(path.read_text())["train_indices"]
+        stored = training_selection(dataset, stored)
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise ResumeError(
+            f"cannot resume: {path} does not hold this dataset's training settings "
+            f"({err}); was the run made with another file?"
+        ) from err
+    if given and dict(stored) != dict(selection):
+        raise ResumeError(
+            "--resume continues the checkpoint's run, which trained on other "
+            f"settings: --train-indices gives {dict(selection)}, the run used "
+            f"{dict(stored)}. Drop --train-indices to resume, or use --force "
+            "without --resume to start a new run."
+        )
+    return stored
+
+
+# ------------------------------------------------------------------ summary text
+def _percent(change: dict | None, key: str) -> str:
+    return "n/a" if change is None else f"{100 * change[key]:+.0f} %"
+
+
+def prior_dependence_lines(entries: list[dict]) -> list[str]:
+    """One line per unseen correlation of the summary's ``prior_dependence``:
+    its value and how the moments would differ at the other listed values.
+
+    Example:
+        >>> entry = {"pair": "px-pz", "moves": "rms_pz", "partial_correlation": 0.0,
+        ...          "if_partial_correlation": [
+        ...              {"partial_correlation": -0.1, "relative_change": None},
+        ...              {"partial_correlation": 0.1, "relative_change": {
+        ...                  "rms_pz": 0.02, "emit_z": 0.15, "emit_6d": 0.14}}]}
+        >>> print(prior_dependence_lines([entry])[0])  # doctest: +NORMALIZE_WHITESPACE
+        set by the prior, not the images: px-pz partial correlation +0.00; with
+        -0.10 / +0.10 instead the same images fit emit_z n/a / +15 %, rms_pz
+        n/a / +2 %, emit_6d n/a / +14 %
+    """
+    lines = []
+    for e in entries:
+        at = e["if_partial_correlation"]
+        where = " / ".join(f"{a['partial_correlation']:+.2f}" for a in at)
+        fits = ", ".join(
+            f"{key} " + " / ".join(_percent(a["relative_change"], key) for a in at)
+            for key in ("emit_z", e["moves"], "emit_6d")
+        )
+        lines.append(
+            f"set by the prior, not the images: {e['pair']} partial correlation "
+            f"{e['partial_correlation']:+.2f}; with {where} instead the same "
+            f"images fit {fits}"
+        )
+    return lines
