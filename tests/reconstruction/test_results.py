@@ -79,6 +79,7 @@ def test_cli_and_library_write_byte_identical_summaries(
         ".diffaccel-result",
         "ensemble.pt",
         "particles.h5",
+        "report.md",
         "summary.json",
     }
 

@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import click
 import numpy as np
 import torch
 
-from diffaccel.cli.output import check_out_file
+from diffaccel.cli.output import check_out_file, os_error
 from diffaccel.cli.reconstruct import echo_warnings
 from diffaccel.data import FormatError, atomic_write, read_scans, write_scans
+from diffaccel.data.owned_files import mark_npz, save_npy
 from diffaccel.reconstruction import (
     check_on_screen,
     load,
@@ -22,6 +24,15 @@ from diffaccel.reconstruction import (
 __all__ = ["parse_settings", "predict"]
 
 
+def _write(path: Path, save: Callable[[Path], None]) -> None:
+    """``save`` into ``path`` atomically (folder made); OS conditions as one line."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write(path, save)
+    except OSError as err:  # read-only folder, disk full...
+        raise os_error(err, path) from err
+
+
 def _write_spread(path: Path, spread: dict[str, torch.Tensor]) -> None:
     """Per-pixel spreads as .npy (one scan) or .npz (one array per scan), atomically."""
     arrays = {k: v.detach().cpu().numpy().astype(np.float32) for k, v in spread.items()}
@@ -29,16 +40,17 @@ def _write_spread(path: Path, spread: dict[str, torch.Tensor]) -> None:
         raise click.ClickException(
             f"--std-out {path}: {len(arrays)} scans; write them to an .npz file"
         )
-    path.parent.mkdir(parents=True, exist_ok=True)
 
     def _save(p: Path) -> None:
         with p.open("wb") as f:
             if path.suffix.lower() == ".npy":
-                np.save(f, next(iter(arrays.values())))
+                save_npy(f, next(iter(arrays.values())))
             else:
                 np.savez(f, **arrays)
+        if path.suffix.lower() != ".npy":
+            mark_npz(p)
 
-    atomic_write(path, _save)
+    _write(path, _save)
     click.echo(f"wrote {path}: per-pixel spread of {len(arrays)} scan(s)")
 
 
@@ -227,21 +239,20 @@ def predict(
             except ValueError as err:
                 raise click.ClickException(str(err)) from err
         array = images.numpy().astype(np.float32)
-        out.parent.mkdir(parents=True, exist_ok=True)
 
         def _save(p: Path) -> None:
             with p.open("wb") as f:
-                np.save(f, array)
+                save_npy(f, array)
 
-        atomic_write(out, _save)
+        _write(out, _save)
         k, h, w = images.shape
         click.echo(f"wrote {out}: {k} images of {h} x {w} pixels")
         if std_out is not None:
             _write_spread(std_out, spread)
         echo_warnings(warnings)
         return
-    out.parent.mkdir(parents=True, exist_ok=True)
     try:
+        out.parent.mkdir(parents=True, exist_ok=True)
         written = write_scans(
             predicted_dataset(
                 other, predicted, source=str(result_dir), on_screen=on_screen
@@ -251,6 +262,8 @@ def predict(
         )
     except (FormatError, ValueError) as err:
         raise click.ClickException(str(err)) from err
+    except OSError as err:  # read-only folder, disk full...
+        raise os_error(err, out) from err
     n = sum(v.shape[0] for v in predicted.values())
     click.echo(
         f"wrote {written}: {n} predicted images in {len(predicted)} scan(s) "

@@ -45,11 +45,16 @@ from diffaccel.reconstruction.results import (
     CHECKPOINT,
     CONFIG_OPTIONS,
     OWNED,
+    REPORT,
     SELECTION,
     ResultFigures,
     ResultWriteError,
     ResumeError,
+    bunch_charge,
+    check_finished_run,
+    clean_for_resume,
     discard_selection,
+    headline_lines,
     prior_dependence_lines,
     resume_checkpoint,
     resume_config,
@@ -236,6 +241,7 @@ def run_reconstruction(
     distributed: bool = False,
     split: str = "particles",
     uncertainty: bool = True,
+    charge_C: float | None = None,
 ) -> dict[str, Any]:
     """Reconstruct with a progress bar, then write the result into ``folder``.
 
@@ -245,7 +251,8 @@ def run_reconstruction(
     (an initialised ``torch.distributed`` group) every process trains its share
     (``split``) and only process 0 writes; the others return an empty dict.
     ``uncertainty``: attach the moment-space posterior (calibrated ``std``);
-    without it ``std`` is the ensemble scatter only.
+    without it ``std`` is the ensemble scatter only. ``charge_C``: bunch charge
+    of ``particles.h5`` [C] (default: the dataset's, else 1 pC).
     """
     writer = not distributed or tdist.get_rank() == 0
     t0 = time.perf_counter()
@@ -268,6 +275,8 @@ def run_reconstruction(
         )
         bar.refresh()
 
+    if writer and resume:  # only the checkpoint and selection of a kept attempt
+        clean_for_resume(folder)
     stored = resume and (folder / SELECTION).is_file()
     if writer and not resume:  # a resumed run has its own (or, older, none)
         store_selection(folder, selection)
@@ -316,6 +325,7 @@ def run_reconstruction(
             fork=not distributed,
             started=t0,
             train_seconds=time.perf_counter() - t0,
+            charge_C=charge_C,
         )
     except ResultWriteError as err:  # e.g. no forward motion: a wrong calibration
         raise click.ClickException(str(err)) from err
@@ -410,6 +420,14 @@ def run_reconstruction(
 )
 @click.option("--no-figures", is_flag=True, help="Skip the PNG figures.")
 @click.option(
+    "--charge",
+    "charge_pc",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="Bunch charge [pC] of the particles in particles.h5 [default: the "
+    "dataset's metadata charge_C where recorded, else 1 pC].",
+)
+@click.option(
     "--uncertainty/--no-uncertainty",
     default=True,
     show_default=True,
@@ -466,6 +484,7 @@ def reconstruct_command(
     resume: bool,
     distributed: bool,
     split: str,
+    charge_pc: float | None,
 ) -> None:
     """Reconstruct a beam's phase space from the quad-scan file DATASET.
 
@@ -513,22 +532,41 @@ def reconstruct_command(
     except ValueError as err:
         raise click.ClickException(str(err)) from err
     ds = read_dataset(dataset)
+    charge_C = None if charge_pc is None else charge_pc * 1e-12
+    try:
+        bunch_charge(ds, charge_C)  # a bad recorded charge refused before training
+    except ResultWriteError as err:
+        raise click.ClickException(f"{dataset}: {err}") from err
+    indices_given = (
+        ctx.get_parameter_source("train_indices") == ParameterSource.COMMANDLINE
+    )
     try:
         selection = training_selection(ds, train_indices)
     except ValueError as err:
+        if not indices_given:  # the file's own settings: no option to blame
+            text = str(err).replace("train_indices select", "its settings hold", 1)
+            raise click.ClickException(f"{dataset}: {text}") from err
         raise click.BadParameter(str(err), param_hint="--train-indices") from err
     if checkpoint is not None and stored is not None:
         try:
             config = resume_config(stored, config, given)
             selection = resume_selection(
-                checkpoint.parent,
-                ds,
-                selection,
-                ctx.get_parameter_source("train_indices")
-                == ParameterSource.COMMANDLINE,
+                checkpoint.parent, ds, selection, indices_given
             )
         except ResumeError as err:
             raise click.ClickException(str(err)) from err
+        if checkpoint.parent == out:  # a finished result: nothing to continue
+            try:
+                check_finished_run(checkpoint, ds, config, selection)
+            except ResumeError as err:
+                raise click.ClickException(str(err)) from err
+            if distributed:
+                tdist.destroy_process_group()
+            click.echo(
+                f"nothing to resume: {out} holds the finished run of {checkpoint}; "
+                "it is unchanged (use --force without --resume to run it again)."
+            )
+            return
         click.echo(f"resuming from {checkpoint} ({config})", err=True)
     if torch.device(dev).type == "cpu":
         check_memory(config, sum(len(v) for v in selection.values()))
@@ -560,6 +598,7 @@ def reconstruct_command(
                 distributed=distributed,
                 split=split,
                 uncertainty=uncertainty,
+                charge_C=charge_C,
             )
     except (KeyboardInterrupt, click.ClickException) as err:
         # a refused run (another run's lock) must not point at that run's files
@@ -570,9 +609,6 @@ def reconstruct_command(
                 f"--resume continues it ({out} is unchanged)",
                 err=True,
             )
-        elif interrupted and checkpoint is not None and checkpoint.parent == out:
-            # a resume of a finished result keeps no copy of it
-            click.echo(f"note: {out} is unchanged", err=True)
         elif interrupted:
             click.echo(
                 "note: interrupted before the first checkpoint (written every "
@@ -598,6 +634,8 @@ def reconstruct_command(
             "not constrained by the scan: "
             + ", ".join(summary["unconstrained_coordinates"])
         )
+    for line in headline_lines(summary):
+        click.echo(line)
     for line in prior_dependence_lines(summary.get("prior_dependence", [])):
         click.echo(line)
     polish = summary.get("moment_polish", [])
@@ -608,3 +646,4 @@ def reconstruct_command(
             "moment polish: training images' second moments off by "
             f"{before} % rms (per member) before, {after} % after"
         )
+    click.echo(f"report: {out / REPORT}")

@@ -2,8 +2,9 @@
 
 :func:`write_result` turns a trained :class:`Reconstruction` into the files
 of a result folder: ``ensemble.pt``, ``particles.h5`` (openPMD), the figures
-(drawn by callbacks, see :class:`ResultFigures`) and ``summary.json`` (the
-numbers of :func:`~diffaccel.reconstruction.evaluate`). It writes into a
+(drawn by callbacks, see :class:`ResultFigures`), ``summary.json`` (the
+numbers of :func:`~diffaccel.reconstruction.evaluate`) and ``report.md``
+(the headline numbers, :func:`report_markdown`). It writes into a
 folder it is given, normally the staging folder of
 :func:`diffaccel.data.result_folder`, which swaps the files in together.
 
@@ -29,13 +30,16 @@ Example:
     ...     summary = write_result(result, ds, folder.path, dataset_path="scan.h5",
     ...                            train_indices=selection, uncertainty=False)
     >>> sorted(p.name for p in out.iterdir())  # doctest: +NORMALIZE_WHITESPACE
-    ['.diffaccel-result', 'ensemble.pt', 'particles.h5', 'summary.json']
+    ['.diffaccel-result', 'ensemble.pt', 'particles.h5', 'report.md', 'summary.json']
 """
 
 from __future__ import annotations
 
+import fnmatch
 import json
+import math
 import os
+import shutil
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import ExitStack, contextmanager
@@ -46,25 +50,43 @@ from typing import Any
 
 import torch
 
-from diffaccel.data import MultiScanDataset, atomic_write_json, partial_folder
+from diffaccel.data import (
+    MultiScanDataset,
+    atomic_write_json,
+    atomic_write_text,
+    partial_folder,
+)
 from diffaccel.data.particles_io import write_openpmd_particles
 from diffaccel.reconstruction.background import can_fork, in_child
 from diffaccel.reconstruction.ensemble import Reconstruction
 from diffaccel.reconstruction.evaluation import evaluate, predict_dataset
+from diffaccel.reconstruction.forward import ScreenForwardModel
 from diffaccel.reconstruction.pipeline import training_selection
-from diffaccel.reconstruction.training import ReconstructionConfig, checkpoint_config
+from diffaccel.reconstruction.training import (
+    ReconstructionConfig,
+    checkpoint_config,
+    data_fingerprint,
+    load_checkpoint,
+)
 
 __all__ = [
     "CHECKPOINT",
     "CONFIG_OPTIONS",
+    "DEFAULT_CHARGE_C",
     "OWNED",
     "PARTICLES_SAMPLE",
+    "REPORT",
     "SELECTION",
     "ResultFigures",
     "ResultWriteError",
     "ResumeError",
+    "bunch_charge",
+    "check_finished_run",
+    "clean_for_resume",
     "discard_selection",
+    "headline_lines",
     "prior_dependence_lines",
+    "report_markdown",
     "resume_checkpoint",
     "resume_config",
     "resume_selection",
@@ -83,6 +105,7 @@ OWNED = (
     "ensemble.pt",
     "summary.json",
     "particles.h5",
+    "report.md",
     CHECKPOINT,
     SELECTION,
     "checkpoint.rank*.pt",  # the other processes' of a members-split run
@@ -100,6 +123,11 @@ CONFIG_OPTIONS = {
     "place_coupling": "--uncoupled",
     "probe_unseen": "--probe",
 }
+#: The human-readable summary of a result folder (Markdown).
+REPORT = "report.md"
+#: Bunch charge of ``particles.h5`` [C] where neither the caller nor the
+#: dataset gives one.
+DEFAULT_CHARGE_C = 1e-12
 #: Particles of ``particles.h5``: the sample that :func:`evaluate` compares
 #: with the ground truth (drawn once, seed 0).
 PARTICLES_SAMPLE = 100_000
@@ -163,14 +191,17 @@ def write_result(
     fork: bool = True,
     started: float | None = None,
     train_seconds: float | None = None,
+    charge_C: float | None = None,
 ) -> dict[str, Any]:
     """Write a trained reconstruction into ``folder``; returns the summary.
 
     Writes ``ensemble.pt`` (:meth:`Reconstruction.save`), ``particles.h5``
     (:data:`PARTICLES_SAMPLE` particles in openPMD, seed 0), the figures of
-    ``figures`` and ``summary.json`` (:func:`evaluate` of the dataset, plus
-    ``dataset``, ``particles_file``, ``figures`` and the wall times
-    ``timings_s.total_wall``/``reconstruct_wall`` [s]), each atomically.
+    ``figures``, ``summary.json`` (:func:`evaluate` of the dataset, plus
+    ``dataset``, ``particles_file``, ``particles_charge_C`` and its
+    ``particles_charge_source``, ``figures`` and the wall times
+    ``timings_s.total_wall``/``reconstruct_wall`` [s]) and :data:`REPORT`
+    (:func:`report_markdown`), each atomically.
     ``folder`` must exist; files of these names are replaced.
 
     With ``figures`` and ``uncertainty`` the predicted images carry their
@@ -192,16 +223,20 @@ def write_result(
         fork: Allow the summary figures to be drawn in a forked child.
         started: ``time.perf_counter()`` at the start of the run (default: now).
         train_seconds: Wall time of training [s] (default: 0 when not given).
+        charge_C: Bunch charge of ``particles.h5`` [C] (> 0); default: the
+            dataset's metadata ``charge_C`` where recorded, else
+            :data:`DEFAULT_CHARGE_C` (see :func:`bunch_charge`).
 
     Raises:
         ResultWriteError: the particles cannot be written (e.g. no forward
-            motion, a wrong calibration).
+            motion, a wrong calibration) or the bunch charge is not positive.
         RuntimeError: a figure drawn in the child failed (its error as one line).
         OSError: a file cannot be written (the folder's files may be partial:
             write into a staging folder).
     """
     folder = Path(folder)
     t0 = time.perf_counter() if started is None else started
+    charge, charge_source = bunch_charge(dataset, charge_C)
     result.info["dataset"] = str(dataset_path)
     result.save(folder, overwrite=True)
     with ExitStack() as stack:
@@ -245,11 +280,14 @@ def write_result(
                 particles,
                 dataset.p0c,
                 dataset.species,
+                charge_C=charge,
                 overwrite=True,
             )
         except ValueError as err:
             raise ResultWriteError(str(err)) from err
         summary["particles_file"] = parts.name
+        summary["particles_charge_C"] = charge
+        summary["particles_charge_source"] = charge_source
         if figures_done is not None:
             images = figures.images(dataset, train_indices, folder, predicted, spread)
             summary["figures"] = figures_done() + images
@@ -258,7 +296,41 @@ def write_result(
         0.0 if train_seconds is None else train_seconds
     )
     atomic_write_json(folder / "summary.json", summary)
+    atomic_write_text(folder / REPORT, report_markdown(summary))
     return summary
+
+
+def bunch_charge(
+    dataset: MultiScanDataset, charge_C: float | None = None
+) -> tuple[float, str]:
+    """The bunch charge [C] of a result's particle file, and where it comes from.
+
+    ``charge_C`` if given (``"given"``), else the dataset's metadata
+    ``charge_C`` [C] where it holds a positive number (``"dataset"``), else
+    :data:`DEFAULT_CHARGE_C` (``"default"``: the images carry no charge, as
+    they are normalised to unit sum).
+
+    Raises:
+        ResultWriteError: a given or recorded charge that is not a positive
+            finite number.
+    """
+    if charge_C is not None:
+        value, source = charge_C, "given"
+    elif dataset.metadata.get("charge_C") is not None:
+        value, source = dataset.metadata["charge_C"], "dataset"
+    else:
+        return DEFAULT_CHARGE_C, "default"
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        where = "given" if source == "given" else "the dataset's metadata charge_C"
+        raise ResultWriteError(
+            f"bunch charge ({where}): expected a positive number of coulombs; "
+            f"got {charge_C if source == 'given' else dataset.metadata['charge_C']!r}"
+        )
+    return value, source
 
 
 # ----------------------------------------------------------------- resume policy
@@ -375,6 +447,65 @@ def resume_selection(
     return stored
 
 
+def clean_for_resume(folder: str | os.PathLike) -> list[str]:
+    """Remove from a kept staging folder all but its checkpoints and :data:`SELECTION`.
+
+    A resumed run then writes every other file anew: figures, particles or a
+    summary of an earlier attempt (one that failed while writing) never end up
+    in its result. Returns the names removed.
+    """
+    keep = {CHECKPOINT, SELECTION}
+    removed = []
+    for p in sorted(Path(folder).iterdir()):
+        if p.name in keep or fnmatch.fnmatch(p.name, "checkpoint.rank*.pt"):
+            continue
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        else:
+            p.unlink()
+        removed.append(p.name)
+    return removed
+
+
+def check_finished_run(
+    checkpoint: str | os.PathLike,
+    dataset: MultiScanDataset,
+    config: ReconstructionConfig,
+    selection: Mapping[str, Sequence[int]],
+) -> None:
+    """Check that a finished run's ``checkpoint`` was trained on this data.
+
+    A resume of a finished result continues nothing; it is refused (rather
+    than reported as done) when the data differ from the run's: other images,
+    settings or screen calibration (the checkpoint's data fingerprint, as
+    :func:`~diffaccel.reconstruction.reconstruct` computes it).
+
+    Raises:
+        ResumeError: the data are not those of the run, or the file is not a
+            readable checkpoint.
+    """
+    names = [name for name in dataset.names if selection.get(name)]
+    forwards, measured, settings = [], [], []
+    for name in names:
+        scan = dataset[name]
+        rows = list(selection[name])
+        forwards.append(
+            ScreenForwardModel.from_dataset(scan, blur_pixels=config.blur_for(scan))
+        )
+        measured.append(scan.mean_images()[rows])
+        settings.append(scan.settings[rows])
+    try:
+        stored = load_checkpoint(checkpoint).fingerprint
+    except (OSError, ValueError, KeyError, RuntimeError) as err:
+        raise ResumeError(f"cannot resume: {checkpoint}: {err}") from err
+    if stored != data_fingerprint(forwards, measured, settings):
+        raise ResumeError(
+            f"checkpoint {checkpoint} was written for other training data (another "
+            "file, other training settings or another screen calibration); the "
+            "finished result beside it is of another run: choose another --out."
+        )
+
+
 # ------------------------------------------------------------------ summary text
 def _percent(change: dict | None, key: str) -> str:
     return "n/a" if change is None else f"{100 * change[key]:+.0f} %"
@@ -409,3 +540,131 @@ def prior_dependence_lines(entries: list[dict]) -> list[str]:
             f"images fit {fits}"
         )
     return lines
+
+
+#: Headline quantities: (summary key, index or None, label, unit, scale to unit)
+_HEADLINE = {
+    "emittance (normalised)": [
+        ("norm_emit_x", None, "x", "mm mrad", 1e6),
+        ("norm_emit_y", None, "y", "mm mrad", 1e6),
+    ],
+    "twiss": [
+        ("beta_x", None, "beta_x", "m", 1.0),
+        ("alpha_x", None, "alpha_x", "", 1.0),
+        ("beta_y", None, "beta_y", "m", 1.0),
+        ("alpha_y", None, "alpha_y", "", 1.0),
+    ],
+    "rms": [
+        ("rms", 0, "x", "mm", 1e3),
+        ("rms", 1, "px", "mrad", 1e3),
+        ("rms", 2, "y", "mm", 1e3),
+        ("rms", 3, "py", "mrad", 1e3),
+    ],
+}
+_HEADLINE_6D = {
+    "rms": [("rms", 4, "z", "mm", 1e3), ("rms", 5, "pz", "1e-3", 1e3)],
+    "emittance (geometric)": [
+        ("emit_z", None, "z", "mm mrad", 1e6),
+        ("emit_6d", None, "6D", "m^3", 1.0),
+    ],
+}
+
+
+def _headline_rows(
+    summary: Mapping[str, Any],
+) -> list[tuple[str, str, float, float, str]]:
+    """(group, label, mean, std, unit) of the headline numbers, in display units."""
+    moments = summary["moments"]
+    groups = {k: list(v) for k, v in _HEADLINE.items()}
+    if summary.get("config", {}).get("dims") == 6:
+        groups["rms"] += _HEADLINE_6D["rms"]
+        groups["emittance (geometric)"] = _HEADLINE_6D["emittance (geometric)"]
+    rows = []
+    for group, items in groups.items():
+        for key, index, label, unit, scale in items:
+            entry = moments.get(key)
+            if entry is None:
+                continue
+            mean, std = entry["mean"], entry["std"]
+            if index is not None:
+                mean, std = mean[index], std[index]
+            mean = math.nan if mean is None else scale * mean
+            std = math.nan if std is None else scale * std
+            rows.append((group, label, mean, std, unit))
+    return rows
+
+
+def headline_lines(summary: Mapping[str, Any]) -> list[str]:
+    """The headline numbers of a summary, one line per group, each with its std.
+
+    Normalised emittances [mm mrad], Twiss beta [m] and alpha, rms sizes [mm]
+    and divergences [mrad] (6D: also z [mm], pz [1e-3] and the z and 6D
+    emittances), as ``mean +- std`` (``std``: the summary's, calibrated
+    where the result carries the moment-space posterior).
+    """
+    lines: dict[str, list[str]] = {}
+    for group, label, mean, std, unit in _headline_rows(summary):
+        text = f"{label} {mean:.4g} +- {std:.2g}" + (f" {unit}" if unit else "")
+        lines.setdefault(group, []).append(text)
+    return [f"{group}: " + ", ".join(items) for group, items in lines.items()]
+
+
+def report_markdown(summary: Mapping[str, Any]) -> str:
+    """``report.md`` of a result folder: headline numbers, fit quality, warnings.
+
+    A table of the headline quantities (:func:`headline_lines`) with their std
+    and, where the dataset holds the true beam, the relative error; the image
+    errors (training, held out), the warnings, the coordinates the scans do not
+    constrain, and the figures and files of the folder.
+    """
+    m = summary["metrics"]
+    gt = m.get("ground_truth", {})
+    truth_key = {"x": "rms_x", "px": "rms_px", "y": "rms_y", "py": "rms_py"}
+    truth_key.update({"z": "rms_z", "pz": "rms_pz"})
+    lines = [
+        "# diffaccel reconstruction",
+        "",
+        f"Dataset: `{summary.get('dataset', '')}`; {summary.get('snapshots', '?')} "
+        "ensemble members. Uncertainties are 1 std "
+        + (
+            "(calibrated, moment-space posterior)."
+            if summary.get("uncertainty")
+            else "(ensemble scatter only)."
+        ),
+        "",
+        "| quantity | value +- std | error vs truth |",
+        "|---|---|---|",
+    ]
+    for group, label, mean, std, unit in _headline_rows(summary):
+        key = truth_key.get(label) if group == "rms" else None
+        if group.startswith("emittance"):
+            key = {"x": "emit_x", "y": "emit_y", "z": "emit_z", "6D": "emit_6d"}[label]
+        err = gt.get(key) if key else None
+        e = f"{100 * err:+.1f} %" if isinstance(err, int | float) else "n/a"
+        u = f" [{unit}]" if unit else ""
+        lines.append(f"| {group} {label}{u} | {mean:.4g} +- {std:.2g} | {e} |")
+    lines += [""]
+    held = m.get("images_held_out", {}).get("relative_l1")
+    train = m.get("images_train", {}).get("relative_l1")
+    fit = f"Training image relative L1: {train:.4f}" if train is not None else ""
+    if held is not None:
+        fit += f"; held out: {held:.4f}"
+    lines += [fit + ".", ""]
+    warnings = summary.get("warnings", [])
+    lines += ["Warnings: " + ("none" if not warnings else ""), ""]
+    lines += [f"- {w}" for w in warnings] + ([""] if warnings else [])
+    lines += [
+        "Not constrained by the scans (their values follow the prior): "
+        + (", ".join(summary.get("unconstrained_coordinates", [])) or "none"),
+        "",
+    ]
+    figures = summary.get("figures", [])
+    if figures:
+        lines += ["Figures: " + " ".join(f"![{f}]({f})" for f in figures), ""]
+    lines.append(
+        "All numbers: `summary.json`; ensemble: `ensemble.pt` "
+        "(`diffaccel.reconstruction.load`); particles: "
+        f"`{summary.get('particles_file', 'particles.h5')}` (openPMD, bunch charge "
+        f"{summary.get('particles_charge_C', DEFAULT_CHARGE_C):.4g} C)."
+    )
+    return "\n".join(lines) + "\n"
