@@ -10,6 +10,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+import torch
 from click.testing import CliRunner
 
 import diffaccel.cli.reconstruct as cli_reconstruct
@@ -21,6 +22,7 @@ from diffaccel.data import (
     read_openpmd_particles,
     write_quad_scan,
 )
+from diffaccel.hysteresis import LaplaceBand, PreisachMesh, PreisachModel, save_fit
 
 FAST = ["--particles", "512", "--steps", "6", "--snapshots", "2"]
 
@@ -263,3 +265,37 @@ def test_a_refused_default_selection_does_not_blame_train_indices(
     assert r.exit_code == 1
     assert "--train-indices" not in r.output
     assert "its settings hold a single value" in r.output
+
+
+def _saved_fit(fit_dir: Path) -> None:
+    """A small saved Preisach fit (4-level mesh, input 0..25 A)."""
+    model = PreisachModel(PreisachMesh.triangular(4), input_range=(0.0, 25.0))
+    m = model.alpha.numel()
+    band = LaplaceBand(torch.eye(2, m + 3, dtype=torch.float64), 0.01, 1.2)
+    save_fit(fit_dir, model, band, extra={"input_column": "current_A"})
+
+
+def test_hysteresis_predict_force_replaces_only_its_own_csv(
+    tmp_path: Path, monkeypatch
+) -> None:
+    fit = tmp_path / "fit"
+    _saved_fit(fit)
+    data = tmp_path / "mine.csv"
+    data.write_text("run,current_A\n" + "".join(f"r{i},{2.0 * i}\n" for i in range(10)))
+    out = tmp_path / "measured.csv"
+    out.write_text("run,current_A,field_Tm\nr0,1,0.03\n")  # a measurement
+    mine = out.read_bytes()
+    args = ["hysteresis", "predict", str(fit), "--input", str(data)]
+    r = CliRunner().invoke(main, [*args, "--out", str(out), "--force"])
+    assert r.exit_code == 1 and "was not written by diffaccel" in r.output
+    assert out.read_bytes() == mine
+    ours = tmp_path / "pred.csv"
+    assert CliRunner().invoke(main, [*args, "--out", str(ours)]).exit_code == 0
+    r = CliRunner().invoke(main, [*args, "--out", str(ours), "--force"])
+    assert r.exit_code == 0, r.output
+    # a read-only folder: named, in one line
+    _read_only(monkeypatch)
+    r = CliRunner().invoke(main, [*args, "--out", str(ours), "--force"])
+    assert r.exit_code == 1
+    (line,) = r.output.strip().splitlines()
+    assert "read-only file system" in line and "bug" not in line

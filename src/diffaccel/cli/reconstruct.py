@@ -10,7 +10,6 @@ callbacks here); the resume policy is that of
 from __future__ import annotations
 
 import os
-import time
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import ExitStack, contextmanager, nullcontext
 from pathlib import Path
@@ -50,21 +49,18 @@ from diffaccel.reconstruction.results import (
     ResultFigures,
     ResultWriteError,
     ResumeError,
+    RunError,
     bunch_charge,
     check_finished_run,
-    clean_for_resume,
-    discard_selection,
     headline_lines,
     prior_dependence_lines,
     resume_checkpoint,
     resume_config,
     resume_selection,
-    store_selection,
+    run_in_folder,
     stored_config,
-    write_result,
 )
 from diffaccel.reconstruction.runtime import memory_shortfall, resolve_device
-from diffaccel.reconstruction.training import CheckpointDataError
 
 __all__ = [
     "CHECKPOINT",
@@ -255,8 +251,6 @@ def run_reconstruction(
     of ``particles.h5`` [C] (default: the dataset's, else 1 pC).
     """
     writer = not distributed or tdist.get_rank() == 0
-    t0 = time.perf_counter()
-    ck = folder / CHECKPOINT
     bar = tqdm(
         # set by the first report: training, plus the refit of placed members
         # where the scans leave directions unseen (not known before the fit)
@@ -275,59 +269,25 @@ def run_reconstruction(
         )
         bar.refresh()
 
-    if writer and resume:  # only the checkpoint and selection of a kept attempt
-        clean_for_resume(folder)
-    stored = resume and (folder / SELECTION).is_file()
-    if writer and not resume:  # a resumed run has its own (or, older, none)
-        store_selection(folder, selection)
-    done = False
     try:
-        result = reconstruct(
-            ds,
-            config,
-            train_indices=selection,
-            checkpoint=ck,
-            resume=resume,
-            callback=callback,
-            device=device,
-            distributed=distributed,
-            split=split,  # type: ignore[arg-type]
-            uncertainty=uncertainty,
-        )
-        done = True
-    except CheckpointDataError as err:
-        # a run without selection.json resumes with the --train-indices given;
-        # with it, the settings were the run's own
-        hint = (
-            " Was the dataset file changed since?"
-            if stored
-            else " If the interrupted run had --train-indices, give the same "
-            "again with --resume."
-        )
-        raise click.ClickException(f"{err}{hint}") from err
-    except (ValueError, FloatingPointError) as err:
-        raise click.ClickException(str(err)) from err
-    finally:
-        bar.close()
-        if writer and not done and not ck.is_file():  # nothing to resume
-            discard_selection(folder)
-    if not writer:
-        return {}
-    try:
-        return write_result(
-            result,
-            ds,
-            folder,
-            dataset_path=dataset_path,
-            train_indices=selection,
-            uncertainty=uncertainty,
-            figures=FIGURES if figures else None,
-            fork=not distributed,
-            started=t0,
-            train_seconds=time.perf_counter() - t0,
-            charge_C=charge_C,
-        )
-    except ResultWriteError as err:  # e.g. no forward motion: a wrong calibration
+        with bar:
+            return run_in_folder(
+                ds,
+                folder,
+                config,
+                selection,
+                dataset_path=dataset_path,
+                device=device,
+                resume=resume,
+                figures=FIGURES if figures else None,
+                distributed=distributed,
+                split=split,
+                uncertainty=uncertainty,
+                charge_C=charge_C,
+                callback=callback,
+                train=reconstruct,  # looked up here: tests wrap it
+            )
+    except RunError as err:  # bad data, options, checkpoint, calibration
         raise click.ClickException(str(err)) from err
 
 

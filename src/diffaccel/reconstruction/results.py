@@ -49,6 +49,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+import torch.distributed as tdist
 
 from diffaccel.data import (
     MultiScanDataset,
@@ -61,9 +62,11 @@ from diffaccel.reconstruction.background import can_fork, in_child
 from diffaccel.reconstruction.ensemble import Reconstruction
 from diffaccel.reconstruction.evaluation import evaluate, predict_dataset
 from diffaccel.reconstruction.forward import ScreenForwardModel
-from diffaccel.reconstruction.pipeline import training_selection
+from diffaccel.reconstruction.pipeline import reconstruct, training_selection
 from diffaccel.reconstruction.training import (
+    CheckpointDataError,
     ReconstructionConfig,
+    StepInfo,
     checkpoint_config,
     data_fingerprint,
     load_checkpoint,
@@ -80,6 +83,7 @@ __all__ = [
     "ResultFigures",
     "ResultWriteError",
     "ResumeError",
+    "RunError",
     "bunch_charge",
     "check_finished_run",
     "clean_for_resume",
@@ -90,6 +94,7 @@ __all__ = [
     "resume_checkpoint",
     "resume_config",
     "resume_selection",
+    "run_in_folder",
     "store_selection",
     "stored_config",
     "write_result",
@@ -133,11 +138,15 @@ DEFAULT_CHARGE_C = 1e-12
 PARTICLES_SAMPLE = 100_000
 
 
-class ResumeError(ValueError):
+class RunError(ValueError):
+    """A run into a result folder cannot go on (the message says why, in one line)."""
+
+
+class ResumeError(RunError):
     """A run cannot be resumed as asked (the message says why, in one line)."""
 
 
-class ResultWriteError(ValueError):
+class ResultWriteError(RunError):
     """The result cannot be written as computed (e.g. particles not moving forward)."""
 
 
@@ -331,6 +340,116 @@ def bunch_charge(
             f"got {charge_C if source == 'given' else dataset.metadata['charge_C']!r}"
         )
     return value, source
+
+
+def run_in_folder(
+    dataset: MultiScanDataset,
+    folder: str | os.PathLike,
+    config: ReconstructionConfig,
+    train_indices: Mapping[str, Sequence[int]],
+    *,
+    dataset_path: str | os.PathLike,
+    device: torch.device | str = "cpu",
+    resume: bool = False,
+    figures: ResultFigures | None = None,
+    distributed: bool = False,
+    split: str = "particles",
+    uncertainty: bool = True,
+    charge_C: float | None = None,
+    callback: Callable[[StepInfo], None] | None = None,
+    train: Callable[..., Reconstruction] = reconstruct,
+) -> dict[str, Any]:
+    """Train with a checkpoint in ``folder``, then :func:`write_result` there.
+
+    ``folder`` is normally the staging folder of
+    :func:`diffaccel.data.result_folder` (``keep_partial=True`` keeps it, and
+    its checkpoint, when the run fails). A fresh run stores its
+    ``train_indices`` (:data:`SELECTION`); a ``resume`` first removes every
+    file of the earlier attempt but its checkpoints and selection
+    (:func:`clean_for_resume`) and continues from :data:`CHECKPOINT`. A run
+    stopped before its first checkpoint removes its selection again (nothing
+    to resume). With ``distributed`` (an initialised ``torch.distributed``
+    group) every process trains its share (``split``) and only process 0
+    writes; the others return an empty dict.
+
+    Args:
+        dataset: The scans (all settings; the held-out ones are scored).
+        folder: Where the checkpoint and the result go.
+        config: Training settings (for a resume: the checkpoint's).
+        train_indices: Training settings per scan (for a resume: the run's,
+            :func:`resume_selection`).
+        dataset_path: The dataset's file, recorded in the summary.
+        device: Where to train.
+        resume: Continue the checkpoint in ``folder``.
+        figures, uncertainty, charge_C: As for :func:`write_result`.
+        distributed, split: As for :func:`~diffaccel.reconstruction.reconstruct`.
+        callback: Progress reports of training (:class:`StepInfo`).
+        train: The training function, with the signature of
+            :func:`~diffaccel.reconstruction.reconstruct` (the default).
+
+    Returns:
+        The summary (empty on processes other than 0).
+
+    Raises:
+        ResumeError: the checkpoint was written for other training data.
+        RunError: training refused the data or the options (its ``ValueError``
+            or ``FloatingPointError`` as one line).
+        ResultWriteError: from :func:`write_result`.
+    """
+    folder = Path(folder)
+    writer = not distributed or tdist.get_rank() == 0
+    t0 = time.perf_counter()
+    ck = folder / CHECKPOINT
+    if writer and resume:  # only the checkpoint and selection of a kept attempt
+        clean_for_resume(folder)
+    stored = resume and (folder / SELECTION).is_file()
+    if writer and not resume:  # a resumed run has its own (or, older, none)
+        store_selection(folder, train_indices)
+    done = False
+    try:
+        result = train(
+            dataset,
+            config,
+            train_indices=train_indices,
+            checkpoint=ck,
+            resume=resume,
+            callback=callback,
+            device=device,
+            distributed=distributed,
+            split=split,
+            uncertainty=uncertainty,
+        )
+        done = True
+    except CheckpointDataError as err:
+        # a run without selection.json resumes with the selection given;
+        # with it, the settings were the run's own
+        hint = (
+            " Was the dataset file changed since?"
+            if stored
+            else " If the interrupted run had --train-indices, give the same "
+            "again with --resume."
+        )
+        raise ResumeError(f"{err}{hint}") from err
+    except (ValueError, FloatingPointError) as err:
+        raise RunError(str(err)) from err
+    finally:
+        if writer and not done and not ck.is_file():  # nothing to resume
+            discard_selection(folder)
+    if not writer:
+        return {}
+    return write_result(
+        result,
+        dataset,
+        folder,
+        dataset_path=dataset_path,
+        train_indices=train_indices,
+        uncertainty=uncertainty,
+        figures=figures,
+        fork=not distributed,
+        started=t0,
+        train_seconds=time.perf_counter() - t0,
+        charge_C=charge_C,
+    )
 
 
 # ----------------------------------------------------------------- resume policy
