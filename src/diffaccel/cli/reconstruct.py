@@ -9,9 +9,8 @@ callbacks here); the resume policy is that of
 
 from __future__ import annotations
 
-import os
-from collections.abc import Iterator, Mapping, Sequence
-from contextlib import ExitStack, contextmanager, nullcontext
+from collections.abc import Mapping, Sequence
+from contextlib import nullcontext
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -60,7 +59,12 @@ from diffaccel.reconstruction.results import (
     run_in_folder,
     stored_config,
 )
-from diffaccel.reconstruction.runtime import memory_shortfall, resolve_device
+from diffaccel.reconstruction.runtime import (
+    init_distributed,
+    memory_shortfall,
+    resolve_device,
+    shared_refusal,
+)
 
 __all__ = [
     "CHECKPOINT",
@@ -165,51 +169,25 @@ def read_dataset(path: Path) -> MultiScanDataset:
 
 def _init_distributed(device: str) -> str:
     """Join the process group that torchrun describes; this process's device."""
-    needed = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")
-    missing = [v for v in needed if v not in os.environ]
-    if missing:
-        raise click.ClickException(
-            f"--distributed needs a launcher such as torchrun (missing {missing}); "
-            "e.g. torchrun --standalone --nproc-per-node 2 -m diffaccel reconstruct "
-            "... --distributed"
-        )
-    if device.startswith("cuda"):
-        device = f"cuda:{int(os.environ['LOCAL_RANK'])}"
-        torch.cuda.set_device(device)
-        backend = "nccl"
-    else:
-        backend = "gloo"
-    tdist.init_process_group(backend)
-    return device
+    try:
+        return init_distributed(device)
+    except ValueError as err:
+        raise click.ClickException(str(err)) from err
 
 
-@contextmanager
-def _shared_refusal(target: Any, distributed: bool) -> Iterator[Any]:
-    """Enter ``target``; in a distributed run every process learns the outcome.
+def _shared_refusal(target: Any, distributed: bool) -> Any:
+    """Enter ``target`` (process 0's result folder); every process learns a refusal.
 
-    Only process 0 opens the result folder. If it refuses (``--out`` exists
-    without ``--force``, locked, read-only) the others must not wait for it in
-    a collective forever: process 0 broadcasts its refusal (or ``None``) and
-    every process raises the same one-line error. The broadcast also orders the
-    staging folder's creation before the other processes read it.
+    See :func:`~diffaccel.reconstruction.runtime.shared_refusal`; the others
+    raise ``process 0 stopped: <its one-line error>``.
     """
-    refusal: click.ClickException | None = None
-    with ExitStack() as stack:
-        try:
-            folder = stack.enter_context(target)
-        except click.ClickException as err:
-            refusal = err
-        if distributed:
-            message = [None if refusal is None else refusal.format_message()]
-            tdist.broadcast_object_list(message, src=0)
-            if message[0] is not None and refusal is None:
-                tdist.destroy_process_group()
-                raise click.ClickException(f"process 0 stopped: {message[0]}")
-        if refusal is not None:
-            if distributed:
-                tdist.destroy_process_group()
-            raise refusal
-        yield folder
+    return shared_refusal(
+        target,
+        distributed,
+        refusal=click.ClickException,
+        text=lambda err: err.format_message(),
+        stopped=lambda text: click.ClickException(f"process 0 stopped: {text}"),
+    )
 
 
 def echo_warnings(warnings: Sequence[str]) -> None:
