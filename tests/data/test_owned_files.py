@@ -5,6 +5,7 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+import pytest
 
 from diffaccel.data import make_synthetic_quad_scan, write_quad_scan
 from diffaccel.data.atomic import os_condition
@@ -58,3 +59,17 @@ def test_os_conditions_are_named() -> None:
     wrapped.__cause__ = OSError(errno.ENOSPC, "x")
     assert os_condition(wrapped).startswith("no space left")
     assert os_condition(OSError(errno.ENOENT, "x")) is None
+
+
+def test_a_locked_file_is_not_taken_for_a_foreign_one(
+    tmp_path: Path, monkeypatch
+) -> None:
+    h5 = tmp_path / "scan.h5"
+    write_quad_scan(make_synthetic_quad_scan("gaussian", n_particles=200), h5)
+
+    def locked(*a, **kw):
+        raise OSError(errno.EAGAIN, "Unable to open file (unable to lock file)")
+
+    monkeypatch.setattr(h5py, "File", locked)
+    with pytest.raises(OSError, match="unable to lock"):
+        written_by_diffaccel(h5)

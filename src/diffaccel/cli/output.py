@@ -116,9 +116,13 @@ def check_out_file(
         )
     if out.exists() and not force:
         raise click.ClickException(f"{out} exists; pass --force to overwrite it")
-    if out.exists() and not written_by_diffaccel(out, csv_columns=csv_columns):
+    try:
+        ours = not out.exists() or written_by_diffaccel(out, csv_columns=csv_columns)
+    except OSError as err:  # locked, no permission
+        raise os_error(err, out, doing="read") from err
+    if not ours:
         raise click.ClickException(
-            f"{option} {out} exists and was not written by diffaccel; --force "
+            f"{out} exists and was not written by diffaccel; --force "
             "replaces only diffaccel's own output files: move it or choose "
             "another name."
         )

@@ -12,8 +12,8 @@ user's array) is refused. The record lives in the file itself:
 - CSV: the header line, whose last columns are those the command appends
   (``hysteresis predict``: ``prediction, prediction_std, outside_input_range``).
 
-A file that cannot be read (locked, no permission) counts as not written by
-diffaccel: it is refused, never replaced blind.
+A file that cannot be read is never replaced blind: a damaged one counts as
+not written by diffaccel, a locked one (or one without permission) raises.
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ import h5py
 import numpy as np
 
 from diffaccel import __version__
+from diffaccel.data.atomic import os_condition
 
 __all__ = [
     "H5_ATTRIBUTE",
@@ -131,8 +132,12 @@ def written_by_diffaccel(
             writing command appends.
 
     Returns:
-        False for a file without the record, of another type, or that cannot
-        be read (locked, no permission, damaged).
+        False for a file without the record, of another type, or damaged.
+
+    Raises:
+        OSError: the file cannot be read for a condition of the machine
+            (locked by another program, no permission; see
+            :func:`~diffaccel.data.atomic.os_condition`).
     """
     path = Path(path)
     suffix = path.suffix.lower()
@@ -146,6 +151,10 @@ def written_by_diffaccel(
                 return z.comment == MARK.encode()
         if suffix == ".csv":
             return _csv_marked(path, csv_columns)
-    except (OSError, ValueError, zipfile.BadZipFile, struct.error):
+    except OSError as err:
+        if os_condition(err) is not None:  # locked, no permission: say so
+            raise
+        return False
+    except (ValueError, zipfile.BadZipFile, struct.error):
         return False
     return False

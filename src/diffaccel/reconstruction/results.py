@@ -713,17 +713,23 @@ def _headline_rows(
     return rows
 
 
+def _std(std: float) -> str:
+    """A std for display: two digits, ``n/a`` where the summary has none."""
+    return f"{std:.2g}" if math.isfinite(std) else "n/a"
+
+
 def headline_lines(summary: Mapping[str, Any]) -> list[str]:
     """The headline numbers of a summary, one line per group, each with its std.
 
     Normalised emittances [mm mrad], Twiss beta [m] and alpha, rms sizes [mm]
     and divergences [mrad] (6D: also z [mm], pz [1e-3] and the z and 6D
     emittances), as ``mean +- std`` (``std``: the summary's, calibrated
-    where the result carries the moment-space posterior).
+    where the result carries the moment-space posterior; ``n/a`` where the
+    summary holds none).
     """
     lines: dict[str, list[str]] = {}
     for group, label, mean, std, unit in _headline_rows(summary):
-        text = f"{label} {mean:.4g} +- {std:.2g}" + (f" {unit}" if unit else "")
+        text = f"{label} {mean:.4g} +- {_std(std)}" + (f" {unit}" if unit else "")
         lines.setdefault(group, []).append(text)
     return [f"{group}: " + ", ".join(items) for group, items in lines.items()]
 
@@ -761,7 +767,7 @@ def report_markdown(summary: Mapping[str, Any]) -> str:
         err = gt.get(key) if key else None
         e = f"{100 * err:+.1f} %" if isinstance(err, int | float) else "n/a"
         u = f" [{unit}]" if unit else ""
-        lines.append(f"| {group} {label}{u} | {mean:.4g} +- {std:.2g} | {e} |")
+        lines.append(f"| {group} {label}{u} | {mean:.4g} +- {_std(std)} | {e} |")
     lines += [""]
     held = m.get("images_held_out", {}).get("relative_l1")
     train = m.get("images_train", {}).get("relative_l1")
