@@ -26,7 +26,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import BinaryIO
 
-import h5py
 import numpy as np
 
 from diffaccel import __version__
@@ -106,6 +105,8 @@ def _npy_marked(path: Path) -> bool:
 
 
 def _h5_marked(path: Path) -> bool:
+    import h5py  # here: hysteresis predict checks CSV outputs without h5py
+
     with h5py.File(path, "r") as h5:
         value = h5.attrs.get(H5_ATTRIBUTE, "")
     if isinstance(value, bytes):
