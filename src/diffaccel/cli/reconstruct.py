@@ -41,7 +41,6 @@ from diffaccel.reconstruction import (
 from diffaccel.reconstruction.probe import PROBE_STEP
 from diffaccel.reconstruction.results import (
     CHECKPOINT,
-    CONFIG_OPTIONS,
     OWNED,
     REPORT,
     SELECTION,
@@ -50,14 +49,11 @@ from diffaccel.reconstruction.results import (
     ResumeError,
     RunError,
     bunch_charge,
-    check_finished_run,
     headline_lines,
     prior_dependence_lines,
-    resume_checkpoint,
-    resume_config,
-    resume_selection,
+    resume_plan,
+    resume_start,
     run_in_folder,
-    stored_config,
 )
 from diffaccel.reconstruction.runtime import (
     init_distributed,
@@ -454,17 +450,12 @@ def reconstruct_command(
         "place_coupling": uncoupled,
         "probe_unseen": None if probe is None else PROBE_STEP if probe else 0.0,
     }
-    try:
-        checkpoint = resume_checkpoint(out) if resume else None
-        stored = None if checkpoint is None else stored_config(checkpoint)
-    except ResumeError as err:
-        raise click.ClickException(str(err)) from err
-    if stored is not None:
-        # options not given are the checkpoint's: a given --steps is checked
-        # against its --snapshots, not against the default's
-        options.update(
-            {k: getattr(stored, k) for k, f in CONFIG_OPTIONS.items() if f not in given}
-        )
+    checkpoint = stored = None
+    if resume:  # options not given are the checkpoint's
+        try:
+            checkpoint, stored, options = resume_start(out, options, given)
+        except ResumeError as err:
+            raise click.ClickException(str(err)) from err
     try:
         config = ReconstructionConfig(**options)
     except ValueError as err:
@@ -487,17 +478,19 @@ def reconstruct_command(
         raise click.BadParameter(str(err), param_hint="--train-indices") from err
     if checkpoint is not None and stored is not None:
         try:
-            config = resume_config(stored, config, given)
-            selection = resume_selection(
-                checkpoint.parent, ds, selection, indices_given
+            config, selection, finished = resume_plan(
+                checkpoint,
+                stored,
+                config,
+                ds,
+                selection,
+                given=given,
+                indices_given=indices_given,
+                out=out,
             )
         except ResumeError as err:
             raise click.ClickException(str(err)) from err
-        if checkpoint.parent == out:  # a finished result: nothing to continue
-            try:
-                check_finished_run(checkpoint, ds, config, selection)
-            except ResumeError as err:
-                raise click.ClickException(str(err)) from err
+        if finished:  # a finished result: nothing to continue
             if distributed:
                 tdist.destroy_process_group()
             click.echo(

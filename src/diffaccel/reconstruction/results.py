@@ -93,7 +93,9 @@ __all__ = [
     "report_markdown",
     "resume_checkpoint",
     "resume_config",
+    "resume_plan",
     "resume_selection",
+    "resume_start",
     "run_in_folder",
     "store_selection",
     "stored_config",
@@ -623,6 +625,57 @@ def check_finished_run(
             "file, other training settings or another screen calibration); the "
             "finished result beside it is of another run: choose another --out."
         )
+
+
+def resume_start(
+    out: str | os.PathLike, options: Mapping[str, Any], given: set[str]
+) -> tuple[Path, ReconstructionConfig, dict[str, Any]]:
+    """The checkpoint a resume into ``out`` continues, its config, and the options.
+
+    ``options`` are :class:`ReconstructionConfig` keyword arguments; those of
+    :data:`CONFIG_OPTIONS` whose flag is not in ``given`` are replaced by the
+    checkpoint's (so that a given ``--steps`` is checked against the
+    checkpoint's ``--snapshots``, not against the default's).
+
+    Raises:
+        ResumeError: no checkpoint (:func:`resume_checkpoint`) or a damaged one.
+    """
+    checkpoint = resume_checkpoint(out)
+    stored = stored_config(checkpoint)
+    merged = dict(options)
+    merged.update(
+        {k: getattr(stored, k) for k, f in CONFIG_OPTIONS.items() if f not in given}
+    )
+    return checkpoint, stored, merged
+
+
+def resume_plan(
+    checkpoint: Path,
+    stored: ReconstructionConfig,
+    config: ReconstructionConfig,
+    dataset: MultiScanDataset,
+    selection: dict[str, list[int]],
+    *,
+    given: set[str],
+    indices_given: bool,
+    out: str | os.PathLike,
+) -> tuple[ReconstructionConfig, dict[str, list[int]], bool]:
+    """What a resume trains with, and whether the run is already finished.
+
+    The config is the checkpoint's (:func:`resume_config`), the selection the
+    run's (:func:`resume_selection`); a checkpoint in ``out`` itself (not in
+    its staging folder) is a finished result, checked against the data
+    (:func:`check_finished_run`): the third value is True, nothing is to run.
+
+    Raises:
+        ResumeError: other options, other settings or other data than the run's.
+    """
+    config = resume_config(stored, config, given)
+    selection = resume_selection(checkpoint.parent, dataset, selection, indices_given)
+    finished = checkpoint.parent == Path(out)
+    if finished:
+        check_finished_run(checkpoint, dataset, config, selection)
+    return config, selection, finished
 
 
 # ------------------------------------------------------------------ summary text
