@@ -34,7 +34,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "Preisach hysteresis models of magnets: fit and predict.",
     ),
     "predict": (
-        "diffaccel.cli.reconstruct",
+        "diffaccel.cli.predict",
         "predict",
         "Ensemble-mean screen images of a reconstruction (RESULT_DIR) for new "
         "settings.",

@@ -9,7 +9,7 @@ from typing import Any
 import click
 import torch
 
-from diffaccel.cli.output import check_out_file
+from diffaccel.cli.output import check_out_file, os_error
 from diffaccel.data import (
     FormatError,
     make_synthetic_awa6d,
@@ -155,10 +155,8 @@ def synthetic(out: Path, force: bool, **options: Any) -> None:
         click.echo(build(opts, out, force, beam))
     except (FormatError, ValueError, FileExistsError) as err:
         raise click.ClickException(str(err)) from err
-    except PermissionError as err:  # e.g. a read-only folder
-        raise click.ClickException(
-            f"cannot write {out}: {err.strerror} ({out.parent} is not writable?)"
-        ) from err
+    except OSError as err:  # a read-only folder, a full disk, a locked file
+        raise os_error(err, out) from err
     except (MemoryError, RuntimeError) as err:
         if not isinstance(err, MemoryError) and "alloc" not in str(err):
             raise
