@@ -30,7 +30,6 @@ Usage: python benchmarks/tracking.py [--n 100000] [--k 20] [--repeats 5]
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import resource
@@ -39,7 +38,7 @@ import time
 from collections.abc import Callable
 
 import torch
-from _meta import git_commit
+from _meta import emit, git_commit
 
 from diffaccel.dynamics import Beamline
 
@@ -283,7 +282,7 @@ def main() -> None:
     # forward+backward), in every run: run the script several times
     kde, cic = result["ratio_vs_cheetah_kde"], result["ratio_vs_cheetah_cic"]
     result["met"] = None if kde is None or cic is None else kde >= 100 and cic >= 5
-    print(json.dumps(result))
+    emit(result)
 
 
 if __name__ == "__main__":
