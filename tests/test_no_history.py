@@ -140,7 +140,7 @@ def test_test_names_have_no_history() -> None:
     hits = []
     for where, n, name in _test_names():
         spoken = name.replace("_", " ")
-        for _, pattern, line in history_hits(spoken):
+        for _, pattern, _line in history_hits(spoken):
             hits.append((where, n, pattern, name))
     assert not hits, _report(hits)
 

@@ -5,8 +5,8 @@ A default ``reconstruct`` ends with work in two independent parts: evaluation
 figures in a thread would not help: both parts need the GIL between their
 kernels and hand it over every few milliseconds. A child forked after training
 has its own interpreter, a copy of the trained ensemble and of the imported
-modules, and draws on the second core while the parent evaluates (issue 12
-counts the whole command). The child is a standard :mod:`multiprocessing`
+modules, and draws on the second core while the parent evaluates (the command's
+wall time counts). The child is a standard :mod:`multiprocessing`
 process (``fork`` context); nothing but its result is pickled.
 """
 

@@ -56,7 +56,7 @@ def output_folder(
 
 
 #: zlib level of the PNG figures: 3 encodes ~2x faster than PIL's default 6
-#: for ~20 % larger files (the same pixels); issue 12 counts a reconstruct's
+#: for ~20 % larger files (the same pixels); a reconstruct's wall time includes its
 #: figures in its whole time
 PNG_COMPRESS_LEVEL = 3
 

@@ -456,7 +456,7 @@ def run_reconstruction(
     # child (cli.background) while this process predicts, evaluates and draws
     # the image grids, each on one core: torch runs on one thread meanwhile,
     # since an OpenMP team that shares its cores with the child waits for it
-    # at every kernel (issue 12: ~0.5 s of a default reconstruct on 2 cores)
+    # at every kernel (~0.5 s of a default reconstruct on 2 cores)
     with ExitStack() as stack:
         figures_done = None
         if figures:
@@ -583,7 +583,7 @@ def run_reconstruction(
     "px-y against px-py) at the largest entropy instead of where training "
     "settled: the 4D and 6D emittances then do not depend on training there. "
     "Right for beams not turned in x-y; wrong for beams turned in x-y (e.g. "
-    "by a solenoid); see docs/generalisation_6d.md.",
+    "by a solenoid); see docs/methods/reconstruction_6d.md.",
 )
 @click.option(
     "--probe/--no-probe",
@@ -593,7 +593,7 @@ def run_reconstruction(
     "correlation) where members refitted there fit clearly better: a "
     "likelihood-ratio probe on the side away from where training left the "
     "members, one or more extra refits per member (about 20 s on two CPU cores) "
-    "[default: on for --dims 6; see docs/generalisation_6d.md].",
+    "[default: on for --dims 6; see docs/methods/reconstruction_6d.md].",
 )
 @click.option("--no-figures", is_flag=True, help="Skip the PNG figures.")
 @click.option(
