@@ -41,6 +41,7 @@ fig = plot_image_comparison(
     scan.settings,
     held_out=held_out,
     setting_name="Q1.k1",
+    max_columns=12,
 )
 fig.savefig("images.png", dpi=80)
 plot_corner(result, scan.ground_truth, n=20_000).savefig("phase_space.png", dpi=80)

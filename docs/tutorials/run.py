@@ -53,7 +53,7 @@ def run(name: str, timeout: float) -> float:
     for old in work.glob("*.png"):
         old.unlink()
     env = dict(os.environ, MPLBACKEND="Agg")
-    env.setdefault("OMP_NUM_THREADS", "2")
+    env.setdefault("OMP_NUM_THREADS", "1")
     src = str(ROOT / "src")
     env["PYTHONPATH"] = os.pathsep.join([src, *filter(None, [env.get("PYTHONPATH")])])
     t0 = time.perf_counter()
