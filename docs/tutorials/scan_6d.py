@@ -4,11 +4,10 @@ The AWA 6D layout: a quadrupole, a transverse deflecting cavity (TDC, off and on
 and either a drift to a screen (`dipole_off`) or a spectrometer dipole to a second
 screen (`dipole_on`). The cavity streaks z into a transverse coordinate, the
 dipole turns pz into x: together the scans see all six coordinates. The
-synthetic beam is the `correlated` preset; even quadrupole settings train, odd
-ones are held out. The 6D defaults run with half their particles per step so
-that the page builds in a few minutes. Read the printed z emittance together with
-its reported std: with three training quadrupole strengths the scans constrain it
-weakly, and the stated prior of the directions they cannot see sets much of it
+synthetic beam is the `correlated` preset; every other quadrupole strength trains
+(cavity off and on), the others are held out. The 6D defaults run with fewer particles per step so that the
+page builds in a few minutes. Read each emittance together with its reported std:
+the directions of the covariance the scans cannot see are set by a stated prior
 (see [the 6D estimator](../../methods/reconstruction_6d.md) and
 [uncertainty](../../methods/uncertainty.md)).
 """
@@ -22,14 +21,19 @@ from diffaccel.dynamics import emittance
 from diffaccel.plotting import plot_corner, plot_image_comparison
 from diffaccel.reconstruction import ReconstructionConfig, reconstruct
 
-k1 = [-3.0, 0.0, 3.0, 6.0, 9.0, 12.0]  # quadrupole strengths [1/m^2]
+# 7 quadrupole strengths [1/m^2], each with the cavity off and on (0, 4 MV)
+k1 = [-12.0, -8.0, -4.0, 0.0, 4.0, 8.0, 12.0]
 scans = make_synthetic_awa6d("correlated", n_particles=50_000, k1_values=k1, seed=0)
 for name, scan in scans:
     print(f"{name}: images {tuple(scan.images.shape)}, settings {scan.setting_names}")
 
-# the 6D defaults, with 8192 instead of 16384 particles per step
-config = ReconstructionConfig(dims=6, n_particles=8192, seed=0)
-result = reconstruct(scans, config, train_indices="even")
+# settings are ordered (k1_0, off), (k1_0, on), (k1_1, off), ...: train on
+# k1_0, k1_2, k1_4, k1_6 with the cavity off and on, hold out the others
+train = [i for i in range(2 * len(k1)) if (i // 2) % 2 == 0]
+held_out = [i not in train for i in range(2 * len(k1))]
+# the 6D defaults, with 6144 instead of 16384 particles per step
+config = ReconstructionConfig(dims=6, n_particles=6144, seed=0)
+result = reconstruct(scans, config, train_indices=train)
 
 moments = result.moments(n=20_000)
 for plane in ("x", "y", "z"):
@@ -42,7 +46,6 @@ for plane in ("x", "y", "z"):
 
 for name, scan in scans:
     predicted = result.predict_images(scan.settings, scan=name)
-    held_out = [k % 2 == 1 for k in range(len(scan.settings))]
     fig = plot_image_comparison(
         scan.mean_images(),
         predicted,
