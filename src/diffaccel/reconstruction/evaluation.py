@@ -84,7 +84,7 @@ UNCERTAINTY_NOTE = (
     "moment-space posterior (std_posterior: measurement error estimated from the "
     "training-image residuals, directions the scans do not constrain keep the "
     "prior width) in quadrature; it does not include model error (a wrong "
-    "beamline, calibration or energy). See docs/uncertainty.md"
+    "beamline, calibration or energy). See docs/methods/uncertainty.md"
 )
 UNCERTAINTY_NOTE_ENSEMBLE_ONLY = (
     "std = spread over snapshot-ensemble members only (this reconstruction has "
