@@ -37,7 +37,12 @@ PATTERNS: tuple[tuple[str, re.Pattern[str]], ...] = tuple(
             "commit hash",
             r"(?<![\w.])(?=[0-9a-f]*[a-f])(?=[0-9a-f]*\d)[0-9a-f]{7,40}(?![\w.])",
         ),
-        ("date", r"\b20\d\d-[01]\d-[0-3]\d\b"),
+        # a date as the time of a change or a measurement ("until 2026-11-27");
+        # dates as data (a file's description, a time stamp) are not history
+        (
+            "date",
+            r"\b(since|until|as of|before|after|measured|on)\s+20\d\d-[01]\d-[0-3]\d\b",
+        ),
         (
             "internal beam name",
             r"\btilted\d{4}_\d+|\bfamily_draw_[ab]\b|\bdraw\d{4}_\d+",
@@ -111,6 +116,7 @@ def test_patterns_leave_present_tense_text_alone() -> None:
         '@pytest.fixture(scope="session")\n'
         "# stops the training when the loss is not finite; 0xdeadbeef1\n"
         "# the 6D estimator keeps 3 of 6 cycles; seeds 0-2\n"
+        "description: AWA 6D scan, 2026-05-12\n"
     )
     assert history_hits(text) == []
 
