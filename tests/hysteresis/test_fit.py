@@ -160,7 +160,7 @@ def _line_rms(current: torch.Tensor, field: torch.Tensor, n: int) -> float:
 
 @pytest.mark.skipif(not SLAC.exists(), reason="needs /work/shared reference data")
 def test_slac_quadrupole_acceptance() -> None:
-    # issue 11: fit the first 62 points, predict the other 125 with less than
+    # acceptance: fit the first 62 points, predict the other 125 with less than
     # half the straight line's rms (line 0.197 % of range; the CLI default
     # reaches about 0.3 of it)
     hist = read_magnet_csv(SLAC)
@@ -172,7 +172,7 @@ def test_slac_quadrupole_acceptance() -> None:
         std = fit.band.std(fit.model, current)
     err = pred[62:] - field[62:]
     assert float(err.pow(2).mean().sqrt()) < 0.5 * _line_rms(current, field, 62)
-    # the band: 74 % of these rows inside 2 std (the issue's 80 % is over
+    # the band: 74 % of these rows inside 2 std (the 80 % target is over
     # cases: SLAC, bipolar and B-H, see test_predictive and the benchmark);
     # a band that ignored the minor loops would cover far fewer
     assert float((err.abs() < 2 * std[62:]).double().mean()) >= 0.7

@@ -81,7 +81,7 @@ def _import(module: str, attr: str) -> click.Command:
     A command's module brings torch (and numpy, h5py, matplotlib...): some
     300 000 objects that live as long as the process. Collected as they come,
     they cost repeated full collections during the import and every later one
-    traverses them again (~1 s of CPU in a default ``reconstruct``, issue 12).
+    traverses them again (~1 s of CPU in a default ``reconstruct``).
     Imports create little garbage, so the collector is paused while they run
     and what is alive afterwards goes to the permanent generation
     (``gc.freeze``), which collections skip.
@@ -202,7 +202,7 @@ def run() -> None:
     Once a command has returned (its files written and closed), the
     interpreter's teardown would still free the objects of torch, numpy,
     matplotlib... one by one and collect the garbage of the figures: ~0.5 s
-    of a default ``reconstruct`` (issue 12) for nothing the command needs.
+    of a default ``reconstruct`` for nothing the command needs.
     ``run`` flushes logging and the standard streams and ends the process
     with ``os._exit`` and the command's exit status. Where that could lose
     work (a non-daemon thread still running, a stream that cannot be flushed)

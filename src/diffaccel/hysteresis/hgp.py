@@ -779,7 +779,9 @@ class HysteresisGP(Model):
         :meth:`extended` (``noise`` is its ``Yvar``).
 
         Args:
-            X, Y, noise: As ``X``, ``Y``, ``Yvar`` of :meth:`extended`.
+            X: As ``X`` of :meth:`extended`.
+            Y: As ``Y`` of :meth:`extended`.
+            noise: As ``Yvar`` of :meth:`extended`.
             **kwargs: Not supported; must be empty.
 
         Returns:

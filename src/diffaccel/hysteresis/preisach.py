@@ -518,7 +518,7 @@ class PreisachModel(nn.Module):
 
 
 class _BatchShapeError(ValueError, RuntimeError):
-    """Mismatched batch shapes: a ValueError (a RuntimeError as it used to be)."""
+    """Mismatched batch shapes: a ValueError that is also a RuntimeError."""
 
 
 def _host(x: Tensor) -> np.ndarray:

@@ -9,8 +9,9 @@ alternating "memory trial" sequence, all starting from negative saturation.
 :func:`symmetric_magnet` builds magnets with a known *symmetric* density
 (``mu(alpha, beta) = mu(-beta, -alpha)`` about zero input), and
 :func:`bipolar_quadrupole_case` and :func:`bh_loop_case` draw the acceptance
-cases of issue 11 from them: random magnets (one per seed) plus noise, in the
-shape of a bipolar quadrupole cycle and of a soft-iron B-H loop.
+cases of ``benchmarks/preisach_acceptance.py`` from them: random magnets (one
+per seed) plus noise, in the shape of a bipolar quadrupole cycle and of a
+soft-iron B-H loop.
 """
 
 from __future__ import annotations

@@ -45,8 +45,8 @@ __all__ = [
 
 # pooled training-image relative L1 above which a reconstruction is reported as
 # not reproducing its own training images: good runs end near 0.02-0.10 on the
-# images they trained on (held-out 0.07-0.15, benchmarks and
-# docs/generalisation_6d.md); 0.5 means half of the image intensity is misplaced
+# images they trained on (held-out 0.07-0.15 in the benchmarks);
+# 0.5 means half of the image intensity is misplaced
 POOR_FIT_RELATIVE_L1 = 0.5
 POOR_FIT_CAUSES = (
     "likely causes: settings in the wrong units or scale (e.g. k1 in 1/m^2 vs "
@@ -86,7 +86,7 @@ UNCERTAINTY_NOTE = (
     "moment-space posterior (std_posterior: measurement error estimated from the "
     "training-image residuals, directions the scans do not constrain keep the "
     "prior width) in quadrature; it does not include model error (a wrong "
-    "beamline, calibration or energy). See docs/uncertainty.md"
+    "beamline, calibration or energy). See docs/methods/uncertainty.md"
 )
 UNCERTAINTY_NOTE_ENSEMBLE_ONLY = (
     "std = spread over snapshot-ensemble members only (this reconstruction has "

@@ -145,7 +145,7 @@ def _sorted_rows(values: Tensor) -> Tensor:
 
     Sorts in place, on the CPU with numpy (SIMD sort, ~5x torch's on this
     2-core AVX2 machine): the evaluation's share of a whole ``reconstruct``
-    (issue 12). ``values`` is overwritten.
+    (it counts in the command's wall time). ``values`` is overwritten.
     """
     if values.device.type == "cpu" and values.is_contiguous():
         values.numpy().sort(axis=-1)
