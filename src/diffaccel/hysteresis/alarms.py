@@ -4,21 +4,26 @@ Each alarm is one line that names the signal, its numbers, and the likely
 causes of *that* signal, most likely first; a good fit raises none. Plain
 Python (no torch), so that every command can use them.
 
-Thresholds, set on synthetic good and bad fits (``benchmarks/hysteresis_alarms.py``
-measures them; the numbers are in its docstring):
+Thresholds, set on synthetic good and bad fits (``benchmarks/hysteresis_alarms.py``,
+default options as the CLI):
 
-* :data:`LINE_RATIO`: a Preisach fit whose rms error (held-out rows, or the
-  training rows when none are held out) is at least this fraction of a
+* :data:`LINE_RATIO` (0.7): a Preisach fit whose rms error (held-out rows, or
+  the training rows when none are held out) is at least this fraction of a
   straight line's on the same rows has learnt little beyond the line. Good
-  synthetic fits reach 0.02-0.18 of the line (a unipolar quadrupole with 2 %
-  hysteresis, bipolar ones, B-H loops resolved by the mesh), the SLAC
-  quadrupole 0.33; bad ones (an input range 100x the data, switching inside
-  one mesh cell, rows out of time order, no hysteresis above the noise) 0.8-1.0.
-* :data:`GP_NOISE_RATIO`, :data:`GP_HELDOUT_RATIO`: an H-GP whose noise or
-  held-out rms error exceeds the plain GP's by these factors is worse than
-  ignoring the hysteresis. Good H-GP fits have ratios 0.1-1.0 (at most 1.0 by
-  construction of the noise comparison when the plain GP sits on its noise
-  floor); the collapsed fits of a uniform starting density reach 3-9.
+  fits: 0.05-0.44 of the line on 20 synthetic cases (5 unipolar quadrupoles
+  with 2 % hysteresis: 0.21-0.24; 8 bipolar quadrupoles: 0.20-0.44; 7 B-H
+  loops resolved by the mesh: 0.05-0.14), 0.33 on the SLAC quadrupole; no
+  alarm. Bad fits: 1.00 with an input range 100x the data, 1.10-1.18 with the
+  rows shuffled (time order lost), 1.13-1.33 for a magnet without hysteresis
+  above its noise; every one alarms.
+* :data:`GP_NOISE_RATIO`, :data:`GP_HELDOUT_RATIO` (1.1 each): an H-GP whose
+  noise or held-out rms error exceeds the plain GP's by this factor is worse
+  than ignoring the hysteresis (10 % above parity for the scatter of fits on
+  the same rows). Good H-GPs (started from a Preisach fit): noise 0.04-0.12 and
+  held-out error 0.04-0.08 of the plain GP's on 3 synthetic quadrupoles and 2
+  beam transmissions; bad ones (a uniform starting density without the input
+  feature, on a quadrupole's field): 10-12 both; no false and no missed
+  alarm.
 """
 
 from __future__ import annotations
