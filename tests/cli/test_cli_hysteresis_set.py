@@ -6,12 +6,16 @@ import csv
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
+import torch
 from click.testing import CliRunner
 
 from diffaccel.cli.main import main
 from diffaccel.data import write_csv_atomic
-from diffaccel.hysteresis.setpoint import field_for_k1
+from diffaccel.hysteresis import load_stream_fit, save_fit
+from diffaccel.hysteresis.setpoint import field_for_k1, plan_setpoint
+from diffaccel.hysteresis.synthetic import synthetic_magnet
 
 SLAC = (
     Path(__file__).resolve().parents[1]
@@ -116,6 +120,7 @@ def test_k1_target_goes_through_the_calibration(slac_fit: Path) -> None:
         (["--k1"], "--k1 needs --length and --p0c"),
         (["--length", "0.2"], "--length only go with --k1"),
         (["--limits", "5", "1"], "LO < HI"),
+        (["--limits", "200", "300"], "leave no current_A inside the fit's input"),
     ],
 )
 def test_bad_options_are_named(slac_fit: Path, extra: list[str], match: str) -> None:
@@ -130,3 +135,51 @@ def test_narrow_limits_shape_the_cycle(slac_fit: Path) -> None:
     plan = json.loads(result.output)
     assert plan["limits"] == [0.0, 165.0]
     assert all(0.0 <= v <= 165.0 for v in plan["sequence"])
+
+
+def test_a_target_in_a_jump_gets_a_degaussing_cycle(
+    slac_fit: Path, tmp_path: Path
+) -> None:
+    # some targets lie in a jump of the one-step response after this history
+    # (a row of hysterons switching); a cycle to the limits reaches them
+    spec, _ = load_stream_fit(slac_fit)
+    with open(SLAC, newline="") as f:
+        history = np.array([float(r["current_A"]) for r in csv.DictReader(f)])
+    targets = np.linspace(0.1, 5.1, 400)
+    target = next(
+        t for t in targets if plan_setpoint(spec, history, float(t)).kind == "cycle"
+    )
+    result = _set(slac_fit, "--target", repr(float(target)), "--json")
+    assert result.exit_code == 0, result.output
+    plan = json.loads(result.output)
+    assert plan["kind"] == "cycle" and len(plan["sequence"]) == 3
+    assert plan["cycle"] in (plan["limits"], plan["limits"][::-1])
+    span = json.loads((slac_fit / "summary.json").read_text())["output_range"]
+    predicted = _predict_after(slac_fit, plan["sequence"], tmp_path)
+    assert abs(predicted - target) <= 1e-6 * span
+    text = _set(slac_fit, "--target", repr(float(target))).output
+    assert text.startswith("first a degaussing cycle: current_A ")
+
+
+def test_a_target_no_approach_reaches_is_one_line(tmp_path: Path) -> None:
+    # hysteresis 3x the linear term on a 4-cell mesh: some outputs lie in a
+    # jump of every approach tried
+    magnet = synthetic_magnet(i_max=10.0, n=4, hysteresis_fraction=3.0)
+    fit = tmp_path / "fit"
+    save_fit(fit, magnet, extra={"input_column": "I", "output_column": "B"})
+    history = [0.0, 8.0, 2.0, 6.0]
+    path = tmp_path / "history.csv"
+    write_csv_atomic(path, ["I"], [[v] for v in history])
+    spec = magnet.stream_spec()
+    lo, hi = (float(v) for v in magnet(torch.tensor([0.0, 10.0], dtype=torch.float64)))
+    missed = next(
+        t
+        for t in np.linspace(lo, hi, 200)[1:-1]
+        if abs(plan_setpoint(spec, np.array(history), float(t)).error) > 1e-6 * hi
+    )
+    args = ["hysteresis", "set", str(fit), "--history", str(path)]
+    result = CliRunner().invoke(main, [*args, "--target", repr(float(missed))])
+    assert result.exit_code == 1
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and "lies in a jump of the fitted model" in lines[0]
+    assert "nearest: I " in lines[0]

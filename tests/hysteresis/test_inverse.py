@@ -111,3 +111,30 @@ def test_plan_setpoint_refuses_unreachable_target_naming_interval(magnet) -> Non
         ends = magnet.predict(torch.tensor([0.0, 10.0], dtype=F64), history=h)
     assert lo == pytest.approx(float(ends[0]), abs=1e-12)
     assert hi == pytest.approx(float(ends[1]), abs=1e-12)
+
+
+def test_plan_setpoint_overshoots_where_jumps_are_wide() -> None:
+    # hysteresis 30 % of the linear term on a 6-cell mesh: a row of hysterons
+    # switching outweighs the linear term across a cell, so many targets sit
+    # in a jump of the one-step and cycle responses
+    magnet = synthetic_magnet(i_max=10.0, n=6, hysteresis_fraction=0.3)
+    spec = magnet.stream_spec()
+    h = torch.tensor([0.0, 8.0, 2.0, 6.0], dtype=F64)
+    span = float(magnet.output_scale)
+    with torch.no_grad():
+        lo, hi = magnet.predict(torch.tensor([0.0, 10.0], dtype=F64), history=h)
+    kinds: dict[str, int] = {}
+    for t in torch.linspace(float(lo), float(hi), 60, dtype=F64)[1:-1].tolist():
+        plan = plan_setpoint(spec, h.numpy(), t)
+        if abs(plan.error) > 1e-9 * span:
+            continue  # inside a jump of every approach tried
+        kinds[plan.kind] = kinds.get(plan.kind, 0) + 1
+        with torch.no_grad():
+            seq = torch.tensor(plan.sequence, dtype=F64)
+            y = magnet.predict(seq, history=h)[-1]
+        assert abs(float(y) - t) <= 1e-9 * span
+        if plan.kind == "overshoot":
+            (turn,) = plan.cycle
+            assert (plan.input < turn) == (plan.approach == "from above")
+    assert kinds.get("overshoot", 0) >= 3 and kinds.get("cycle", 0) >= 3
+    assert sum(kinds.values()) >= 50

@@ -131,6 +131,13 @@ def set_command(
         raise click.ClickException(f"cannot load a fit from {fit_dir}: {err}") from err
     in_col = config.get("input_column", DEFAULT_INPUT_COLUMN)
     out_col = config.get("output_column", "output")
+    r_lo, r_hi = spec.input_range
+    if limits is not None and not (limits[0] < r_hi and limits[1] > r_lo):
+        raise click.BadParameter(
+            f"{limits[0]:g} {limits[1]:g} leave no {in_col} inside the fit's input "
+            f"range [{r_lo:.6g}, {r_hi:.6g}].",
+            param_hint="--limits",
+        )
     try:
         header, chunks = iter_magnet_csv(
             data, in_col, time_column=time_column or DEFAULT_TIME_COLUMN

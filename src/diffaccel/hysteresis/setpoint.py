@@ -233,9 +233,7 @@ def solve_step(
     rows = np.arange(t.size)
     pick = np.where(hit.any(axis=1), best_hit, best_near)
     u_out = np.clip(cand_u[rows, pick], lo_l, hi_l)
-    y_out = np.array(
-        [float(step_response(spec, state, np.array([v]))[0]) for v in u_out]
-    )
+    y_out = step_response(spec, state, u_out)
     reached = np.abs(y_out - t) <= scale
     reachable = (
         float(min(y_lo.min(), y_edges.min())),
@@ -371,17 +369,13 @@ def plan_setpoint(
     state = predictor.state
     scale = abs(spec.output_scale) * tol
 
-    def attempt(prefix: tuple[float, ...], kind: str):
+    def attempt(prefix: tuple[float, ...]):
         s = _apply(spec, state, prefix)
         before = prefix[-1] if prefix else present_in
         return s, before, solve_step(spec, s, target, (lo_l, hi_l), before, tol)
 
-    tried = [
-        attempt((), "direct"),
-        attempt((hi_l, lo_l), "cycle"),
-        attempt((lo_l, hi_l), "cycle"),
-    ]
     kinds = [((), "direct"), ((hi_l, lo_l), "cycle"), ((lo_l, hi_l), "cycle")]
+    tried = [attempt(prefix) for prefix, _ in kinds]
     lowest = min(r[2].reachable[0] for r in tried)
     highest = max(r[2].reachable[1] for r in tried)
     if target < lowest - scale or target > highest + scale:
@@ -397,10 +391,9 @@ def plan_setpoint(
             chosen = (prefix, kind, float(sol.input[0]))
             break
     if chosen is None:  # the target sits in a jump: overshoot and turn back
-        for prefix, _ in kinds:
-            s0 = _apply(spec, state, prefix)
-            near = tried[kinds.index((prefix, _))][2].input[0]
-            turns = _turning_points(spec, lo_l, hi_l)
+        turns = _turning_points(spec, lo_l, hi_l)
+        for (prefix, _), (s0, _, sol0) in zip(kinds, tried, strict=True):
+            near = float(sol0.input[0])
             for p in turns[np.argsort(np.abs(turns - near), kind="stable")]:
                 s = _apply(spec, s0, (float(p),))
                 sol = solve_step(spec, s, target, (lo_l, hi_l), float(p), tol)
