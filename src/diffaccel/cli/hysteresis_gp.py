@@ -203,7 +203,7 @@ def gp_fit(
         bounds = torch.stack([X.min(dim=0).values, X.max(dim=0).values])
         X_tr, Y_tr = X[:n_tr], Y[:n_tr]
         model, start = joint_gp_from_preisach(
-            X_tr, Y_tr, prior, column=0, steps=PREISACH_STEPS
+            X_tr, Y_tr, prior, column=0, steps=PREISACH_STEPS, bounds=bounds
         )
         plain = HysteresisGP(X_tr, Y_tr, hysteresis={}, bounds=bounds)
     except ValueError as err:  # FormatError is a ValueError

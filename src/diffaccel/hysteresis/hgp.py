@@ -1223,6 +1223,7 @@ def joint_gp_from_preisach(
     preisach: PreisachModel,
     column: int = 0,
     steps: int = 300,
+    bounds: Tensor | None = None,
 ) -> tuple[HysteresisGP, JointStart]:
     """An H-GP of one hysteretic column started from a Preisach fit of the response.
 
@@ -1251,6 +1252,7 @@ def joint_gp_from_preisach(
             state); it is copied, not changed.
         column: The hysteretic column of ``train_X``.
         steps: L-BFGS iterations of the Preisach fit.
+        bounds: As for :class:`HysteresisGP` (scaling of plain columns).
 
     Returns:
         ``(model, start)``: the unfitted :class:`HysteresisGP` and a
@@ -1274,6 +1276,7 @@ def joint_gp_from_preisach(
         train_X,
         train_Y,
         hysteresis={int(column): pm},
+        bounds=bounds,
         likelihood=noise_likelihood(noise, train_Y),
         current_feature=True,
     )
