@@ -33,6 +33,7 @@ from diffaccel.hysteresis import (
     fit_magnet,
     save_fit,
 )
+from diffaccel.hysteresis.alarms import preisach_alarms
 from diffaccel.hysteresis.predictive import (
     MAX_MESH_SIZE,
     check_mesh_size,
@@ -212,6 +213,15 @@ def fit_command(
         basis = torch.stack([torch.ones_like(u), u], dim=1)
         coef = lstsq(basis[:train_rows], y_tr[:, None])
         line_rmse = rms((basis @ coef).squeeze(1)[train_rows:] - y[train_rows:])
+        line_train = rms((basis @ coef).squeeze(1)[:train_rows] - y_tr)
+        lo, hi = model.input_range
+        rows = (test_rmse, line_rmse, "held-out") if n_te else None
+        alarms = preisach_alarms(
+            *(rows or (train_rmse, line_train, "training")),
+            train_rmse=train_rmse, line_train_rmse=line_train,
+            input_range=(lo, hi), train_span=float(u_tr.max() - u_tr.min()),
+            cell_width=(hi - lo) / mesh_size, output_range=span,
+        )  # fmt: skip
         inside = (resid[train_rows:].abs() <= 2.0 * std[train_rows:]).double()
 
         def pct(v: float | None) -> float | None:
@@ -245,6 +255,7 @@ def fit_command(
             "initial_state": initial_state,
             "input_range": list(model.input_range),
             "notes": notes,
+            "warnings": alarms,
         }
         save_fit(
             folder.path,
@@ -268,6 +279,8 @@ def fit_command(
         atomic_write_json(folder.path / SUMMARY_FILE, summary)
     for note in notes:
         click.echo(f"note: {note}", err=True)
+    for alarm in alarms:
+        click.echo(f"warning: {alarm}", err=True)
     test_txt = (
         "n/a"
         if test_rmse is None

@@ -71,6 +71,11 @@ SUBCOMMANDS: dict[str, dict[str, tuple[str, str, str]]] = {
             "predict_command",
             "Predict every row of a CSV (streamed), from the fit's initial state.",
         ),
+        "set": (
+            "diffaccel.cli.hysteresis_set",
+            "set_command",
+            "The input that brings a fitted magnet to TARGET after its history.",
+        ),
     },
 }
 
