@@ -22,7 +22,10 @@ from diffaccel.dynamics.elements.drift import Drift
 from diffaccel.dynamics.elements.element import Coords, Element
 from diffaccel.dynamics.elements.linear_map import LinearMap
 from diffaccel.dynamics.elements.quadrupole import Quadrupole
+from diffaccel.dynamics.elements.rf_cavity import RFCavity
 from diffaccel.dynamics.elements.screen import Screen
+from diffaccel.dynamics.elements.sextupole import Sextupole
+from diffaccel.dynamics.elements.solenoid import Solenoid
 from diffaccel.dynamics.elements.transverse_deflecting_cavity import (
     TransverseDeflectingCavity,
 )
@@ -40,6 +43,9 @@ ELEMENT_TYPES: dict[str, type[Element]] = {
         TransverseDeflectingCavity,
         Screen,
         LinearMap,
+        Solenoid,
+        Sextupole,
+        RFCavity,
     )
 }
 _SCREEN_KEYS = ("shape", "pixel_size", "center")
@@ -154,7 +160,8 @@ class Beamline(nn.Module):
             if not isinstance(name, str) or not name:
                 raise ValueError(f"spec[{pos}] ({kind}) needs a non-empty 'name'.")
             elem_cls = ELEMENT_TYPES[kind]
-            known = list(elem_cls.param_names)
+            config = tuple(getattr(elem_cls, "config_names", ()))
+            known = list(elem_cls.param_names) + list(config)
             if elem_cls is Screen:
                 known += list(_SCREEN_KEYS)
             unknown = sorted(set(entry) - set(known))
@@ -167,7 +174,10 @@ class Beamline(nn.Module):
                 elements.append(Screen(name, **entry))
                 continue
             owner = f"spec[{pos}] ({kind} {name!r})"
-            values = {k: _spec_value(v, owner, k) for k, v in entry.items()}
+            values: dict[str, Any] = {
+                k: v if k in config else _spec_value(v, owner, k)
+                for k, v in entry.items()
+            }
             if elem_cls is LinearMap:
                 if "matrix" not in values:
                     raise ValueError(
