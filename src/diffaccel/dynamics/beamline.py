@@ -16,6 +16,11 @@ from diffaccel.dynamics._validate import (
     check_particles,
     finite_checks_enabled,
 )
+from diffaccel.dynamics.cheetah_interop import (
+    elements_from_cheetah,
+    elements_from_lattice,
+    elements_to_cheetah,
+)
 from diffaccel.dynamics.elements._kernels import stack_columns
 from diffaccel.dynamics.elements.dipole import Dipole
 from diffaccel.dynamics.elements.drift import Drift
@@ -194,6 +199,41 @@ class Beamline(nn.Module):
                     )
                 elements.append(elem_cls(name, **values))
         return cls(elements)
+
+    @classmethod
+    def from_cheetah(cls, segment: Any, **kwargs: Any) -> Beamline:
+        """Build from a cheetah ``Segment`` (needs ``diffaccel[cheetah]``).
+
+        See :func:`diffaccel.dynamics.cheetah_interop.elements_from_cheetah`
+        for the element correspondence and the keyword arguments (``start``,
+        ``end``, ``approximate``, ``p0c``, ``species``, ``screens``).
+        """
+        return cls(elements_from_cheetah(segment, **kwargs))
+
+    def to_cheetah(self, **kwargs: Any) -> Any:
+        """This beamline as a cheetah ``Segment`` (needs ``diffaccel[cheetah]``).
+
+        See :func:`diffaccel.dynamics.cheetah_interop.elements_to_cheetah`
+        (keywords ``p0c``, ``species``).
+        """
+        return elements_to_cheetah(self, **kwargs)
+
+    @classmethod
+    def from_lattice(
+        cls,
+        path: Any,
+        start: str | None = None,
+        end: str | None = None,
+        **kwargs: Any,
+    ) -> Beamline:
+        """Read a Bmad, elegant or LatticeJSON file through cheetah's converters.
+
+        ``start`` / ``end`` name the first and last element kept. See
+        :func:`diffaccel.dynamics.cheetah_interop.elements_from_lattice` for
+        what is mapped, what is refused and the keyword arguments (``line``,
+        ``fmt``, ``approximate``, ``p0c``, ``species``, ``screens``).
+        """
+        return cls(elements_from_lattice(path, start, end, **kwargs))
 
     def to_spec(self) -> list[dict[str, Any]]:
         """The JSON-serialisable element list (inverse of :meth:`from_spec`)."""
