@@ -17,14 +17,16 @@ def tracked_affine_map(element, p0c: Tensor | float, species: Species) -> Tensor
     The offset column is where the reference particle (``u = 0``) ends up; the
     linear part is the Jacobian there, from six reverse-mode passes (one per
     output coordinate; the ``K`` settings are independent, so each pass gives
-    that row for all of them). The graph is kept, so the map is differentiable
-    in the element's parameters. Computed in the dtype of ``element.length``.
+    that row for all of them). When a parameter (or ``p0c``) requires grad the
+    graph is kept, so the map is differentiable in it; otherwise the map is
+    detached. Computed in the dtype of ``element.length``.
     """
     p0c = as_p0c(p0c, element.length)
     shape = broadcast_shapes(element.batch_shape, p0c.shape)
     u = torch.zeros(
         *shape, 1, 6, dtype=p0c.dtype, device=p0c.device, requires_grad=True
     )
+    graph = p0c.requires_grad or any(t.requires_grad for t in element.params().values())
     with torch.enable_grad():
         out = element.track_columns(tuple(u.unbind(-1)), p0c.expand(shape), species)
         rows = []
@@ -34,7 +36,7 @@ def tracked_affine_map(element, p0c: Tensor | float, species: Species) -> Tensor
                 rows.append(torch.zeros_like(u))
                 continue
             (g,) = torch.autograd.grad(
-                col.sum(), u, create_graph=True, allow_unused=True
+                col.sum(), u, retain_graph=True, create_graph=graph, allow_unused=True
             )
             rows.append(torch.zeros_like(u) if g is None else g)
     jac = torch.stack([g[..., 0, :] for g in rows], dim=-2)  # (*K, 6, 6)
@@ -42,4 +44,5 @@ def tracked_affine_map(element, p0c: Tensor | float, species: Species) -> Tensor
     top = torch.cat([jac, offset.unsqueeze(-1)], dim=-1)  # (*K, 6, 7)
     unit = torch.zeros(7, dtype=p0c.dtype, device=p0c.device)
     unit[6] = 1.0
-    return torch.cat([top, unit.expand(*shape, 1, 7)], dim=-2)
+    out = torch.cat([top, unit.expand(*shape, 1, 7)], dim=-2)
+    return out if graph else out.detach()
