@@ -43,11 +43,15 @@ def test_rf_phase_and_dipole_see_the_chirp() -> None:
         "correlated", n_particles=20_000, k1_values=[0.0], screen_shape=(96, 96)
     )
     off, on = ms["dipole_off"], ms["dipole_on"]
-    assert off.setting_names == on.setting_names == [
-        "SCAN_QUAD.k1",
-        "SCAN_RF.voltage",
-        "SCAN_RF.phase",
-    ]
+    assert (
+        off.setting_names
+        == on.setting_names
+        == [
+            "SCAN_QUAD.k1",
+            "SCAN_RF.voltage",
+            "SCAN_RF.phase",
+        ]
+    )
     assert on.settings[:, 1:].tolist() == [[0.0, 0.0], [4e6, 0.0], [4e6, math.pi]]
     assert off.settings[:, 1:].abs().max() == 0
     for scan in (off, on):
