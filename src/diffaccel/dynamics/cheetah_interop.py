@@ -817,6 +817,7 @@ _HANDLED = {
     "rfdf": {"frequency", "tilt", "voltage", "phase"},
     "sole": {"ks"},
     "watch": {"filename", "mode", "label"},
+    "lcavity": {"cavity_type"},  # (Bmad's default, set here for cheetah)
 }
 
 
@@ -922,7 +923,7 @@ def elements_from_lattice(
     known = _BMAD_KNOWN if fmt == "bmad" else _ELEGANT_KNOWN
     items: list[Any] = []
     own: dict[int, Element] = {}
-    with _cheetah_warnings(path, _HANDLED if fmt == "elegant" else {}):
+    with _cheetah_warnings(path, _HANDLED):
         for i, (name, parsed) in enumerate(flat):
             upper = name.upper()  # Bmad and elegant names are case-insensitive
             mine = (
@@ -940,13 +941,15 @@ def elements_from_lattice(
                 continue
             if fmt == "bmad" and kind == "sbend":
                 parsed.setdefault("e1", 0.0)  # cheetah needs it
+            if fmt == "bmad" and kind == "lcavity":
+                parsed.setdefault("cavity_type", "traveling_wave")  # Bmad's default
             try:
                 converted = converter.convert_element(
                     name, context, sanitize_name=False, dtype=F64
                 )
             except Exception as err:
                 raise LatticeImportError(
-                    f"{path}: element {name!r} ({kind}): cheetah's converter failed "
+                    f"{path}: element {upper!r} ({kind}): cheetah's converter failed "
                     f"({type(err).__name__}: {err})"
                 ) from None
             items.append(converted)
