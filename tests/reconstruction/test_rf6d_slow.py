@@ -10,11 +10,11 @@ Default 6D settings; even quadrupole settings train, odd ones are held out.
 Measured (``diffaccel reconstruct --dims 6``, seeds 0 and 1, same data and
 split): rms x, px, y, py, z within 0.5 %, rms pz +9.2 / +8.8 % (limit 5 %: not
 met), emittance x -0.3 %, y -0.1 %, z +7.1 / +6.7 %, 6D -4.8 / -5.0 %;
-correlations x-z +0.006, y-py +0.001, z-pz -0.014; held-out relative L1 0.070. The energy spread is the weak
-direction of this layout: the quadrupole is thin, so the dipole screen's R12
-hardly changes over the scan and the pz variance trades against the px-pz
-covariance (R16 does not change with k1 at all); the RF states add z, not a
-second view of pz.
+correlations x-z +0.006, y-py +0.001, z-pz -0.014; held-out relative L1 0.070.
+The energy spread is the weak direction of this layout: the quadrupole is
+thin, so the dipole screen's R12 hardly changes over the scan and the pz
+variance trades against the px-pz covariance (R16 does not change with k1 at
+all); the RF states add z, not a second view of pz.
 """
 
 from __future__ import annotations
