@@ -334,3 +334,36 @@ def test_accelerating_cavities(tmp_path) -> None:
     assert float(line["RF"].phase) == pytest.approx(math.pi / 2)
     with pytest.raises(LatticeImportError, match="RF: the reference particle gains"):
         line.to_cheetah()
+
+
+def test_dipole_fringe_field_agrees_with_cheetah(make_beam) -> None:
+    """Bmad's linear fringe (gap, fringe integral), as cheetah tracks it."""
+    segment = cheetah.Segment(
+        [
+            cheetah.Dipole(
+                _t(0.3),
+                _t(0.25),
+                dipole_e1=_t(0.1),
+                dipole_e2=_t(0.15),
+                gap=_t(0.03),
+                gap_exit=_t(0.02),
+                fringe_integral=_t(0.5),
+                fringe_integral_exit=_t(0.4),
+                tracking_method="drift_kick_drift",
+                name="B1",
+                dtype=F64,
+            )
+        ]
+    )
+    line = Beamline.from_cheetah(segment)
+    assert float(line["B1"].hgap) == pytest.approx(0.015)
+    beam = make_beam(500, sizes=SPREAD)
+    rel = _rel(_track_cheetah(segment, beam), line.track(beam, P0C))
+    assert rel < 1e-9, rel
+    # the linear map is the Jacobian of the tracking at the reference
+    jac = torch.autograd.functional.jacobian(
+        lambda u: line.track(u.unsqueeze(0), P0C)[0], torch.zeros(6, dtype=F64)
+    )
+    torch.testing.assert_close(
+        line.transfer_map(P0C)[:6, :6], jac, rtol=1e-10, atol=1e-12
+    )

@@ -30,6 +30,10 @@ UNITS = {
     "voltage": "V",
     "frequency": "Hz",
     "phase": "rad",
+    "hgap": "m",
+    "hgapx": "m",
+    "fint": "",
+    "fintx": "",
     "num_steps": "",
 }
 

@@ -11,7 +11,7 @@ Element correspondence (cheetah 0.8.4 -> diffaccel):
 =============================  ===========================================
 ``Drift``                      ``Drift``
 ``Quadrupole``                 ``Quadrupole`` (misalignment -> ``dx, dy``)
-``Dipole``, ``RBend``          ``Dipole`` (no ``k1``, no fringe field)
+``Dipole``, ``RBend``          ``Dipole`` (no ``k1``; linear fringe kept)
 ``TransverseDeflectingCavity`` ``TransverseDeflectingCavity`` (phase x 2 pi)
 ``Solenoid``                   ``Solenoid`` (``ks = 2 k``)
 ``Sextupole``                  ``Sextupole``
@@ -23,7 +23,7 @@ Element correspondence (cheetah 0.8.4 -> diffaccel):
 =============================  ===========================================
 
 Anything else (correctors, apertures, undulators, space charge, a dipole with
-``k1`` or fringe fields, ...) is refused with one error naming every such
+``k1``, ...) is refused with one error naming every such
 element, unless ``approximate`` is ``"drift"`` (a drift of the same length) or
 ``"linear"`` (cheetah's first-order map of the element at ``p0c``).
 """
@@ -165,11 +165,6 @@ def _why_unsupported(element: Any, cheetah: Any) -> str | None:
     if isinstance(element, cheetah.Dipole):
         if _f(element.k1) != 0:
             return "combined-function dipole (k1 != 0)"
-        fringe = _f(element.gap) * _f(element.fringe_integral) != 0 or (
-            _f(element.gap_exit) * _f(element.fringe_integral_exit) != 0
-        )
-        if fringe and element.fringe_at != "neither":
-            return "dipole fringe field (gap x fringe_integral != 0)"
         return None
     if isinstance(element, cheetah.TransverseDeflectingCavity):
         if _misalignment(element) != (0.0, 0.0):
@@ -210,6 +205,10 @@ def _convert(
 ) -> Element:
     """The exact diffaccel counterpart of a supported cheetah element."""
     if isinstance(element, cheetah.Dipole):  # (RBend is a Dipole)
+        # a face's fringe integral acts only with a gap (else it is dropped)
+        at = element.fringe_at
+        entrance = at in ("entrance", "both") and _f(element.gap) != 0
+        exit_ = at in ("exit", "both") and _f(element.gap_exit) != 0
         return Dipole(
             name,
             _f(element.length),
@@ -217,6 +216,10 @@ def _convert(
             e1=_f(element.dipole_e1),
             e2=_f(element.dipole_e2),
             tilt=_f(element.tilt),
+            hgap=_f(element.gap) / 2 if entrance else 0.0,
+            hgapx=_f(element.gap_exit) / 2 if exit_ else 0.0,
+            fint=_f(element.fringe_integral) if entrance else 0.0,
+            fintx=_f(element.fringe_integral_exit) if exit_ else 0.0,
         )
     if isinstance(element, cheetah.TransverseDeflectingCavity):
         return TransverseDeflectingCavity(
@@ -535,6 +538,10 @@ def elements_to_cheetah(
                     dipole_e1=t(e.e1),
                     dipole_e2=t(e.e2),
                     tilt=t(e.tilt),
+                    gap=2 * t(e.hgap),
+                    gap_exit=2 * t(e.hgapx),
+                    fringe_integral=t(e.fint),
+                    fringe_integral_exit=t(e.fintx),
                     tracking_method="drift_kick_drift",
                     name=name,
                     sanitize_name=False,
