@@ -33,6 +33,11 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "hysteresis",
         "Preisach hysteresis models of magnets: fit and predict.",
     ),
+    "lattice": (
+        "diffaccel.cli.lattice",
+        "lattice",
+        "List a lattice FILE (Bmad, elegant, LatticeJSON) read through cheetah.",
+    ),
     "predict": (
         "diffaccel.cli.predict",
         "predict",

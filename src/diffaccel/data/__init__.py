@@ -61,6 +61,8 @@ _LAZY = {
     "PRESETS": "synthetic",
     "make_synthetic_awa6d": "synthetic",
     "make_synthetic_quad_scan": "synthetic",
+    "make_synthetic_rf6d": "synthetic",
+    "RF6D_BEAMLINES": "synthetic",
     "sample_preset_beam": "synthetic",
 }
 
@@ -104,6 +106,7 @@ __all__ = [
     "DEFAULT_TIME_COLUMN",
     "FORMAT_VERSION",
     "PRESETS",
+    "RF6D_BEAMLINES",
     "SINGLE_SCAN_NAME",
     "FormatError",
     "MagnetHistory",
@@ -123,6 +126,7 @@ __all__ = [
     "iter_magnet_csv",
     "make_synthetic_awa6d",
     "make_synthetic_quad_scan",
+    "make_synthetic_rf6d",
     "median_filter",
     "normalize",
     "parse_selection",
