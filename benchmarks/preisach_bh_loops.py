@@ -125,7 +125,7 @@ def main() -> None:
         print(
             f"{r['case']}: {r['test_rms_pct']:.3f} % (line {r['line_test_rms_pct']:.3f}"
             f" %, ratio {r['ratio_to_line']:.3f}), inside 2 std "
-            f"{100 * r['inside_2std']:.0f} %, adapt {r["mesh_adapt"]}, "
+            f"{100 * r['inside_2std']:.0f} %, adapt {r['mesh_adapt']}, "
             f"{r['fit_seconds']:.1f} s",
             flush=True,
         )

@@ -30,6 +30,7 @@ from diffaccel.hysteresis.stream import (
 
 # name -> submodule, loaded on first access (see the module docstring)
 _LAZY = {
+    "BandFallbackWarning": "band",
     "LaplaceBand": "band",
     "laplace_band": "band",
     "FitResult": "fit",
@@ -42,6 +43,8 @@ _LAZY = {
     "magnetic_rigidity": "magnet",
     "PreisachMesh": "mesh",
     "MagnetFit": "predictive",
+    "adaptive_warp": "predictive",
+    "changes_sign": "predictive",
     "default_input_range": "predictive",
     "fit_magnet": "predictive",
     "predict_stream": "predictive",
@@ -107,6 +110,7 @@ __all__ = [
     "INITIAL_STATES",
     "MODEL_FILE",
     "STREAM_FILE",
+    "BandFallbackWarning",
     "FitResult",
     "HGPFitResult",
     "HysteresisBO",
@@ -120,6 +124,8 @@ __all__ = [
     "PreisachModel",
     "StreamPredictor",
     "StreamSpec",
+    "adaptive_warp",
+    "changes_sign",
     "default_input_range",
     "fit_hysteresis_gp",
     "fit_magnet",

@@ -14,6 +14,7 @@ stay in ``u``, and the relays, saturation and streaming are those of any mesh.
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import torch
@@ -21,7 +22,13 @@ from torch import Tensor
 
 from diffaccel.dynamics import is_integer
 
-__all__ = ["MAX_CLI_MESH_SIZE", "PreisachMesh", "check_warp", "unwarp_input", "warp_input"]
+__all__ = [
+    "MAX_CLI_MESH_SIZE",
+    "PreisachMesh",
+    "check_warp",
+    "unwarp_input",
+    "warp_input",
+]
 
 #: Largest ``n`` of :meth:`PreisachMesh.triangular` the command line accepts:
 #: ``n (n + 1) / 2`` hysterons, 125,250 for 500 (memory grows with it; a typo
@@ -50,8 +57,8 @@ def check_warp(warp) -> Warp | None:
             f"mesh warp must be two sequences of knots (u, t); got {warp!r:.80}."
         ) from None
     ok = len(uk) == len(tk) >= 2 and all(map(math.isfinite, uk + tk))
-    ok = ok and all(b > a for a, b in zip(uk, uk[1:]))
-    ok = ok and all(b > a for a, b in zip(tk, tk[1:]))
+    ok = ok and all(b > a for a, b in itertools.pairwise(uk))
+    ok = ok and all(b > a for a, b in itertools.pairwise(tk))
     ok = ok and uk[0] == tk[0] == 0.0 and uk[-1] == tk[-1] == 1.0
     if not ok:
         raise ValueError(

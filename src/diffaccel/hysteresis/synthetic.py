@@ -27,10 +27,10 @@ __all__ = [
     "MU0",
     "bh_loop_case",
     "bipolar_quadrupole_case",
+    "soft_iron_loop",
     "symmetric_magnet",
     "synthetic_magnet",
     "synthetic_measurement",
-    "soft_iron_loop",
     "synthetic_protocol",
 ]
 
