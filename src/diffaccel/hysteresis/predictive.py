@@ -71,6 +71,8 @@ _INTERLEAVE = 4
 # a warp replaces the regular mesh only if its validation rms is below this
 # fraction of the regular mesh's (the regular mesh wins near-ties)
 _WARP_GAIN = 0.9
+# an output changes sign when it reaches this share of max|output| on both sides
+_SIGN_CHANGE = 0.05
 # share of validation rows the calibrated band holds within 2 std (at least)
 _COVER = 0.9
 #: Largest ``mesh_size`` :func:`fit_magnet` takes. Its predictive band
@@ -162,9 +164,11 @@ def changes_sign(current: Tensor, field: Tensor) -> bool:
 
     A soft magnetic material or a bipolar magnet has ``mu(alpha, beta) =
     mu(-beta, -alpha)`` about zero input; its training rows show it when the
-    output changes sign (``min < 0 < max``) and the input reaches both sides of
-    zero, where an input within ``RANGE_MARGIN`` of ``max|input|`` of zero counts
-    as reaching it (a B-H branch that starts at remanence, ``H = 0``).
+    output takes both signs by more than 5 % of ``max|output|`` (more than
+    the remanent field and noise of a unipolar magnet near zero current) and
+    the input reaches both sides of zero, where an input within
+    ``RANGE_MARGIN`` of ``max|input|`` of zero counts as reaching it (a B-H
+    branch that starts at remanence, ``H = 0``).
 
     Args:
         current: Training inputs [input units], shape ``(T,)``.
@@ -178,7 +182,8 @@ def changes_sign(current: Tensor, field: Tensor) -> bool:
     return (
         float(u.min()) <= tol
         and float(u.max()) >= -tol
-        and float(y.min()) < 0.0 < float(y.max())
+        and float(y.min()) < -_SIGN_CHANGE * float(y.abs().max())
+        and float(y.max()) > _SIGN_CHANGE * float(y.abs().max())
     )
 
 
