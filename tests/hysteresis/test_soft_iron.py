@@ -174,3 +174,19 @@ def test_config_without_warp_or_odd_loads() -> None:
 def test_odd_needs_a_symmetric_centred_model() -> None:
     with pytest.raises(ValueError, match="odd=True needs"):
         PreisachModel(PreisachMesh.triangular(6), input_range=(0.0, 1.0), odd=True)
+
+
+def test_five_decades_of_field_in_si_units() -> None:
+    # H from 0.18 A/m to 1e5 A/m (5.2 orders of magnitude), B in tesla
+    h, b, n = soft_iron_loop(points=60, spacing=11.0, seed=2)
+    pos = h[h > 0]
+    assert float(torch.log10(pos.max() / pos.min())) > 5.0
+    fit = fit_magnet(h[:n], b[:n], mesh_adapt=0.8, steps=100)
+    pred, std = _predict(fit, h)
+    assert torch.isfinite(pred).all() and torch.isfinite(std).all()
+    span = float(b[:n].max() - b[:n].min())
+    err = (pred[n:] - b[n:]) / span
+    assert float(err.pow(2).mean().sqrt()) < 0.06
+    # negative saturation, never seen in training: -B(+h_max) by symmetry
+    i_neg = int(torch.argmin(h))
+    assert float(pred[i_neg]) == pytest.approx(-float(b[n - 1]), abs=0.01 * span)

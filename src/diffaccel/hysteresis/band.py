@@ -3,7 +3,8 @@
 For exact relays the normalised output is linear in the hysteron weights:
 ``y_n(t) = c0 + c1 u_n(t) + sum_i v_i s_i(t)`` with ``v_i = scale * w_i / sum(w)``.
 With a Gaussian prior on ``v`` (a smooth density on the Preisach plane: squared
-exponential in ``(alpha, beta)``, symmetrised for a symmetric model) and flat
+exponential in the coordinates the mesh is regular in,
+:meth:`PreisachModel.plane_coordinates`, symmetrised for a symmetric model) and flat
 priors on ``c0``, ``c1`` and the mean density, the posterior of these
 parameters given the training rows is Gaussian; its covariance is what a
 Laplace approximation about any fit of the same linear model would give. The
@@ -22,6 +23,10 @@ whole band. Beyond the input range the features are the saturated states and
 the unclipped ``u_n`` of the model's linear term, so the band widens with the
 uncertainty of the slope; it holds no doubt about the saturation itself (that
 no hysteron lies beyond the range).
+
+Building the band never fails for want of a positive-definite covariance: larger
+jitter, then a coarser band (offset, slope and mean density only) are tried in
+turn, and a :class:`BandFallbackWarning` says which (see :func:`laplace_band`).
 """
 
 from __future__ import annotations

@@ -54,7 +54,10 @@ class PreisachModel(nn.Module):
     model averages it with its mirror image, ``mu(alpha, beta) =
     mu(1 - beta, 1 - alpha)`` (symmetric about the centre of the input range, as
     for magnets and soft magnetic materials: the ascending major branch then
-    determines the descending one). Inputs beyond the input range leave every
+    determines the descending one; with ``odd`` the offset follows from the
+    slope so that the output is odd about zero input). The mesh may be regular
+    in a warped input (``mesh_warp``), which places the thresholds where the
+    material switches. Inputs beyond the input range leave every
     hysteron switched (saturation) while the linear term ``slope * u_n``
     continues; they raise an :class:`InputRangeWarning`. The normalisation
     buffers ``output_loc`` and ``output_scale`` are set by

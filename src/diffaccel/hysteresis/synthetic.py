@@ -301,7 +301,8 @@ def soft_iron_loop(
     ``h_max`` (``points + 1`` rows, the training rows), then the descending
     branch ``h_max -> -h_max`` and the ascending branch back to ``0``. ``H`` is
     sampled as ``h_max sinh(spacing k / points) / sinh(spacing)``: dense near
-    zero, spanning about ``spacing / ln 10`` orders of magnitude, on the same
+    zero, spanning ``log10(sinh(spacing) / sinh(spacing / points))`` orders of
+    magnitude (4.3 with the defaults, 5.1 with ``spacing=10``), on the same
     ``|H|`` grid on every branch.
 
     Args:
