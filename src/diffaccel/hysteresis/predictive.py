@@ -365,17 +365,18 @@ def fit_magnet(
     a mesh with each share of :data:`MESH_ADAPT_CANDIDATES` placed where the
     training output changes (:func:`adaptive_warp`) is fitted to the training
     rows with every fourth row left out of the objective (the history stays
-    whole; half the L-BFGS iterations) and scored by its rms on those rows; the lowest wins, an adaptive
-    mesh only if it beats the regular one by 10 %; (3) the chosen model is fitted to the
-    first ``1 - validation_fraction`` of the rows, scored on the rest, and
-    those residuals calibrate the band (the factor makes the band hold the
-    validation residuals: at least the rms of ``residual / std`` and at least
-    half the 90th percentile of ``|residual| / std``); (4) the final fit on
-    all training rows and its band, with the validation rms added in
-    quadrature as a model-discrepancy term (the training rows' noise
-    understates the error of a forecast: on the SLAC quadrupole the held-out
-    rows' error is about twice the validation rows'):
-    ``std^2 = calibration^2 (parameter variance + noise^2) + val_rmse^2``. The band never aborts the fit
+    whole; half the L-BFGS iterations) and scored by its rms on those rows;
+    the lowest wins, an adaptive mesh only if it beats the regular one by
+    10 %; (3) the chosen model is fitted to the first ``1 -
+    validation_fraction`` of the rows, scored on the rest, and those residuals
+    calibrate the band (the factor makes the band hold the validation
+    residuals: at least the rms of ``residual / std`` and at least half the
+    90th percentile of ``|residual| / std``); (4) the final fit on all
+    training rows and its band, with the validation rms added in quadrature
+    as a model-discrepancy term (the training rows' noise understates the
+    error of a forecast: on the SLAC quadrupole the held-out rows' error is
+    about twice the validation rows'): ``std^2 = calibration^2 (parameter
+    variance + noise^2) + val_rmse^2``. The band never aborts the fit
     (:func:`~diffaccel.hysteresis.band.laplace_band` falls back instead); a
     fallback raises one :class:`~diffaccel.hysteresis.band.BandFallbackWarning`
     and is named in ``band_fallback``.
