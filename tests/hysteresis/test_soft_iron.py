@@ -190,3 +190,16 @@ def test_five_decades_of_field_in_si_units() -> None:
     # negative saturation, never seen in training: -B(+h_max) by symmetry
     i_neg = int(torch.argmin(h))
     assert float(pred[i_neg]) == pytest.approx(-float(b[n - 1]), abs=0.01 * span)
+
+
+@pytest.mark.parametrize("value", ["1", "-0.1", "abc"])
+def test_cli_refuses_a_bad_mesh_adapt(tmp_path: Path, value: str) -> None:
+    h, b, n = soft_iron_loop(points=8)
+    rows = [[i, float(x), float(y)] for i, (x, y) in enumerate(zip(h, b, strict=True))]
+    data = tmp_path / "bh.csv"
+    write_csv_atomic(data, ["time_s", "H", "B"], rows)
+    args = ["hysteresis", "fit", str(data), "--train-rows", str(n), "--input", "H"]
+    args += ["--output", "B", "--out", str(tmp_path / "f"), "--mesh-adapt", value]
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 2 and "--mesh-adapt" in result.output
+    assert not (tmp_path / "f").exists()
