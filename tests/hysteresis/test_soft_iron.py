@@ -203,3 +203,11 @@ def test_cli_refuses_a_bad_mesh_adapt(tmp_path: Path, value: str) -> None:
     result = CliRunner().invoke(main, args)
     assert result.exit_code == 2 and "--mesh-adapt" in result.output
     assert not (tmp_path / "f").exists()
+
+
+def test_odd_output_can_be_switched_off() -> None:
+    h, b, n = soft_iron_loop(points=16)
+    fit = fit_magnet(h[:n], b[:n] + 0.05, mesh_adapt=0.0, steps=40, odd=False)
+    assert fit.symmetric and not fit.model.odd
+    with pytest.raises(ValueError, match="odd=True needs"):
+        fit_magnet(h[:n], b[:n], symmetric=False, odd=True)

@@ -119,6 +119,13 @@ def _check_mesh_adapt(
     "inputs and outputs both change sign (bipolar magnets, B-H loops).",
 )
 @click.option(
+    "--odd/--no-odd",
+    default=None,
+    help="Odd output, B(-H) = -B(H) at mirrored states (no fitted offset). "
+    "Default: odd when the density is symmetric and the input range centred "
+    "on 0; --no-odd fits an offset (e.g. a probe offset at zero field).",
+)
+@click.option(
     "--mesh-adapt",
     default="auto",
     show_default=True,
@@ -165,6 +172,7 @@ def fit_command(
     out_dir: Path,
     mesh_size: int,
     symmetric: bool | None,
+    odd: bool | None,
     mesh_adapt: float | str,
     smoothness: float,
     steps: int,
@@ -229,6 +237,7 @@ def fit_command(
                     smoothness=smoothness,
                     callback=progress,
                     mesh_adapt=mesh_adapt,
+                    odd=odd,
                 )
             for w in fit_caught:
                 if w.category is not BandFallbackWarning:

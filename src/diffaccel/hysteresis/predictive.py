@@ -322,7 +322,7 @@ def adaptive_warp(
 
 
 def _build(
-    mesh_size, input_range, initial_state, symmetric, warp=None
+    mesh_size, input_range, initial_state, symmetric, warp=None, odd=None
 ) -> PreisachModel:
     lo, hi = (float(v) for v in input_range)
     return PreisachModel(
@@ -331,7 +331,7 @@ def _build(
         initial_state=initial_state,
         symmetric=symmetric,
         mesh_warp=warp,
-        odd=bool(symmetric) and lo + hi == 0.0,
+        odd=bool(symmetric) and lo + hi == 0.0 if odd is None else bool(odd),
     )
 
 
@@ -358,6 +358,7 @@ def fit_magnet(
     validation_fraction: float = VALIDATION_FRACTION,
     callback: Callable[[int, float], None] | None = None,
     mesh_adapt: float | str = "auto",
+    odd: bool | None = None,
 ) -> MagnetFit:
     """Fit a Preisach model and its predictive band to one training history.
 
@@ -406,6 +407,9 @@ def fit_magnet(
         mesh_adapt: Share of the mesh in ``[0, 1)`` placed where the training
             output changes (0: regular mesh), or ``"auto"`` (default) to
             choose on validation rows as above.
+        odd: Odd output about zero input (:class:`PreisachModel` ``odd``:
+            no fitted offset); ``None`` (default): odd when the density is
+            symmetric and the input range centred on zero. ``True`` needs both.
 
     Returns:
         A :class:`MagnetFit`.
@@ -439,6 +443,11 @@ def fit_magnet(
         chosen = bool(symmetric)
     if rng is None:
         rng = default_input_range(u, initial_state, centred=chosen)
+    if odd and not (chosen and float(rng[0]) + float(rng[1]) == 0.0):
+        raise ValueError(
+            "odd=True needs a symmetric density and an input range centred on 0; "
+            f"got symmetric={chosen}, input_range {list(rng)}."
+        )
     # every check that can fail runs before the first fit
     if is_integer(mesh_size):
         check_mesh_size(int(mesh_size))
@@ -470,7 +479,7 @@ def fit_magnet(
         held = torch.arange(u.numel()) % _INTERLEAVE == _INTERLEAVE - 1
         scores = []
         for share in MESH_ADAPT_CANDIDATES:
-            model = _build(mesh_size, rng, initial_state, chosen, warp_of(share))
+            model = _build(mesh_size, rng, initial_state, chosen, warp_of(share), odd)
             fit_preisach(
                 model, u, y, steps=max(1, steps // 2), smoothness=smoothness,
                 callback=callback, loss_rows=~held,
@@ -487,7 +496,7 @@ def fit_magnet(
         mesh_adapt = best[1] if best[0] < _WARP_GAIN * regular else 0.0
     warp = warp_of(mesh_adapt)
     notes: list[str] = []
-    model = _build(mesh_size, rng, initial_state, chosen, warp)
+    model = _build(mesh_size, rng, initial_state, chosen, warp, odd)
     fit_preisach(
         model, u[:n_fit], y[:n_fit], steps=steps, smoothness=smoothness,
         callback=callback,
@@ -513,7 +522,7 @@ def fit_magnet(
         0.5 * float(torch.quantile(z, _COVER)),
     )
     # final fit on all training rows
-    model = _build(mesh_size, rng, initial_state, chosen, warp)
+    model = _build(mesh_size, rng, initial_state, chosen, warp, odd)
     result = fit_preisach(
         model, u, y, steps=steps, smoothness=smoothness, callback=callback
     )
