@@ -178,6 +178,24 @@ def test_slac_quadrupole_acceptance() -> None:
     assert float((err.abs() < 2 * std[62:]).double().mean()) >= 0.7
 
 
+@pytest.mark.slow
+@pytest.mark.skipif(not SLAC.exists(), reason="needs /work/shared reference data")
+def test_slac_quadrupole_band_with_the_cli_defaults() -> None:
+    # defaults of `hysteresis fit`: at least 80 % of the 125 held-out rows inside
+    # 2 std, held-out rms at most 0.065 % of the training output range
+    hist = read_magnet_csv(SLAC)
+    current, field = hist.input, hist.output
+    fit = fit_magnet(current[:62], field[:62])
+    assert fit.mesh_adapt == 0.0 and fit.band_fallback is None
+    with torch.no_grad():
+        pred = fit.model(current)
+        std = fit.band.std(fit.model, current)
+    err = pred[62:] - field[62:]
+    span = float(field[:62].max() - field[:62].min())
+    assert 100 * float(err.pow(2).mean().sqrt()) / span <= 0.065
+    assert float((err.abs() <= 2 * std[62:]).double().mean()) >= 0.8
+
+
 @pytest.mark.parametrize("symmetric", [False, True])
 def test_fit_objective_from_fixed_states_equals_the_model(symmetric: bool) -> None:
     # the fit evaluates a fixed relay-state table (known initial state): it must

@@ -37,6 +37,7 @@ from diffaccel.hysteresis.stream import (
 
 # name -> submodule, loaded on first access (see the module docstring)
 _LAZY = {
+    "BandFallbackWarning": "band",
     "LaplaceBand": "band",
     "laplace_band": "band",
     "FitResult": "fit",
@@ -49,6 +50,8 @@ _LAZY = {
     "magnetic_rigidity": "magnet",
     "PreisachMesh": "mesh",
     "MagnetFit": "predictive",
+    "adaptive_warp": "predictive",
+    "changes_sign": "predictive",
     "default_input_range": "predictive",
     "fit_magnet": "predictive",
     "predict_stream": "predictive",
@@ -114,6 +117,7 @@ __all__ = [
     "INITIAL_STATES",
     "MODEL_FILE",
     "STREAM_FILE",
+    "BandFallbackWarning",
     "FitResult",
     "HGPFitResult",
     "HysteresisBO",
@@ -129,6 +133,8 @@ __all__ = [
     "StreamPredictor",
     "StreamSpec",
     "UnreachableTargetError",
+    "adaptive_warp",
+    "changes_sign",
     "default_input_range",
     "field_for_k1",
     "fit_hysteresis_gp",
