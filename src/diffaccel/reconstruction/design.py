@@ -76,6 +76,8 @@ __all__ = [
     "Knob",
     "Observability",
     "ScanLayout",
+    "beam_from_images",
+    "beam_from_spec",
     "layouts_from_dataset",
     "layouts_from_spec",
     "moment_design",
@@ -122,6 +124,10 @@ MOVE_PARTIALS = (-0.6, 0.6)
 #: more than this factor if the prior is made ten times wider (a determined
 #: one keeps its std: the data set it).
 PRIOR_SENSITIVITY = 1.5
+#: A quantity that moves by more than this fraction along an unseen direction
+#: (over :data:`MOVE_PARTIALS`) is left to the prior whatever its std (at a
+#: point of largest entropy the std of the linearised posterior misses it).
+MOVE_LIMIT = 0.05
 #: Fraction of the beam that must land on the screen for a candidate image.
 MIN_ON_SCREEN = 0.95
 #: Most added images per scan of a recommendation.
@@ -245,6 +251,35 @@ def quantity_gradients(cov: Tensor, names: Sequence[str]) -> tuple[Tensor, Tenso
     return vals.detach(), grads
 
 
+#: Posterior draws behind each std (the same normal deviates for every
+#: candidate, so that candidates are compared without sampling noise).
+N_DRAWS = 256
+
+
+def _draw_stds(cov: Tensor, info: Tensor, names: Sequence[str]) -> Tensor:
+    """Std over posterior draws of each quantity (as ``MomentUncertainty``
+    reports it): entries ``theta0 + L z`` with ``L L^T = info^-1`` in
+    correlation units, quantities of each drawn covariance.
+
+    Shapes: ``cov (6, 6)``, ``info (*B, 21, 21)`` -> ``(*B, Q)``.
+    """
+    s0 = cov.to(torch.float64)
+    sig = s0.diagonal().clamp_min(1e-300).sqrt()
+    g = torch.Generator().manual_seed(0)
+    z = torch.randn(N_DRAWS, len(ENTRIES), generator=g, dtype=torch.float64)
+    c = torch.linalg.inv(0.5 * (info + info.transpose(-1, -2)))
+    w, v = torch.linalg.eigh(0.5 * (c + c.transpose(-1, -2)))
+    lc = v * w.clamp_min(0).sqrt()[..., None, :]
+    delta = z @ lc.transpose(-1, -2)  # (*B, n, 21)
+    ii = torch.tensor([e[0] for e in ENTRIES])
+    jj = torch.tensor([e[1] for e in ENTRIES])
+    m = torch.zeros(*delta.shape[:-1], 6, 6, dtype=torch.float64)
+    m[..., ii, jj] = delta * sig[ii] * sig[jj]
+    draws = s0 + m + m.transpose(-1, -2) - torch.diag_embed(m.diagonal(0, -2, -1))
+    q = quantities(draws)
+    return torch.stack([q[n].std(-1) for n in names], -1)
+
+
 def _stds(grads: Tensor, info: Tensor) -> Tensor:
     """Posterior std ``sqrt(g^T J^-1 g)`` for gradients ``(Q, 21)`` and
     information ``(*B, 21, 21)`` -> ``(*B, Q)``."""
@@ -284,6 +319,44 @@ def layouts_from_dataset(dataset: Any) -> list[ScanLayout]:
         ScanLayout(n, ScreenForwardModel.from_dataset(s), s.settings.clone())
         for n, s in scans
     ]
+
+
+#: Rms of z [m] and pz [1] given to a beam whose images do not see them
+#: (``ReconstructionConfig.longitudinal_scale``'s default).
+LONGITUDINAL_RMS = (1e-3, 1e-3)
+
+
+def beam_from_images(dataset: Any) -> Tensor:
+    """Prior beam ``(6, 6)`` of a dataset: the Gaussian fit to its image moments.
+
+    :func:`~diffaccel.reconstruction.initial.fit_gaussian` (no training);
+    coordinates the scans do not see get :data:`LONGITUDINAL_RMS`, uncorrelated,
+    and the result is made positive definite (correlations within 0.98).
+    """
+    from diffaccel.reconstruction.initial import fit_gaussian
+
+    scans = list(dataset) if hasattr(dataset, "names") else [("scan", dataset)]
+    fwds = [
+        ScreenForwardModel.from_dataset(
+            s, blur_pixels=s.resolution_pixels if s.resolution_pixels else 1.0
+        )
+        for _, s in scans
+    ]
+    guess = fit_gaussian(
+        fwds, [s.mean_images() for _, s in scans], [s.settings for _, s in scans]
+    )
+    cov = guess.cov.clone()
+    for i in (4, 5):
+        if not float(cov[i, i]) > 0:
+            cov[i, :] = 0.0
+            cov[:, i] = 0.0
+            cov[i, i] = LONGITUDINAL_RMS[i - 4] ** 2
+    d = cov.diagonal().clamp_min(1e-300).sqrt()
+    c = cov / (d[:, None] * d[None, :])
+    w, v = torch.linalg.eigh(0.5 * (c + c.T))
+    c = (v * w.clamp_min(0.02)) @ v.T
+    e = c.diagonal().sqrt()
+    return c / (e[:, None] * e[None, :]) * (d[:, None] * d[None, :])
 
 
 def beam_from_spec(beam: Mapping[str, Any], where: str = "beam") -> Tensor:
@@ -564,18 +637,23 @@ def observability(
         }
         for c, n in enumerate(ENTRY_NAMES)
     }
-    vals, grads = quantity_gradients(s, qnames)
-    post = _stds(grads, info)
-    post_wide = _stds(grads, wide)
-    pstd = _stds(grads, _prior_precision())
+    post, post_wide, pstd = _draw_stds(
+        s, torch.stack([info, wide, _prior_precision()]), qnames
+    )
     qout = {}
     for k, q in enumerate(qnames):
-        v = abs(float(vals[k])) or 1e-300
+        v = abs(base[q]) or 1e-300
+        moved = max(
+            (abs(c) for u in unseen for c in u["moves"][q] if c is not None),
+            default=0.0,
+        )
         qout[q] = {
-            "value": float(vals[k]),
+            "value": base[q],
             "relative_std": float(post[k]) / v,
             "prior_relative_std": float(pstd[k]) / v,
-            "determined": bool(post_wide[k] < PRIOR_SENSITIVITY * post[k]),
+            "largest_move": moved,
+            "determined": bool(post_wide[k] < PRIOR_SENSITIVITY * post[k])
+            and moved <= MOVE_LIMIT,
         }
     return Observability(
         sv_all, lsv, unseen, not_seen, entries_out, qout, float(relative_error), info
@@ -810,10 +888,9 @@ def recommend(
     obs = observability(layouts, s, relative_error=relative_error, posterior=posterior)
     info0 = obs.info
     qnames = list(QUANTITIES)
-    _, grads = quantity_gradients(s, qnames)
     tsel = [qnames.index(t) for t in targets]
     vals = torch.tensor([abs(obs.quantities[q]["value"]) or 1e-300 for q in qnames])
-    base_std = _stds(grads, info0) / vals
+    base_std = _draw_stds(s, info0, qnames) / vals
     cands: list[_Candidate] = []
     excluded: list[str] = []
     on_values: dict[str, set] = {}
@@ -884,7 +961,7 @@ def recommend(
         if not live:
             break
         stack = torch.stack([info + cands[i].info for i in live])
-        new = _stds(grads, stack) / vals  # (L, Q)
+        new = _draw_stds(s, stack, qnames) / vals  # (L, Q)
         gain = ((cur[tsel] - new[:, tsel]) / base_std[tsel]).sum(-1)
         per_img = gain / torch.tensor([float(cands[i].rows.shape[0]) for i in live])
         best = int(per_img.argmax())
