@@ -9,14 +9,18 @@ from pathlib import Path
 import click
 import torch
 
+from diffaccel.data import FormatError
+from diffaccel.data.atomic import atomic_write
+from diffaccel.data.scans import read_scans
+from diffaccel.plotting.design import plot_expected_std, plot_spectrum
+from diffaccel.reconstruction import design as dz
+from diffaccel.reconstruction import load
+
 __all__ = ["design_command"]
 
 
 def _load(data: Path, result: Path | None) -> tuple[list, torch.Tensor, object]:
     """Layouts, beam covariance and moment posterior (or None) of the inputs."""
-    from diffaccel.data import FormatError
-    from diffaccel.reconstruction import design as dz
-
     posterior, rel = None, None
     if data.suffix.lower() == ".json":
         try:
@@ -32,8 +36,6 @@ def _load(data: Path, result: Path | None) -> tuple[list, torch.Tensor, object]:
         except ValueError as err:
             raise click.ClickException(f"{data}: {err}") from None
     else:
-        from diffaccel.data.scans import read_scans
-
         try:
             ds = read_scans(data)
         except (FormatError, OSError, ValueError) as err:
@@ -46,8 +48,6 @@ def _load(data: Path, result: Path | None) -> tuple[list, torch.Tensor, object]:
             except ValueError as err:
                 raise click.ClickException(f"{data}: {err}") from None
     if result is not None:
-        from diffaccel.reconstruction import load
-
         try:
             rec = load(result)
         except (FileNotFoundError, ValueError, OSError) as err:
@@ -180,8 +180,6 @@ def design_command(
     plots: Path | None,
 ) -> None:
     """What the scans in DATA determine and which settings to add."""
-    from diffaccel.reconstruction import design as dz
-
     layouts, cov, (posterior, rel) = _load(data, result)
     r = relative_error or rel or dz.RELATIVE_ERROR
     try:
@@ -202,9 +200,6 @@ def design_command(
         raise click.ClickException(str(err)) from None
     od = obs.to_dict()
     if plots is not None:
-        from diffaccel.data.atomic import atomic_write
-        from diffaccel.plotting.design import plot_expected_std, plot_spectrum
-
         plots.mkdir(parents=True, exist_ok=True)
         figs = [("singular_values.png", plot_spectrum(od))]
         if report is not None and report["recommended"]:

@@ -64,7 +64,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from diffaccel.dynamics.beamline import Beamline
 from diffaccel.reconstruction.forward import ScreenForwardModel
+from diffaccel.reconstruction.initial import fit_gaussian
 from diffaccel.reconstruction.metrics import COORDINATES
 from diffaccel.reconstruction.prior_dependence import _moves
 from diffaccel.reconstruction.uncertainty import covariance_design, pair_indices
@@ -333,8 +335,6 @@ def beam_from_images(dataset: Any) -> Tensor:
     coordinates the scans do not see get :data:`LONGITUDINAL_RMS`, uncorrelated,
     and the result is made positive definite (correlations within 0.98).
     """
-    from diffaccel.reconstruction.initial import fit_gaussian
-
     scans = list(dataset) if hasattr(dataset, "names") else [("scan", dataset)]
     fwds = [
         ScreenForwardModel.from_dataset(
@@ -406,8 +406,6 @@ def layouts_from_spec(spec: Mapping[str, Any]) -> tuple[list[ScanLayout], Tensor
     Raises:
         ValueError: one line naming the field that is missing or wrong.
     """
-    from diffaccel.dynamics.beamline import Beamline
-
     for key in ("p0c", "beam", "scans"):
         if key not in spec:
             raise ValueError(f"design spec: missing {key!r}")
