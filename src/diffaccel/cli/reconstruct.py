@@ -780,6 +780,8 @@ def reconstruct_command(
         )
     for line in prior_dependence_lines(summary.get("prior_dependence", [])):
         click.echo(line)
+    if summary.get("observability"):
+        click.echo(summary["observability"])
     polish = summary.get("moment_polish", [])
     if polish:
         before = ", ".join(f"{100 * p['residual_before']:.2f}" for p in polish)

@@ -84,6 +84,7 @@ __all__ = [
     "layouts_from_spec",
     "moment_design",
     "observability",
+    "observability_line",
     "parse_knob",
     "propose_quad_settings",
     "quad_scan_posterior",
@@ -1137,3 +1138,46 @@ def propose_quad_settings(
         taken.append(float(cand[best]))
         info = info + add[:, best]
     return cand.new_tensor(taken)
+
+
+def observability_line(
+    maps: Sequence[Tensor],
+    cov: Tensor,
+    posterior: Tensor | None = None,
+    relative_error: float = RELATIVE_ERROR,
+) -> str:
+    """:meth:`Observability.summary_line` of a reconstruction's scans and beam.
+
+    Args:
+        maps: Each scan's affine maps of its training settings ``(K_s, 7, 7)``.
+        cov: The beam's covariance ``(6, 6)``; rows of coordinates a 4D
+            reconstruction does not generate (zero) get
+            :data:`LONGITUDINAL_RMS`, and the matrix is made positive definite.
+        posterior: The reconstruction's moment posterior (``theta_cov``).
+        relative_error: Relative error of each screen second moment.
+
+    Returns:
+        One line (``"observability: ..."``); ``"observability: not computed
+        (...)"`` for a covariance that is not finite.
+    """
+    c = cov.to(torch.float64).clone()
+    if not bool(torch.isfinite(c).all()) or c.shape != (6, 6):
+        return "observability: not computed (the covariance is not finite)"
+    for i in (4, 5):
+        if not float(c[i, i]) > 0:
+            c[i, :] = 0.0
+            c[:, i] = 0.0
+            c[i, i] = LONGITUDINAL_RMS[i - 4] ** 2
+    d = c.diagonal().clamp_min(1e-300).sqrt()
+    r = c / (d[:, None] * d[None, :])
+    w, v = torch.linalg.eigh(0.5 * (r + r.T))
+    if float(w.min()) < 1e-6:
+        r = (v * w.clamp_min(1e-6)) @ v.T
+        e = r.diagonal().sqrt()
+        c = r / (e[:, None] * e[None, :]) * (d[:, None] * d[None, :])
+    post = (
+        posterior if posterior is not None and posterior.shape[0] in (10, 21) else None
+    )
+    return observability(
+        list(maps), c, posterior=post, relative_error=relative_error
+    ).summary_line()

@@ -1,0 +1,183 @@
+"""Sequential design of quadrupole scans against evenly spaced settings (no training).
+
+For each of ``--seeds`` synthetic 4D beams (half Gaussian, half non-Gaussian:
+a 10 % halo twice as wide, or a cubic x-px distortion; random Twiss
+parameters) a quadrupole (0.1 m) + drift (2 m) scan is imaged on a 200 x 200
+screen of 80 um pixels: each image is the cloud-in-cell deposit (1 pixel
+point spread) of a fresh draw of ``--particles`` particles of the beam, so
+images carry shot noise. The estimator is the classic rms fit (second moments
+of the images, the point spread's variance removed, weighted least squares on
+the transfer matrices, error scale fitted to the residuals;
+``reconstruction.design.quad_scan_posterior``).
+
+- ``designed``: 3 settings (k1 = -10, 0, 10 1/m^2), then one at a time the
+  strength that ``propose_quad_settings`` proposes from the fit so far, up to
+  ``--designed`` settings.
+- ``even``: ``--even`` settings evenly spaced over the same range.
+
+Reported per arm: the median over beams and planes of the emittance's
+relative posterior std and of its absolute relative error against the beam's
+rms emittance. The last line is the JSON summary.
+
+Usage: ``python benchmarks/design.py [--seeds 10] [--designed 5] [--even 10]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+
+import torch
+from _meta import emit, git_commit
+
+from diffaccel.dynamics import Beamline
+from diffaccel.dynamics.images import cic_image
+from diffaccel.reconstruction import ScreenForwardModel
+from diffaccel.reconstruction.design import propose_quad_settings, quad_scan_posterior
+from diffaccel.reconstruction.uncertainty import image_moments
+
+K1 = (-10.0, 10.0)
+SCREEN = (200, 200)
+PIXEL = 80e-6
+BLUR = 1.0  # pixels
+#: Absolute error floor of a screen variance [m^2]: a quarter pixel rms.
+FLOOR = (0.25 * PIXEL) ** 2
+
+
+def beamline() -> ScreenForwardModel:
+    line = Beamline.from_spec(
+        [
+            {"type": "Quadrupole", "name": "Q", "length": 0.1, "k1": 0.0},
+            {"type": "Drift", "name": "D", "length": 2.0},
+            {
+                "type": "Screen",
+                "name": "S",
+                "shape": list(SCREEN),
+                "pixel_size": [PIXEL, PIXEL],
+                "center": [0.0, 0.0],
+            },
+        ]
+    )
+    return ScreenForwardModel(line, ["Q.k1"], 43.36e6, blur_pixels=BLUR)
+
+
+def beam(seed: int, n: int) -> torch.Tensor:
+    """A 4D beam (z = pz = 0) of ``n`` particles; odd seeds are non-Gaussian."""
+    g = torch.Generator().manual_seed(1000 + seed)
+    out = torch.zeros(n, 6, dtype=torch.float64)
+    for p in (0, 2):
+        u = torch.rand(3, generator=g, dtype=torch.float64)
+        emit = 0.05e-6 + 0.05e-6 * float(u[0])
+        beta = 3.0 + 7.0 * float(u[1])
+        alpha = -1.5 + 3.0 * float(u[2])
+        a = torch.randn(n, generator=g, dtype=torch.float64)
+        b = torch.randn(n, generator=g, dtype=torch.float64)
+        if seed % 2 == 1 and p == 0:  # halo: 10 % twice as wide
+            wide = torch.rand(n, generator=g) < 0.1
+            a = torch.where(wide, 2 * a, a)
+            b = torch.where(wide, 2 * b, b)
+        x = (emit * beta) ** 0.5 * a
+        px = (emit / beta) ** 0.5 * (b - alpha * a)
+        if seed % 2 == 1 and p == 2:  # cubic distortion
+            px = px + 0.3 * (emit / beta) ** 0.5 * a**3
+        out[:, p], out[:, p + 1] = x, px
+    return out
+
+
+class Imager:
+    """Images of fresh draws of a beam at any k1, and their moments."""
+
+    def __init__(
+        self, fwd: ScreenForwardModel, particles: torch.Tensor, n: int, seed: int
+    ):
+        self.fwd, self.parts, self.n = fwd, particles, n
+        self.g = torch.Generator().manual_seed(seed)
+        self.xs, self.ys = fwd.screen.pixel_centers(dtype=torch.float64)
+
+    def moments(self, k1: torch.Tensor) -> torch.Tensor:
+        maps = self.fwd.transfer_maps(k1[:, None])
+        out = []
+        for m in maps:
+            idx = torch.randint(self.parts.shape[0], (self.n,), generator=self.g)
+            x = self.parts[idx] @ m[:6, :6].T
+            scr = self.fwd.screen
+            img = cic_image(
+                x[None, :, 0],
+                x[None, :, 2],
+                scr.shape,
+                scr.pixel_size,
+                scr.center,
+                None,
+                self.fwd._blur(),
+            )
+            mom = image_moments(img, self.xs, self.ys)[0]
+            bx, by = self.fwd.blur_sigma()
+            out.append(torch.stack([mom[2] - bx**2, mom[4] - by**2]))
+        return torch.stack(out)
+
+
+def run_arm(imager: Imager, k1: torch.Tensor) -> dict:
+    fwd = imager.fwd
+    maps = fwd.transfer_maps(k1[:, None])[:, :6, :6]
+    return quad_scan_posterior(maps, imager.moments(k1), floor=FLOOR)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--designed", type=int, default=5)
+    ap.add_argument("--even", type=int, default=10)
+    ap.add_argument("--particles", type=int, default=20_000)
+    args = ap.parse_args()
+    fwd = beamline()
+    cand = torch.linspace(*K1, 61, dtype=torch.float64)
+
+    def map_of(k: torch.Tensor) -> torch.Tensor:
+        return fwd.transfer_maps(k[:, None])[:, :6, :6]
+
+    arms: dict[str, dict[str, list]] = {
+        a: {"std": [], "err": [], "k1": []} for a in ("designed", "even")
+    }
+    for seed in range(args.seeds):
+        parts = beam(seed, 200_000)
+        c = torch.cov(parts.T)
+        truth = torch.stack(
+            [torch.linalg.det(c[p : p + 2, p : p + 2]).sqrt() for p in (0, 2)]
+        )
+        # designed: start, then one proposal at a time from the fit so far
+        im = Imager(fwd, parts, args.particles, seed)
+        k1 = torch.tensor([K1[0], 0.0, K1[1]], dtype=torch.float64)
+        mom = im.moments(k1)
+        while k1.shape[0] < args.designed:
+            nxt = propose_quad_settings(
+                map_of, map_of(k1), mom, cand, n=1, floor=FLOOR
+            )
+            k1 = torch.cat([k1, nxt])
+            mom = torch.cat([mom, im.moments(nxt)])
+        post = quad_scan_posterior(map_of(k1), mom, floor=FLOOR)
+        results = {"designed": (post, k1)}
+        im = Imager(fwd, parts, args.particles, 10_000 + seed)
+        ke = torch.linspace(*K1, args.even, dtype=torch.float64)
+        results["even"] = (run_arm(im, ke), ke)
+        for arm, (p, ks) in results.items():
+            arms[arm]["std"] += (p["emit_std"] / p["emit"]).tolist()
+            arms[arm]["err"] += ((p["emit"] / truth - 1).abs()).tolist()
+            arms[arm]["k1"].append([round(float(v), 2) for v in ks])
+        print(
+            f"seed {seed}: designed k1 {arms['designed']['k1'][-1]}: std "
+            f"{arms['designed']['std'][-2:]} err {arms['designed']['err'][-2:]}; even "
+            f"std {arms['even']['std'][-2:]} err {arms['even']['err'][-2:]}"
+        )
+    out = {"commit": git_commit()}
+    for arm, n in (("designed", args.designed), ("even", args.even)):
+        out[arm] = {
+            "n_settings": n,
+            "median_emit_rel_std": statistics.median(arms[arm]["std"]),
+            "median_emit_abs_rel_err": statistics.median(arms[arm]["err"]),
+            "mean_emit_abs_rel_err": statistics.fmean(arms[arm]["err"]),
+        }
+    emit(out)
+
+
+if __name__ == "__main__":
+    main()
