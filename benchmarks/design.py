@@ -10,9 +10,10 @@ of the images, the point spread's variance removed, weighted least squares on
 the transfer matrices, error scale fitted to the residuals;
 ``reconstruction.design.quad_scan_posterior``).
 
-- ``designed``: 3 settings (k1 = -10, 0, 10 1/m^2), then one at a time the
-  strength that ``propose_quad_settings`` proposes from the fit so far, up to
-  ``--designed`` settings.
+- ``designed``: 3 settings (k1 = -5, 0, 5 1/m^2: the middle half of the
+  range), then one at a time: ``propose_quad_settings`` proposes the remaining
+  strengths jointly from the fit so far, the first is measured, and the fit
+  is repeated, up to ``--designed`` settings.
 - ``even``: ``--even`` settings evenly spaced over the same range.
 
 Reported per arm: the median over beams and planes of the emittance's
@@ -61,12 +62,14 @@ def beamline() -> ScreenForwardModel:
     return ScreenForwardModel(line, ["Q.k1"], 43.36e6, blur_pixels=BLUR)
 
 
-def beam(seed: int, n: int) -> torch.Tensor:
-    """A 4D beam (z = pz = 0) of ``n`` particles; odd seeds are non-Gaussian."""
-    g = torch.Generator().manual_seed(1000 + seed)
+def beam(seed: int, n: int, draw: int = 0) -> torch.Tensor:
+    """``n`` particles of 4D beam ``seed`` (z = pz = 0), the ``draw``-th fresh
+    draw of its distribution; odd seeds are non-Gaussian."""
+    gp = torch.Generator().manual_seed(1000 + seed)  # the distribution
+    g = torch.Generator().manual_seed(100_000 * (seed + 1) + draw)  # the draw
     out = torch.zeros(n, 6, dtype=torch.float64)
     for p in (0, 2):
-        u = torch.rand(3, generator=g, dtype=torch.float64)
+        u = torch.rand(3, generator=gp, dtype=torch.float64)
         emit = 0.05e-6 + 0.05e-6 * float(u[0])
         beta = 3.0 + 7.0 * float(u[1])
         alpha = -1.5 + 3.0 * float(u[2])
@@ -87,19 +90,16 @@ def beam(seed: int, n: int) -> torch.Tensor:
 class Imager:
     """Images of fresh draws of a beam at any k1, and their moments."""
 
-    def __init__(
-        self, fwd: ScreenForwardModel, particles: torch.Tensor, n: int, seed: int
-    ):
-        self.fwd, self.parts, self.n = fwd, particles, n
-        self.g = torch.Generator().manual_seed(seed)
+    def __init__(self, fwd: ScreenForwardModel, seed: int, n: int, first_draw: int):
+        self.fwd, self.seed, self.n, self.draw = fwd, seed, n, first_draw
         self.xs, self.ys = fwd.screen.pixel_centers(dtype=torch.float64)
 
     def moments(self, k1: torch.Tensor) -> torch.Tensor:
         maps = self.fwd.transfer_maps(k1[:, None])
         out = []
         for m in maps:
-            idx = torch.randint(self.parts.shape[0], (self.n,), generator=self.g)
-            x = self.parts[idx] @ m[:6, :6].T
+            self.draw += 1
+            x = beam(self.seed, self.n, self.draw) @ m[:6, :6].T
             scr = self.fwd.screen
             img = cic_image(
                 x[None, :, 0],
@@ -116,10 +116,10 @@ class Imager:
         return torch.stack(out)
 
 
-def run_arm(imager: Imager, k1: torch.Tensor) -> dict:
+def run_arm(imager: Imager, k1: torch.Tensor, r: float | None) -> dict:
     fwd = imager.fwd
     maps = fwd.transfer_maps(k1[:, None])[:, :6, :6]
-    return quad_scan_posterior(maps, imager.moments(k1), floor=FLOOR)
+    return quad_scan_posterior(maps, imager.moments(k1), floor=FLOOR, relative_error=r)
 
 
 def main() -> None:
@@ -128,6 +128,13 @@ def main() -> None:
     ap.add_argument("--designed", type=int, default=5)
     ap.add_argument("--even", type=int, default=10)
     ap.add_argument("--particles", type=int, default=20_000)
+    ap.add_argument(
+        "--relative-error",
+        type=float,
+        default=None,
+        help="Known relative error of each screen variance (default: fitted to "
+        "the residuals).",
+    )
     args = ap.parse_args()
     fwd = beamline()
     cand = torch.linspace(*K1, 61, dtype=torch.float64)
@@ -139,26 +146,34 @@ def main() -> None:
         a: {"std": [], "err": [], "k1": []} for a in ("designed", "even")
     }
     for seed in range(args.seeds):
-        parts = beam(seed, 200_000)
-        c = torch.cov(parts.T)
+        c = torch.cov(beam(seed, 2_000_000, draw=-1).T)  # the distribution
         truth = torch.stack(
             [torch.linalg.det(c[p : p + 2, p : p + 2]).sqrt() for p in (0, 2)]
         )
         # designed: start, then one proposal at a time from the fit so far
-        im = Imager(fwd, parts, args.particles, seed)
-        k1 = torch.tensor([K1[0], 0.0, K1[1]], dtype=torch.float64)
+        im = Imager(fwd, seed, args.particles, first_draw=0)
+        k1 = torch.tensor([K1[0] / 2, 0.0, K1[1] / 2], dtype=torch.float64)
         mom = im.moments(k1)
         while k1.shape[0] < args.designed:
             nxt = propose_quad_settings(
-                map_of, map_of(k1), mom, cand, n=1, floor=FLOOR
+                map_of,
+                map_of(k1),
+                mom,
+                cand,
+                n=args.designed - k1.shape[0],
+                floor=FLOOR,
+                relative_error=args.relative_error,
             )
+            nxt = nxt[:1]  # measure the first of the look-ahead proposal
             k1 = torch.cat([k1, nxt])
             mom = torch.cat([mom, im.moments(nxt)])
-        post = quad_scan_posterior(map_of(k1), mom, floor=FLOOR)
+        post = quad_scan_posterior(
+            map_of(k1), mom, floor=FLOOR, relative_error=args.relative_error
+        )
         results = {"designed": (post, k1)}
-        im = Imager(fwd, parts, args.particles, 10_000 + seed)
+        im = Imager(fwd, seed, args.particles, first_draw=10_000)
         ke = torch.linspace(*K1, args.even, dtype=torch.float64)
-        results["even"] = (run_arm(im, ke), ke)
+        results["even"] = (run_arm(im, ke, args.relative_error), ke)
         for arm, (p, ks) in results.items():
             arms[arm]["std"] += (p["emit_std"] / p["emit"]).tolist()
             arms[arm]["err"] += ((p["emit"] / truth - 1).abs()).tolist()

@@ -9,7 +9,12 @@ import torch
 from click.testing import CliRunner
 
 from diffaccel.cli.main import main
-from diffaccel.reconstruction import ScreenForwardModel
+from diffaccel.reconstruction import (
+    ReconstructionConfig,
+    ScreenForwardModel,
+    evaluate,
+    reconstruct,
+)
 from diffaccel.reconstruction import design as dz
 from diffaccel.reconstruction.uncertainty import covariance_design
 from diffaccel.reconstruction.unseen import _LONGITUDINAL, _moment_design
@@ -223,3 +228,14 @@ def test_propose_quad_settings_beats_a_poor_choice():
     torch.testing.assert_close(
         post["emit"][0], torch.linalg.det(cov[:2, :2]).sqrt(), rtol=1e-9, atol=0
     )
+
+
+def test_summary_stores_the_observability_line(small_scan):
+    fast = {"n_particles": 512, "steps": 4, "snapshots": 1, "checkpoint_every": 5}
+    result = reconstruct(
+        small_scan, ReconstructionConfig(**fast), train_indices=[0, 2, 4]
+    )
+    s = evaluate(result, small_scan, n_sample=2000)
+    line = s["observability"]
+    assert line.startswith("observability: z and pz not seen at all")
+    assert "\n" not in line

@@ -56,6 +56,7 @@ relative variance of the emittances after adding them.
 from __future__ import annotations
 
 import itertools
+import math
 import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -135,6 +136,8 @@ MOVE_LIMIT = 0.05
 MIN_ON_SCREEN = 0.95
 #: Most added images per scan of a recommendation.
 MAX_IMAGES_PER_SCAN = 8
+#: Most combinations :func:`propose_quad_settings` evaluates jointly.
+JOINT_LIMIT = 200_000
 #: Grid points of a knob range unless the knob says ``:N``.
 KNOB_POINTS = 5
 
@@ -1084,13 +1087,16 @@ def propose_quad_settings(
     relative_error: float | None = None,
     floor: float = 0.0,
     min_separation: float = 0.0,
+    joint: bool = True,
 ) -> Tensor:
     """The next quadrupole strength(s) that minimise the emittances' posterior std.
 
-    Fits the measurements so far (:func:`quad_scan_posterior`), then adds
-    candidates one at a time (greedy), each the one that minimises the summed
-    relative variance of the emittances of ``planes`` after it is measured, its
-    moments predicted by the fit and its error ``r <xx> + floor``.
+    Fits the measurements so far (:func:`quad_scan_posterior`), then picks the
+    ``n`` candidates (together, or one at a time) that minimise the summed
+    relative variance of the emittances of ``planes`` once they are measured,
+    their moments predicted by the fit and their errors ``r <xx> + floor``.
+    Run in a loop (propose, measure the first, fit again) it is a sequential
+    design with look-ahead.
 
     Args:
         map_of: Strengths ``(C,)`` -> first-order maps ``(C, 6, 6)`` (e.g.
@@ -1102,8 +1108,10 @@ def propose_quad_settings(
         planes: 0 (x), 1 (y) or both.
         relative_error: As in :func:`quad_scan_posterior`.
         floor: Absolute error floor [m^2].
-        min_separation: Candidates closer than this to a measured or proposed
-            strength are skipped (0: repeats allowed).
+        min_separation: Proposals closer than this to each other are skipped
+            (0: repeats allowed).
+        joint: Choose the ``n`` strengths together (every combination, where
+            there are at most :data:`JOINT_LIMIT`); else one at a time.
 
     Returns:
         The proposed strengths ``(n,)`` in order.
@@ -1126,12 +1134,27 @@ def propose_quad_settings(
     info = torch.linalg.pinv(post["cov"])  # (2, 3, 3)
     emit = post["emit"]
     g = torch.stack([th[:, 2], -2 * th[:, 1], th[:, 0]], -1) / (2 * emit[:, None])
+
+    def score_of(total: Tensor) -> Tensor:  # total (2, *M, 3, 3)
+        c = torch.linalg.pinv(total)
+        var = torch.einsum("pa,p...ab,pb->p...", g, c, g)
+        var = var / emit.reshape(2, *[1] * (var.ndim - 1)) ** 2
+        return var[list(planes)].sum(0)
+
+    n_c = cand.shape[0]
+    if joint and math.comb(n_c + n - 1, n) <= JOINT_LIMIT:
+        combos = torch.combinations(torch.arange(n_c), n, with_replacement=True)
+        combos = combos.reshape(-1, n)
+        score = score_of(info[:, None] + add[:, combos].sum(2))
+        if min_separation > 0 and n > 1:
+            vals = cand[combos]
+            gaps = (vals[:, :, None] - vals[:, None, :]).abs()
+            gaps = gaps + torch.eye(n, dtype=gaps.dtype) * torch.inf
+            score = torch.where(gaps.amin((-2, -1)) <= min_separation, torch.inf, score)
+        return cand[combos[int(score.argmin())]]
     taken: list[float] = []
     for _ in range(n):
-        trial = info[:, None] + add  # (2, C, 3, 3)
-        c = torch.linalg.pinv(trial)
-        var = torch.einsum("pa,pcab,pb->pc", g, c, g) / emit[:, None] ** 2
-        score = var[list(planes)].sum(0)
+        score = score_of(info[:, None] + add)
         for t in taken:
             score = torch.where((cand - t).abs() <= min_separation, torch.inf, score)
         best = int(score.argmin())
