@@ -16,9 +16,12 @@ the transfer matrices, error scale fitted to the residuals;
   is repeated, up to ``--designed`` settings.
 - ``even``: ``--even`` settings evenly spaced over the same range.
 
-Reported per arm: the median over beams and planes of the emittance's
-relative posterior std and of its absolute relative error against the beam's
-rms emittance. The last line is the JSON summary.
+Proposals keep 1 1/m^2 from each other and from measured strengths. Each beam
+is scanned ``--repeats`` times with fresh images (noise realisations).
+Reported per arm: the median over beams, realisations and planes of the
+emittance's relative posterior std and of its absolute relative error against
+the rms emittance of the beam's distribution (2 million particles). The last
+line is the JSON summary.
 
 Usage: ``python benchmarks/design.py [--seeds 10] [--designed 5] [--even 10]``
 """
@@ -26,6 +29,7 @@ Usage: ``python benchmarks/design.py [--seeds 10] [--designed 5] [--even 10]``
 from __future__ import annotations
 
 import argparse
+import itertools
 import statistics
 
 import torch
@@ -43,6 +47,9 @@ PIXEL = 80e-6
 BLUR = 1.0  # pixels
 #: Absolute error floor of a screen variance [m^2]: a quarter pixel rms.
 FLOOR = (0.25 * PIXEL) ** 2
+#: Proposed strengths differ from each other and from measured ones by more
+#: than this [1/m^2] (a twentieth of the range).
+SEPARATION = 1.0
 
 
 def beamline() -> ScreenForwardModel:
@@ -129,6 +136,9 @@ def main() -> None:
     ap.add_argument("--even", type=int, default=10)
     ap.add_argument("--particles", type=int, default=20_000)
     ap.add_argument(
+        "--repeats", type=int, default=2, help="Noise realisations per beam."
+    )
+    ap.add_argument(
         "--relative-error",
         type=float,
         default=None,
@@ -145,13 +155,13 @@ def main() -> None:
     arms: dict[str, dict[str, list]] = {
         a: {"std": [], "err": [], "k1": []} for a in ("designed", "even")
     }
-    for seed in range(args.seeds):
+    for seed, rep in itertools.product(range(args.seeds), range(args.repeats)):
         c = torch.cov(beam(seed, 2_000_000, draw=-1).T)  # the distribution
         truth = torch.stack(
             [torch.linalg.det(c[p : p + 2, p : p + 2]).sqrt() for p in (0, 2)]
         )
         # designed: start, then one proposal at a time from the fit so far
-        im = Imager(fwd, seed, args.particles, first_draw=0)
+        im = Imager(fwd, seed, args.particles, first_draw=100 * rep)
         k1 = torch.tensor([K1[0] / 2, 0.0, K1[1] / 2], dtype=torch.float64)
         mom = im.moments(k1)
         while k1.shape[0] < args.designed:
@@ -163,6 +173,8 @@ def main() -> None:
                 n=args.designed - k1.shape[0],
                 floor=FLOOR,
                 relative_error=args.relative_error,
+                measured=k1,
+                min_separation=SEPARATION,
             )
             nxt = nxt[:1]  # measure the first of the look-ahead proposal
             k1 = torch.cat([k1, nxt])
@@ -171,7 +183,7 @@ def main() -> None:
             map_of(k1), mom, floor=FLOOR, relative_error=args.relative_error
         )
         results = {"designed": (post, k1)}
-        im = Imager(fwd, seed, args.particles, first_draw=10_000)
+        im = Imager(fwd, seed, args.particles, first_draw=10_000 + 100 * rep)
         ke = torch.linspace(*K1, args.even, dtype=torch.float64)
         results["even"] = (run_arm(im, ke, args.relative_error), ke)
         for arm, (p, ks) in results.items():
@@ -179,7 +191,7 @@ def main() -> None:
             arms[arm]["err"] += ((p["emit"] / truth - 1).abs()).tolist()
             arms[arm]["k1"].append([round(float(v), 2) for v in ks])
         print(
-            f"seed {seed}: designed k1 {arms['designed']['k1'][-1]}: std "
+            f"seed {seed}.{rep}: designed k1 {arms['designed']['k1'][-1]}: std "
             f"{arms['designed']['std'][-2:]} err {arms['designed']['err'][-2:]}; even "
             f"std {arms['even']['std'][-2:]} err {arms['even']['err'][-2:]}"
         )

@@ -103,7 +103,7 @@ def _table(report: dict, obs: dict) -> list[str]:
     base = report["baseline_std"]
     lines.append(
         "today's relative std: "
-        + ", ".join(f"{t} {100 * base[t]:.1f} %" for t in targets)
+        + ", ".join(f"{t} {100 * base[t]:.3g} %" for t in targets)
     )
     if not report["recommended"]:
         lines.append("no candidate setting reduces the targets' std")
@@ -113,7 +113,7 @@ def _table(report: dict, obs: dict) -> list[str]:
         )
         lines += ["recommended added settings:", head]
         for n, r in enumerate(report["recommended"], 1):
-            stds = "  ".join(f"{100 * r['expected_std'][t]:>10.1f} %" for t in targets)
+            stds = "  ".join(f"{100 * r['expected_std'][t]:>10.3g} %" for t in targets)
             lines.append(f"{n:>2}  {r['scan']:<14} {r['n_images']:>6}  {stds}")
             lines.append("      " + ", ".join(r["names"]) + ":")
             for v in r["values"]:

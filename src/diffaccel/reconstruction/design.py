@@ -1025,7 +1025,8 @@ def quad_scan_posterior(
     """Classic rms quadrupole-scan fit per plane with its Gaussian posterior.
 
     ``<xx>_k = R11^2 S11 + 2 R11 R12 S12 + R12^2 S22`` (and y with ``R33,
-    R34``) by weighted least squares, errors ``r <xx>_k + floor``.
+    R34``) by weighted least squares, errors ``r <xx>_k + floor`` with
+    ``<xx>_k`` the fitted moment (three reweighted passes).
 
     Args:
         maps: First-order maps ``(K, 6, 6)`` (or ``(K, 7, 7)``).
@@ -1050,10 +1051,16 @@ def quad_scan_posterior(
     k = y.shape[0]
 
     def solve(r: float) -> tuple[Tensor, Tensor, Tensor]:
-        sd = r * yy.abs() + floor + 1e-300
-        aw = a_pl / sd[..., None]
-        th = torch.linalg.lstsq(aw, (yy / sd)[..., None]).solution[..., 0]
-        res = (yy - (a_pl @ th[..., None])[..., 0]) / sd
+        # weights from the fitted moments (iterated), not the measured ones:
+        # weighting by the data favours the low fluctuations (a bias)
+        level = yy.abs()
+        for _ in range(3):
+            sd = r * level + floor + 1e-300
+            aw = a_pl / sd[..., None]
+            th = torch.linalg.lstsq(aw, (yy / sd)[..., None]).solution[..., 0]
+            fit = (a_pl @ th[..., None])[..., 0]
+            level = torch.where(fit > 0, fit, yy.abs())
+        res = (yy - fit) / sd
         return th, torch.linalg.pinv(aw.transpose(-1, -2) @ aw), res
 
     r = 0.01 if relative_error is None else float(relative_error)
@@ -1088,6 +1095,7 @@ def propose_quad_settings(
     floor: float = 0.0,
     min_separation: float = 0.0,
     joint: bool = True,
+    measured: Tensor | None = None,
 ) -> Tensor:
     """The next quadrupole strength(s) that minimise the emittances' posterior std.
 
@@ -1108,10 +1116,12 @@ def propose_quad_settings(
         planes: 0 (x), 1 (y) or both.
         relative_error: As in :func:`quad_scan_posterior`.
         floor: Absolute error floor [m^2].
-        min_separation: Proposals closer than this to each other are skipped
-            (0: repeats allowed).
+        min_separation: Proposals closer than this to each other or to a
+            ``measured`` strength are skipped (0: repeats allowed).
         joint: Choose the ``n`` strengths together (every combination, where
             there are at most :data:`JOINT_LIMIT`); else one at a time.
+        measured: The strengths measured so far ``(K,)`` (for
+            ``min_separation``).
 
     Returns:
         The proposed strengths ``(n,)`` in order.
@@ -1141,6 +1151,11 @@ def propose_quad_settings(
         var = var / emit.reshape(2, *[1] * (var.ndim - 1)) ** 2
         return var[list(planes)].sum(0)
 
+    if measured is not None and min_separation > 0:
+        far = (cand[:, None] - measured.to(cand)[None, :]).abs().amin(-1)
+        keep = far > min_separation
+        if int(keep.sum()) >= n:
+            cand, add = cand[keep], add[:, keep]
     n_c = cand.shape[0]
     if joint and math.comb(n_c + n - 1, n) <= JOINT_LIMIT:
         combos = torch.combinations(torch.arange(n_c), n, with_replacement=True)
