@@ -34,19 +34,31 @@ def plot_spectrum(observability: Mapping[str, Any]) -> Figure:
     ax.set_yscale("log")
     ax.set_xlabel("direction (descending singular value)")
     ax.set_ylabel("singular value / largest")
+    notes = []
     for i, v in zip(idx, sv, strict=True):
         words = unseen.get(round(v, 15))
         if words:
             ax.annotate(
-                words,
+                str(i),
                 (i, max(v, 1e-16)),
-                xytext=(-4, 4),
+                xytext=(0, 2),
                 textcoords="offset points",
-                rotation=90,
-                ha="right",
+                ha="center",
                 va="bottom",
                 fontsize=8,
             )
+            notes.append(f"{i}: {words} ({v:.1e})")
+    if notes:
+        ax.text(
+            0.02,
+            0.04,
+            "unseen:\n" + "\n".join(notes),
+            transform=ax.transAxes,
+            fontsize=8,
+            va="bottom",
+            ha="left",
+            bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "0.7"},
+        )
     extra = observability.get("not_seen") or []
     title = "moment design"
     if extra:
@@ -63,7 +75,7 @@ def plot_expected_std(
     Args:
         report: :func:`diffaccel.reconstruction.design.recommend`'s result.
         names: Quantities to draw (default: the targets and any other whose
-            std changes by more than 1 % of today's).
+            std changes by more than 20 % of today's).
 
     Returns:
         A figure: one line per quantity, x the cumulative added images
@@ -77,7 +89,7 @@ def plot_expected_std(
         for q in base:
             if q in names or not steps:
                 continue
-            if abs(steps[-1]["all_std"][q] - base[q]) > 0.01 * max(base[q], 1e-12):
+            if abs(steps[-1]["all_std"][q] - base[q]) > 0.2 * max(base[q], 1e-12):
                 names.append(q)
     fig = Figure(figsize=(6.0, 3.8), layout="constrained")
     ax = fig.add_subplot()
