@@ -16,7 +16,7 @@ from diffaccel.reconstruction import (
     reconstruct,
 )
 from diffaccel.reconstruction import design as dz
-from diffaccel.reconstruction.uncertainty import covariance_design
+from diffaccel.reconstruction.uncertainty import covariance_design, image_moments
 from diffaccel.reconstruction.unseen import _LONGITUDINAL, _moment_design
 
 SPEC = {
@@ -239,3 +239,20 @@ def test_summary_stores_the_observability_line(small_scan):
     line = s["observability"]
     assert line.startswith("observability: z and pz not seen at all")
     assert "\n" not in line
+
+
+def test_design_matches_the_moments_of_tracked_images(small_awa6d):
+    """The synthetic files' images (exact tracking, histograms) against the design."""
+    theta = dz.theta_of(torch.cov(small_awa6d.ground_truth.double().T))
+    for _, scan in small_awa6d:
+        fwd = ScreenForwardModel.from_dataset(scan)
+        pred = dz.moment_design([fwd.transfer_maps(scan.settings)]) @ theta
+        pred = pred.reshape(-1, 3)
+        xs, ys = scan.pixel_centers()
+        m = image_moments(scan.mean_images().double(), xs, ys)
+        px, py = scan.pixel_size  # histograms: a point spread of 1/12 pixel^2
+        assert ((m[:, 2] - px**2 / 12) / pred[:, 0] - 1).abs().max() < 0.04
+        assert ((m[:, 4] - py**2 / 12) / pred[:, 2] - 1).abs().max() < 0.04
+        assert (
+            (m[:, 3] - pred[:, 1]) / (pred[:, 0] * pred[:, 2]).sqrt()
+        ).abs().max() < 0.02
