@@ -896,6 +896,7 @@ def recommend(
     cands: list[_Candidate] = []
     excluded: list[str] = []
     on_values: dict[str, set] = {}
+    had_rows: set[str] = set()
     for layout in layouts:
         mine = [k for k in knobs if _applicable(layout, k)]
         if not mine:
@@ -908,8 +909,14 @@ def recommend(
             r = base.clone()
             for c, v in zip(cols, combo, strict=True):
                 r[:, c] = v
-            all_rows.append(torch.unique(r, dim=0))
+            r = torch.unique(r, dim=0)
+            # a setting the scan has already measured adds nothing new
+            new = ~(r[:, None, :] == base[None, :, :]).all(-1).any(-1)
+            all_rows.append(r[new])
         stacked = torch.cat(all_rows)
+        if stacked.shape[0] == 0:
+            continue
+        had_rows.update(k.name for k in mine)
         frac = _on_screen(ext, stacked, s)
         d, _ = scaled_design(moment_design([ext.transfer_maps(stacked)]), s)
         per_row = d.reshape(-1, 3, d.shape[-1])
@@ -942,6 +949,11 @@ def recommend(
                         )
                     )
     for knob in knobs:  # a knob whose every candidate is off the screen
+        if knob.name not in had_rows:
+            raise ValueError(
+                f"knob {knob.name}={knob.low:g}:{knob.high:g} adds no setting: the "
+                "scans have measured every one already"
+            )
         if knob.name not in on_values:
             raise ValueError(
                 f"knob {knob.name}={knob.low:g}:{knob.high:g} puts the beam off the "
