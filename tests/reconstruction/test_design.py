@@ -148,6 +148,7 @@ def test_knob_errors_are_one_line(small_awa6d):
         "NOPE.k1=-1:1": "no element 'NOPE'",
         "SCAN_TDC.colour=0:1": "colour",
         "SCAN_TDC.voltage=3e7:5e7": "off the",
+        "SCAN_TDC.voltage=4e6": "adds no setting",
     }
     for text, msg in cases.items():
         with pytest.raises(ValueError, match=msg) as err:
@@ -159,6 +160,8 @@ def test_a_knob_that_moves_nothing_is_refused():
     layouts, cov = dz.layouts_from_spec(SPEC)
     with pytest.raises(ValueError, match="moves nothing"):
         dz.recommend(layouts, cov, [dz.parse_knob("Q2.tilt=0:1")])
+    with pytest.raises(ValueError, match="moves nothing"):
+        dz.recommend(layouts, cov, [dz.parse_knob("Q2.tilt=0.5")])
     rec = dz.recommend(
         layouts, cov, [dz.parse_knob("Q2.k1=-5:5")], targets=("emit_x", "emit_y")
     )

@@ -787,19 +787,23 @@ def check_knobs(layouts: Sequence[ScanLayout], knobs: Sequence[Knob]) -> None:
                 ext, rows = _extended(x, [knob])
                 col = ext.names.index(knob.name)
                 ends = []
-                for v in (knob.low, knob.high, 0.5 * (knob.low + knob.high)):
+                values = [knob.low, knob.high, 0.5 * (knob.low + knob.high)]
+                if knob.low == knob.high:  # one value: against the current one
+                    values.append(_current_value(x.forward, knob.name))
+                for v in values:
                     r = rows.clone()
                     r[:, col] = v
                     ends.append(ext.transfer_maps(r)[:, :6, :6])
             except ValueError as err:
                 raise ValueError(f"knob {knob.name!r}: {err}") from None
-            moved = max(moved, float((ends[0] - ends[1]).abs().max()))
-            moved = max(moved, float((ends[0] - ends[2]).abs().max()))
+            for other in ends[1:]:
+                moved = max(moved, float((ends[0] - other).abs().max()))
             scale = max(scale, float(ends[0].abs().max()))
         if not moved > 1e-12 * scale:
             raise ValueError(
                 f"knob {knob.name!r} moves nothing: the maps to every screen are the "
-                f"same from {knob.low:g} to {knob.high:g}, so no image would change"
+                f"same from {knob.low:g} to {knob.high:g} (and at the beamline's "
+                "value), so no image would change"
             )
 
 
