@@ -239,24 +239,6 @@ def quantities(cov: Tensor) -> dict[str, Tensor]:
     return out
 
 
-def quantity_gradients(cov: Tensor, names: Sequence[str]) -> tuple[Tensor, Tensor]:
-    """Values ``(Q,)`` and gradients ``(Q, 21)`` of quantities in correlation units."""
-    s0 = cov.to(torch.float64)
-    sig = s0.diagonal().clamp_min(1e-300).sqrt()
-    delta = torch.zeros(len(ENTRIES), dtype=torch.float64, requires_grad=True)
-    m = torch.zeros(6, 6, dtype=torch.float64)
-    ii = torch.tensor([e[0] for e in ENTRIES])
-    jj = torch.tensor([e[1] for e in ENTRIES])
-    m = m.index_put((ii, jj), delta * sig[ii] * sig[jj])
-    s = s0 + m + m.T - torch.diag(m.diagonal())
-    q = quantities(s)
-    vals = torch.stack([q[n] for n in names])
-    grads = torch.stack(
-        [torch.autograd.grad(v, delta, retain_graph=True)[0] for v in vals]
-    )
-    return vals.detach(), grads
-
-
 #: Posterior draws behind each std (the same normal deviates for every
 #: candidate, so that candidates are compared without sampling noise).
 N_DRAWS = 256
@@ -284,15 +266,6 @@ def _draw_stds(cov: Tensor, info: Tensor, names: Sequence[str]) -> Tensor:
     draws = s0 + m + m.transpose(-1, -2) - torch.diag_embed(m.diagonal(0, -2, -1))
     q = quantities(draws)
     return torch.stack([q[n].std(-1) for n in names], -1)
-
-
-def _stds(grads: Tensor, info: Tensor) -> Tensor:
-    """Posterior std ``sqrt(g^T J^-1 g)`` for gradients ``(Q, 21)`` and
-    information ``(*B, 21, 21)`` -> ``(*B, Q)``."""
-    lc = torch.linalg.cholesky(0.5 * (info + info.transpose(-1, -2)))
-    g = grads.T.expand(*info.shape[:-2], *grads.T.shape)
-    z = torch.linalg.solve_triangular(lc, g, upper=False)
-    return z.square().sum(-2).sqrt()
 
 
 # ------------------------------------------------------------------ scans
