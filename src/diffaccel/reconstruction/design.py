@@ -20,9 +20,12 @@ checks it against tracked images).
 screen moment (``r <xx>``, ``r sqrt(<xx><yy>/2)``, ``r <yy>``) and the prior of
 :func:`~diffaccel.reconstruction.uncertainty.analyse_moments` (each variance
 known to 100 %, each correlation to 0.5) the posterior of the entries is
-Gaussian, covariance ``(D^T W D + P^-1)^-1`` in correlation units. An entry or
+Gaussian, covariance ``(D^T W D + P^-1)^-1`` in correlation units. The std of
 a named quantity (emittances, rms sizes, Twiss, chirp; :data:`QUANTITIES`) is
-*determined* when its posterior std is below half its prior std, else it is
+its std over posterior draws (as ``MomentUncertainty.moment_std``). An entry
+or quantity is *determined* unless its std grows by more than
+:data:`PRIOR_SENSITIVITY` when the prior is made ten times wider, or an unseen
+direction moves it by more than :data:`MOVE_LIMIT`; then it is
 *left to the prior*. The singular values of the scaled design, relative to the
 largest, name the directions the scans do not see (below
 :data:`~diffaccel.reconstruction.unseen.UNSEEN_TOLERANCE`): each is described
@@ -50,7 +53,8 @@ convention); where the beam then lands follows from the tracking.
 **Sequential quadrupole design** (:func:`propose_quad_settings`). For a plain
 quadrupole scan: the classic rms fit of ``(S11, S12, S22)`` per plane from the
 measured image moments, and the next strength(s) that minimise the summed
-relative variance of the emittances after adding them.
+relative variance of the emittances after adding them (jointly, a
+look-ahead).
 """
 
 from __future__ import annotations
