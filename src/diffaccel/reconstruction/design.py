@@ -24,9 +24,9 @@ Gaussian, covariance ``(D^T W D + P^-1)^-1`` in correlation units. The std of
 a named quantity (emittances, rms sizes, Twiss, chirp; :data:`QUANTITIES`) is
 its std over posterior draws (as ``MomentUncertainty.moment_std``). An entry
 or quantity is *determined* unless its std grows by more than
-:data:`PRIOR_SENSITIVITY` when the prior is made ten times wider, or an unseen
-direction moves it by more than :data:`MOVE_LIMIT`; then it is
-*left to the prior*. The singular values of the scaled design, relative to the
+:data:`PRIOR_SENSITIVITY` when the prior is made ten times wider (or, for a
+quantity, an unseen direction moves it by more than :data:`MOVE_LIMIT`); then
+it is *left to the prior*. The singular values of the scaled design, relative to the
 largest, name the directions the scans do not see (below
 :data:`~diffaccel.reconstruction.unseen.UNSEEN_TOLERANCE`): each is described
 by its largest entries ("py-z together with z-z") and by how far the named
