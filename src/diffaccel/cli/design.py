@@ -179,7 +179,14 @@ def design_command(
     as_json: bool,
     plots: Path | None,
 ) -> None:
-    """What the scans in DATA determine and which settings to add."""
+    """What the scans in DATA determine and which settings to add.
+
+    DATA is a scan file (HDF5) or a JSON spec of planned scans (beamlines,
+    knob grids, a prior beam; docs/design.md). Without --knob: which second
+    moments and quantities the scans determine and which they leave to the
+    prior. With --knob: also the added settings, ranked by the reduction of
+    the targets' posterior std per image. No training.
+    """
     layouts, cov, (posterior, rel) = _load(data, result)
     r = relative_error or rel or dz.RELATIVE_ERROR
     try:
