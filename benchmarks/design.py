@@ -136,7 +136,7 @@ def main() -> None:
     ap.add_argument("--even", type=int, default=10)
     ap.add_argument("--particles", type=int, default=20_000)
     ap.add_argument(
-        "--repeats", type=int, default=2, help="Noise realisations per beam."
+        "--repeats", type=int, default=3, help="Noise realisations per beam."
     )
     ap.add_argument(
         "--relative-error",
