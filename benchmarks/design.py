@@ -136,6 +136,12 @@ def main() -> None:
     ap.add_argument("--even", type=int, default=10)
     ap.add_argument("--particles", type=int, default=20_000)
     ap.add_argument(
+        "--draws",
+        type=int,
+        default=32,
+        help="Posterior draws the design criterion is averaged over (0: the fit).",
+    )
+    ap.add_argument(
         "--repeats", type=int, default=3, help="Noise realisations per beam."
     )
     ap.add_argument(
@@ -175,6 +181,7 @@ def main() -> None:
                 relative_error=args.relative_error,
                 measured=k1,
                 min_separation=SEPARATION,
+                draws=args.draws,
             )
             nxt = nxt[:1]  # measure the first of the look-ahead proposal
             k1 = torch.cat([k1, nxt])

@@ -1089,6 +1089,8 @@ def propose_quad_settings(
     min_separation: float = 0.0,
     joint: bool = True,
     measured: Tensor | None = None,
+    draws: int = 0,
+    seed: int = 0,
 ) -> Tensor:
     """The next quadrupole strength(s) that minimise the emittances' posterior std.
 
@@ -1115,6 +1117,10 @@ def propose_quad_settings(
             there are at most :data:`JOINT_LIMIT`); else one at a time.
         measured: The strengths measured so far ``(K,)`` (for
             ``min_separation``).
+        draws: Average the criterion over this many draws of the fit's
+            posterior (0: at the fit itself): a design that stays good where
+            the few measurements so far leave the beam uncertain.
+        seed: Seed of those draws.
 
     Returns:
         The proposed strengths ``(n,)`` in order.
@@ -1131,29 +1137,42 @@ def propose_quad_settings(
         r1, r2 = cm[:, a, a], cm[:, a, b]
         rows.append(torch.stack([r1**2, 2 * r1 * r2, r2**2], -1))
     a_c = torch.stack(rows)  # (2, C, 3)
-    pred = (a_c @ th[:, :, None])[..., 0].abs()  # (2, C)
-    sd = r * pred + floor + 1e-300
-    add = torch.einsum("pca,pcb->pcab", a_c / sd[..., None], a_c / sd[..., None])
     info = torch.linalg.pinv(post["cov"])  # (2, 3, 3)
-    emit = post["emit"]
-    g = torch.stack([th[:, 2], -2 * th[:, 1], th[:, 0]], -1) / (2 * emit[:, None])
+    ths = th[None]  # (D, 2, 3): the fit, or draws of its posterior
+    if draws > 0:
+        gen = torch.Generator().manual_seed(seed)
+        z = torch.randn(draws, 2, 3, generator=gen, dtype=torch.float64)
+        w, v = torch.linalg.eigh(0.5 * (post["cov"] + post["cov"].transpose(-1, -2)))
+        lc = v * w.clamp_min(0).sqrt()[:, None, :]
+        d = th[None] + torch.einsum("pab,dpb->dpa", lc, z)
+        ok = (
+            (d[..., 0] > 0) & (d[..., 2] > 0) & (d[..., 0] * d[..., 2] > d[..., 1] ** 2)
+        )
+        ths = torch.where(ok[..., None], d, th[None])
+    pred = torch.einsum("pca,dpa->dpc", a_c, ths).abs()  # (D, 2, C)
+    sd = r * pred + floor + 1e-300
+    aw = a_c[None] / sd[..., None]  # (D, 2, C, 3)
+    add = torch.einsum("dpca,dpcb->dpcab", aw, aw)
+    emit = (ths[..., 0] * ths[..., 2] - ths[..., 1] ** 2).clamp_min(1e-300).sqrt()
+    g = torch.stack([ths[..., 2], -2 * ths[..., 1], ths[..., 0]], -1)
+    g = g / (2 * emit[..., None])  # (D, 2, 3)
 
-    def score_of(total: Tensor) -> Tensor:  # total (2, *M, 3, 3)
+    def score_of(total: Tensor) -> Tensor:  # total (D, 2, *M, 3, 3) -> (*M,)
         c = torch.linalg.pinv(total)
-        var = torch.einsum("pa,p...ab,pb->p...", g, c, g)
-        var = var / emit.reshape(2, *[1] * (var.ndim - 1)) ** 2
-        return var[list(planes)].sum(0)
+        var = torch.einsum("dpa,dp...ab,dpb->dp...", g, c, g)
+        var = var / emit.reshape(*emit.shape, *[1] * (var.ndim - 2)) ** 2
+        return var[:, list(planes)].sum(1).mean(0)
 
     if measured is not None and min_separation > 0:
         far = (cand[:, None] - measured.to(cand)[None, :]).abs().amin(-1)
         keep = far > min_separation
         if int(keep.sum()) >= n:
-            cand, add = cand[keep], add[:, keep]
+            cand, add = cand[keep], add[:, :, keep]
     n_c = cand.shape[0]
     if joint and math.comb(n_c + n - 1, n) <= JOINT_LIMIT:
         combos = torch.combinations(torch.arange(n_c), n, with_replacement=True)
         combos = combos.reshape(-1, n)
-        score = score_of(info[:, None] + add[:, combos].sum(2))
+        score = score_of(info[None, :, None] + add[:, :, combos].sum(3))
         if min_separation > 0 and n > 1:
             vals = cand[combos]
             gaps = (vals[:, :, None] - vals[:, None, :]).abs()
@@ -1161,13 +1180,14 @@ def propose_quad_settings(
             score = torch.where(gaps.amin((-2, -1)) <= min_separation, torch.inf, score)
         return cand[combos[int(score.argmin())]]
     taken: list[float] = []
+    acc = info[None].expand(add.shape[0], -1, -1, -1)  # (D, 2, 3, 3)
     for _ in range(n):
-        score = score_of(info[:, None] + add)
+        score = score_of(acc[:, :, None] + add)
         for t in taken:
             score = torch.where((cand - t).abs() <= min_separation, torch.inf, score)
         best = int(score.argmin())
         taken.append(float(cand[best]))
-        info = info + add[:, best]
+        acc = acc + add[:, :, best]
     return cand.new_tensor(taken)
 
 
