@@ -28,6 +28,11 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "demo",
         "Simulate a 6D quad scan and reconstruct it end to end (a few minutes on CPU).",
     ),
+    "design": (
+        "diffaccel.cli.design",
+        "design_command",
+        "What the scans in DATA determine and which settings to add.",
+    ),
     "hysteresis": (
         "diffaccel.cli.hysteresis",
         "hysteresis",

@@ -569,6 +569,8 @@ def reconstruct_command(
         click.echo(line)
     for line in prior_dependence_lines(summary.get("prior_dependence", [])):
         click.echo(line)
+    if summary.get("observability"):
+        click.echo(summary["observability"])
     polish = summary.get("moment_polish", [])
     if polish:
         before = ", ".join(f"{100 * p['residual_before']:.2f}" for p in polish)

@@ -18,6 +18,7 @@ from torch import Tensor
 from diffaccel.data.atomic import clean_json
 from diffaccel.data.quad_scan import QuadScanDataset
 from diffaccel.data.scans import MultiScanDataset
+from diffaccel.reconstruction.design import observability_line
 from diffaccel.reconstruction.ensemble import Reconstruction
 from diffaccel.reconstruction.forward import ScreenForwardModel
 from diffaccel.reconstruction.metrics import (
@@ -385,6 +386,11 @@ def evaluate(
         "metrics": metrics,
         "timings_s": dict(result.info.get("timings_s", {})),
     }
+    summary["observability"] = observability_line(
+        result.training_maps(),
+        torch.tensor(moments["cov"]["mean"], dtype=torch.float64),
+        None if unc is None else torch.tensor(unc["theta_cov"], dtype=torch.float64),
+    )
     if len(scans) == 1:
         only = next(iter(per_scan.values()))
         summary["train_indices"] = only["train_indices"]
