@@ -6,7 +6,7 @@ TORCH ?= torch==2.13.0
 BIN := $(VENV)/bin
 OUT ?= demo_output
 
-.PHONY: install demo test lint format bench clean
+.PHONY: install demo test lint format bench docs clean
 
 $(BIN)/diffaccel:
 	$(PYTHON) -m venv $(VENV)
@@ -36,5 +36,13 @@ bench: $(BIN)/diffaccel
 	$(BIN)/pip install --quiet -e ".[bench]"
 	for b in benchmarks/[!_]*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
 
+# the docs site: runs the tutorials, writes the benchmarks page, builds site/
+# with warnings as errors (docs/index.md says why MkDocs)
+docs: $(BIN)/diffaccel
+	$(BIN)/pip install --quiet -e ".[docs]"
+	$(BIN)/python docs/tutorials/run.py
+	$(BIN)/python docs/benchmarks_page.py
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict
+
 clean:
-	rm -rf $(VENV) $(OUT) .pytest_cache .ruff_cache
+	rm -rf $(VENV) $(OUT) site docs/generated .pytest_cache .ruff_cache

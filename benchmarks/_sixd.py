@@ -1,4 +1,4 @@
-"""The shared 6D benchmark of issue 9: its files and acceptance limits.
+"""The shared 6D benchmark: its files and acceptance limits.
 
 Used by ``benchmarks/reconstruction_6d.py`` (train -> held-out test) and
 ``benchmarks/reconstruction_6d_beams.py`` (other beams in the same geometry).
@@ -26,7 +26,7 @@ KEYS = (
     "corr_diff_y_py",
     "corr_diff_z_pz",
 )
-#: Acceptance of issue 9: |relative error| of rms sizes, emittances, |corr diff|.
+#: Acceptance limits: |relative error| of rms sizes, emittances, |corr diff|.
 LIMITS = {
     **{f"rms_{c}": 0.05 for c in ("x", "px", "y", "py", "z", "pz")},
     "emit_x": 0.05,

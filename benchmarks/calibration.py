@@ -31,7 +31,7 @@ Datasets:
   the images: model error, reported apart as ``blur_mismatch_cases``).
 
 Prints one JSON object: per dataset the per-quantity z-scores, coverage and
-median relative std; the pooled numbers; ``met``: the acceptance of issue 10
+median relative std; the pooled numbers; ``met``: the acceptance criteria
 (pooled coverage of 2 std >= 85 %, over all and over the constrained
 quantities; median relative std of the constrained quantities <= 5 %, pooled
 and for each 6D dataset; on quad-only ``--dims 6`` z and pz each within 2 std or
@@ -253,7 +253,7 @@ def main() -> None:
         key = f"awa6d-{preset}-s{seed}"
         datasets[key] = run(key, ds, 6, None, unc)
     for name in args.beams6d:
-        # the other beams of benchmarks/reconstruction_6d_beams.py (issue 9:
+        # the other beams of benchmarks/reconstruction_6d_beams.py (
         # "the same holds on other beams"), its beam seeds and training k1;
         # any name it knows (random draws draw<R>_<K>, tilted<R>_<K>, ...)
         _, ds, _ = beam_scans(name, held_out=False)
@@ -297,7 +297,7 @@ def main() -> None:
         if d["dims"] == 6 and not k.startswith("quad")
     }
     met = {
-        # issue 10: >= 85 % of rms sizes and emittances within 2 std, pooled
+        # acceptance: >= 85 % of rms sizes and emittances within 2 std, pooled
         "coverage_2sigma_pooled": pooled["coverage_2sigma"] >= 0.85,
         # the same over the constrained quantities (the unconstrained z, pz of
         # quad-only --dims 6 are judged by the z/pz criterion below)

@@ -1,7 +1,7 @@
 """Start-up of the command-line tool: ``diffaccel --help`` vs ``import torch``.
 
 Both run as fresh processes, alternately, ``--repeats`` times each (median and
-spread reported). Issue 12 asks for ``--help`` at most 1.3x ``import torch``;
+spread reported). The target: ``--help`` at most 1.3x ``import torch``;
 since commands load lazily, ``--help`` imports neither torch nor any command.
 Also times ``diffaccel reconstruct --help`` (imports what reconstruct uses).
 

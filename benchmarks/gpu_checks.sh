@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue 12's GPU checks in one run, for a machine with a CUDA GPU (H100 or the
+# The GPU checks in one run, for a machine with a CUDA GPU (H100 or the
 # like) and a Python whose torch sees it, with diffaccel, cheetah and gpsr
 # installed (`make install TORCH=torch` then `pip install -e ".[bench]"`):
 #   PY=.venv/bin/python OUT=gpu_results bash benchmarks/gpu_checks.sh
@@ -9,7 +9,7 @@
 # baseline), tracking + images vs cheetah on the same GPU (>= 5x both methods)
 # with a 10^7 x 20 fit check, whole-process reconstruct vs gpsr on the same GPU
 # (>= 5x), and the 6D benchmark with diffaccel on the GPU (docs/gpu.md holds
-# the figures of 2026-11-27 on an H200). Not part of `make bench` (CPU machines).
+# the figures measured on an H200). Not part of `make bench` (CPU machines).
 set -u
 here=$(cd "$(dirname "$0")" && pwd)
 PY=${PY:-"$here/../.venv/bin/python"}

@@ -41,7 +41,7 @@ import sys
 import time
 
 import torch
-from _meta import git_commit
+from _meta import emit, git_commit
 
 from diffaccel.hysteresis import PreisachMesh, PreisachModel
 
@@ -167,7 +167,7 @@ def main() -> None:
         "checks": checks,
         "records": records,
     }
-    print(json.dumps(result))
+    emit(result)
 
 
 if __name__ == "__main__":

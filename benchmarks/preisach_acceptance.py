@@ -1,4 +1,4 @@
-"""Issue 11 acceptance: held-out rms vs a straight line, 2-std coverage, fit time.
+"""Magnet acceptance: held-out rms vs a straight line, 2-std coverage, fit time.
 
 Cases (fit the first rows, predict the rest):
 

@@ -22,12 +22,12 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import platform
 import time
 from pathlib import Path
 
 import torch
+from _meta import emit, git_commit
 
 from diffaccel.data import read_magnet_csv
 from diffaccel.hysteresis import PreisachMesh, PreisachModel, fit_magnet, fit_preisach
@@ -66,7 +66,7 @@ def main() -> None:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     if not args.data.exists():
-        print(json.dumps({"name": "preisach_slac", "skipped": f"no {args.data}"}))
+        emit({"name": "preisach_slac", "skipped": f"no {args.data}"})
         return
     hist = read_magnet_csv(args.data)
     u, y = hist.input, hist.output
@@ -128,6 +128,7 @@ def main() -> None:
         "threads": torch.get_num_threads(),
         "torch": torch.__version__,
         "python": platform.python_version(),
+        "git_commit": git_commit(),
         "steps": STEPS,
         "validation_selected": final(best["mesh_cells"], best["smoothness"]),
         "cli_default": cli_default(),
@@ -137,7 +138,7 @@ def main() -> None:
         "target_fit_seconds": 20.0,
         "validation": validation,
     }
-    print(json.dumps(result))
+    emit(result)
 
 
 if __name__ == "__main__":

@@ -14,7 +14,7 @@ model where numpy and scipy release the GIL. ``--threads`` sets
 band, and the mean only; one thread) is timed in this process, as the median
 of ``--repeats`` runs.
 
-Anchor (from issue 11, not re-run: the old one-pass code needs 8.5 GB): the
+Anchor (recorded, not re-run: the old one-pass code needs 8.5 GB): the
 same 10^6 rows x 1000 hysterons took 58 s and 8.5 GB before streaming.
 Targets: at least 10x faster (5.8 s) and under 500 MB.
 

@@ -25,16 +25,14 @@ Usage: ``python benchmarks/reconstruction.py [--skip-gpsr] [--gpsr-epochs N]``
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import torch
-from _meta import git_commit
+from _meta import emit, git_commit
 
 from diffaccel.data import read_quad_scan
 from diffaccel.dynamics.coordinates import cheetah_to_bmad
@@ -167,7 +165,7 @@ def main() -> None:
         if part in out:
             for key in ("held_out_images", "train_images"):
                 out[part][key].pop("relative_l1_per_setting", None)
-    print(json.dumps(out), file=sys.stdout)
+    emit(out)
 
 
 if __name__ == "__main__":

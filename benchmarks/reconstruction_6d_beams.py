@@ -1,6 +1,6 @@
 """6D reconstruction over several beams and seeds: is the default robust?
 
-Issue 9 asks that the 6D acceptance numbers hold "on other beams in this
+The 6D acceptance numbers must hold "on other beams in this
 geometry" and not only on the shared file. This benchmark reconstructs, with the
 default 6D settings (``ReconstructionConfig(dims=6, seed=s)``, in-process, no
 uncertainty analysis), each beam with several training seeds and reports every
@@ -89,7 +89,7 @@ BEAM_SEEDS = {
     "chirp_curved": 5,
     "chirp_negative": 6,
     "chirp_weak_tilted": 7,
-    # the generalisation audit's beams (issue 9, session "stop 11"): two
+    # the generalisation beams: two
     # family draws (FAMILY) and two of other kinds (OTHER_KINDS)
     "family_draw_a": 11,
     "family_draw_b": 12,
@@ -133,7 +133,7 @@ FAMILY = {
         kappa=-200.0,
         ypz=0.5,
     ),
-    # Two further members for the generalisation audit, NOT chosen by hand:
+    # Two further members for the generalisation check, NOT chosen by hand:
     # draws of numpy.random.default_rng(20261123), uniform in ranges plausible
     # for AWA at 43 MeV (rounded to 3 digits; per draw in this order): sign of
     # h, |h| 0.5-4 1/m, sign of c, |c| 300-3000 1/m^2, spread 0.3-2e-3, sign of
@@ -176,7 +176,7 @@ FAMILY = {
         sz=7.17e-4,
     ),
 }
-#: Beams of other kinds a user would plausibly measure (generalisation audit):
+#: Beams of other kinds a user would plausibly measure (generalisation check):
 #: ``double_horn`` (:func:`double_horn_beam`: the current profile of a
 #: magnetically compressed bunch, arcsine-like with spikes at head and tail,
 #: residual chirp with curvature; z kurtosis 1.6) and ``wide`` (a family beam
@@ -269,7 +269,7 @@ def _chirp_draw(rng: np.random.Generator) -> dict:
 
 
 def family_draw(rng: np.random.Generator) -> dict:
-    """Parameters of one README-family beam (ranges of the audit's draws)."""
+    """Parameters of one README-family beam (ranges of the two family draws above)."""
     return {
         **_chirp_draw(rng),
         "tilt": _sign(rng) * rng.uniform(0.1, 0.7),
@@ -332,7 +332,7 @@ def drawn_params(name: str) -> tuple[dict, int]:
     seed R (:func:`family_draw`), and its sampling and data seed ``R + K``;
     ``tilted<R>_<K>`` likewise with :func:`tilted_draw`.
 
-    Beams no session tuned on (issue 9's "other beams"): e.g. ``--beams
+    Beams no default was tuned on ("other beams"): e.g. ``--beams
     draw2026_0,draw2026_1``.
     """
     m = re.fullmatch(r"(draw|tilted)(\d+)_(\d+)", name)

@@ -1,6 +1,6 @@
 """Whole process: ``diffaccel reconstruct`` vs gpsr 0.2.0's 4D recipe (GPSR 4D data).
 
-Issue 12: the default ``reconstruct`` on the GPSR 4D training split, whole process,
+The default ``reconstruct`` on the GPSR 4D training split, whole process,
 at least 8x faster than the gpsr 0.2.0 recipe as a whole process, measured in
 the same run.
 
@@ -27,7 +27,7 @@ is the criterion. Prints one JSON object; ``met`` is ``ratio >= 8`` on the CPU.
 
 ``--device cuda`` runs both on the GPU (``diffaccel reconstruct --device cuda``;
 gpsr's Lightning trainer with ``accelerator="gpu"``); ``met`` is then ``ratio >=
-5`` (issue 12 on an H100). The default ``cpu`` keeps gpsr on the CPU too.
+5`` (the GPU target). The default ``cpu`` keeps gpsr on the CPU too.
 
 Usage: ``python benchmarks/reconstruction_process.py [--threads 2] [--repeats 2]
 [--gpsr-epochs 2000] [--skip-gpsr] [--device cpu]``

@@ -14,7 +14,7 @@ Counts, per step on average:
 * ``host_syncs``: ``aten::item`` / ``aten::_local_scalar_dense`` events (the
   ops that read a device value on the host, i.e. synchronise on CUDA).
 
-Issue 12 asks for at most 1 sync and 300 ops per step; ``met`` applies the 300
+The budget: at most 1 sync and 300 ops per step; ``met`` applies the 300
 to the stricter count, ``aten_ops_per_step``. Counts are deterministic; the
 per-step time (the same difference of the median training times of
 ``--repeats`` unprofiled runs) depends on the machine's load.

@@ -20,7 +20,7 @@ CPU and copied; every timing synchronises the device before and after, so it is
 the whole forward(+backward)); ``peak_device_mb`` is torch's peak allocation.
 ``--fit-n 10000000`` then also runs our linear KDE and cloud-in-cell
 forward+backward once with that many particles (x ``--k`` settings) and records
-whether it fits in the device's memory and the peak (issue 12: 10^7 x 20).
+whether it fits in the device's memory and the peak (target: 10^7 x 20).
 
 Usage: python benchmarks/tracking.py [--n 100000] [--k 20] [--repeats 5]
        [--cheetah-kde-repeats 1] [--no-cheetah-kde] [--threads T]
@@ -30,7 +30,6 @@ Usage: python benchmarks/tracking.py [--n 100000] [--k 20] [--repeats 5]
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import resource
@@ -39,7 +38,7 @@ import time
 from collections.abc import Callable
 
 import torch
-from _meta import git_commit
+from _meta import emit, git_commit
 
 from diffaccel.dynamics import Beamline
 
@@ -279,11 +278,11 @@ def main() -> None:
         result["peak_device_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
     if args.fit_n:
         result["fit"] = _fit(args.fit_n, k1, device)
-    # issue 12: KDE >= 100x and cloud-in-cell >= 5x cheetah (like for like,
+    # targets: KDE >= 100x and cloud-in-cell >= 5x cheetah (like for like,
     # forward+backward), in every run: run the script several times
     kde, cic = result["ratio_vs_cheetah_kde"], result["ratio_vs_cheetah_cic"]
     result["met"] = None if kde is None or cic is None else kde >= 100 and cic >= 5
-    print(json.dumps(result))
+    emit(result)
 
 
 if __name__ == "__main__":

@@ -627,7 +627,7 @@ def test_predict_of_settings_on_the_screen_warns_of_nothing(
 def test_predict_warns_when_a_setting_throws_the_beam_off_the_screen(
     result_dir: Path, scan_file: Path, tmp_path: Path
 ) -> None:
-    # the audit's case: at k1 = 200 about a tenth of the beam reaches the
+    # at k1 = 200 about a tenth of the beam reaches the
     # screen, yet its sum-normalised image looks like a beam
     other = tmp_path / "k1_200.h5"
     other.write_bytes(scan_file.read_bytes())
@@ -860,7 +860,7 @@ def test_6d_run_states_what_the_prior_sets(tmp_path: Path, monkeypatch) -> None:
 def test_reconstruct_warns_when_the_fit_misses_its_training_images(
     scan_file: Path, tmp_path: Path
 ) -> None:
-    # settings 200x too large (the audit's k1_big.h5: units mistaken): training
+    # settings 200x too large (units mistaken): training
     # cannot reproduce the images, and the run must say so, not just end
     bad = tmp_path / "k1_big.h5"
     bad.write_bytes(scan_file.read_bytes())

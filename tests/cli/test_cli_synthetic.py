@@ -48,6 +48,13 @@ def test_refuses_to_overwrite_without_force(tmp_path: Path) -> None:
     assert result.exit_code != 0
     assert "--force" in result.output
     assert out.read_bytes() == b"keep me"
+    # --force replaces only a file diffaccel wrote: this one is the user's
+    result = runner.invoke(main, ["synthetic", str(out), *SMALL, "--force"])
+    assert result.exit_code == 1
+    assert "was not written by diffaccel" in result.output
+    assert out.read_bytes() == b"keep me"
+    out.unlink()
+    assert runner.invoke(main, ["synthetic", str(out), *SMALL]).exit_code == 0
     result = runner.invoke(main, ["synthetic", str(out), *SMALL, "--force"])
     assert result.exit_code == 0, result.output
     assert read_quad_scan(out).n_settings == 5

@@ -98,8 +98,8 @@ def test_linearized_matches_transfer_map_and_exact_near_axis(make_beam) -> None:
     ("spec", "match"),
     [
         (
-            [{"type": "Sextupole", "name": "S"}],
-            "unknown element type 'Sextupole'.*Drift",
+            [{"type": "Octupole", "name": "S"}],
+            "unknown element type 'Octupole'.*Drift",
         ),
         (
             [{"type": "Drift", "name": "D", "lenght": 1.0}],

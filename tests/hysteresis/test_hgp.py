@@ -702,3 +702,63 @@ def test_current_outside_preisach_range_raises() -> None:
     X, Y, _ = _data(0, 0.02, n_cycles=1, n_per_cycle=10)
     with pytest.raises(ValueError, match="input_range"):
         HysteresisGP(X + 20.0, Y, hysteresis={0: _preisach(5)})
+
+
+# ------------------------------------------------- input feature, data priors
+
+
+def test_current_feature_appends_the_normalised_input() -> None:
+    X, Y, _ = _data(0, 0.02, n_cycles=2, n_per_cycle=16)
+    model = HysteresisGP(X, Y, hysteresis={0: _preisach(8)}, current_feature=True)
+    feats = model.train_features()
+    assert feats.shape == (X.shape[0], 2)
+    torch.testing.assert_close(feats[:, 1], X[:, 0] / I_MAX, rtol=0, atol=1e-15)
+    assert model.gp.covar_module.lengthscale.shape[-1] == 2
+    # candidates: the same column, after the magnetisation of the sequence
+    future = torch.tensor([[2.0], [8.0], [4.0]], dtype=DT)
+    f = model.features(future.unsqueeze(0), exact=True)[0]
+    torch.testing.assert_close(f[:, 1], future[:, 0] / I_MAX, rtol=0, atol=1e-15)
+    assert model.posterior_sequence(future).mean.shape == (3, 1)
+    new = model.extended(future, torch.zeros(3, 1, dtype=DT))
+    assert new.current_feature and new.train_features().shape == (X.shape[0] + 3, 2)
+
+
+def test_noise_likelihood_is_centred_on_the_estimate() -> None:
+    from diffaccel.hysteresis.hgp import MIN_NOISE_VARIANCE, noise_likelihood
+
+    Y = torch.linspace(0.0, 3.0, 40, dtype=DT).unsqueeze(-1)
+    std = float(Y.std())
+    lik = noise_likelihood(1e-3 * std, Y)
+    prior = lik.noise_covar.noise_prior
+    assert float(prior.loc) == pytest.approx(math.log(1e-6))
+    assert float(lik.noise) == pytest.approx(1e-6, rel=1e-6)
+    assert lik.noise_covar.raw_noise_constraint.lower_bound == pytest.approx(1e-7)
+    # a large estimate starts at BoTorch's prior mode, floor at most 1e-4
+    lik = noise_likelihood(0.5 * std, Y)
+    assert float(lik.noise) == pytest.approx(math.exp(-5.0), rel=1e-6)
+    assert lik.noise_covar.raw_noise_constraint.lower_bound == pytest.approx(1e-4)
+    lik = noise_likelihood(1e-9 * std, Y)
+    bound = lik.noise_covar.raw_noise_constraint.lower_bound
+    assert float(bound) == pytest.approx(MIN_NOISE_VARIANCE)
+    with pytest.raises(ValueError, match="noise_std"):
+        noise_likelihood(0.0, Y)
+
+
+def test_density_starts_are_ranked_by_marginal_likelihood() -> None:
+    from diffaccel.hysteresis.hgp import joint_gp_from_preisach
+
+    X, Y, _ = _data(2, 0.02, n_cycles=2, n_per_cycle=16)
+    given = _preisach(8)
+    model, start = joint_gp_from_preisach(X, Y, given, steps=50)
+    assert model.current_feature and start.preisach_rmse > 0
+    pre, uni = start.density_starts
+    torch.testing.assert_close(uni[0], given.raw_density.detach())
+    assert not torch.equal(pre[0], uni[0])  # the Preisach fit moved the density
+    res = fit_hysteresis_gp(
+        model, restarts=3, max_iter=30, density_starts=start.density_starts
+    )
+    # 2 optimisations from the Preisach density (one prior sample), 1 uniform
+    assert len(res.restart_mlls) == 3
+    assert res.mll == pytest.approx(max(res.restart_mlls), abs=1e-6)
+    with pytest.raises(ValueError, match="density start shapes"):
+        fit_hysteresis_gp(model, density_starts=[(torch.zeros(3, dtype=DT),)])

@@ -1,6 +1,6 @@
-"""Issue 11 acceptance: held-out predictions beat a straight line by 2x, honest bands.
+"""Acceptance: held-out predictions beat a straight line by 2x, honest bands.
 
-Cases of the issue's shapes from magnets with known symmetric densities plus
+Cases of the acceptance shapes from magnets with known symmetric densities plus
 noise (``hysteresis.synthetic``), several magnets (seeds) each. The full set,
 with the SLAC quadrupole, runs in ``benchmarks/preisach_acceptance.py``.
 """
@@ -60,7 +60,7 @@ def test_band_covers_held_out_rows() -> None:
     for kind, seed in (("bipolar", 2), ("bh", 2)):
         _, field, n, _, pred, std = _case(kind, seed)
         inside.append(((pred[n:] - field[n:]).abs() < 2 * std[n:]).double().mean())
-    # issue 11: at least 80 % of held-out points inside 2 std, over cases
+    # acceptance: at least 80 % of held-out points inside 2 std, over cases
     assert float(torch.stack(inside).mean()) >= 0.8
 
 

@@ -1,39 +1,38 @@
-"""Issue 9's acceptance numbers on a beam other than the shared file's (slow).
+"""The 6D acceptance numbers on beams other than the shared file's (slow).
 
 "Do not tune to this one file": the same AWA 6D geometry (quadrupole x TDC x
 dipole, two screens, 96 x 96 histogram images as in the shared files, even
-quadrupole settings for training, odd ones held out), but a beam of another
-shape: the three-mode ``nonlinear`` preset with a strong y-py correlation
-(0.93) and half the energy spread, generated here. Default 6D settings, as a
-user would run them; the limits are the shared benchmark's.
+quadrupole settings for training, odd ones held out), but beams of other
+shapes, generated here. Default 6D settings, as a user would run them; the
+limits are the shared benchmark's.
 
-The longitudinal plane relies on ReconstructionConfig.place_unseen: the AWA
-6D scans do not see the pz variance apart from the px-pz covariance (nor the z
-variance apart from py-z), and training alone drifted there (measured
-2026-11-23 before it: rms pz +29 %, z emittance +39 %, 6D emittance -23 %,
-z-pz correlation +0.098). With it (1 thread, under load): rms z +1.5 %, pz
-+2.8 %, z emittance +4.4 %, 6D emittance +4.2 %, z-pz correlation +0.017,
-held-out relative L1 0.116 / 0.116 (the non-Gaussian shape moved along with
-the second moments costs image fidelity; 0.09 before).
+The first beam is the three-mode ``nonlinear`` preset with a strong y-py
+correlation (0.93) and half the energy spread. The longitudinal plane relies
+on ReconstructionConfig.place_unseen: the AWA 6D scans do not see the pz
+variance apart from the px-pz covariance (nor the z variance apart from
+py-z), and training alone drifts there (rms pz +29 %, z emittance +39 %, 6D
+emittance -23 %). With it (1 thread): rms z +1.5 %, pz +2.8 %, z emittance
++4.4 %, 6D emittance +4.2 %, z-pz correlation +0.017, held-out relative L1
+0.116 / 0.116 (moving the non-Gaussian shape along with the second moments
+costs image fidelity).
 
 The second beam, ``wide``, fills the screens differently: a beam of the shared
 file's README family (energy chirp with curvature, x-z tilt) with 2x its rms x,
 1.6x its rms y, 0.37x its energy spread, converging in y (``wide`` of
-``benchmarks/reconstruction_6d_beams.py``, the generalisation audit of
-docs/generalisation_6d.md, built here again so the test does not import the
-benchmarks). The three-mode beam did not catch a 6D default that regressed it:
-a training-held prior of the unseen directions (3b83105, reverted) gave z
-emittance +17 % (seed 0) and +44 % (seed 1) here while the three-mode beam
-passed. With the default as of 4d8a415 (1 thread): rms within 2.0 %, z
-emittance +4.3 %, 6D -4.6 %, z-pz correlation -0.023, held-out relative L1
-0.076 / 0.086 (seeds 1, 2: z emittance -0.9, +0.9 %).
+``benchmarks/reconstruction_6d_beams.py``, built here again so the test does
+not import the benchmarks). It catches 6D defaults that the three-mode beam
+does not (a training-held prior of the unseen directions gives z emittance
++17 % and +44 % here while the three-mode beam passes). With the defaults
+(1 thread): rms within 2.0 %, z emittance +4.3 %, 6D -4.6 %, z-pz correlation
+-0.023, held-out relative L1 0.076 / 0.086 (seeds 1, 2: z emittance -0.9,
++0.9 %).
 
 The third beam, ``double_horn`` (a compressed bunch: arcsine current profile,
-chirp z-pz -0.91 with curvature; the audit's, built here again), checks the
-prior point of the unseen directions on a strong chirp: the earlier
-``unseen_prior="gaussian"`` placed its truth at z emittance +11.9 % and its
-reconstructions at +10.1 to +11.6 % (seeds 0-2, NOT met); the ``"pair"``
-default (479bb55) leaves its truth where it is and gave +4.4, +6.3, +2.9 %.
+chirp z-pz -0.91 with curvature, built here again), checks the prior point of
+the unseen directions on a strong chirp: ``unseen_prior="gaussian"`` places
+its truth at z emittance +11.9 % and its reconstructions at +10.1 to +11.6 %
+(seeds 0-2, not met); the ``"pair"`` default leaves its truth where it is and
+gives +4.4, +6.3, +2.9 %.
 """
 
 from __future__ import annotations
@@ -154,10 +153,9 @@ def test_uncoupled_option_recovers_the_three_mode_beams_4d_and_6d_emittance() ->
     """``place_coupling`` (``--uncoupled``) on a beam without x-y coupling.
 
     The three-mode beam's x-y coupling settles off in training along the
-    direction the screens barely see (docs/generalisation_6d.md, session stop
-    19): 6D emittance -6.5 % (seed 0) to -14.7 % (seed 4) by default, its 4D
-    emittance as low. With the option: -1.5 to -2.7 % over seeds 0-6 (-2.5 %
-    on seed 0), so 5 % would have failed the default.
+    direction the screens barely see: 6D emittance -6.5 % (seed 0) to -14.7 %
+    (seed 4) by default, its 4D emittance as low. With the option: -1.5 to
+    -2.7 % over seeds 0-6 (-2.5 % on seed 0), so 5 % would have failed the default.
     """
     make, seed = BEAMS["nonlinear_ypy"]
     beam = make(200_000, seed=seed)

@@ -1,6 +1,6 @@
 """Acceptance of the 6D reconstruction on the shared 6D benchmark (slow).
 
-Issue 9's numbers: train on ``sixd_synthetic_train.h5`` with the default 6D
+Train on ``sixd_synthetic_train.h5`` with the default 6D
 settings, compare ``sample(200_000)`` with the stored ground truth, predict the
 held-out ``sixd_synthetic_test.h5``. ``benchmarks/reconstruction_6d.py`` runs the
 same through the CLI, times it and runs gpsr on the same data.
@@ -42,7 +42,7 @@ def run():
     return errors, held
 
 
-# issue 9: rms sizes and x, y emittances within 5 %, z emittance within 10 %,
+# acceptance: rms sizes and x, y emittances within 5 %, z emittance within 10 %,
 # 6D emittance within 15 % (relative to the truth)
 LIMITS = {
     **{f"rms_{c}": 0.05 for c in ("x", "px", "y", "py", "z", "pz")},

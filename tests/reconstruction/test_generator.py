@@ -151,7 +151,7 @@ def test_quadratic_features_are_unit_hermite_products() -> None:
 
 def test_6d_quadratic_term_gives_an_unbounded_curved_chirp() -> None:
     """pz = c (z^2 - 1)/sqrt(2) in base units, exactly, far into the tails,
-    where the bounded tanh MLP cannot follow (session stop 18); 4D has none."""
+    where the bounded tanh MLP cannot follow; 4D has none."""
     from diffaccel.reconstruction.generator import quadratic_features
 
     gen = BeamGenerator(6, scale=torch.ones(6), generator=torch.Generator())

@@ -116,8 +116,8 @@ def test_captured_6d_step_body_trains_like_eager_steps(
     # multiplies, where the eager step fuses), and Adam's normalised steps let
     # a parameter whose gradient is near 0 (the quadratic term's) carry that
     # rounding into the beam: on this seed the loss differs by at most 1.4e-6
-    # for 11 steps, then by up to 3.7e-5 with stop 25's tracking and 1.0e-4
-    # with stop 26's (which sums the same gradients in another order); 2e-6
+    # for 11 steps, then by up to 1.0e-4 (the staged 6D tracking sums the
+    # same gradients in another order); 2e-6
     # on seeds 1, 2. A step with a wrong factor (another step's learning rate
     # or penalty) differs by more than 1e-3 from its first replay (step 3).
     loss_got = torch.tensor(got.history["loss"], dtype=torch.float64)

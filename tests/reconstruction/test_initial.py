@@ -167,8 +167,8 @@ def test_reconstruct_refuses_a_guess_no_scan_could_image(
 ) -> None:
     from diffaccel.reconstruction import reconstruct
 
-    # the audit's pix_0.1 / pixel_mm_units: trained fully, then failed to write
-    # particles with |px| >= 1 + pz; now refused before training, naming the
+    # pixel sizes in the wrong units would train fully, then fail to write
+    # particles with |px| >= 1 + pz: refused before training, naming the
     # screen calibration
     bad = dataclasses.replace(small_scan, pixel_size=(pixel, pixel))
     cfg = ReconstructionConfig(n_particles=64, steps=2, snapshots=1)

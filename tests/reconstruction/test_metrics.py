@@ -82,3 +82,39 @@ def test_sorted_quantiles_equal_torch_quantile() -> None:
     assert torch.allclose(
         _sorted_quantiles(v, q), torch.quantile(v, q, dim=0), rtol=0, atol=1e-14
     )
+
+
+def test_prediction_noise_l1_matches_the_l1_of_a_sampled_image():
+    """The predicted L1 of an N-particle cloud-in-cell image against its
+    expectation (an image of 200 times more particles) is the measured one."""
+    from diffaccel.dynamics.images import cic_image
+    from diffaccel.reconstruction.metrics import prediction_noise_l1
+
+    g = torch.Generator().manual_seed(3)
+    big = torch.randn(2, 2_000_000, generator=g, dtype=torch.float64)
+    expected = cic_image(big[0], big[1], (60, 60), 0.15)[None]
+    expected = expected / expected.sum()
+    n = 10_000
+    small = torch.randn(2, n, generator=g, dtype=torch.float64)
+    image = cic_image(small[0], small[1], (60, 60), 0.15)[None]
+    measured_l1 = float((image / image.sum() - expected).abs().sum())
+    predicted = float(prediction_noise_l1(expected, 4.0 / 9.0, n)[0])
+    assert predicted == pytest.approx(measured_l1, rel=0.05)
+
+
+def test_shot_noise_l1_is_the_floor_of_the_shot_mean():
+    """Five Poisson shots of a known image: the estimated floor equals the L1
+    between their mean and the noise-free image."""
+    from diffaccel.reconstruction.metrics import shot_noise_l1
+
+    g = torch.Generator().manual_seed(4)
+    y, x = torch.meshgrid(torch.arange(80.0), torch.arange(80.0), indexing="ij")
+    truth = torch.exp(-((x - 40) ** 2 + (y - 38) ** 2) / (2 * 9.0**2))
+    truth = truth / truth.sum()
+    shots = torch.poisson((2e5 * truth).expand(3, 5, 80, 80).contiguous(), generator=g)
+    floor = shot_noise_l1(shots)
+    mean = shots.mean(1)
+    actual = (mean / mean.sum((-2, -1), keepdim=True) - truth).abs().sum((-2, -1))
+    assert floor.shape == (3,)
+    assert floor.double().mean() == pytest.approx(float(actual.mean()), rel=0.05)
+    assert shot_noise_l1(shots[:, :1]) is None

@@ -4,7 +4,7 @@ The demo's case: a single-quadrupole scan of ``make_synthetic_quad_scan``
 (KDE images of one-pixel bandwidth, recorded in the data as
 ``resolution_pixels``). The transverse phase space must come out right (with
 the 6D default blur of sqrt(1/12) pixel instead of the recorded 1 pixel, px and
-py came out +82 %), and issue 10's criterion for what the scan cannot see: z
+py come out +82 %), and the criterion for what the scan cannot see: z
 and pz each within 2 std of the truth or with a relative std of at least 20 %.
 """
 
@@ -31,7 +31,7 @@ def test_transverse_phase_space_is_right(run) -> None:
     assert result.forward.blur_pixels == 1.0  # the recorded resolution
     m = result.moments()
     for i in range(4):  # x, px, y, py
-        # measured 2026-11-23: within 1 %; 5 % allows other seeds and machines
+        # measured within 1 %; 5 % allows other seeds and machines
         rel = m["rms"]["mean"][i] / float(truth["rms"][i]) - 1
         assert abs(rel) < 0.05, (i, rel)
     for key in ("emit_x", "emit_y"):

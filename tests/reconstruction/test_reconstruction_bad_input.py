@@ -89,9 +89,9 @@ def test_fit_gaussian_names_bad_images_before_the_least_squares(
 
 
 def test_training_selection_refuses_one_quadrupole_value(small_awa6d) -> None:
-    # the audit: --train-indices 0,1 --dims 6 on the shared 6D file (one k1,
-    # TDC off and on) failed in tracking with "NaN or infinite positions" and
-    # no scan named
+    # --train-indices 0,1 --dims 6 on the shared 6D file (one k1, TDC off and
+    # on) must be refused naming the scan, not fail in tracking with "NaN or
+    # infinite positions"
     scan = small_awa6d[small_awa6d.names[0]]
     k1 = scan.settings[:, scan.setting_names.index("SCAN_QUAD.k1")]
     same = torch.nonzero(k1 == k1[0])[:, 0].tolist()

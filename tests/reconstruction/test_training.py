@@ -95,8 +95,8 @@ def test_resume_with_other_config_is_refused(small_scan, tmp_path: Path) -> None
 def test_resume_of_a_6d_checkpoint_without_the_quadratic_term_is_refused(
     small_awa6d, tmp_path: Path
 ) -> None:
-    """A 6D run checkpointed before the generator's quadratic term (session
-    stop 18): its optimiser state is shorter than the parameters; a clear
+    """A 6D run checkpointed by a generator without the quadratic term: its
+    optimiser state is shorter than the parameters; a clear
     error, not a size mismatch from inside Adam."""
     ck = tmp_path / "ck.pt"
     cfg = ReconstructionConfig(
@@ -365,11 +365,11 @@ def _aten_ops(scan, steps: int) -> tuple[int, int]:
     return len(names), syncs
 
 
-def test_default_4d_step_stays_within_issue_12_op_budget(small_scan) -> None:
-    # issue 12: at most 300 ATen ops (nested ones included) and 1 host sync per
+def test_default_4d_step_stays_within_the_op_budget(small_scan) -> None:
+    # budget: at most 300 ATen ops (nested ones included) and 1 host sync per
     # step; the difference of two runs cancels set-up and bookkeeping (the same
     # snapshot count, reads every report_every = 10 steps in both). A fresh
-    # placeholder tensor per step once pushed the count to 304.4 unnoticed
+    # placeholder tensor per step pushes the count to 304.4
     (ops_short, syncs_short), (ops_long, syncs_long) = (
         _aten_ops(small_scan, s) for s in (20, 40)
     )

@@ -186,7 +186,7 @@ def six_d(small_scan):
 
 def test_unconstrained_coordinates_get_a_large_relative_std(six_d) -> None:
     # a quad-only scan never sees z (nor pz, to first order): their rms must
-    # carry at least the 20 % of issue 10, the transverse sizes much less
+    # carry a relative std of at least 20 %, the transverse sizes much less
     m = six_d.moments(n=2000)
     rel = [s / v for s, v in zip(m["rms"]["std"], m["rms"]["mean"], strict=True)]
     assert set(six_d.unconstrained_coordinates()) == {"z", "pz"}

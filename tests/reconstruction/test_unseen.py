@@ -145,7 +145,7 @@ def test_pair_prior_keeps_a_chirped_beam_that_has_no_traded_correlation() -> Non
 
     A strong chirp (z-pz 0.9) with pz independent of px and z of py given the
     rest is a fixed point of the "pair" prior; the "gaussian" one moves it
-    (the audit's double_horn: its truth placed at emit_z +11.9 %).
+    (a compressed double-horn bunch: its truth placed at emit_z +11.9 %).
     """
     maps, cov = _maps(), _beam_cov()
     sig = cov.diagonal().sqrt()

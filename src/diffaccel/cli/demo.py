@@ -9,7 +9,7 @@ from pathlib import Path
 import click
 
 from diffaccel.cli.output import output_folder
-from diffaccel.cli.reconstruct import OWNED, run_reconstruction
+from diffaccel.cli.reconstruct import run_reconstruction
 from diffaccel.data import (
     atomic_write_text,
     make_synthetic_quad_scan,
@@ -20,6 +20,7 @@ from diffaccel.reconstruction import (
     as_scans,
     training_selection,
 )
+from diffaccel.reconstruction.results import OWNED
 
 __all__ = ["demo"]
 

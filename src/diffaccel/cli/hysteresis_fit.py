@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import warnings
 from pathlib import Path
 
@@ -29,10 +30,12 @@ from diffaccel.hysteresis import (
     CONFIG_FILE,
     MODEL_FILE,
     STREAM_FILE,
+    BandFallbackWarning,
     InputRangeWarning,
     fit_magnet,
     save_fit,
 )
+from diffaccel.hysteresis.alarms import preisach_alarms
 from diffaccel.hysteresis.predictive import (
     MAX_MESH_SIZE,
     check_mesh_size,
@@ -57,6 +60,23 @@ def _check_mesh_size(ctx: click.Context, param: click.Parameter, value: int) -> 
     except ValueError as err:
         raise click.BadParameter(str(err)) from err
     return value
+
+
+def _check_mesh_adapt(
+    ctx: click.Context, param: click.Parameter, value: str
+) -> float | str:
+    """Click callback: ``auto`` or a share in [0, 1)."""
+    if value == "auto":
+        return value
+    try:
+        share = float(value)
+    except ValueError:
+        share = math.nan
+    if not 0.0 <= share < 1.0:
+        raise click.BadParameter(
+            f"expected 'auto' or a number in [0, 1); got {value!r}."
+        )
+    return share
 
 
 @click.command("fit")
@@ -94,9 +114,26 @@ def _check_mesh_size(ctx: click.Context, param: click.Parameter, value: int) -> 
 @click.option(
     "--symmetric/--no-symmetric",
     default=None,
-    help="Density symmetric about the centre of the input range, "
-    "mu(a, b) = mu(-b, -a). Default: symmetric when the range is centred on 0 "
-    "(bipolar magnets, B-H loops).",
+    help="Density symmetric about zero input, mu(a, b) = mu(-b, -a), with an "
+    "odd output B(-H) = -B(H) (the default input range is then centred on 0). "
+    "Default: symmetric when the input range is centred on 0 or the training "
+    "inputs and outputs both change sign (bipolar magnets, B-H loops).",
+)
+@click.option(
+    "--odd/--no-odd",
+    default=None,
+    help="Odd output, B(-H) = -B(H) at mirrored states (no fitted offset). "
+    "Default: odd when the density is symmetric and the input range centred "
+    "on 0; --no-odd fits an offset (e.g. a probe offset at zero field).",
+)
+@click.option(
+    "--mesh-adapt",
+    default="auto",
+    show_default=True,
+    callback=_check_mesh_adapt,
+    help="Share of the mesh placed where the training output changes (0: a "
+    "regular mesh; resolves coercive fields far below the input range); "
+    "'auto' chooses among 0, 0.8 and 0.95 on every fourth training row.",
 )
 @click.option(
     "--smoothness",
@@ -136,6 +173,8 @@ def fit_command(
     out_dir: Path,
     mesh_size: int,
     symmetric: bool | None,
+    odd: bool | None,
+    mesh_adapt: float | str,
     smoothness: float,
     steps: int,
     initial_state: str,
@@ -178,7 +217,11 @@ def fit_command(
         u, y = hist.input, hist.output
         u_tr, y_tr = u[:train_rows], y[:train_rows]
         try:
-            with tqdm(desc="fit", unit="eval", leave=False) as bar:
+            with (
+                tqdm(desc="fit", unit="eval", leave=False) as bar,
+                warnings.catch_warnings(record=True) as fit_caught,
+            ):
+                warnings.simplefilter("always", BandFallbackWarning)
 
                 def progress(step: int, loss: float) -> None:
                     bar.update(1)
@@ -194,7 +237,12 @@ def fit_command(
                     steps=steps,
                     smoothness=smoothness,
                     callback=progress,
+                    mesh_adapt=mesh_adapt,
+                    odd=odd,
                 )
+            for w in fit_caught:
+                if w.category is not BandFallbackWarning:
+                    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
             model = fit.model
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always", InputRangeWarning)
@@ -212,6 +260,15 @@ def fit_command(
         basis = torch.stack([torch.ones_like(u), u], dim=1)
         coef = lstsq(basis[:train_rows], y_tr[:, None])
         line_rmse = rms((basis @ coef).squeeze(1)[train_rows:] - y[train_rows:])
+        line_train = rms((basis @ coef).squeeze(1)[:train_rows] - y_tr)
+        lo, hi = model.input_range
+        rows = (test_rmse, line_rmse, "held-out") if n_te else None
+        alarms = preisach_alarms(
+            *(rows or (train_rmse, line_train, "training")),
+            train_rmse=train_rmse, line_train_rmse=line_train,
+            input_range=(lo, hi), train_span=float(u_tr.max() - u_tr.min()),
+            cell_width=(hi - lo) / mesh_size, output_range=span,
+        )  # fmt: skip
         inside = (resid[train_rows:].abs() <= 2.0 * std[train_rows:]).double()
 
         def pct(v: float | None) -> float | None:
@@ -238,6 +295,10 @@ def fit_command(
             "mesh_size": mesh_size,
             "n_hysterons": int(model.alpha.numel()),
             "symmetric": fit.symmetric,
+            "odd": model.odd,
+            "mesh_adapt": fit.mesh_adapt,
+            "mesh_validation": fit.mesh_validation,
+            "band_fallback": fit.band_fallback,
             "band_calibration": fit.calibration,
             "band_directions": int(fit.band.directions.shape[0]),
             "validation": fit.validation,
@@ -245,6 +306,7 @@ def fit_command(
             "initial_state": initial_state,
             "input_range": list(model.input_range),
             "notes": notes,
+            "warnings": alarms,
         }
         save_fit(
             folder.path,
@@ -266,8 +328,12 @@ def fit_command(
             fig = plot_preisach_density(model, input_label=input_col)
             save_png(fig, folder.path / "density.png")
         atomic_write_json(folder.path / SUMMARY_FILE, summary)
+    if fit.band_fallback is not None:
+        click.echo(f"warning: {fit.band_fallback}", err=True)
     for note in notes:
         click.echo(f"note: {note}", err=True)
+    for alarm in alarms:
+        click.echo(f"warning: {alarm}", err=True)
     test_txt = (
         "n/a"
         if test_rmse is None

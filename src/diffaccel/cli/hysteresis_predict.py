@@ -34,7 +34,7 @@ from diffaccel.cli.hysteresis import (
     check_time_column,
     time_column_option,
 )
-from diffaccel.cli.output import check_out_file
+from diffaccel.cli.output import check_out_file, os_error
 from diffaccel.data import (
     DEFAULT_INPUT_COLUMN,
     DEFAULT_TIME_COLUMN,
@@ -42,6 +42,7 @@ from diffaccel.data import (
     atomic_write,
     iter_magnet_csv,
 )
+from diffaccel.data.atomic import os_condition
 from diffaccel.hysteresis import (
     InputRangeWarning,
     StreamPredictor,
@@ -110,12 +111,12 @@ def predict_command(
     saturation. A missing folder of OUT is created.
     """
     # the refusals --force does not lift come first, so that the first is true
-    check_out_file(out_file, True, {"--input": data})
+    check_out_file(out_file, True, {"--input": data}, csv_columns=COLUMNS)
     if out_file.suffix.lower() != ".csv":
         raise click.ClickException(
             f"--out {out_file}: expected a .csv file name (the output is CSV text)."
         )
-    check_out_file(out_file, force, {"--input": data})
+    check_out_file(out_file, force, {"--input": data}, csv_columns=COLUMNS)
     try:
         spec, config = _load(fit_dir)
     except ValueError as err:
@@ -186,6 +187,8 @@ def predict_command(
         # as fit and gp-fit create their --out folder
         out_file.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
+        if os_condition(err) is not None:  # read-only, no space...
+            raise os_error(err, out_file) from err
         raise click.ClickException(
             f"--out {out_file}: cannot create its folder {out_file.parent}: {err}"
         ) from err
@@ -193,6 +196,8 @@ def predict_command(
         atomic_write(out_file, write)
     except ValueError as err:
         raise click.ClickException(str(err)) from err
+    except OSError as err:  # a read-only folder, a full disk
+        raise os_error(err, out_file) from err
     if outside["rows"]:
         lo, hi = spec.input_range
         beyond = max(lo - stats["min"], stats["max"] - hi, 0.0)

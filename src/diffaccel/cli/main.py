@@ -33,13 +33,23 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "demo",
         "Simulate a 6D quad scan and reconstruct it end to end (a few minutes on CPU).",
     ),
+    "design": (
+        "diffaccel.cli.design",
+        "design_command",
+        "What the scans in DATA determine and which settings to add.",
+    ),
     "hysteresis": (
         "diffaccel.cli.hysteresis",
         "hysteresis",
         "Preisach hysteresis models of magnets: fit and predict.",
     ),
+    "lattice": (
+        "diffaccel.cli.lattice",
+        "lattice",
+        "List a lattice FILE (Bmad, elegant, LatticeJSON) read through cheetah.",
+    ),
     "predict": (
-        "diffaccel.cli.reconstruct",
+        "diffaccel.cli.predict",
         "predict",
         "Ensemble-mean screen images of a reconstruction (RESULT_DIR) for new "
         "settings.",
@@ -84,6 +94,11 @@ SUBCOMMANDS: dict[str, dict[str, tuple[str, str, str]]] = {
             "predict_command",
             "Predict every row of a CSV (streamed), from the fit's initial state.",
         ),
+        "set": (
+            "diffaccel.cli.hysteresis_set",
+            "set_command",
+            "The input that brings a fitted magnet to TARGET after its history.",
+        ),
     },
 }
 
@@ -94,7 +109,7 @@ def _import(module: str, attr: str) -> click.Command:
     A command's module brings torch (and numpy, h5py, matplotlib...): some
     300 000 objects that live as long as the process. Collected as they come,
     they cost repeated full collections during the import and every later one
-    traverses them again (~1 s of CPU in a default ``reconstruct``, issue 12).
+    traverses them again (~1 s of CPU in a default ``reconstruct``).
     Imports create little garbage, so the collector is paused while they run
     and what is alive afterwards goes to the permanent generation
     (``gc.freeze``), which collections skip.
@@ -215,7 +230,7 @@ def run() -> None:
     Once a command has returned (its files written and closed), the
     interpreter's teardown would still free the objects of torch, numpy,
     matplotlib... one by one and collect the garbage of the figures: ~0.5 s
-    of a default ``reconstruct`` (issue 12) for nothing the command needs.
+    of a default ``reconstruct`` for nothing the command needs.
     ``run`` flushes logging and the standard streams and ends the process
     with ``os._exit`` and the command's exit status. Where that could lose
     work (a non-daemon thread still running, a stream that cannot be flushed)

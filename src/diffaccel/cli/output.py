@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -15,9 +15,16 @@ from diffaccel.data import (
     atomic_write,
     result_folder,
 )
+from diffaccel.data.atomic import os_condition
+from diffaccel.data.owned_files import written_by_diffaccel
 from diffaccel.data.result_folder import MARKER
 
-__all__ = ["check_out_file", "output_folder", "save_png"]
+__all__ = [
+    "check_out_file",
+    "os_error",
+    "output_folder",
+    "save_png",
+]
 
 
 @contextmanager
@@ -51,13 +58,13 @@ def output_folder(
         raise click.ClickException(str(err)) from err
     except OSError as err:
         raise click.ClickException(
-            f"writing the results for {out} failed: {err}; {out} was left as it was."
+            f"writing the results for {out} failed: {os_condition(err) or err}; "
+            f"{out} was left as it was."
         ) from err
 
 
 #: zlib level of the PNG figures: 3 encodes ~2x faster than PIL's default 6
-#: for ~20 % larger files (the same pixels); issue 12 counts a reconstruct's
-#: figures in its whole time
+#: for ~20 % larger files (the same pixels)
 PNG_COMPRESS_LEVEL = 3
 
 
@@ -75,11 +82,17 @@ def save_png(fig: Any, path: Path, dpi: int = 120) -> Path:
 
 
 def check_out_file(
-    out: Path, force: bool, inputs: dict[str, Path | None], option: str = "--out"
+    out: Path,
+    force: bool,
+    inputs: dict[str, Path | None],
+    option: str = "--out",
+    csv_columns: Sequence[str] = (),
 ) -> None:
     """Refuse an output file that would replace something the user gave.
 
-    ``out`` may replace an existing file only with ``force``, never one of the
+    ``out`` may replace an existing file only with ``force`` and only if
+    diffaccel wrote it (:func:`~diffaccel.data.owned_files.written_by_diffaccel`;
+    ``csv_columns``: the columns a CSV output ends with), never one of the
     ``inputs`` (``{"--dataset": path}``; None entries are skipped), and is never
     written into a diffaccel result folder (a fit, a reconstruction), ``force``
     or not: the command could destroy the result it reads, and a foreign file
@@ -103,3 +116,37 @@ def check_out_file(
         )
     if out.exists() and not force:
         raise click.ClickException(f"{out} exists; pass --force to overwrite it")
+    try:
+        ours = not out.exists() or written_by_diffaccel(out, csv_columns=csv_columns)
+    except OSError as err:  # locked, no permission
+        raise os_error(err, out, doing="read") from err
+    if not ours:
+        raise click.ClickException(
+            f"{out} exists and was not written by diffaccel; --force "
+            "replaces only diffaccel's own output files: move it or choose "
+            "another name."
+        )
+
+
+def os_error(
+    err: BaseException, path: Path, doing: str = "write"
+) -> click.ClickException:
+    """A one-line error for an OS condition while reading or writing ``path``.
+
+    Names the condition (:func:`os_condition`) and what to do, e.g. ``cannot
+    write out.h5: read-only file system (the folder out/ cannot be written
+    here); choose another --out``; other errors keep their own text.
+    """
+    condition = os_condition(err)
+    if condition is None:
+        return click.ClickException(f"cannot {doing} {path}: {err}")
+    if doing == "write":
+        hint = {
+            "permission denied": f"the folder {path.parent} is not writable by you",
+            "read-only file system": f"{path.parent} lies on a read-only file system",
+        }.get(condition, "")
+        where = f" ({hint})" if hint else ""
+        return click.ClickException(
+            f"cannot write {path}: {condition}{where}; nothing was replaced."
+        )
+    return click.ClickException(f"cannot {doing} {path}: {condition}.")

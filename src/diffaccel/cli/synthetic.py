@@ -9,11 +9,12 @@ from typing import Any
 import click
 import torch
 
-from diffaccel.cli.output import check_out_file
+from diffaccel.cli.output import check_out_file, os_error
 from diffaccel.data import (
     FormatError,
     make_synthetic_awa6d,
     make_synthetic_quad_scan,
+    make_synthetic_rf6d,
     read_openpmd_particles,
     write_quad_scan,
     write_scans,
@@ -33,13 +34,16 @@ _K1 = PARAMETER_LIMITS["k1"]
 @click.argument("out", type=click.Path(dir_okay=False, path_type=Path))
 @click.option(
     "--layout",
-    type=click.Choice(["quad", "awa6d"]),
+    type=click.Choice(["quad", "awa6d", "rf6d"]),
     default="quad",
     show_default=True,
     help="quad: Quadrupole 0.1 m + Drift 1 m + Screen (format version 1). awa6d: "
     "the AWA 6D layout (quadrupole 0.11 m, 1.3 GHz TDC off/4 MV, 20 degree "
     "dipole off/on, screens DYG1/DYG2 of 96 x 96 pixels; two scans, format "
-    "version 2; k1 -12 ... 12 in 9 steps unless given).",
+    "version 2; k1 -12 ... 12 in 9 steps unless given). rf6d: the same without "
+    "a deflecting cavity: a 2.856 GHz accelerating cavity, off or 4 MV at the "
+    "zero crossing (phase 0 or pi), chirps the bunch and the dipole maps the "
+    "chirp to x (RF phase plus dipole).",
 )
 @click.option(
     "--preset",
@@ -67,31 +71,31 @@ _K1 = PARAMETER_LIMITS["k1"]
     "n_settings",
     type=click.IntRange(min=1),
     default=None,
-    help="Number of quadrupole settings K [default: 20; awa6d: 9].",
+    help="Number of quadrupole settings K [default: 20; awa6d, rf6d: 9].",
 )
 @click.option(
     "--k1-min",
     type=click.FloatRange(-_K1, _K1),
     default=None,
-    help="[1/m^2] [default: -25; awa6d: -12]",
+    help="[1/m^2] [default: -25; awa6d, rf6d: -12]",
 )
 @click.option(
     "--k1-max",
     type=click.FloatRange(-_K1, _K1),
     default=None,
-    help="[1/m^2] [default: 15; awa6d: 12]",
+    help="[1/m^2] [default: 15; awa6d, rf6d: 12]",
 )
 @click.option(
     "--shape",
     type=(click.IntRange(2, MAX_SHAPE), click.IntRange(2, MAX_SHAPE)),
     default=None,
-    help="Screen rows H and columns W [pixels] [default: 64 64; awa6d: 96 96].",
+    help="Screen rows H and columns W [pixels] [default: 64 64; awa6d, rf6d: 96 96].",
 )
 @click.option(
     "--pixel-size",
     type=click.FloatRange(min=0, min_open=True),
     default=None,
-    help="Pixel size [m] (square pixels) [default: 1e-3; awa6d: the DYG1/DYG2 "
+    help="Pixel size [m] (square pixels) [default: 1e-3; awa6d, rf6d: the DYG1/DYG2 "
     "calibration scaled to --shape].",
 )
 @click.option(
@@ -106,7 +110,7 @@ _K1 = PARAMETER_LIMITS["k1"]
     type=click.Choice(["kde", "cic", "histogram"]),
     default=None,
     help="Screen image model (KDE bandwidth: one pixel; histogram: nearest-pixel "
-    "counts) [default: kde; awa6d: histogram].",
+    "counts) [default: kde; awa6d, rf6d: histogram].",
 )
 @click.option(
     "--noise",
@@ -150,15 +154,13 @@ def synthetic(out: Path, force: bool, **options: Any) -> None:
         if opts.particle_file is None
         else f"beam {opts.particle_file}"
     )
-    build = _awa6d if opts.layout == "awa6d" else _quad
+    build = {"awa6d": _awa6d, "rf6d": _awa6d}.get(opts.layout, _quad)
     try:
         click.echo(build(opts, out, force, beam))
     except (FormatError, ValueError, FileExistsError) as err:
         raise click.ClickException(str(err)) from err
-    except PermissionError as err:  # e.g. a read-only folder
-        raise click.ClickException(
-            f"cannot write {out}: {err.strerror} ({out.parent} is not writable?)"
-        ) from err
+    except OSError as err:  # a read-only folder, a full disk, a locked file
+        raise os_error(err, out) from err
     except (MemoryError, RuntimeError) as err:
         if not isinstance(err, MemoryError) and "alloc" not in str(err):
             raise
@@ -222,10 +224,11 @@ def _quad(opts: _Options, out: Path, force: bool, beam: str) -> str:
 
 
 def _awa6d(opts: _Options, out: Path, force: bool, beam: str) -> str:
-    """``--layout awa6d``: two scans of the AWA 6D layout (version 2)."""
+    """``--layout awa6d`` / ``rf6d``: two scans of a 6D layout (version 2)."""
     if opts.pixel_size is not None:
         raise click.BadParameter(
-            "the awa6d layout uses the DYG1/DYG2 calibration; scale it with --shape",
+            f"the {opts.layout} layout uses the DYG1/DYG2 calibration; scale it with "
+            "--shape",
             param_hint="--pixel-size",
         )
     k = 9 if opts.n_settings is None else opts.n_settings
@@ -237,7 +240,8 @@ def _awa6d(opts: _Options, out: Path, force: bool, beam: str) -> str:
     if opts.particle_file is not None:
         particles, file_p0c, _ = read_openpmd_particles(opts.particle_file)
         p0c = file_p0c if p0c is None else p0c
-    ms = make_synthetic_awa6d(
+    make = make_synthetic_rf6d if opts.layout == "rf6d" else make_synthetic_awa6d
+    ms = make(
         opts.preset,  # type: ignore[arg-type]
         particles=particles,
         n_particles=opts.n_particles,
@@ -255,9 +259,15 @@ def _awa6d(opts: _Options, out: Path, force: bool, beam: str) -> str:
         f"{name} {s.n_settings}x{s.n_shots} of {s.screen_shape[0]}x{s.screen_shape[1]}"
         for name, s in ms
     )
+    scanned = (
+        "RF {off, 4 MV at phase 0, pi} (dipole_on)"
+        if opts.layout == "rf6d"
+        else "TDC {0, 4 MV}"
+    )
+    layout = "RF-phase-plus-dipole 6D" if opts.layout == "rf6d" else "AWA 6D"
     return (
-        f"wrote {out} (format version 2, AWA 6D layout): scans {sizes}; k1 {lo:g} "
-        f".. {hi:g} 1/m^2 x TDC {{0, 4 MV}}; {beam}, "
+        f"wrote {out} (format version 2, {layout} layout): scans {sizes}; k1 {lo:g} "
+        f".. {hi:g} 1/m^2 x {scanned}; {beam}, "
         f"{ms.ground_truth.shape[0]} particles, {image_method} images, noise "
         f"{opts.noise:g}, seed {opts.seed}"
     )

@@ -62,6 +62,8 @@ _LAZY = {
     "PRESETS": "synthetic",
     "make_synthetic_awa6d": "synthetic",
     "make_synthetic_quad_scan": "synthetic",
+    "make_synthetic_rf6d": "synthetic",
+    "RF6D_BEAMLINES": "synthetic",
     "sample_preset_beam": "synthetic",
 }
 
@@ -105,6 +107,7 @@ __all__ = [
     "DEFAULT_TIME_COLUMN",
     "FORMAT_VERSION",
     "PRESETS",
+    "RF6D_BEAMLINES",
     "SINGLE_SCAN_NAME",
     "FormatError",
     "MagnetHistory",
@@ -124,6 +127,7 @@ __all__ = [
     "iter_magnet_csv",
     "make_synthetic_awa6d",
     "make_synthetic_quad_scan",
+    "make_synthetic_rf6d",
     "median_filter",
     "normalize",
     "parse_selection",

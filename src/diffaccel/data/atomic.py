@@ -8,6 +8,7 @@ the temporary file is removed and the destination is left as it was.
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
@@ -22,6 +23,7 @@ __all__ = [
     "atomic_write_json",
     "atomic_write_text",
     "clean_json",
+    "os_condition",
 ]
 
 
@@ -108,3 +110,43 @@ def atomic_write_json(
     """
     text = json.dumps(clean_json(obj), indent=2, allow_nan=False) + "\n"
     return atomic_write_text(path, text, overwrite=overwrite)
+
+
+#: errno values of conditions of the machine, not of diffaccel or its input
+_CONDITIONS = {
+    errno.EACCES: "permission denied",
+    errno.EPERM: "permission denied",
+    errno.EROFS: "read-only file system",
+    errno.ENOSPC: "no space left on the device (disk full)",
+    errno.EDQUOT: "disk quota exceeded",
+    errno.EAGAIN: "locked by another program",
+    errno.EBUSY: "busy (in use by another program)",
+}
+
+
+def os_condition(err: BaseException) -> str | None:
+    """The machine's condition behind ``err`` in words, or None if it names none.
+
+    Permission denied, read-only file system, disk full or quota exceeded, and
+    a file locked by another program (HDF5 reports a lock as an ``OSError``
+    whose message names it; an open file's lock is ``EAGAIN``/``EWOULDBLOCK``).
+    """
+    seen = err
+    for _ in range(4):  # the error and its causes (h5py wraps the OS's)
+        if isinstance(seen, OSError):
+            code = seen.errno
+            if code in _CONDITIONS:
+                return _CONDITIONS[code]
+            text = str(seen).lower()
+            if "unable to lock file" in text or "file locking" in text:
+                return "locked by another program (an open HDF5 viewer or writer?)"
+            if "no space left" in text:
+                return _CONDITIONS[errno.ENOSPC]
+            if "read-only file system" in text:
+                return _CONDITIONS[errno.EROFS]
+            if "permission denied" in text:
+                return _CONDITIONS[errno.EACCES]
+        if seen.__cause__ is None:
+            break
+        seen = seen.__cause__
+    return None

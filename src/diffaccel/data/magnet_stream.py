@@ -47,7 +47,7 @@ DEFAULT_INPUT_COLUMN = "current_A"
 DEFAULT_OUTPUT_COLUMN = "field_Tm"
 #: Time of each measurement [s, or any unit that increases], checked when present
 DEFAULT_TIME_COLUMN = "time_s"
-#: Label of the run (measurement session) of each row; time restarts per run
+#: Label of the run (one measurement sequence) of each row; time restarts per run
 DEFAULT_RUN_COLUMN = "run"
 # longest accepted cell (a number, a label); longer ones are not magnet data
 MAX_CELL_CHARS = 1000

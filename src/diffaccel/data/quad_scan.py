@@ -23,8 +23,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from diffaccel.data.atomic import atomic_write
+from diffaccel.data.atomic import atomic_write, os_condition
 from diffaccel.data.errors import FormatError
+from diffaccel.data.owned_files import H5_ATTRIBUTE, h5_mark
 from diffaccel.dynamics import ELEMENT_TYPES, Beamline, Species, pixel_centers
 from diffaccel.dynamics.coordinates import cheetah_to_bmad
 
@@ -948,6 +949,9 @@ def open_quad_scan(path: str | os.PathLike) -> h5py.File:
     try:
         return h5py.File(path, "r")
     except OSError as err:
+        condition = os_condition(err)  # locked, no permission: not the file's fault
+        if condition is not None:
+            raise FormatError(f"{path}: cannot open it: {condition}") from err
         raise FormatError(f"{path}: not a readable HDF5 file ({err})") from err
 
 
@@ -1102,6 +1106,7 @@ def write_root(h5: h5py.File, dataset: QuadScanDataset, version: int) -> None:
     description = metadata.pop("description", None)
     h5.attrs["format"] = FORMAT_NAME
     h5.attrs["format_version"] = np.int64(version)
+    h5.attrs[H5_ATTRIBUTE] = h5_mark()  # what --force may replace
     h5.attrs["p0c"] = np.float64(dataset.p0c)
     h5.attrs["species"] = dataset.species
     h5.attrs["metadata"] = _json_dumps(metadata, "metadata")

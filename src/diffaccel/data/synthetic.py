@@ -27,8 +27,11 @@ __all__ = [
     "AWA6D_BEAM_SCALE",
     "DEFAULT_BEAMLINE",
     "PRESETS",
+    "RF6D_BEAMLINES",
+    "RF6D_STATES",
     "make_synthetic_awa6d",
     "make_synthetic_quad_scan",
+    "make_synthetic_rf6d",
     "sample_preset_beam",
 ]
 
@@ -412,6 +415,35 @@ AWA6D_BEAMLINES: dict[str, list[dict]] = {
         {"type": "Screen", "name": "DYG2"},
     ],
 }
+#: A 6D layout without a deflecting cavity: the AWA geometry with the TDC
+#: replaced by a 0.2 m S-band accelerating cavity (``SCAN_RF``, Bmad rfcavity
+#: convention) whose voltage and phase are scanned; near the zero crossing it
+#: chirps the bunch (``pz += V / p0c * sin(phase + k z)``) and the dipole
+#: turns the chirp into x on DYG2, as RF-phase-plus-dipole measurements at
+#: PAL-XFEL do. The drift after it is shortened so the screens stay in place.
+RF6D_BEAMLINES: dict[str, list[dict]] = {
+    name: [
+        (
+            {
+                "type": "RFCavity",
+                "name": "SCAN_RF",
+                "length": 0.2,
+                "voltage": 0.0,
+                "frequency": 2.856e9,
+                "phase": 0.0,
+            }
+            if e["name"] == "SCAN_TDC"
+            else {**e, "length": e["length"] - 0.19}
+            if e["name"] == "D2"
+            else dict(e)
+        )
+        for e in spec
+    ]
+    for name, spec in AWA6D_BEAMLINES.items()
+}
+#: RF states of the rf6d layout, ``(voltage [V], phase [rad])``: off, zero
+#: crossing with the head gaining energy, zero crossing with the head losing.
+RF6D_STATES = ((0.0, 0.0), (4e6, 0.0), (4e6, math.pi))
 #: Pixel sizes of DYG1 and DYG2 [m] (square pixels).
 AWA6D_PIXEL_SIZE = {
     "dipole_off": 2.7253091221439543e-4,
@@ -421,6 +453,107 @@ AWA6D_PIXEL_SIZE = {
 #: 0.5 mm, 0.26 mrad, 0.8 mm and 0.37 % rms, so that every setting stays on
 #: the 96 x 96 pixel screens.
 AWA6D_BEAM_SCALE = (1 / 3, 0.43, 1 / 3, 0.43, 0.8, 0.74)
+
+
+def make_synthetic_rf6d(
+    preset: Literal["gaussian", "correlated", "nonlinear"] = "nonlinear",
+    *,
+    particles: Tensor | None = None,
+    n_particles: int = 100_000,
+    p0c: float = 43.36e6,
+    k1_values: Sequence[float] | Tensor | None = None,
+    rf_states: Sequence[tuple[float, float]] = RF6D_STATES,
+    screen_shape: tuple[int, int] = (96, 96),
+    image_method: Literal["kde", "cic", "histogram"] = "histogram",
+    noise: float = 0.0,
+    noise_model: Literal["poisson", "gaussian"] = "poisson",
+    shots: int = 1,
+    seed: int = 0,
+) -> MultiScanDataset:
+    """Simulate a 6D measurement by RF phase plus dipole (no deflecting cavity).
+
+    The layout is :data:`RF6D_BEAMLINES`. Scan ``"dipole_off"`` records the
+    quadrupole strengths with the cavity off (the straight screen does not see
+    ``pz``); scan ``"dipole_on"`` records every strength at every RF state of
+    ``rf_states`` (default :data:`RF6D_STATES`), in the order ``(k1_0,
+    state_0), (k1_0, state_1), ...``. Settings are ``SCAN_QUAD.k1``,
+    ``SCAN_RF.voltage`` and ``SCAN_RF.phase`` in both scans. The beam (the
+    preset scaled as for :func:`make_synthetic_awa6d`) is tracked exactly and
+    imaged as in :func:`make_synthetic_quad_scan`.
+
+    Args:
+        preset: Beam preset when ``particles`` is not given.
+        particles: Initial particles in Bmad coordinates ``(N, 6)``.
+        n_particles: Preset particles N.
+        p0c: Reference momentum times c [eV].
+        k1_values: Quadrupole strengths [1/m^2]; default -12 ... 12 in 9 steps.
+        rf_states: ``(voltage [V], phase [rad])`` of the dipole-on scan.
+        screen_shape: (H, W) of both screens [pixels].
+        image_method: ``"histogram"``, ``"cic"`` or ``"kde"``.
+        noise: Relative noise at the peak pixel (0: none).
+        noise_model: ``"poisson"`` or ``"gaussian"``.
+        shots: Shots per setting.
+        seed: Seed of the beam sample and the noise.
+
+    Returns:
+        A :class:`MultiScanDataset` with the scans ``dipole_off`` and
+        ``dipole_on`` and the beam as ground truth.
+
+    Example:
+        >>> ms = make_synthetic_rf6d(n_particles=2000, k1_values=[-6.0, 6.0],
+        ...                          screen_shape=(32, 32))
+        >>> ms["dipole_off"].shape, ms["dipole_on"].shape
+        ((2, 1, 32, 32), (6, 1, 32, 32))
+    """
+    generator = torch.Generator().manual_seed(int(seed))
+    if particles is None:
+        beam = sample_preset_beam(preset, n_particles, generator)
+        beam = beam * torch.tensor(AWA6D_BEAM_SCALE, dtype=beam.dtype)
+    else:
+        beam = torch.as_tensor(particles, dtype=torch.float64)
+    k1 = torch.as_tensor(
+        torch.linspace(-12.0, 12.0, 9) if k1_values is None else k1_values,
+        dtype=torch.float64,
+    ).flatten()
+    states = torch.as_tensor(rf_states, dtype=torch.float64).reshape(-1, 2)
+    off = torch.zeros(k1.shape[0], 2, dtype=torch.float64)
+    settings = {
+        "dipole_off": torch.cat([k1.unsqueeze(-1), off], dim=-1),
+        "dipole_on": torch.cat(
+            [
+                k1.repeat_interleave(states.shape[0]).unsqueeze(-1),
+                states.repeat(k1.shape[0], 1),
+            ],
+            dim=-1,
+        ),
+    }
+    scans = {}
+    for name, spec in RF6D_BEAMLINES.items():
+        ps = AWA6D_PIXEL_SIZE[name] * 96 / screen_shape[1]
+        scans[name] = make_synthetic_quad_scan(
+            particles=beam,
+            beamline_spec=spec,
+            p0c=p0c,
+            settings=settings[name],
+            setting_names=("SCAN_QUAD.k1", "SCAN_RF.voltage", "SCAN_RF.phase"),
+            setting_units=("1/m^2", "V", "rad"),
+            screen_shape=screen_shape,
+            pixel_size=(ps, ps),
+            image_method=image_method,
+            noise=noise,
+            noise_model=noise_model,
+            shots=shots,
+            seed=seed,
+            dtype=torch.float64,
+        )
+    source = "tensor" if particles is not None else f"preset {preset}"
+    return MultiScanDataset(
+        scans,
+        metadata={
+            "description": f"synthetic RF-phase-plus-dipole 6D layout, {source}, "
+            f"seed {seed}"
+        },
+    )
 
 
 def make_synthetic_awa6d(

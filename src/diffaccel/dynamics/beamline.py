@@ -16,13 +16,21 @@ from diffaccel.dynamics._validate import (
     check_particles,
     finite_checks_enabled,
 )
+from diffaccel.dynamics.cheetah_interop import (
+    elements_from_cheetah,
+    elements_from_lattice,
+    elements_to_cheetah,
+)
 from diffaccel.dynamics.elements._kernels import stack_columns
 from diffaccel.dynamics.elements.dipole import Dipole
 from diffaccel.dynamics.elements.drift import Drift
 from diffaccel.dynamics.elements.element import Coords, Element
 from diffaccel.dynamics.elements.linear_map import LinearMap
 from diffaccel.dynamics.elements.quadrupole import Quadrupole
+from diffaccel.dynamics.elements.rf_cavity import RFCavity
 from diffaccel.dynamics.elements.screen import Screen
+from diffaccel.dynamics.elements.sextupole import Sextupole
+from diffaccel.dynamics.elements.solenoid import Solenoid
 from diffaccel.dynamics.elements.transverse_deflecting_cavity import (
     TransverseDeflectingCavity,
 )
@@ -40,6 +48,9 @@ ELEMENT_TYPES: dict[str, type[Element]] = {
         TransverseDeflectingCavity,
         Screen,
         LinearMap,
+        Solenoid,
+        Sextupole,
+        RFCavity,
     )
 }
 _SCREEN_KEYS = ("shape", "pixel_size", "center")
@@ -154,7 +165,8 @@ class Beamline(nn.Module):
             if not isinstance(name, str) or not name:
                 raise ValueError(f"spec[{pos}] ({kind}) needs a non-empty 'name'.")
             elem_cls = ELEMENT_TYPES[kind]
-            known = list(elem_cls.param_names)
+            config = tuple(getattr(elem_cls, "config_names", ()))
+            known = list(elem_cls.param_names) + list(config)
             if elem_cls is Screen:
                 known += list(_SCREEN_KEYS)
             unknown = sorted(set(entry) - set(known))
@@ -167,7 +179,10 @@ class Beamline(nn.Module):
                 elements.append(Screen(name, **entry))
                 continue
             owner = f"spec[{pos}] ({kind} {name!r})"
-            values = {k: _spec_value(v, owner, k) for k, v in entry.items()}
+            values: dict[str, Any] = {
+                k: v if k in config else _spec_value(v, owner, k)
+                for k, v in entry.items()
+            }
             if elem_cls is LinearMap:
                 if "matrix" not in values:
                     raise ValueError(
@@ -184,6 +199,41 @@ class Beamline(nn.Module):
                     )
                 elements.append(elem_cls(name, **values))
         return cls(elements)
+
+    @classmethod
+    def from_cheetah(cls, segment: Any, **kwargs: Any) -> Beamline:
+        """Build from a cheetah ``Segment`` (needs ``diffaccel[cheetah]``).
+
+        See :func:`diffaccel.dynamics.cheetah_interop.elements_from_cheetah`
+        for the element correspondence and the keyword arguments (``start``,
+        ``end``, ``approximate``, ``p0c``, ``species``, ``screens``).
+        """
+        return cls(elements_from_cheetah(segment, **kwargs))
+
+    def to_cheetah(self, **kwargs: Any) -> Any:
+        """This beamline as a cheetah ``Segment`` (needs ``diffaccel[cheetah]``).
+
+        See :func:`diffaccel.dynamics.cheetah_interop.elements_to_cheetah`
+        (keywords ``p0c``, ``species``).
+        """
+        return elements_to_cheetah(self, **kwargs)
+
+    @classmethod
+    def from_lattice(
+        cls,
+        path: Any,
+        start: str | None = None,
+        end: str | None = None,
+        **kwargs: Any,
+    ) -> Beamline:
+        """Read a Bmad, elegant or LatticeJSON file through cheetah's converters.
+
+        ``start`` / ``end`` name the first and last element kept. See
+        :func:`diffaccel.dynamics.cheetah_interop.elements_from_lattice` for
+        what is mapped, what is refused and the keyword arguments (``line``,
+        ``fmt``, ``approximate``, ``p0c``, ``species``, ``screens``).
+        """
+        return cls(elements_from_lattice(path, start, end, **kwargs))
 
     def to_spec(self) -> list[dict[str, Any]]:
         """The JSON-serialisable element list (inverse of :meth:`from_spec`)."""

@@ -1,12 +1,13 @@
 """diffaccel.hysteresis: differentiable Preisach hysteresis of magnets.
 
 Names load on first use (PEP 562): the streaming of fitted models
-(:class:`StreamSpec`, :class:`StreamPredictor`, :func:`load_stream_fit`) needs
-numpy only, so that ``diffaccel hysteresis predict`` does not import torch
-(~2 s); the torch parts load together on first use of one of their names; the
-GP parts (:class:`HysteresisGP`, :class:`HGPFitResult`,
-:func:`fit_hysteresis_gp`, :class:`HysteresisBO`) import GPyTorch and BoTorch
-(~1 s and ~100 MB) and load apart, so that fitting Preisach models does not pay
+(:class:`StreamSpec`, :class:`StreamPredictor`, :func:`load_stream_fit`) and
+setting a magnet from it (:func:`plan_setpoint`) need numpy only, so that
+``diffaccel hysteresis predict`` and ``set`` do not import torch (~2 s); the
+torch parts load together on first use of one of their names; the GP parts
+(:class:`HysteresisGP`, :class:`HGPFitResult`, :func:`fit_hysteresis_gp`,
+:class:`HysteresisBO`) import GPyTorch and BoTorch (~1 s and ~100 MB) and load
+apart, so that fitting Preisach models does not pay
 for them. ``from diffaccel.hysteresis import HysteresisGP`` works as usual.
 """
 
@@ -20,6 +21,12 @@ from diffaccel.hysteresis.fit_folder import (
     STREAM_FILE,
     load_stream_fit,
 )
+from diffaccel.hysteresis.setpoint import (
+    SetPoint,
+    UnreachableTargetError,
+    field_for_k1,
+    plan_setpoint,
+)
 from diffaccel.hysteresis.stream import (
     InputRangeWarning,
     StreamPredictor,
@@ -30,6 +37,7 @@ from diffaccel.hysteresis.stream import (
 
 # name -> submodule, loaded on first access (see the module docstring)
 _LAZY = {
+    "BandFallbackWarning": "band",
     "LaplaceBand": "band",
     "laplace_band": "band",
     "FitResult": "fit",
@@ -42,6 +50,8 @@ _LAZY = {
     "magnetic_rigidity": "magnet",
     "PreisachMesh": "mesh",
     "MagnetFit": "predictive",
+    "adaptive_warp": "predictive",
+    "changes_sign": "predictive",
     "default_input_range": "predictive",
     "fit_magnet": "predictive",
     "predict_stream": "predictive",
@@ -107,6 +117,7 @@ __all__ = [
     "INITIAL_STATES",
     "MODEL_FILE",
     "STREAM_FILE",
+    "BandFallbackWarning",
     "FitResult",
     "HGPFitResult",
     "HysteresisBO",
@@ -118,9 +129,14 @@ __all__ = [
     "MagnetFit",
     "PreisachMesh",
     "PreisachModel",
+    "SetPoint",
     "StreamPredictor",
     "StreamSpec",
+    "UnreachableTargetError",
+    "adaptive_warp",
+    "changes_sign",
     "default_input_range",
+    "field_for_k1",
     "fit_hysteresis_gp",
     "fit_magnet",
     "fit_preisach",
@@ -132,6 +148,7 @@ __all__ = [
     "magnetic_rigidity",
     "next_step_output",
     "outside_input_range",
+    "plan_setpoint",
     "predict_chunks",
     "predict_stream",
     "save_fit",

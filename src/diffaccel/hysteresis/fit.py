@@ -170,6 +170,7 @@ def fit_preisach(
     smoothness: float = 0.0,
     initial_state: str | Tensor | None = None,
     callback: Callable[[int, float], None] | None = None,
+    loss_rows: Tensor | None = None,
 ) -> FitResult:
     """Fit density, offset, slope and scale of ``model`` to one measured history.
 
@@ -192,6 +193,11 @@ def fit_preisach(
             quadrupole data; see ``benchmarks/preisach_slac.py``).
         initial_state: State before ``current[0]``; ``None`` is the model's own.
         callback: Called as ``callback(step, loss)`` after every step.
+        loss_rows: Boolean mask, shape ``(T,)``, of the rows whose residuals
+            enter the objective (and the output normalisation and the
+            least-squares start); the other rows still drive the hysterons'
+            history. ``None``: every row. For validation on rows held out
+            inside a history.
 
     Returns:
         A :class:`FitResult`.
@@ -209,16 +215,38 @@ def fit_preisach(
         raise ValueError(f"smoothness must be finite and >= 0; got {smoothness}.")
     u, y = check_series(current, field, model.alpha.dtype, model.alpha.device)
     model.check_input_range(u, "training inputs")  # before touching the model
+    if loss_rows is None:
+        rows = torch.ones_like(u, dtype=torch.bool)
+    else:
+        rows = torch.as_tensor(loss_rows, device=u.device)
+        if rows.shape != u.shape or rows.dtype != torch.bool:
+            raise ValueError(
+                f"loss_rows must be a boolean mask of shape {tuple(u.shape)}; got "
+                f"{rows.dtype} {tuple(rows.shape)}."
+            )
+        if int(rows.sum()) < MIN_FIT_POINTS:
+            raise ValueError(
+                f"loss_rows selects {int(rows.sum())} rows; need at least "
+                f"{MIN_FIT_POINTS}."
+            )
+        if float(y[rows].max() - y[rows].min()) <= 0:
+            raise ValueError("output is constant over loss_rows; nothing to fit.")
     t0 = time.perf_counter()
     with torch.no_grad():
-        loc, span = y.min(), y.max() - y.min()
+        loc, span = y[rows].min(), y[rows].max() - y[rows].min()
         model.output_loc.copy_(loc)
         model.output_scale.copy_(span)
         yn = (y - loc) / span
         un = model.normalize_input(u)
         m = model.magnetization(u, initial_state)
-        basis = torch.stack([torch.ones_like(un), un, m], dim=1)
-        coef = lstsq(basis, yn.unsqueeze(1)).squeeze(1)
+        if model.odd:  # offset = -loc / span - slope / 2
+            basis = torch.stack([un - 0.5, m], dim=1)
+            target = yn + loc / span
+            coef = lstsq(basis[rows], target[rows].unsqueeze(1)).squeeze(1)
+            coef = torch.cat([(-loc / span - 0.5 * coef[0]).reshape(1), coef])
+        else:
+            basis = torch.stack([torch.ones_like(un), un, m], dim=1)
+            coef = lstsq(basis[rows], yn[rows].unsqueeze(1)).squeeze(1)
         model.offset.copy_(coef[0])
         model.slope.copy_(coef[1])
         model.scale.copy_(coef[2])
@@ -227,7 +255,11 @@ def fit_preisach(
     # raw density, by ~1 per unit of offset or slope. Optimise raw parameters
     # divided by a per-group factor so that all groups have similar curvature
     # (L-BFGS stalls otherwise; Adam is insensitive to it).
-    names = [n for n, p in model.named_parameters() if p.requires_grad]
+    names = [
+        n
+        for n, p in model.named_parameters()
+        if p.requires_grad and not (model.odd and n == "offset")
+    ]
     m_count = model.alpha.numel()
     per_hysteron = (m_count**0.5) / max(abs(float(model.scale.detach())), 1e-3)
     factor = {
@@ -247,6 +279,8 @@ def fit_preisach(
         with torch.no_grad():
             for n in names:
                 own[n].copy_(proxies[n] * factor[n])
+            if model.odd:
+                model.offset.copy_(model.effective_offset())
 
     kind = model.initial_state_kind if initial_state is None else initial_state
     learned = (
@@ -269,7 +303,7 @@ def fit_preisach(
                 model, subst, (u,), {"initial_state": initial_state}, strict=False
             )
         pred = (m - model.output_loc) / model.output_scale
-        loss = ((pred - yn) ** 2).mean()
+        loss = ((pred - yn)[rows] ** 2).mean()
         if smoothness > 0:
             loss = loss + smoothness * torch.func.functional_call(
                 _Roughness(model), {f"model.{n}": v for n, v in subst.items()}, ()
@@ -312,7 +346,7 @@ def fit_preisach(
                 callback(step, losses[-1])
     write_back()
     with torch.no_grad():
-        resid = model(u, initial_state) - y
+        resid = (model(u, initial_state) - y)[rows]
         rmse = float(resid.pow(2).mean().sqrt())
         final = float(objective())
     seconds = time.perf_counter() - t0

@@ -23,7 +23,7 @@ import logging
 import math
 import time
 import warnings
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -40,7 +40,7 @@ from botorch.optim.fit import fit_gpytorch_mll_scipy
 from botorch.posteriors.gpytorch import GPyTorchPosterior
 from botorch.posteriors.transformed import TransformedPosterior
 from botorch.utils.types import DEFAULT, _DefaultType
-from gpytorch.constraints import Positive
+from gpytorch.constraints import GreaterThan, Positive
 from gpytorch.distributions import MultivariateNormal
 from gpytorch.kernels import Kernel
 from gpytorch.likelihoods import (
@@ -54,20 +54,23 @@ from gpytorch.means import ConstantMean, Mean
 from gpytorch.mlls import ExactMarginalLogLikelihood
 from gpytorch.models import ExactGP
 from gpytorch.module import Module as GPyTorchModule
-from gpytorch.priors import NormalPrior
+from gpytorch.priors import LogNormalPrior, NormalPrior
 from gpytorch.utils.warnings import GPInputWarning
 from torch import Tensor, nn
 
 from diffaccel.dynamics import is_integer
-from diffaccel.hysteresis.fit import MAX_MAGNITUDE
+from diffaccel.hysteresis.fit import MAX_MAGNITUDE, fit_preisach
 from diffaccel.hysteresis.preisach import PreisachModel
 from diffaccel.hysteresis.states import exact_states, smooth_states
 
 __all__ = [
     "HGPFitResult",
     "HysteresisGP",
+    "JointStart",
     "fit_hysteresis_gp",
+    "joint_gp_from_preisach",
     "magnetization_feature",
+    "noise_likelihood",
 ]
 
 logger = logging.getLogger(__name__)
@@ -211,16 +214,25 @@ class _MagnetFeature(GPyTorchModule):
 
 
 class _StateFeatures(GPyTorchModule):
-    """GP features from encoded inputs ``[plain (p), states_0 (M_0), ...]``."""
+    """GP features from encoded inputs ``[plain (p), states_0 (M_0), ...]``.
+
+    With ``currents`` the encoded inputs end with one normalised input per
+    hysteretic column, passed on as extra features after the ``d`` columns.
+    """
 
     def __init__(
-        self, d: int, hysteretic_dims: tuple[int, ...], magnets: list[_MagnetFeature]
+        self,
+        d: int,
+        hysteretic_dims: tuple[int, ...],
+        magnets: list[_MagnetFeature],
+        currents: bool = False,
     ) -> None:
         super().__init__()
         self.d = d
         self.hysteretic_dims = hysteretic_dims
         self.plain_dims = tuple(i for i in range(d) if i not in hysteretic_dims)
         self.magnets = nn.ModuleList(magnets)
+        self.currents = bool(currents)
 
     def forward(self, z: Tensor) -> Tensor:
         cols: list[Tensor | None] = [None] * self.d
@@ -231,6 +243,8 @@ class _StateFeatures(GPyTorchModule):
             m = magnet.alpha.numel()
             cols[c] = magnet(z[..., offset : offset + m])
             offset += m
+        if self.currents:
+            cols.extend(z[..., offset + k] for k in range(len(self.magnets)))
         return torch.stack(cols, dim=-1)  # type: ignore[arg-type]
 
 
@@ -356,6 +370,15 @@ class HysteresisGP(Model):
             It matters when few points must constrain many hysterons (e.g. early
             in optimisation) and fades as data accumulate; the fit's restarts
             sample it. ``None``: no density prior.
+        current_feature: Also give the GP, for each hysteretic column, its
+            input normalised to the Preisach input range (``(u - lo) / (hi -
+            lo)``, an extra feature after the ``d`` columns: ``features``
+            returns ``d + len(hysteresis)`` columns). The magnetisation of
+            exact relays is a staircase along a sweep (one step per mesh row
+            crossed); a response that also follows the input continuously
+            (the reversible part of a magnet's field: the linear term of
+            :class:`PreisachModel`) needs the input itself, and with it the
+            model contains the plain GP (a long magnetisation lengthscale).
 
     Shapes:
         ``posterior(X)`` maps ``(*b, q, d)`` to a posterior over ``(*b, q, 1)``.
@@ -392,6 +415,7 @@ class HysteresisGP(Model):
         outcome_transform: OutcomeTransform | _DefaultType | None = DEFAULT,
         candidate_smoothing: float | None = None,
         density_prior_scale: float | None = None,
+        current_feature: bool = False,
     ) -> None:
         super().__init__()
         # 1. validate
@@ -449,6 +473,7 @@ class HysteresisGP(Model):
         self.plain_dims: tuple[int, ...] = tuple(i for i in range(d) if i not in dims)
         self.candidate_smoothing = candidate_smoothing
         self.density_prior_scale = density_prior_scale
+        self.current_feature = bool(current_feature)
         self.register_buffer("bounds", bounds.clone())
         self.register_buffer("train_X", train_X.detach().clone())
         self.register_buffer("train_Y", train_Y.detach().clone())
@@ -471,6 +496,8 @@ class HysteresisGP(Model):
             pm.check_input_range(train_X[:, c], f"training inputs of column {c}")
             with torch.no_grad():
                 blocks.append(pm.states(train_X[:, c]).to(train_X))
+        if self.current_feature:
+            blocks.append(self._currents(train_X))
         train_inputs = torch.cat(blocks, dim=-1)
         if outcome_transform is DEFAULT:
             outcome_transform = _standardize()
@@ -487,11 +514,16 @@ class HysteresisGP(Model):
             else:
                 likelihood = FixedNoiseGaussianLikelihood(noise=yvar.squeeze(-1))
         if covar_module is None:
-            covar_module = get_covar_module_with_dim_scaled_prior(ard_num_dims=d)
+            n_features = d + (len(dims) if self.current_feature else 0)
+            covar_module = get_covar_module_with_dim_scaled_prior(
+                ard_num_dims=n_features
+            )
         if mean_module is None:
             mean_module = ConstantMean()
         magnets = [_MagnetFeature(pm, density_prior_scale) for pm in given]
-        features = _StateFeatures(d, self.hysteretic_dims, magnets)
+        features = _StateFeatures(
+            d, self.hysteretic_dims, magnets, currents=self.current_feature
+        )
         self.gp = _StateGP(
             train_inputs,
             y.squeeze(-1).detach(),
@@ -563,6 +595,14 @@ class HysteresisGP(Model):
             return X[..., :0]
         return self.plain_transform(X[..., list(self.plain_dims)])
 
+    def _currents(self, X: Tensor) -> Tensor:
+        """Hysteretic inputs normalised to their Preisach ranges, ``(*b, q, H)``."""
+        cols = []
+        for c, pm in zip(self.hysteretic_dims, self._given, strict=True):
+            lo, hi = pm.input_range
+            cols.append((X[..., c] - lo) / (hi - lo))
+        return torch.stack(cols, dim=-1)
+
     def _normalised(self, i: int, u: Tensor) -> Tensor:
         # settings beyond the Preisach input range saturate every hysteron alike
         lo, hi = self._given[i].input_range
@@ -587,7 +627,8 @@ class HysteresisGP(Model):
         """GP inputs along the training history (differentiable in the densities).
 
         Returns:
-            Features in ``[0, 1]``, shape ``(n, d)``.
+            Features in ``[0, 1]``, shape ``(n, d)`` (``(n, d + H)`` with
+            ``current_feature``: the ``H`` normalised hysteretic inputs last).
         """
         return self.gp.features(self.gp.train_inputs[0])
 
@@ -612,7 +653,8 @@ class HysteresisGP(Model):
 
         Returns:
             Encoded inputs, shape ``(*b, q, p + M_1 + ...)`` with ``p`` plain
-            columns and ``M_i`` hysterons of hysteretic column ``i``.
+            columns and ``M_i`` hysterons of hysteretic column ``i`` (with
+            ``current_feature``, then the ``H`` normalised hysteretic inputs).
         """
         blocks = [self._plain_features(X)]
         for i, (c, magnet) in enumerate(
@@ -628,6 +670,8 @@ class HysteresisGP(Model):
             else:
                 states = exact_states(x, alpha, beta, s_end)
             blocks.append(states)
+        if self.current_feature:
+            blocks.append(self._currents(X))
         return torch.cat(blocks, dim=-1)
 
     def features(self, X: Tensor, exact: bool = False) -> Tensor:
@@ -639,7 +683,8 @@ class HysteresisGP(Model):
             exact: Use exact relays whatever the smoothing width.
 
         Returns:
-            Features in ``[0, 1]``, shape ``(*b, q, d)``.
+            Features in ``[0, 1]``, shape ``(*b, q, d)`` (``(*b, q, d + H)``
+            with ``current_feature``).
         """
         return self.gp.features(self.encode(X, exact=exact))
 
@@ -779,7 +824,9 @@ class HysteresisGP(Model):
         :meth:`extended` (``noise`` is its ``Yvar``).
 
         Args:
-            X, Y, noise: As ``X``, ``Y``, ``Yvar`` of :meth:`extended`.
+            X: As ``X`` of :meth:`extended`.
+            Y: As ``Y`` of :meth:`extended`.
+            noise: As ``Yvar`` of :meth:`extended`.
             **kwargs: Not supported; must be empty.
 
         Returns:
@@ -839,6 +886,7 @@ class HysteresisGP(Model):
             outcome_transform=None if ot is None else _standardize(),
             candidate_smoothing=self.candidate_smoothing,
             density_prior_scale=self.density_prior_scale,
+            current_feature=self.current_feature,
             **modules,
         )
         with torch.no_grad():  # the fitted densities; the priors stay the given ones
@@ -943,6 +991,7 @@ def fit_hysteresis_gp(
     fit_density: bool = True,
     seed: int = 0,
     callback: Callable[[int, float], None] | None = None,
+    density_starts: Sequence[Sequence[Tensor]] | None = None,
 ) -> HGPFitResult:
     """Fit Preisach densities and GP hyperparameters jointly on the exact MLL.
 
@@ -959,6 +1008,11 @@ def fit_hysteresis_gp(
     and the best restart is kept. Only density *shapes* are fitted (features
     use normalised magnetisations), never field scale or offset.
 
+    With ``density_starts`` each start's densities begin their own
+    optimisation from the model's hyperparameters as given (the first start
+    also takes the prior-sampled restarts): ``max(restarts, len(starts))``
+    optimisations in all, the one of highest marginal likelihood kept.
+
     Args:
         model: The model to fit in place.
         restarts: Number of optimisations (``>= 1``).
@@ -967,14 +1021,78 @@ def fit_hysteresis_gp(
         seed: Seed of the random restarts (torch's global generator is forked,
             so the caller's random state is left unchanged).
         callback: Called after each restart with ``(restart, mll)``.
+        density_starts: Starting raw densities (``raw_density`` of each
+            hysteretic column, in order) of the first optimisations, e.g.
+            those of :class:`JointStart`; ``None``: the model's own.
 
     Returns:
         A :class:`HGPFitResult`; ``model`` holds the best parameters, in eval mode.
 
     Raises:
-        ValueError: if ``restarts < 1`` or ``max_iter < 1``.
+        ValueError: if ``restarts < 1`` or ``max_iter < 1``, or a density start
+            does not match the model's magnets.
         RuntimeError: if every restart failed numerically.
     """
+    if not density_starts:
+        return _fit_restarts(model, restarts, max_iter, fit_density, seed, callback)
+    magnets = model.gp.features.magnets
+    for start in density_starts:
+        shapes = [tuple(torch.as_tensor(r).shape) for r in start]
+        if shapes != [tuple(m.raw_density.shape) for m in magnets]:
+            raise ValueError(
+                f"density start shapes {shapes} do not match the model's "
+                f"{[tuple(m.raw_density.shape) for m in magnets]}."
+            )
+    t0 = time.perf_counter()
+    given = copy.deepcopy(model.state_dict())
+    runs: list[tuple[HGPFitResult, dict]] = []
+    values: list[float] = []
+    for i, start in enumerate(density_starts):
+        model.load_state_dict(given)
+        with torch.no_grad():
+            for mag, raw in zip(magnets, start, strict=True):
+                mag.raw_density.copy_(torch.as_tensor(raw).to(mag.raw_density))
+        n = max(1, restarts - len(density_starts) + 1) if i == 0 else 1
+        offset = len(values)
+
+        def relay(r: int, v: float, offset: int = offset) -> None:
+            if callback is not None:
+                callback(offset + r, v)
+
+        try:
+            res = _fit_restarts(model, n, max_iter, fit_density, seed + i, relay)
+        except RuntimeError:
+            values.extend([-math.inf] * n)
+            continue
+        values.extend(res.restart_mlls)
+        runs.append((res, copy.deepcopy(model.state_dict())))
+    if not runs:
+        raise RuntimeError(
+            f"every one of the {len(values)} H-GP fit restarts failed numerically "
+            "(covariance not positive definite); check the data for outliers or "
+            "duplicated rows with different responses."
+        )
+    best_res, best_state = max(runs, key=lambda r: r[0].mll)
+    model.load_state_dict(best_state)
+    model.eval()
+    return HGPFitResult(
+        mll=best_res.mll,
+        noise_sigma=float(model.noise_sigma.detach()),
+        restart_mlls=tuple(values),
+        best_restart=max(range(len(values)), key=lambda r: values[r]),
+        fit_s=time.perf_counter() - t0,
+    )
+
+
+def _fit_restarts(
+    model: HysteresisGP,
+    restarts: int,
+    max_iter: int,
+    fit_density: bool,
+    seed: int,
+    callback: Callable[[int, float], None] | None,
+) -> HGPFitResult:
+    """:func:`fit_hysteresis_gp` from the model's own densities."""
     if restarts < 1 or max_iter < 1:
         raise ValueError(
             f"restarts and max_iter must be >= 1; got {restarts} and {max_iter}."
@@ -1027,3 +1145,145 @@ def fit_hysteresis_gp(
         best_restart=best,
         fit_s=time.perf_counter() - t0,
     )
+
+
+#: Lowest noise variance [standardised units] a data-chosen likelihood allows:
+#: below it the exact GP's covariance of ~100 nearby settings stops being
+#: positive definite in float64.
+MIN_NOISE_VARIANCE = 1e-8
+# width of the data-chosen LogNormal noise prior [log variance]: a factor ~7 in
+# variance per standard deviation
+_NOISE_PRIOR_SCALE = 2.0
+# largest starting noise variance [standardised]: the mode of BoTorch's default
+# prior, LogNormal(-4, 1); from a larger start (a poor Preisach fit) the
+# optimiser meets a flat likelihood and ends where round-off sends it
+_NOISE_START = math.exp(-5.0)
+
+
+def noise_likelihood(noise_std: float, train_Y: Tensor) -> GaussianLikelihood:
+    """Gaussian likelihood whose noise prior and floor come from a noise estimate.
+
+    BoTorch's default (LogNormal(-4, 1) on the standardised variance, floor
+    1e-4) assumes noise of ~14 % of the output's standard deviation and never
+    below 1 %; a magnet measured to 1e-4 of its range sits far below both, and
+    the floor alone then reads as the model's noise. Here the prior is
+    LogNormal about the variance of ``noise_std`` (standardised by the
+    standard deviation of ``train_Y``, as the H-GP's outcome transform does)
+    with a scale of 2 (a factor ~7 in variance), and the floor is a tenth of
+    that variance, within ``[MIN_NOISE_VARIANCE, 1e-4]``.
+
+    Args:
+        noise_std: Estimate of the noise standard deviation [units of
+            ``train_Y``], > 0 (e.g. the rms residual of a Preisach fit).
+        train_Y: Training outputs, shape ``(n, 1)``.
+
+    Returns:
+        A ``GaussianLikelihood`` starting at the estimated variance.
+
+    Raises:
+        ValueError: for a ``noise_std`` that is not positive and finite or a
+            constant ``train_Y``.
+    """
+    if not (math.isfinite(noise_std) and noise_std > 0):
+        raise ValueError(f"noise_std must be positive and finite; got {noise_std}.")
+    y_std = float(train_Y.std())
+    if not y_std > 0:
+        raise ValueError("train_Y is constant; no noise level to standardise.")
+    var = min(max((noise_std / y_std) ** 2, MIN_NOISE_VARIANCE), 1.0)
+    floor = min(max(var / 10.0, MIN_NOISE_VARIANCE), 1e-4)
+    prior = LogNormalPrior(loc=math.log(var), scale=_NOISE_PRIOR_SCALE)
+    return GaussianLikelihood(
+        noise_prior=prior,
+        noise_constraint=GreaterThan(
+            floor, transform=None, initial_value=max(min(var, _NOISE_START), floor)
+        ),
+    ).to(train_Y)
+
+
+@dataclass(frozen=True)
+class JointStart:
+    """How :func:`joint_gp_from_preisach` started an H-GP.
+
+    Attributes:
+        preisach_rmse: Rms residual of the Preisach fit of the response
+            [units of ``train_Y``]; the noise prior is centred on it.
+        preisach_seconds: Wall-clock time of that fit [s].
+        density_starts: Raw densities to start the joint fit from (for
+            :func:`fit_hysteresis_gp`): the Preisach fit's, then the given
+            model's (e.g. uniform: the better start for a response that is
+            not monotone in the magnetisation).
+    """
+
+    preisach_rmse: float
+    preisach_seconds: float
+    density_starts: tuple[tuple[Tensor, ...], ...] = ()
+
+
+def joint_gp_from_preisach(
+    train_X: Tensor,
+    train_Y: Tensor,
+    preisach: PreisachModel,
+    column: int = 0,
+    steps: int = 300,
+    bounds: Tensor | None = None,
+) -> tuple[HysteresisGP, JointStart]:
+    """An H-GP of one hysteretic column started from a Preisach fit of the response.
+
+    The joint marginal likelihood has poor optima on real magnets: from a
+    uniform density the magnetisation of a quadrupole's major loop is a
+    staircase far from its field, and the fit explains the difference as
+    noise. Here
+
+    1. a copy of ``preisach`` is fitted to the response against the column's
+       input (:func:`fit_preisach`: offset, linear term and density); its
+       density starts the H-GP's density;
+    2. the H-GP gets the column's normalised input as a feature too
+       (``current_feature``: the linear term), so that it contains the plain
+       GP;
+    3. its noise prior and floor are centred on the Preisach fit's rms
+       residual (:func:`noise_likelihood`).
+
+    Fit it with :func:`fit_hysteresis_gp` and ``density_starts`` of the
+    returned start: the Preisach fit's density and the given one are each
+    optimised (with prior-sampled restarts), ranked by marginal likelihood.
+
+    Args:
+        train_X: Settings in the order applied, shape ``(n, d)``.
+        train_Y: Responses, shape ``(n, 1)``.
+        preisach: Model of column ``column`` (mesh, input range, initial
+            state); it is copied, not changed.
+        column: The hysteretic column of ``train_X``.
+        steps: L-BFGS iterations of the Preisach fit.
+        bounds: As for :class:`HysteresisGP` (scaling of plain columns).
+
+    Returns:
+        ``(model, start)``: the unfitted :class:`HysteresisGP` and a
+        :class:`JointStart`.
+
+    Raises:
+        ValueError: as :class:`HysteresisGP` and :func:`fit_preisach` do.
+    """
+    if not is_integer(column) or not 0 <= int(column) < train_X.shape[-1]:
+        raise ValueError(
+            f"column must be an int in 0..{train_X.shape[-1] - 1}; got {column!r}."
+        )
+    _validate_training_data(train_X, train_Y, None)
+    pm = copy.deepcopy(preisach).to(train_X)
+    t0 = time.perf_counter()
+    fit = fit_preisach(pm, train_X[:, int(column)], train_Y[:, 0], steps=steps)
+    seconds = time.perf_counter() - t0
+    y_std = float(train_Y.std())
+    noise = max(fit.rmse, math.sqrt(MIN_NOISE_VARIANCE) * y_std)
+    model = HysteresisGP(
+        train_X,
+        train_Y,
+        hysteresis={int(column): pm},
+        bounds=bounds,
+        likelihood=noise_likelihood(noise, train_Y),
+        current_feature=True,
+    )
+    starts = (
+        (pm.raw_density.detach().clone(),),
+        (preisach.raw_density.detach().to(train_X).clone(),),
+    )
+    return model, JointStart(fit.rmse, seconds, starts)

@@ -6,11 +6,13 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from diffaccel.dynamics import is_integer, is_real
 from diffaccel.hysteresis.preisach import PreisachModel
+from diffaccel.hysteresis.setpoint import solve_step
 from diffaccel.hysteresis.states import smooth_states
 
 __all__ = ["InverseResult", "invert_preisach", "next_step_output"]
@@ -22,12 +24,13 @@ class InverseResult:
 
     Attributes:
         input: Next input [input units], shape ``(K,)``.
-        output: Model output after that input (smooth one-step response)
-            [output units], shape ``(K,)``.
-        reached: Whether the target lies within the outputs reachable inside
-            the input limits, shape ``(K,)`` bool; if not, ``input`` is the
-            limit closest to it.
-        iterations: Newton/bisection iterations used.
+        output: Model output after that input (exact relays, as
+            ``model.predict``; the smooth one-step response with
+            ``smooth=True``) [output units], shape ``(K,)``.
+        reached: Whether ``output`` equals the target (within ``tol``),
+            shape ``(K,)`` bool; if not, ``input`` is the input whose output
+            comes nearest (a limit for a target beyond the reachable outputs).
+        iterations: Newton/bisection iterations used (1 for the exact solve).
     """
 
     input: Tensor
@@ -112,14 +115,25 @@ def invert_preisach(
     initial_state: str | Tensor | None = None,
     max_iter: int = 60,
     tol: float = 1e-10,
+    smooth: bool = False,
 ) -> InverseResult:
     """Find the next input that brings the output to ``target`` after ``history``.
 
-    Safeguarded Newton iteration on the smooth one-step response
-    (:func:`next_step_output`, gradient from autograd), kept inside a bisection
-    bracket within ``limits``. The response is monotone when slope and scale
-    are non-negative, so the bracket always contains the solution when the
-    target is reachable.
+    Exact relays (default): the one-step response is the model's own
+    prediction (``model.predict(u, history)``, exact relays), affine between
+    consecutive hysteron thresholds; it is inverted in closed form, piece by
+    piece (:func:`diffaccel.hysteresis.setpoint.solve_step`). A target inside a
+    jump of the response (a row of hysterons switching) is not reachable in
+    one step: ``reached`` is False and ``input`` gives the nearest output;
+    :func:`~diffaccel.hysteresis.setpoint.plan_setpoint` finds another
+    approach (a degaussing cycle or an overshoot) for it.
+
+    ``smooth=True`` inverts the smooth one-step response instead
+    (:func:`next_step_output`: relays smoothed over ``model.smoothing``,
+    differentiable in the input) by a safeguarded Newton iteration inside a
+    bisection bracket within ``limits``. Its answer differs from the exact
+    prediction at that input by up to the smoothing's effect (0.07 % of the
+    output range for the SLAC quadrupole fit with 1 % smoothing).
 
     Args:
         model: Fitted Preisach model.
@@ -129,8 +143,10 @@ def invert_preisach(
             input range (narrower limits are clipped to it).
         initial_state: State before the history, see
             :meth:`PreisachModel.initial_states`.
-        max_iter: Maximum iterations.
-        tol: Stop when the output error is below ``tol`` times the output scale.
+        max_iter: Maximum iterations (``smooth=True``).
+        tol: Accept an output within ``tol`` times the output scale of the
+            target.
+        smooth: Invert the smooth one-step response instead of the exact one.
 
     Returns:
         An :class:`InverseResult`.
@@ -172,6 +188,8 @@ def invert_preisach(
     with torch.no_grad():
         state = model.final_state(h, initial_state)
     u_last = h[-1]
+    if not smooth:
+        return _invert_exact(model, y_t, state, float(u_last), (lo_lim, hi_lim), tol)
     k = y_t.numel()
     lo = torch.full((k,), lo_lim, dtype=dtype, device=device)
     hi = torch.full((k,), hi_lim, dtype=dtype, device=device)
@@ -208,3 +226,36 @@ def invert_preisach(
     with torch.no_grad():
         out = response(x)
     return InverseResult(input=x.detach(), output=out, reached=reached, iterations=it)
+
+
+def _invert_exact(
+    model: PreisachModel,
+    target: Tensor,
+    state: Tensor,
+    u_last: float,
+    limits: tuple[float, float],
+    tol: float,
+) -> InverseResult:
+    """:func:`invert_preisach` with exact relays (closed form per affine piece)."""
+    spec = model.stream_spec()  # the model's numbers (its initial state unused)
+    t = target.detach().cpu().numpy().astype(np.float64)
+    s = state.detach().cpu().to(torch.float64).numpy()
+    if s.ndim == 1:
+        sols = [solve_step(spec, s, t, limits, u_last, tol)]
+        u, y, ok = sols[0].input, sols[0].output, sols[0].reached
+    else:  # one state per target (a batched initial state)
+        s = np.broadcast_to(s, (t.size, s.shape[-1]))
+        sols = [
+            solve_step(spec, s[i], t[i : i + 1], limits, u_last, tol)
+            for i in range(t.size)
+        ]
+        u = np.concatenate([r.input for r in sols])
+        y = np.concatenate([r.output for r in sols])
+        ok = np.concatenate([r.reached for r in sols])
+    dtype, device = model.alpha.dtype, model.alpha.device
+    return InverseResult(
+        input=torch.as_tensor(u, dtype=dtype, device=device),
+        output=torch.as_tensor(y, dtype=dtype, device=device),
+        reached=torch.as_tensor(ok, device=device),
+        iterations=1,
+    )

@@ -3,10 +3,18 @@
 Coordinates are *normalised* inputs: ``0`` is the lower end of the model's input
 range and ``1`` its upper end. ``alpha`` is the up-switching threshold of a
 hysteron (relay), ``beta`` its down-switching threshold.
+
+A mesh may be regular in a *warped* coordinate ``t = warp(u)`` instead of in
+``u`` itself (:func:`warp_input`): a piecewise-linear, strictly increasing map
+of ``[0, 1]`` onto ``[0, 1]`` given by its knots ``(u_k, t_k)``. Where ``t``
+rises fast, the mesh's thresholds lie close together in ``u``. A relay compares
+its input with its thresholds, so a monotonic warp only moves thresholds: they
+stay in ``u``, and the relays, saturation and streaming are those of any mesh.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import torch
@@ -14,7 +22,13 @@ from torch import Tensor
 
 from diffaccel.dynamics import is_integer
 
-__all__ = ["MAX_CLI_MESH_SIZE", "PreisachMesh"]
+__all__ = [
+    "MAX_CLI_MESH_SIZE",
+    "PreisachMesh",
+    "check_warp",
+    "unwarp_input",
+    "warp_input",
+]
 
 #: Largest ``n`` of :meth:`PreisachMesh.triangular` the command line accepts:
 #: ``n (n + 1) / 2`` hysterons, 125,250 for 500 (memory grows with it; a typo
@@ -22,6 +36,58 @@ __all__ = ["MAX_CLI_MESH_SIZE", "PreisachMesh"]
 MAX_CLI_MESH_SIZE = 500
 
 _TRIANGLE_AREA = 0.5
+
+
+Warp = tuple[tuple[float, ...], tuple[float, ...]]
+
+
+def check_warp(warp) -> Warp | None:
+    """A checked mesh warp ``(u_knots, t_knots)`` [1] or ``None``.
+
+    Raises:
+        ValueError: unless both are equally long (>= 2) sequences of finite
+            numbers, strictly increasing, from 0 to 1.
+    """
+    if warp is None:
+        return None
+    try:
+        uk, tk = (tuple(float(v) for v in part) for part in warp)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"mesh warp must be two sequences of knots (u, t); got {warp!r:.80}."
+        ) from None
+    ok = len(uk) == len(tk) >= 2 and all(map(math.isfinite, uk + tk))
+    ok = ok and all(b > a for a, b in itertools.pairwise(uk))
+    ok = ok and all(b > a for a, b in itertools.pairwise(tk))
+    ok = ok and uk[0] == tk[0] == 0.0 and uk[-1] == tk[-1] == 1.0
+    if not ok:
+        raise ValueError(
+            "mesh warp needs equally long, strictly increasing knots u and t "
+            "from 0 to 1 (normalised input units)."
+        )
+    return (uk, tk)
+
+
+def _interp(x: Tensor, xp: tuple[float, ...], fp: tuple[float, ...]) -> Tensor:
+    """Piecewise-linear interpolation of ``(xp, fp)`` at ``x`` (extrapolated)."""
+    xk = torch.tensor(xp, dtype=x.dtype, device=x.device)
+    fk = torch.tensor(fp, dtype=x.dtype, device=x.device)
+    i = torch.searchsorted(xk, x.detach().contiguous()).clamp(1, xk.numel() - 1)
+    x0, x1, f0, f1 = xk[i - 1], xk[i], fk[i - 1], fk[i]
+    return f0 + (x - x0) * (f1 - f0) / (x1 - x0)
+
+
+def warp_input(u: Tensor, warp: Warp | None) -> Tensor:
+    """Warped coordinate ``t`` [1] of normalised inputs ``u`` [1] (any shape).
+
+    ``warp = (u_knots, t_knots)``; ``None`` is the identity.
+    """
+    return u if warp is None else _interp(u, warp[0], warp[1])
+
+
+def unwarp_input(t: Tensor, warp: Warp | None) -> Tensor:
+    """Inverse of :func:`warp_input`: normalised inputs [1] of warped ones [1]."""
+    return t if warp is None else _interp(t, warp[1], warp[0])
 
 
 class PreisachMesh:
@@ -175,6 +241,7 @@ class PreisachMesh:
         band: int = 1,
         dtype: torch.dtype = torch.float64,
         device: torch.device | str | None = None,
+        warp: Warp | None = None,
     ) -> PreisachMesh:
         """Regular mesh of ``n`` x ``n`` square cells clipped to ``beta <= alpha``.
 
@@ -186,6 +253,13 @@ class PreisachMesh:
         so that the narrow hysterons that shape the loop near turning points are
         resolved more finely.
 
+        With ``warp`` the mesh is regular in the warped coordinate ``t`` of
+        :func:`warp_input` and its points are mapped back to normalised
+        inputs, ``alpha = unwarp_input(t_alpha)`` (likewise ``beta``); the areas
+        are those of the regular mesh in ``t`` (they sum to 0.5), so that equal
+        areas mean equal shares of the warped plane. A warp with ``t(1 - u) =
+        1 - t(u)`` keeps the mesh mirror symmetric.
+
         Args:
             n: Cells per axis (>= 1); ``n * (n + 1) / 2`` points without
                 refinement (n = 44: 990, n = 100: 5050, n = 200: 20100).
@@ -193,14 +267,17 @@ class PreisachMesh:
             band: Width of the refined band in coarse cells (>= 1).
             dtype: Floating dtype of the coordinates.
             device: Device of the coordinates.
+            warp: Knots ``(u, t)`` of :func:`warp_input` [1], or ``None``
+                (regular in the normalised input).
 
         Returns:
             The mesh.
 
         Raises:
             ValueError: if ``n``, ``refine`` or ``band`` is not an int, or
-                ``n < 1``, ``refine < 0`` or ``band < 1``.
+                ``n < 1``, ``refine < 0`` or ``band < 1``, or for a bad warp.
         """
+        warp = check_warp(warp)
         for name, v in (("n", n), ("refine", refine), ("band", band)):
             if not is_integer(v):
                 raise ValueError(
@@ -254,6 +331,9 @@ class PreisachMesh:
             raise RuntimeError(
                 "internal error: triangular mesh areas do not sum to 0.5"
             )
+        if warp is not None:
+            alpha = unwarp_input(alpha, warp).clamp(0.0, 1.0)
+            beta = torch.minimum(unwarp_input(beta, warp).clamp(0.0, 1.0), alpha)
         return cls(
             alpha.to(device=device, dtype=dtype),
             beta.to(device=device, dtype=dtype),

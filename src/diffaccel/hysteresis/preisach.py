@@ -10,7 +10,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from diffaccel.hysteresis.mesh import PreisachMesh
+from diffaccel.hysteresis.mesh import PreisachMesh, Warp, check_warp, warp_input
 from diffaccel.hysteresis.states import (
     RowLayout,
     demagnetized_state,
@@ -54,7 +54,10 @@ class PreisachModel(nn.Module):
     model averages it with its mirror image, ``mu(alpha, beta) =
     mu(1 - beta, 1 - alpha)`` (symmetric about the centre of the input range, as
     for magnets and soft magnetic materials: the ascending major branch then
-    determines the descending one). Inputs beyond the input range leave every
+    determines the descending one; with ``odd`` the offset follows from the
+    slope so that the output is odd about zero input). The mesh may be regular
+    in a warped input (``mesh_warp``), which places the thresholds where the
+    material switches. Inputs beyond the input range leave every
     hysteron switched (saturation) while the linear term ``slope * u_n``
     continues; they raise an :class:`InputRangeWarning`. The normalisation
     buffers ``output_loc`` and ``output_scale`` are set by
@@ -79,6 +82,20 @@ class PreisachModel(nn.Module):
         symmetric: Tie the density to its mirror image about the centre of
             the input range; needs a mirror-symmetric mesh (triangular ones are).
         dtype: Floating dtype of parameters and buffers.
+        mesh_warp: Knots ``(u, t)`` [1, normalised input units] when ``mesh``
+            is regular in the warped coordinate of
+            :func:`~diffaccel.hysteresis.mesh.warp_input` (as built by
+            ``PreisachMesh.triangular(..., warp=...)``); ``None`` for a mesh
+            regular in the input. The relays use the thresholds as they
+            are; the warp names the coordinates of the plane in which the
+            mesh is regular, used by the predictive band's prior
+            (:meth:`plane_coordinates`). Saved with :meth:`config`.
+        odd: Make the output odd in the input, ``y(-u, mirrored state) =
+            -y(u, state)``, as ``B(H)`` of a soft magnetic material: the
+            offset follows from the slope and the output normalisation,
+            ``offset = -output_loc / output_scale - slope / 2``, rather than
+            being fitted (the ``offset`` parameter holds that value after a
+            fit). Needs ``symmetric`` and an input range centred on zero.
 
     Shapes:
         Inputs ``u`` are ``(*B, T)`` (time last); ``states`` returns
@@ -107,6 +124,8 @@ class PreisachModel(nn.Module):
         smoothing: float | None = None,
         symmetric: bool = False,
         dtype: torch.dtype = torch.float64,
+        mesh_warp: Warp | None = None,
+        odd: bool = False,
     ) -> None:
         super().__init__()
         if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
@@ -130,6 +149,13 @@ class PreisachModel(nn.Module):
         mesh = mesh if mesh is not None else PreisachMesh.triangular(n=30, dtype=dtype)
         mesh = mesh.to(dtype=dtype)
         self.input_range = (lo, hi)
+        self.odd = bool(odd)
+        if self.odd and not (symmetric and abs(lo + hi) <= 1e-9 * (hi - lo)):
+            raise ValueError(
+                "odd=True needs symmetric=True and an input range centred on 0; "
+                f"got symmetric={symmetric}, range ({lo}, {hi})."
+            )
+        self.mesh_warp = check_warp(mesh_warp)
         self.initial_state_kind = initial_state
         self.smoothing = float(smoothing)
         self.register_buffer("alpha", mesh.alpha.clone())
@@ -161,6 +187,10 @@ class PreisachModel(nn.Module):
             "initial_state": self.initial_state_kind,
             "smoothing": self.smoothing,
             "symmetric": self.symmetric,
+            "odd": self.odd,
+            "mesh_warp": (
+                None if self.mesh_warp is None else [list(k) for k in self.mesh_warp]
+            ),
             "dtype": str(self.alpha.dtype).removeprefix("torch."),
             "n_hysterons": int(self.alpha.numel()),
         }
@@ -200,6 +230,8 @@ class PreisachModel(nn.Module):
             smoothing=config["smoothing"],
             symmetric=bool(config.get("symmetric", False)),
             dtype=dtype,
+            mesh_warp=config.get("mesh_warp"),
+            odd=bool(config.get("odd", False)),
         )
         model.load_state_dict(state_dict)
         return model
@@ -214,6 +246,24 @@ class PreisachModel(nn.Module):
     def mesh(self) -> PreisachMesh:
         """The hysteron mesh (a copy of the buffers)."""
         return PreisachMesh(self.alpha, self.beta, self.area)
+
+    def effective_offset(self) -> Tensor:
+        """The offset the output uses [normalised output]: fitted, or from
+        ``odd`` (``-output_loc / output_scale - slope / 2``)."""
+        if self.odd:
+            return -self.output_loc / self.output_scale - 0.5 * self.slope
+        return self.offset
+
+    def plane_coordinates(self) -> tuple[Tensor, Tensor]:
+        """Hysteron thresholds in the coordinates the mesh is regular in [1].
+
+        ``warp_input(alpha), warp_input(beta)`` with the model's
+        ``mesh_warp`` (the normalised thresholds themselves without one),
+        shapes ``(M,)``.
+        """
+        return warp_input(self.alpha, self.mesh_warp), warp_input(
+            self.beta, self.mesh_warp
+        )
 
     @property
     def density(self) -> Tensor:
@@ -416,7 +466,7 @@ class PreisachModel(nn.Module):
 
     def _output(self, un: Tensor, m: Tensor) -> Tensor:
         """Output [output units] from normalised inputs and magnetization."""
-        y = self.offset + self.slope * un + self.scale * m
+        y = self.effective_offset() + self.slope * un + self.scale * m
         return self.output_loc + self.output_scale * y
 
     def final_state(
@@ -464,7 +514,7 @@ class PreisachModel(nn.Module):
                 beta=_host(self.beta),
                 weights=_host(w / w.sum()),
                 initial=_host(s0),
-                offset=float(self.offset),
+                offset=float(self.effective_offset()),
                 slope=float(self.slope),
                 scale=float(self.scale),
                 output_loc=float(self.output_loc),
@@ -518,7 +568,7 @@ class PreisachModel(nn.Module):
 
 
 class _BatchShapeError(ValueError, RuntimeError):
-    """Mismatched batch shapes: a ValueError (a RuntimeError as it used to be)."""
+    """Mismatched batch shapes: a ValueError that is also a RuntimeError."""
 
 
 def _host(x: Tensor) -> np.ndarray:

@@ -9,11 +9,14 @@ alternating "memory trial" sequence, all starting from negative saturation.
 :func:`symmetric_magnet` builds magnets with a known *symmetric* density
 (``mu(alpha, beta) = mu(-beta, -alpha)`` about zero input), and
 :func:`bipolar_quadrupole_case` and :func:`bh_loop_case` draw the acceptance
-cases of issue 11 from them: random magnets (one per seed) plus noise, in the
-shape of a bipolar quadrupole cycle and of a soft-iron B-H loop.
+cases of ``benchmarks/preisach_acceptance.py`` from them: random magnets (one
+per seed) plus noise, in the shape of a bipolar quadrupole cycle and of a
+soft-iron B-H loop.
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import Tensor
@@ -22,13 +25,19 @@ from diffaccel.hysteresis.mesh import PreisachMesh
 from diffaccel.hysteresis.preisach import PreisachModel
 
 __all__ = [
+    "MU0",
     "bh_loop_case",
     "bipolar_quadrupole_case",
+    "soft_iron_loop",
     "symmetric_magnet",
     "synthetic_magnet",
     "synthetic_measurement",
     "synthetic_protocol",
 ]
+
+#: Vacuum permeability [T m / A].
+MU0 = 4e-7 * math.pi
+_SHAPES = ("tanh", "atan", "erf")
 
 
 def synthetic_magnet(
@@ -258,3 +267,76 @@ def bh_loop_case(
     noise = _uniform(gen, 1e-3, 3e-3) * float(field.max() - field.min())
     field = field + noise * torch.randn(field.shape, generator=gen, dtype=field.dtype)
     return current, field, 2 * points + 1, magnet
+
+
+def _branch(x: Tensor, shape: str) -> Tensor:
+    """Sigmoid ``S(x)`` in ``(-1, 1)`` with ``S(0) = 0`` and slope 1 at 0."""
+    if shape == "tanh":
+        return torch.tanh(x)
+    if shape == "atan":  # slow approach to saturation, 1 - 2 / (pi x)
+        return (2.0 / math.pi) * torch.atan(0.5 * math.pi * x)
+    if shape == "erf":
+        return torch.erf(0.5 * math.sqrt(math.pi) * x)
+    raise ValueError(f"shape must be one of {_SHAPES}; got {shape!r}.")
+
+
+def soft_iron_loop(
+    h_max: float = 1e5,
+    coercive: float = 1e-3,
+    width: float = 0.5,
+    js: float = 1.8,
+    shape: str = "tanh",
+    points: int = 120,
+    spacing: float = 8.0,
+    noise: float = 1e-4,
+    seed: int = 0,
+) -> tuple[Tensor, Tensor, int]:
+    """A B-H major loop of a soft magnetic material, not made by a Preisach model.
+
+    The ascending branch is ``B_up(H) = js * S((H - Hc) / w) + MU0 * H`` and the
+    descending one its mirror image ``B_dn(H) = -B_up(-H)``, with ``Hc =
+    coercive * 2 h_max`` (the coercive field as a fraction of the range of
+    ``H``), ``w = width * Hc`` and ``S`` a sigmoid (``"tanh"``, ``"atan"``:
+    approach to saturation as ``1 - a / H``, or ``"erf"``). Rows, in time
+    order: the ascending branch from negative remanence ``H = 0`` up to
+    ``h_max`` (``points + 1`` rows, the training rows), then the descending
+    branch ``h_max -> -h_max`` and the ascending branch back to ``0``. ``H`` is
+    sampled as ``h_max sinh(spacing k / points) / sinh(spacing)``: dense near
+    zero, spanning ``log10(sinh(spacing) / sinh(spacing / points))`` orders of
+    magnitude (4.3 with the defaults, 5.1 with ``spacing=10``), on the same
+    ``|H|`` grid on every branch.
+
+    Args:
+        h_max: Largest field [A/m].
+        coercive: Coercive field as a fraction of the range ``2 h_max`` [1].
+        width: Width of the switching region in units of the coercive field [1].
+        js: Saturation polarisation [T].
+        shape: Sigmoid of the branches.
+        points: Steps per half branch.
+        spacing: Grid stretch (0 < spacing; larger: denser near zero).
+        noise: Gaussian noise on ``B`` as a fraction of ``2 js`` [1].
+        seed: Seed of the noise.
+
+    Returns:
+        ``(H [A/m] (T,), B [T] (T,), n_train)`` with ``T = 4 points + 1`` and
+        ``n_train = points + 1``.
+    """
+    if shape not in _SHAPES:
+        raise ValueError(f"shape must be one of {_SHAPES}; got {shape!r}.")
+    f = torch.float64
+    k = torch.arange(points + 1, dtype=f)
+    grid = h_max * torch.sinh(spacing * k / points) / math.sinh(spacing)
+    hc = coercive * 2.0 * h_max
+    w = width * hc
+
+    def up(h: Tensor) -> Tensor:
+        return js * _branch((h - hc) / w, shape) + MU0 * h
+
+    asc = grid
+    desc = torch.cat([grid.flip(0)[1:], -grid[1:]])
+    back = -grid.flip(0)[1:]
+    h = torch.cat([asc, desc, back])
+    b = torch.cat([up(asc), -up(-desc), up(back)])
+    gen = torch.Generator().manual_seed(seed)
+    b = b + noise * 2.0 * js * torch.randn(b.shape, generator=gen, dtype=f)
+    return h, b, points + 1

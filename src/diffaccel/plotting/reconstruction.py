@@ -42,7 +42,7 @@ def _fixed_margins(
 
     Fixed margins instead of ``tight_layout``, which measures every text
     extent with a renderer first: about a third of the figures' cost in a
-    default ``reconstruct`` (issue 12: the whole command's time).
+    default ``reconstruct`` (of the whole command's time).
     """
     w, h = fig.get_size_inches()
     fig.subplots_adjust(
@@ -91,7 +91,7 @@ def plot_corner(
     d = len(coords)
     fig = Figure(figsize=(2.1 * d + 0.6, 2.1 * d))
     # the lower triangle and the diagonal only (no hidden axes to build), one
-    # artist per histogram (stairs, imshow): issue 12 counts the whole command
+    # artist per histogram (stairs, imshow): the figures count in the command's time
     grid = fig.add_gridspec(d, d)
     axes = np.empty((d, d), dtype=object)
     for i in range(d):
@@ -198,7 +198,7 @@ def plot_image_comparison(
     Every panel is an image with its own colour scale and a frame, all in one
     set of axes without ticks: a set of axes per panel (their tick machinery)
     cost more than half of this figure's time in a default ``reconstruct``
-    (issue 12 counts the whole command).
+    (the figures count in the command's time).
 
     Args:
         measured: Sum-normalised measured images ``(K, H, W)``.
@@ -300,7 +300,7 @@ def _log_scale(ax: Axes, scale: str = "log") -> None:
 
     The default labels are mathtext (``$10^{-2}$``): the first one makes
     matplotlib build its mathtext parser, ~0.5 s of a default
-    ``reconstruct`` whose figures have no other mathtext (issue 12).
+    ``reconstruct`` whose figures have no other mathtext.
     """
     ax.set_yscale(scale)
     ax.yaxis.set_major_formatter(LogFormatter())

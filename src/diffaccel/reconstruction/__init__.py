@@ -6,6 +6,12 @@ Example:
     4
 """
 
+from diffaccel.reconstruction.design import (
+    moment_design,
+    observability,
+    propose_quad_settings,
+    recommend,
+)
 from diffaccel.reconstruction.ensemble import Reconstruction, load
 from diffaccel.reconstruction.evaluation import (
     LOW_ON_SCREEN_FRACTION,
@@ -72,11 +78,15 @@ __all__ = [
     "image_errors",
     "load",
     "load_checkpoint",
+    "moment_design",
     "moment_errors",
+    "observability",
     "off_screen_warnings",
     "penalty_schedule",
     "predict_dataset",
     "predicted_dataset",
+    "propose_quad_settings",
+    "recommend",
     "reconstruct",
     "robust_covariance",
     "save_checkpoint",

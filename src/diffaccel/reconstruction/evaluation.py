@@ -18,12 +18,15 @@ from torch import Tensor
 from diffaccel.data.atomic import clean_json
 from diffaccel.data.quad_scan import QuadScanDataset
 from diffaccel.data.scans import MultiScanDataset
+from diffaccel.reconstruction.design import observability_line
 from diffaccel.reconstruction.ensemble import Reconstruction
 from diffaccel.reconstruction.forward import ScreenForwardModel
 from diffaccel.reconstruction.metrics import (
     COORDINATES,
     image_errors,
     moment_errors,
+    prediction_noise_l1,
+    shot_noise_l1,
     sliced_wasserstein,
 )
 from diffaccel.reconstruction.pipeline import as_scans
@@ -43,8 +46,8 @@ __all__ = [
 
 # pooled training-image relative L1 above which a reconstruction is reported as
 # not reproducing its own training images: good runs end near 0.02-0.10 on the
-# images they trained on (held-out 0.07-0.15, benchmarks and
-# docs/generalisation_6d.md); 0.5 means half of the image intensity is misplaced
+# images they trained on (held-out 0.07-0.15 in the benchmarks);
+# 0.5 means half of the image intensity is misplaced
 POOR_FIT_RELATIVE_L1 = 0.5
 POOR_FIT_CAUSES = (
     "likely causes: settings in the wrong units or scale (e.g. k1 in 1/m^2 vs "
@@ -84,7 +87,7 @@ UNCERTAINTY_NOTE = (
     "moment-space posterior (std_posterior: measurement error estimated from the "
     "training-image residuals, directions the scans do not constrain keep the "
     "prior width) in quadrature; it does not include model error (a wrong "
-    "beamline, calibration or energy). See docs/uncertainty.md"
+    "beamline, calibration or energy). See docs/methods/uncertainty.md"
 )
 UNCERTAINTY_NOTE_ENSEMBLE_ONLY = (
     "std = spread over snapshot-ensemble members only (this reconstruction has "
@@ -232,6 +235,7 @@ def evaluate(
     n_sample: int = 100_000,
     sample: Tensor | None = None,
     on_screen: Mapping[str, Tensor] | None = None,
+    prediction_particles: int = 50_000,
 ) -> dict[str, Any]:
     """Moments, image errors per scan and ground-truth errors of a reconstruction.
 
@@ -252,11 +256,19 @@ def evaluate(
             the ``predicted`` images (``predict_dataset(return_on_screen=True)``);
             computed with the images when ``predicted`` is None, not checked
             when only ``predicted`` is given.
+        prediction_particles: Particles per member behind ``predicted``
+            (:func:`predict_dataset`'s ``n_particles``), for the predictions'
+            own noise.
 
     Returns:
         JSON-ready dict: ``scans`` (per scan: ``train_indices``,
         ``held_out_indices``, ``images_train``, ``images_held_out`` from
-        :func:`~diffaccel.reconstruction.image_errors`, and with the fractions
+        :func:`~diffaccel.reconstruction.image_errors` with, beside each
+        error, ``prediction_noise_l1`` (what the predicted images' own sampling
+        noise adds, :func:`~diffaccel.reconstruction.metrics.prediction_noise_l1`)
+        and ``data_noise_l1`` (the measurement's floor from its shots,
+        :func:`~diffaccel.reconstruction.metrics.shot_noise_l1`; None for
+        single-shot data), and with the fractions
         ``fraction_on_screen`` per setting), ``metrics``
         (``images_train``/``images_held_out`` pooled over all scans,
         ``ground_truth`` from :func:`~diffaccel.reconstruction.moment_errors`
@@ -294,12 +306,23 @@ def evaluate(
         meas = scan.mean_images()
         p = pred[name]
         entry: dict[str, Any] = {"train_indices": train, "held_out_indices": test}
-        if train:
-            entry["images_train"] = image_errors(p[train], meas[train])
-            train_parts.append((p[train], meas[train]))
-        if test:
-            entry["images_held_out"] = image_errors(p[test], meas[test])
-            test_parts.append((p[test], meas[test]))
+        kappa = ScreenForwardModel.from_dataset(
+            scan, blur_pixels=result.config.blur_for(scan)
+        ).pixel_kernel_sum_sq()
+        own = prediction_noise_l1(p, kappa, prediction_particles * result.n_snapshots)
+        floor = shot_noise_l1(scan.images)
+        for key, rows, parts in (
+            ("images_train", train, train_parts),
+            ("images_held_out", test, test_parts),
+        ):
+            if not rows:
+                continue
+            entry[key] = image_errors(p[rows], meas[rows])
+            entry[key]["prediction_noise_l1"] = float(own[rows].mean())
+            entry[key]["data_noise_l1"] = (
+                None if floor is None else float(floor[rows].mean())
+            )
+            parts.append((p[rows], meas[rows]))
         if on_screen is not None:
             fraction = on_screen[name]
             entry["fraction_on_screen"] = _rounded(fraction)
@@ -363,6 +386,11 @@ def evaluate(
         "metrics": metrics,
         "timings_s": dict(result.info.get("timings_s", {})),
     }
+    summary["observability"] = observability_line(
+        result.training_maps(),
+        torch.tensor(moments["cov"]["mean"], dtype=torch.float64),
+        None if unc is None else torch.tensor(unc["theta_cov"], dtype=torch.float64),
+    )
     if len(scans) == 1:
         only = next(iter(per_scan.values()))
         summary["train_indices"] = only["train_indices"]

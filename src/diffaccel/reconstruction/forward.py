@@ -375,7 +375,7 @@ class LinearScreenImages:
         self.lo = torch.tensor([-1.0 - 3.0 / w, -1.0 - 3.0 / h], **kw)
         self.hi = torch.tensor([1.0 + 3.0 / w, 1.0 + 3.0 / h], **kw)
         weight = 1.0 / (n if total is None else total)
-        # per-step tensors in the shapes the kernels take, made once (issue 12
+        # per-step tensors in the shapes the kernels take, made once (the step budget
         # counts every ATen op of a step, views and implicit copies included):
         # the deposit weights contiguous (the sampler would copy an expanded
         # tensor), the offsets expanded to all particles, the blur matrices

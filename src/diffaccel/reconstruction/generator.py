@@ -30,8 +30,8 @@ class BeamGenerator(nn.Module):
     The tanh MLP is bounded, so without it a coordinate that grows with the
     square of another (the energy of a curved chirp, ``pz ~ c z^2``) has its
     tails cut where ``f`` saturates: the tips of the chirp's curve go missing
-    from the dipole-screen images, and on strongly curved beams rms pz came out
-    3-4 % low (``docs/generalisation_6d.md``, session stop 18). 4D generators
+    from the dipole-screen images, and on strongly curved beams rms pz comes
+    out 3-4 % low. 4D generators
     have no ``Q``; 6D runs saved before it load with ``Q = 0``.
 
     Args:
@@ -331,7 +331,7 @@ def _hidden_layer(h: Tensor, weight_t: Tensor, bias: Tensor, dims: int) -> Tenso
     ``benchmarks/reconstruction_6d*.py``) were validated with it, and a
     rounding-level change takes a different (equally good) training path that
     they would have to re-establish. 4D was checked with :func:`tanh_layer`
-    on seeds 0-7 of the GPSR 4D benchmark (same accuracy, issue 12).
+    on seeds 0-7 of the GPSR 4D benchmark (same accuracy).
     """
     if dims == 4:
         return tanh_layer(h, weight_t, bias)
@@ -403,7 +403,7 @@ class FlatGenerator:
             self._half_cell = torch.tensor(
                 2.0 ** -(SOBOL_BITS + 1), dtype=p.dtype, device=p.device
             )
-        # per-step views made once (each view is an ATen op; issue 12 counts
+        # per-step views made once (each view is an ATen op; the step budget counts
         # them): the weights' transposes and the biases expanded to n rows
         linears = [lay for lay in model.mlp if isinstance(lay, nn.Linear)]
         self._linears = linears

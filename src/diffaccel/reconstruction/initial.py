@@ -143,11 +143,10 @@ def _nearest_correlation(cov: Tensor, max_corr: float = 0.98) -> Tensor:
 #: the mean screen variance) in :func:`_max_entropy_fit`. The linear moments
 #: are not exact (chromatic focusing, curved chirps), and a weak weight lets
 #: the weakly seen directions (x-y coupling, py-z) follow those errors:
-#: synthetic tilted3000_12 started with transverse correlations off by 0.46
+#: a synthetic shared-file-like beam starts with transverse correlations off by 0.46
 #: at 1e-3, 0.39 at 2e-3, 0.035 at 3e-3. A strong one widens what is seen:
 #: the shared 6D file starts with rms py +8.7 % and correlations within 0.09 at
-#: 3e-3, +10.6 % and 0.12 at 5e-3 (the 6D default blur; session stop 27,
-#: docs/generalisation_6d.md).
+#: 3e-3, +10.6 % and 0.12 at 5e-3 (with the 6D default blur).
 ENTROPY_WEIGHT = 3e-3
 
 
@@ -165,9 +164,9 @@ def _max_entropy_fit(
     minimum-norm point, often not positive definite, and the projection onto
     positive definite matrices then spoils seen entries too: on the shared 6D
     file the start had rms pz -60 % and a correlation off by 0.86; on the
-    synthetic beam tilted3000_12 pz -89 %, and that start ended its
+    synthetic shared-file-like beam pz -89 %, and that start ends its
     reconstruction at rms pz -9 % where the truth's covariance as the start
-    gave -0.8 % (``docs/generalisation_6d.md``). The largest determinant is the
+    gives -0.8 %. The largest determinant is the
     maximum-entropy Gaussian among those the moments allow. Returns ``start``
     where no step improves on it.
 

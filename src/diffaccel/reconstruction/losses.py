@@ -244,7 +244,7 @@ class ImagePenalty:
     The measured images, their clamp and the allowance are prepared once; with
     ``kind = "kl"`` (the default of training) a call is a dozen whole-image
     kernels with a hand-written gradient instead of the ~100 small autograd
-    operations of :func:`image_penalty` (issue 12: ATen ops per step). Other
+    operations of :func:`image_penalty` (fewer ATen ops per step). Other
     kinds use :func:`image_penalty` itself.
 
     Args:
@@ -578,7 +578,7 @@ def _transposed(t: Tensor) -> Tensor:
 
 class _RelativeEntropyFn(torch.autograd.Function):
     # Every tensor op below is counted by benchmarks/reconstruction_step.py
-    # (issue 12: <= 300 ATen ops per training step): the buffers of the spec
+    # (budget: <= 300 ATen ops per training step): the buffers of the spec
     # are filled with out= / in-place ops and the transposes are single views.
     @staticmethod
     def forward(ctx, x: Tensor, spec: RelativeEntropy) -> tuple[Tensor, Tensor]:  # type: ignore[override]

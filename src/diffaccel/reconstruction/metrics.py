@@ -145,7 +145,7 @@ def _sorted_rows(values: Tensor) -> Tensor:
 
     Sorts in place, on the CPU with numpy (SIMD sort, ~5x torch's on this
     2-core AVX2 machine): the evaluation's share of a whole ``reconstruct``
-    (issue 12). ``values`` is overwritten.
+    (it counts in the command's wall time). ``values`` is overwritten.
     """
     if values.device.type == "cpu" and values.is_contiguous():
         values.numpy().sort(axis=-1)
@@ -248,3 +248,66 @@ def covariance_moments(mu: Tensor, cov: Tensor) -> dict[str, Tensor]:
         out[f"beta_{name}"] = cov[..., i, i] / eps
         out[f"alpha_{name}"] = -cov[..., i, i + 1] / eps
     return out
+
+
+def prediction_noise_l1(predicted: Tensor, kappa: float, n_particles: int) -> Tensor:
+    """Expected relative L1 that the sampling noise of predicted images adds.
+
+    A pixel of an image of ``n`` particles with expected value ``p`` (unit-sum
+    image) has variance ``kappa p / n`` (``kappa``:
+    :meth:`~diffaccel.reconstruction.forward.ScreenForwardModel.pixel_kernel_sum_sq`),
+    so its expected absolute error is ``sqrt(2 kappa p / (pi n))``; summed over
+    the pixels of each image.
+
+    Args:
+        predicted: Unit-sum predicted images ``(K, H, W)``.
+        kappa: Squared deposit weights of one particle, summed over pixels.
+        n_particles: Particles behind each image (all ensemble members).
+
+    Returns:
+        ``(K,)`` float64.
+
+    Example:
+        >>> p = torch.full((1, 10, 10), 0.01)
+        >>> prediction_noise_l1(p, 1.0, 100).round(decimals=3)
+        tensor([0.7980], dtype=torch.float64)
+    """
+    p = predicted.detach().to(torch.float64).clamp_min(0.0)
+    scale = math.sqrt(2.0 * kappa / (math.pi * n_particles))
+    return scale * p.sqrt().sum((-2, -1))
+
+
+def shot_noise_l1(images: Tensor) -> Tensor | None:
+    """Relative L1 between the shot-mean images and their noise-free form.
+
+    Estimated from the scatter of ``S >= 2`` shots: per pixel, the standard
+    error of the shot mean (sample std over shots / sqrt(S), corrected for the
+    bias of a sample std) times ``sqrt(2 / pi)``, summed, over the image's sum.
+    This is the floor below which no prediction's error can go; ``None`` for
+    single-shot data, whose floor the data cannot tell.
+
+    Args:
+        images: Shots ``(K, S, H, W)``.
+
+    Returns:
+        ``(K,)`` float64, or ``None`` when ``S < 2``.
+
+    Example:
+        >>> shots = torch.ones(1, 2, 4, 4); shots[0, 1] += 0.5
+        >>> round(float(shot_noise_l1(shots)[0]), 3)
+        0.2
+    """
+    if images.ndim != 4:
+        raise ValueError(f"images must be (K, S, H, W); got {tuple(images.shape)}.")
+    s = images.shape[1]
+    if s < 2:
+        return None
+    x = images.detach().to(torch.float64)
+    # E[sample std] = c4 sigma for Gaussian noise
+    c4 = math.sqrt(2.0 / (s - 1)) * math.exp(
+        math.lgamma(s / 2) - math.lgamma((s - 1) / 2)
+    )
+    sem = x.std(1) / (c4 * math.sqrt(s))
+    mean = x.mean(1)
+    total = mean.sum((-2, -1)).clamp_min(1e-300)
+    return math.sqrt(2.0 / math.pi) * sem.sum((-2, -1)) / total

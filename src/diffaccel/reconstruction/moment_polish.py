@@ -4,13 +4,13 @@ second moments, tracked exactly, equal the measured ones.
 Training fits the *shapes* of the images (a KL distance), which leaves their
 second moments a few tenths of a percent off per setting; the linear moment
 design of :mod:`~diffaccel.reconstruction.unseen` does not describe how the
-exact (smoothed) images respond to some entries of the covariance (on
-tilted3100_2's first member, a 0.01 change of px-pz, pz-pz or x-z moved the
-tracked moments by 3.4e-3, 1.0e-3 and 2.4e-3 rms, the design predicted
-1.8e-3, 0.5e-3 and 2.9e-3; the cause, chromatic terms or the screen edges,
-is not isolated). On a strongly chirped beam those small errors, carried along
-the barely seen directions, move the z emittance by tens of percent
-(tilted3100_2, z-pz +0.949 and 0.03 % uncorrelated spread: -30 %).
+exact (smoothed) images respond to some entries of the covariance (on the
+first member of a strongly chirped synthetic beam, a 0.01 change of px-pz,
+pz-pz or x-z moves the tracked moments by 3.4e-3, 1.0e-3 and 2.4e-3 rms,
+the design predicts 1.8e-3, 0.5e-3 and 2.9e-3; the cause, chromatic terms or
+the screen edges, is not isolated). On a strongly chirped beam those small
+errors, carried along the barely seen directions, move the z emittance by
+tens of percent (z-pz +0.949 and 0.03 % uncorrelated spread: -30 %).
 
 The polish is one Gauss-Newton step (or a few) on the relative second moments
 ``<xx>, <yy>, <xy>`` of every training image, the unknowns the 21 covariance
@@ -25,11 +25,11 @@ training's loss smoothing, so the point spreads agree
 (:func:`~diffaccel.reconstruction.training.smoothed_for_loss`).
 
 Measured with the default settings (``benchmarks/reconstruction_6d_beams.py``
-and ``reconstruction_6d.py``, stop 30; docs/generalisation_6d.md), emit z
-without / with the polish: tilted3100_2 -30.1 / +0.3 %, tilted3100_7 -7.4 /
--2.7 % (6D -15.4 / -8.9 %), tilted3000_13 -1.0 / +0.5 %, the shared 6D file
--1.1 / -0.3 % (6D +2.1 / +0.0 %). Beams whose truth the placement's prior
-misplaces stay off (family_draw_b -38.4 / -34.5 %).
+and ``reconstruction_6d.py``), emit z without / with the polish: the strongly
+chirped beam above -30.1 / +0.3 %, two other shared-file-like beams -7.4 /
+-2.7 % (6D -15.4 / -8.9 %) and -1.0 / +0.5 %, the shared 6D file -1.1 /
+-0.3 % (6D +2.1 / +0.0 %). Beams whose truth the placement's prior misplaces
+stay off (-38.4 / -34.5 % for a px-pz partial correlation of +0.09).
 """
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ __all__ = [
 ]
 
 #: Singular values of the relative-moment Jacobian below this fraction of the
-#: largest are not corrected. On the AWA 6D layout (tilted3100_2's members) the
+#: largest are not corrected. On the AWA 6D layout (a chirped beam's members) the
 #: four smallest are 0.053, 0.027, 0.0055 and 0.0006: the last two are the
 #: directions the placement sets (px-pz and py-z traded against pz and z).
 POLISH_TOLERANCE = 0.02

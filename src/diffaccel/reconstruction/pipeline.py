@@ -34,6 +34,7 @@ from diffaccel.reconstruction.training import (
     ReconstructionConfig,
     StepInfo,
     checkpoint_config,
+    loss_smoothing_for,
     smoothed_for_loss,
     train_generator,
 )
@@ -555,8 +556,7 @@ def polish_placed(
     simulated images alike) and the run's generator size and seed."""
     fwds = [f.to("cpu") for f in forwards]
     meas = [m.detach().to("cpu", torch.float32) for m in measured]
-    if config.loss_smoothing > 0:
-        fwds, meas = smoothed_for_loss(fwds, meas, config.loss_smoothing)
+    fwds, meas = smoothed_for_loss(fwds, meas, loss_smoothing_for(config, meas))
     return polish_members(
         snapshots,
         fwds,

@@ -7,7 +7,7 @@ cannot tell a beam from its twin moved along one: the placement puts the
 traded pair at zero partial correlation (``ReconstructionConfig.unseen_prior``)
 because nothing measured says where else. Two Gaussian beams 35 % apart in z
 emittance gave training images that differ by less than the sampling noise of
-two million particles (``benchmarks/unseen_twins.py``, docs/generalisation_6d.md).
+two million particles.
 
 :func:`prior_dependence` states what that choice is worth: for each direction,
 the beam moved along it until the pair's partial correlation is each of a few
@@ -31,7 +31,7 @@ from diffaccel.reconstruction.unseen import traded_pairs, unseen_directions
 #: Partial correlations of a traded pair at which :func:`prior_dependence`
 #: evaluates the beam. README-family beams with a transverse curvature in px
 #: (px ~ x^2) and a curved chirp tilted in x have px-pz partial correlations of
-#: up to 0.14 (docs/generalisation_6d.md); the pair prior puts them at 0.
+#: up to 0.14; the pair prior puts them at 0.
 DEPENDENCE_PARTIALS = (-0.1, 0.1)
 
 #: Points of the grid along a direction on which the partial correlation is

@@ -3,15 +3,15 @@
 The AWA 6D scans leave the trade of rms pz against the px-pz covariance unseen
 in the screens' second moments, and :mod:`~diffaccel.reconstruction.unseen`
 places every member at a stated prior point (zero px-pz partial correlation).
-A beam whose px-pz partial correlation is not zero (family_draw_b +0.09,
-draw2028_3 +0.12, draw2030_1 -0.14; docs/generalisation_6d.md) is placed
-10-38 % off in z emittance. The image *shapes* still carry that information:
-members refitted at points along the direction fit the training images better
-off the prior point for those beams.
+A beam whose px-pz partial correlation is not zero (+0.09 to +0.12 or -0.14
+on synthetic beams with dispersion-like shapes) is placed 10-38 % off in z
+emittance. The image *shapes* still carry that information: members refitted
+at points along the direction fit the training images better off the prior
+point for those beams.
 
-:func:`probe_members` is that likelihood-ratio test (the 6D default since
-stop 23, ``ReconstructionConfig.probe_unseen``; ``reconstruct --no-probe``
-turns it off): every placed member is refitted at the prior point and at
+:func:`probe_members` is that likelihood-ratio test (on by default in 6D,
+``ReconstructionConfig.probe_unseen``; ``reconstruct --no-probe`` turns it
+off): every placed member is refitted at the prior point and at
 ``t = +-step`` along its px-pz direction (correlation units, the covariance
 plus ``t`` times the direction) with the covariance held (as
 :func:`~diffaccel.reconstruction.pipeline.refit_members`; ``t = 0`` is that
@@ -22,22 +22,19 @@ while each further step gains as much (at most ``probe_points`` steps).
 
 Only one side is probed (``probe_away``): the one away from where training
 left the members (:func:`trained_points`). A refitted member fits better
-toward that point whatever the truth (stop 22,
-``benchmarks/unseen_trained_point.py``: the shared file's members were
-trained 0.045 below the prior point, their refitted KL minimum lay 0.03 below
-it, the truth at it), so a gain on that side is no evidence; a gain on the
-other side is, against the memory. Both sides probed (stop 21, stop 22),
-beams the prior places right gained as much as beams it places wrong
-(draw2030_0 1.2e-3 at ``refit_lr`` 1e-3; draw2026_5 7.6e-4 at 3e-3, moved
-to emit_z +22.7 %), and no threshold separated them.
+toward that point whatever the truth (the shared 6D file's members are
+trained 0.045 below the prior point, their refitted KL minimum lies 0.03
+below it, the truth at it), so a gain on that side is no evidence; a gain on
+the other side is, against the memory. Probed on both sides, beams the prior
+places right gain as much as beams it places wrong, and no threshold
+separates them.
 
-What it finds, and what it cannot (docs/generalisation_6d.md, stop 23): a
-beam whose training lands on the far side of the prior point from the
-truth (family_draw_b: +0.09 px-pz partial correlation, placed at -35 % in z
-emittance). A beam whose training lands on the truth's side (draw2028_3,
-draw2031_0) stays at the prior point. Since stop 27's initial guess nearly
-every beam is trained on the wide-pz side, family_draw_b too (its truth's
-side): it stays at the prior point as well (stop 28).
+What it finds, and what it cannot: a beam whose training lands on the far
+side of the prior point from the truth moves toward the truth. A beam whose
+training lands on the truth's side stays at the prior point. Training from
+the maximum-entropy initial guess leaves nearly every beam on the wide-pz
+side, so in practice the probe rarely moves a beam; the prior's share of the
+result is stated by :mod:`~diffaccel.reconstruction.prior_dependence`.
 """
 
 from __future__ import annotations
@@ -176,7 +173,7 @@ def probe_members(
         members' KL and mean gain over the point it was compared with),
         ``not_positive_definite`` (the points not tried because some
         member's covariance there is not positive definite: a strongly
-        chirped beam near its edge, e.g. family_draw_b's +0.05) and, with
+        chirped beam near its edge, e.g. +0.05 on a z-pz -0.95 chirp) and, with
         ``trained``, ``trained_t`` (each member's ``t`` before the
         placement).
     """

@@ -243,7 +243,7 @@ class ReconstructionConfig:
             ``sampling_offset`` (whose bias towards wide beams had held the
             unresolved small-eigenvalue directions back) 1e4 left the shared 6D
             file's y emittance (y-py 0.98) at +4.5 / +7.0 / +5.3 % (seeds 0-2),
-            3e4 at +1.8 / +3.2 / +2.9 % (``docs/generalisation_6d.md``).
+            3e4 at +1.8 / +3.2 / +2.9 %.
         image_loss: ``"kl"`` (default), ``"l1"`` or ``"l2"``. Measured images
             carry shot noise; L1 is minimised by the pixel-wise *median* of that
             noise, which is below the mean in the sparse tails, so L1 fits come
@@ -282,8 +282,8 @@ class ReconstructionConfig:
             ``n_particles``); see :class:`.losses.ImagePenalty`.
             Without it the KL distance of ``N`` sampled particles is lowest for
             a beam wider than the one they were drawn from:
-            ``benchmarks/kl_sampling_bias.py`` (six AWA 6D audit beams, truth
-            scaled by 0.985-1.025, 8 draws of 16 384) puts the least expected
+            for six synthetic AWA 6D beams (truth scaled by 0.985-1.025,
+            8 draws of 16 384 particles) the least expected
             distance at a scale of 1.004-1.014 with ``c = 0``, 1.000-1.002 with
             0.125, 0.997-1.000 with 0.25 and 0.993-0.998 with the first-order
             value 1/2. None: 0 for ``dims = 4`` (its benchmark was tuned
@@ -307,24 +307,21 @@ class ReconstructionConfig:
             (:func:`~diffaccel.reconstruction.unseen.place_unseen`): ``"pair"``
             (default) zero partial correlation of the pair each direction
             trades (px-pz, py-z) given the other coordinates; ``"gaussian"``
-            the earlier ``tr(P V_off) = 0`` over the direction's whole
-            off-diagonal part (it also weighs the seen z-pz chirp in:
-            ``docs/generalisation_6d.md``, double_horn emit_z +10 to +12 %
-            with it, +3 to +6 % with ``"pair"``).
+            ``tr(P V_off) = 0`` over the direction's whole off-diagonal part
+            (it also weighs the seen z-pz chirp in: on a compressed
+            double-horn bunch emit_z +10 to +12 % with it, +3 to +6 % with
+            ``"pair"``).
         place_coupling: With ``place_unseen`` (6D scans that leave
             longitudinal directions unseen), also move each member along the
             transverse x-y coupling direction the screens barely see (x-py and
             px-y against px-py after one quadrupole and a drift,
             :func:`~diffaccel.reconstruction.unseen.coupling_directions`) to
             the largest determinant there (the largest entropy; the truth of
-            every audit beam, within 0.2 % of 6D emittance, but not of a beam
-            turned in x-y). Off by default. On the
-            generalisation audit (docs/generalisation_6d.md, seeds 0-2) it put
-            ``nonlinear_ypy``'s 6D emittance at -2.1 to -2.6 % (off: -6.5 to
-            -14.2 %, its 4D emittance as low: training settles off along that
-            direction); no other error grew by more than a point (family_draw_b
-            aside, whose emit_z its longitudinal prior sets: seed 2 -19 ->
-            -28 %), held-out images within +0.004. On beams with real x-y
+            the synthetic test beams not turned in x-y, within 0.2 % of 6D
+            emittance). Off by default. On a beam of three modes in x-y
+            (seeds 0-2) it puts the 6D emittance at -2.1 to -2.6 % (off: -6.5
+            to -14.2 %: training settles off along that direction), held-out
+            images within +0.004. On beams with real x-y
             coupling (rotated in x-y, as after a solenoid) it throws away
             what the image shapes say: 6D emittance -3.9 -> +11.7 %, 4D -0.4
             -> +15.3 %, x-y correlations off by up to 0.36.
@@ -335,48 +332,36 @@ class ReconstructionConfig:
             (:func:`~diffaccel.reconstruction.pipeline.refit_members`). The
             placement moves each member with a linear map, which keeps the
             screens' second moments but not the shapes of non-Gaussian images
-            (chirp_weak_tilted seed 2: held-out dipole-on relative L1 0.074
+            (a weakly chirped tilted beam: held-out dipole-on relative L1 0.074
             before the move, 0.199 after it); the refit restores them at the
             placed moments. None: 60 for ``dims = 6`` (0 for 4D, which places
             nothing; a 6D run whose scans do not see z or pz at all, a
             quadrupole scan alone, places and refits nothing either).
-            Generalisation audit (docs/generalisation_6d.md): 60 steps: 32 of
-            33 runs met, every held-out image within 0.105, 18 random
-            README-family draws 18 of 18 within 0.119 (training +11 % against
-            30 steps). 30 steps (the default until 2026-11-27): 31 of 33,
-            held-out within 0.117, but one draw at 0.150 (draw2027_2: a large
-            placement the shorter refit did not undo). Without the refit: 28
-            of 33, held-out up to 0.199. Six fresh draws after the change: 5
-            of 6. The misses (family_draw_b, draw2028_3) are the prior's: a
-            px-pz partial correlation the scans cannot see. The moments do not
-            depend on the length (the hold): mean |change| 30 -> 60 below
-            0.1 %, except where a -0.95 chirp amplifies rounding
-            (family_draw_b). (Those figures predate the 6D generator's
-            quadratic term, :class:`~diffaccel.reconstruction.BeamGenerator`;
-            with it: 30 of 33 audit runs, held-out within 0.085, 29 of 30
-            random draws within 0.144; the misses the same two beams.)
-        refit_lr: Learning rate at the start of the refit. 3e-3 since stop 23
-            (1e-3 before): a placed member keeps a memory of where training
-            left it along the unseen direction, and a short refit at 1e-3 did
-            not shed it, so refits nearer that point fitted better whatever
-            the truth (the shared file's members, trained at t = -0.043 to
-            -0.049 from the prior point, gained 3.3e-4 of KL at t = -0.05;
-            after 180 steps 0.4e-4). At 3e-3 the same 60 steps shed most of it
-            (-5.8e-4), and the result at the prior point is 1e-3's (29 audit
-            runs: emit_z within 0.2 points, 6D within 0.4, held-out images
-            within 0.001; docs/generalisation_6d.md, stop 22).
+            On the synthetic test beams of
+            ``benchmarks/reconstruction_6d_beams.py`` 60 steps keep every
+            held-out image within 0.085 relative L1 (without the refit: up to
+            0.199); 30 steps leave a large placement partly undone. The
+            moments do not depend on the length (the hold): mean |change|
+            30 -> 60 steps below 0.1 %.
+        refit_lr: Learning rate at the start of the refit (3e-3). A placed
+            member keeps a memory of where training left it along the unseen
+            direction; a short refit at 1e-3 does not shed it, so refits
+            nearer that point fit better whatever the truth (the shared 6D
+            file's members, trained at t = -0.043 to -0.049 from the prior
+            point, gain 3.3e-4 of KL at t = -0.05). At 3e-3 the same 60 steps
+            shed most of it, and the result at the prior point equals 1e-3's
+            (emit_z within 0.2 points, 6D within 0.4, held-out images within
+            0.001).
         refit_hold: Weight ``w`` of the refit's hold on the covariance,
             ``w sum (W (S - T) W)_ab^2`` over the upper triangle, ``T`` the
             placed covariance and ``W = T^-1/2``
             (:class:`~diffaccel.reconstruction.hold.CovarianceHold`): the
             deviation in the beam's own normal coordinates, so a strongly
             chirped beam's emittance is held, not just its correlations. 0
-            refits freely (the earlier opt-in refit: images better, moments
-            worse, 27 of 33). Tried on the audit's unplaced members: the hold
-            in correlation units instead (30 of 33: the shared file's emit_z
-            -9.1 to -9.4 %, wide seed 2 -10.4 %); in correlation units at 1e5
-            Adam barely moved the shape (chirp_weak_tilted seed 2 dipole-on
-            0.186), at 1e3 the moments drifted (pz -8.5 %).
+            refits freely (images better, moments worse). A hold in
+            correlation units instead lets a strong chirp's emittance drift
+            (the shared 6D file's emit_z -9 %) at 1e3 and barely moves the
+            shape at 1e5.
         hold_unseen: With ``place_unseen`` and ``dims = 6``, weight ``w`` of a
             penalty ``w sum_k t_k^2`` that holds the beam at the prior point
             during training, ``t_k`` its covariance's displacement from that
@@ -386,14 +371,11 @@ class ReconstructionConfig:
             directions and the placement after training moves it back with a
             linear map, which keeps the second moments but not the shapes of
             non-Gaussian images (the default refit, ``refit_steps``, fits them
-            again). Opt-in: on the generalisation audit of stop 15, before
-            the refit (docs/generalisation_6d.md), ``1e3`` brought every
-            held-out image
-            within 0.10 relative L1 (chirp_weak_tilted: 0.14-0.20 without)
-            but cost moments elsewhere (the shared file's seed 2: z emittance
-            -10.6 to -11.1 %; family_draw_a seed 0: 6D -17 to -22 %); 28 of
-            33 runs met either way. Holding the energy spread's direction
-            alone was worse (19 of 33).
+            again). Opt-in: without the refit, ``1e3`` brings every held-out
+            image of the synthetic test beams within 0.10 relative L1
+            (0.14-0.20 without) but costs moments elsewhere (the shared 6D
+            file's seed 2: z emittance -10.6 to -11.1 %; a README-family
+            beam's 6D emittance -17 to -22 %).
         probe_unseen: With ``place_unseen`` and ``refit_steps``, the step
             (correlation units; None: 0.05 for ``dims = 6``, 0 for 4D; 0
             probes nothing, ``reconstruct --no-probe``) of the
@@ -404,33 +386,24 @@ class ReconstructionConfig:
             ensemble leaves the prior point only where the members' mean
             training-image KL gain exceeds ``probe_gain``, stepping on (at
             most ``probe_points`` steps) while each step gains as much. One to
-            three more refits per member (the shared 6D benchmark 55 ->
-            78 s on two CPU cores). The 6D default since stop 23
-            (docs/generalisation_6d.md): the generalisation
-            audit met 33 of 33 runs (30 without: family_draw_b, whose px-pz
-            partial correlation +0.09 the prior point misses by -35 % in z
-            emittance, moved to emit_z -7.7 / -6.7 / +7.5 %), and it moved
-            none of 16 fresh random draws (15 of 16 met, as without; the miss,
-            draw2031_0, +0.11, was trained on its truth's side). Since stop
-            27's initial guess training leaves nearly every beam on the
-            wide-pz side, family_draw_b too, which the probe then no longer
-            moves (emit_z -38.4 %; stop 28: with ``hold_unseen`` both sides
-            are fair, but their gains did not separate beams placed wrong
-            from beams placed right).
+            three more refits per member (about 20 s of the shared 6D
+            benchmark on two CPU cores). Training from the maximum-entropy
+            initial guess leaves nearly every beam on the wide-pz side, so
+            the probe rarely moves a beam: it does not rescue a beam whose
+            px-pz partial correlation the prior misses (see
+            :mod:`~diffaccel.reconstruction.probe`).
         probe_gain: Mean KL gain (per image, summed over the scans) a probe
-            step must exceed. 5e-4, set on the audit at ``refit_lr`` 3e-3
-            (stop 22, both sides probed): the three family_draw_b seeds
-            gained 6.6e-4 to 2.5e-3 by the first step, the 30 runs the prior
-            places right at most 3.1e-4 but one (the shared file's seed 2,
-            1.2e-3 toward its trained side, which ``probe_away`` no longer
-            looks at). At ``refit_lr`` 1e-3 (stop 21) runs placed right gained
-            up to 1.2e-3, and no threshold separated them.
+            step must exceed (5e-4 at ``refit_lr`` 3e-3). On the synthetic
+            test beams a beam placed wrong by the prior gains 6.6e-4 to
+            2.5e-3 by the first step, beams placed right at most 3.1e-4
+            (away from their trained side). At ``refit_lr`` 1e-3 beams placed
+            right gain up to 1.2e-3 and no threshold separates them.
         probe_points: Most steps the probe takes from the prior point.
         probe_away: The probe looks only on the side of the prior point away
             from where training left the members along px-pz (their mean;
             both sides where that is exactly the prior point or with False).
             A refitted member's KL favours the side it was trained on,
-            whatever the truth (docs/generalisation_6d.md, stop 22), so a
+            whatever the truth, so a
             gain toward it is no evidence; one away from it is. It also
             halves the probe's refits.
         polish_moments: With ``place_unseen`` in 6D where the scans leave
@@ -441,10 +414,10 @@ class ReconstructionConfig:
             :mod:`~diffaccel.reconstruction.moment_polish`), then place it
             again. Training fits image shapes and leaves the moments a few
             tenths of a percent off, which a strong chirp turns into tens of
-            percent of z emittance. Stop 30 (default settings, seed 0):
-            tilted3100_2 emit z -30.1 -> +0.3 %, tilted3100_7 6D -15.4 ->
-            -8.9 %, the shared file 6D +2.1 -> +0.0 %, about 7 s more
-            (docs/generalisation_6d.md).
+            percent of z emittance. Default settings, seed 0: a beam with a
+            z-pz correlation of +0.949 emit z -30.1 % without, +0.3 % with it;
+            the shared 6D file's 6D emittance +2.1 % without, +0.0 % with it;
+            about 7 s more.
         seed: Seed of the explicit ``torch.Generator`` (weights and samples).
         checkpoint_every: Steps between checkpoints (also at every snapshot).
         report_every: Steps between reads of the losses from the device (the
@@ -512,8 +485,6 @@ class ReconstructionConfig:
         ):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, getattr(defaults, name))
-        if self.loss_smoothing is None:
-            object.__setattr__(self, "loss_smoothing", defaults.loss_smoothing)
         if self.penalty_end is None:
             object.__setattr__(self, "penalty_end", defaults.penalty_end)
         if not (self.penalty_start > 0 and self.penalty_end > 0):
@@ -593,8 +564,14 @@ class ReconstructionConfig:
             raise ValueError(
                 f"image_loss must be 'l1', 'l2' or 'kl'; got {self.image_loss!r}."
             )
-        if not self.loss_smoothing >= 0:
-            raise ValueError(f"loss_smoothing must be >= 0; got {self.loss_smoothing}.")
+        if self.loss_smoothing is not None and not (
+            math.isfinite(self.loss_smoothing)
+            and 0 <= self.loss_smoothing <= MAX_BLUR_PIXELS
+        ):
+            raise ValueError(
+                f"loss_smoothing must be in [0, {MAX_BLUR_PIXELS:g}] pixels or None "
+                f"(sized by the data); got {self.loss_smoothing}."
+            )
         if (
             self.blur_pixels is not None
             and not 0 <= self.blur_pixels <= MAX_BLUR_PIXELS
@@ -844,20 +821,171 @@ def _kl_offset(c: float, forward: ScreenForwardModel, n: int) -> float:
     return c * forward.pixel_kernel_sum_sq() / n if c > 0 else 0.0
 
 
+def image_rms_pixels(measured: Tensor) -> float:
+    """Largest rms beam size [pixels] over images ``(K, H, W)`` and both axes.
+
+    Negative pixels (noise left by a background subtraction) count as zero.
+
+    Example:
+        >>> im = torch.zeros(1, 5, 5); im[0, 2, 1] = im[0, 2, 3] = 0.5
+        >>> image_rms_pixels(im)
+        1.0
+    """
+    w = measured.detach().to(torch.float64).clamp_min(0.0)
+    total = w.sum((-2, -1)).clamp_min(1e-300)
+    rms = []
+    for axis, n in ((-1, w.shape[-1]), (-2, w.shape[-2])):
+        marginal = w.sum(-2 if axis == -1 else -1) / total[:, None]  # (K, n)
+        idx = torch.arange(n, dtype=torch.float64, device=w.device)
+        mean = (marginal * idx).sum(-1, keepdim=True)
+        rms.append(((marginal * (idx - mean) ** 2).sum(-1)).sqrt())
+    return float(torch.stack(rms).max())
+
+
+def sampling_smoothing(measured: Tensor, n_particles: int, floor: float = 0.0) -> float:
+    """Rms [pixels] of the Gaussian that compares ``n_particles``' images fairly.
+
+    An image of ``N`` sampled particles is a histogram whose pixel noise grows as
+    the pixels get finer or the beam larger; a divergence between such a sparse
+    image and a measured one is lowest for a beam wider than the one sampled
+    (its tails cover more measured pixels), so the fitted beam would depend on
+    the camera's pixel size. Smoothing both images with the bandwidth at which
+    a kernel density estimate of ``N`` samples is consistent removes that
+    dependence: Scott's/Silverman's rule for two dimensions,
+    ``h = sigma N^(-1/6)``, with ``sigma`` the largest rms size of the scan's
+    images (:func:`image_rms_pixels`), so that every image of the scan is
+    compared at a resolution its sample supports. Both sides get the same
+    Gaussian, so second moments are unchanged (each gains ``h^2``); the result
+    depends on the beam size in pixels and ``N`` only, not on how finely the
+    camera samples it. ``floor`` (the point spread the images need anyway) is
+    added in quadrature.
+
+    Args:
+        measured: Measured images of one scan ``(K, H, W)``.
+        n_particles: Particles per training step ``N``.
+        floor: Smoothing applied regardless [pixels].
+
+    Returns:
+        ``hypot(floor, sigma N^(-1/6))`` [pixels].
+
+    Example:
+        >>> im = torch.zeros(1, 64, 64); im[0, 32, 22] = im[0, 32, 42] = 0.5
+        >>> round(sampling_smoothing(im, 4096), 3)
+        2.5
+    """
+    if n_particles < 1:
+        raise ValueError(f"n_particles must be >= 1; got {n_particles}.")
+    h = image_rms_pixels(measured) * float(n_particles) ** (-1.0 / 6.0)
+    return float(min(math.hypot(floor, h), MAX_BLUR_PIXELS))
+
+
+def loss_smoothing_for(
+    config: ReconstructionConfig, measured: Sequence[Tensor]
+) -> list[float]:
+    """Loss smoothing [pixels] of each scan: ``config.loss_smoothing`` when set,
+    else :func:`sampling_smoothing` of the scan's images at ``n_particles`` with
+    the floor of ``config.dims`` (0 for 4D; 1 pixel for 6D, whose images are
+    histograms of spots down to about a pixel)."""
+    if config.loss_smoothing is not None:
+        return [float(config.loss_smoothing)] * len(measured)
+    floor = _DIMS_DEFAULTS[config.dims].loss_smoothing
+    return [sampling_smoothing(m, config.n_particles, floor) for m in measured]
+
+
+#: Loss-smoothing rms per pixel of the compared images: a scan whose smoothing
+#: is ``sigma`` camera pixels is compared on pixels ``p = floor(sigma /
+#: LOSS_SMOOTHING_PER_PIXEL)`` times larger (sums of ``p x p`` camera pixels),
+#: where the Gaussian is still sampled by two pixels per rms; the comparison
+#: keeps its resolution and costs ``p^2`` times fewer pixels.
+LOSS_SMOOTHING_PER_PIXEL = 2.0
+
+
+def pool_images(images: Tensor, factor: int) -> tuple[Tensor, tuple[int, int]]:
+    """Sums of ``factor x factor`` pixels of images ``(*K, H, W)``.
+
+    The images are padded with zeros to a multiple of ``factor`` (half of the
+    padding before, the rest after, per axis). Returns the pooled images
+    ``(*K, ceil(H / f), ceil(W / f))`` and the padding before ``(rows,
+    columns)``, from which :func:`pooled_screen` places the coarse pixels.
+
+    Example:
+        >>> pool_images(torch.ones(1, 4, 5), 2)[0]
+        tensor([[[4., 4., 2.],
+                 [4., 4., 2.]]])
+    """
+    f = int(factor)
+    h, w = images.shape[-2:]
+    ph, pw = (-h) % f, (-w) % f
+    before = (ph // 2, pw // 2)
+    padded = torch.nn.functional.pad(
+        images, (before[1], pw - before[1], before[0], ph - before[0])
+    )
+    lead = padded.shape[:-2]
+    hp, wp = padded.shape[-2:]
+    pooled = padded.reshape(*lead, hp // f, f, wp // f, f).sum((-3, -1))
+    return pooled, before
+
+
+def pooled_screen(
+    forward: ScreenForwardModel, factor: int, before: tuple[int, int]
+) -> tuple[tuple[int, int], tuple[float, float], tuple[float, float]]:
+    """Shape, pixel size [m] and centre [m] of ``forward``'s screen pooled by
+    ``factor`` with the padding ``before`` of :func:`pool_images`."""
+    f = int(factor)
+    h, w = forward.screen.shape
+    psx, psy = forward.screen.pixel_size
+    cx, cy = forward.screen.center
+    hc, wc = -(-h // f), -(-w // f)
+    shift_y = ((hc * f - h) / 2 - before[0]) * psy
+    shift_x = ((wc * f - w) / 2 - before[1]) * psx
+    return (hc, wc), (f * psx, f * psy), (cx + shift_x, cy + shift_y)
+
+
 def smoothed_for_loss(
-    forwards: list[ScreenForwardModel], measured: list[Tensor], sigma_px: float
+    forwards: list[ScreenForwardModel],
+    measured: list[Tensor],
+    sigma_px: float | Sequence[float],
 ) -> tuple[list[ScreenForwardModel], list[Tensor]]:
-    """Forward models and measured images both smoothed by ``sigma_px`` pixels."""
+    """Forward models and measured images both smoothed by ``sigma_px`` camera
+    pixels (one value for all scans, or one per scan), as the image term
+    compares them.
+
+    A scan smoothed by at least ``2 LOSS_SMOOTHING_PER_PIXEL`` pixels is
+    compared on pooled pixels (:func:`pool_images`): the measured images are
+    summed over ``p x p`` pixels and the simulated ones are deposited on the
+    coarse pixels, with point spreads that keep both sides' total variance
+    equal: the camera's own (``blur_pixels``), the pooling's ``(p^2 - 1) / 12``
+    and the smoothing's ``sigma^2`` [camera pixels^2].
+    """
+    sigmas = (
+        [float(sigma_px)] * len(forwards)
+        if isinstance(sigma_px, int | float)
+        else [float(v) for v in sigma_px]
+    )
     out_f, out_m = [], []
-    for f, m in zip(forwards, measured, strict=True):
-        total = math.hypot(f.blur_pixels, sigma_px)
+    for f, m, sigma in zip(forwards, measured, sigmas, strict=True):
+        if sigma <= 0:
+            out_f.append(f)
+            out_m.append(m)
+            continue
+        p = max(1, int(sigma // LOSS_SMOOTHING_PER_PIXEL))
+        beamline = f.beamline
+        if p > 1:
+            m, before = pool_images(m, p)
+            shape, pixel, center = pooled_screen(f, p, before)
+            beamline = beamline.with_screen(f.screen.name, shape, pixel, center)
+        variance = f.blur_pixels**2 + (p * p - 1) / 12.0 + sigma**2
         out_f.append(
             ScreenForwardModel(
-                f.beamline, f.names, f.p0c, species=f.species, blur_pixels=total
+                beamline,
+                f.names,
+                f.p0c,
+                species=f.species,
+                blur_pixels=min(math.sqrt(variance) / p, MAX_BLUR_PIXELS),
             )
         )
-        psx, psy = f.screen.pixel_size
-        blurred = gaussian_blur(m, (sigma_px * psx, sigma_px * psy), (psx, psy))
+        psx, psy = (v * p for v in f.screen.pixel_size)
+        blurred = gaussian_blur(m, (sigma * psx / p, sigma * psy / p), (psx, psy))
         # not renormalised: mass blurred off the screen is lost on both sides
         out_m.append(blurred)
     return out_f, out_m
@@ -876,7 +1004,7 @@ def _host_reads_cheap(device: torch.device) -> bool:
 #: Eager steps (on a side stream) before the step is captured as a CUDA graph.
 GRAPH_WARMUP_STEPS = 3
 #: Generator dimensions whose training steps are captured (``cuda_graph``).
-#: 6D steps read nothing back from the device since 0910aa2 but have not been
+#: 6D steps read nothing back from the device but have not been
 #: captured on a GPU yet (docs/gpu.md; ``test_cuda_graph_6d_steps`` checks it).
 GRAPH_DIMS = (4,)
 
@@ -1027,10 +1155,9 @@ def train_generator(
     device = torch.device(device) if device is not None else measured_list[0].device
     measured_list = [m.to(device=device, dtype=torch.float32) for m in measured_list]
     settings_list = [s.to(device=device) for s in settings_list]
-    if config.loss_smoothing > 0:
-        forwards, measured_list = smoothed_for_loss(
-            forwards, measured_list, config.loss_smoothing
-        )
+    forwards, measured_list = smoothed_for_loss(
+        forwards, measured_list, loss_smoothing_for(config, measured_list)
+    )
     forwards = [f.to(device) for f in forwards]
     gen_rng = torch.Generator(device=device).manual_seed(config.seed)
     init_rng = torch.Generator().manual_seed(config.seed)
@@ -1148,7 +1275,7 @@ def train_generator(
     record = torch.zeros(
         config.report_every, 2 + (dims + 1) ** 2, dtype=torch.float64, device=device
     )
-    slots = [  # views made once (issue 12 counts every ATen op of a step)
+    slots = [  # views made once (every view is an ATen op of the step)
         (r[0], r[1], r[2:].view(dims + 1, dims + 1)) for r in record.unbind(0)
     ]
     pending: list[tuple[int, float, float]] = []  # (step, lr, penalty) unread
@@ -1210,7 +1337,7 @@ def train_generator(
         # loss lam D - (H - C): the gradient of (H - C) - lam D, negated. One
         # scalar with the implicit seed: explicit seed tensors made
         # torch.autograd import torch.fx.experimental.symbolic_shapes and
-        # sympy, ~0.5 s of a default ``reconstruct`` (issue 12: the whole
+        # sympy, ~0.5 s of a default ``reconstruct`` (of the whole
         # process); sub(alpha=) costs fewer ATen ops than lam * D - (H - C)
         (grad,) = torch.autograd.grad(objective, [net.flat])
         grad.neg_()

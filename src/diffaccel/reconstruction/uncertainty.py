@@ -213,7 +213,7 @@ def linear_posterior(
             takes it at ``delta = 0``: a systematic offset that a parameter
             shift explains then also counts as noise (the first version; on
             6D scans it made the error scale 10-100x too large, see
-            ``docs/uncertainty.md``).
+            ``docs/methods/uncertainty.md``).
 
     Returns:
         ``(cov (P, P), shift (P,), r (G,), dof (G,))``: posterior covariance, the

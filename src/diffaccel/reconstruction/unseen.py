@@ -17,68 +17,50 @@ moments, the transverse ones held) and moves each ensemble member along them
 to a stated prior point: the one where the correlation that each direction
 trades (AWA 6D: px-pz, py-z) carries no information beyond the other four
 coordinates (zero partial correlation of that pair, ``P_ij = 0`` with ``P`` the
-precision matrix; ``prior="pair"``, the default since issue 9's
-generalisation audit, docs/generalisation_6d.md). The move is the smallest
+precision matrix; ``prior="pair"``, the default). The move is the smallest
 displacement of the particles that gives the new covariance (the
 optimal-transport map between the two Gaussians), folded into the generator's
 last linear layers, so the screens' second moments do not change. The shapes
 of non-Gaussian images can: a member that training had widened along a
-direction loses part of its fit (audit beam ``chirp_weak_tilted``, seed 2:
-held-out dipole-on relative L1 0.075 before the move, 0.199 after it). The
-default therefore refits each placed member's shape with its covariance held
-at the placed one (``ReconstructionConfig.refit_steps``, ``refit_hold``;
+direction loses part of its fit (on a weakly chirped, x-z tilted synthetic
+beam: held-out dipole-on relative L1 0.075 before the move, 0.199 after it).
+The default therefore refits each placed member's shape with its covariance
+held at the placed one (``ReconstructionConfig.refit_steps``, ``refit_hold``;
 :func:`~diffaccel.reconstruction.pipeline.refit_members`). :class:`UnseenHold`
 (opt-in: the config's ``hold_unseen``) holds the beam at the prior point
-during training instead, so that the generator fits the image shapes there
-(0.079); on the generalisation audit it traded those image misses for moment
-misses elsewhere.
+during training instead, so that the generator fits the image shapes there;
+it trades those image misses for moment misses on other beams.
 
-The earlier criterion (``prior="gaussian"``, 61bf7aa..36d32b8) solved
-``tr(P V_off) = 0`` over the direction's whole off-diagonal part: the
-direction also touches seen entries (the z-pz chirp), so it weighed in their
-partial correlations and placed strongly chirped truths off (the audit's
-``double_horn``, z-pz -0.91: emit_z +11.9 % at its truth, where ``"pair"``
-leaves it; ``chirp_negative`` +10.6 % against +4.8 %; ``wide`` +5.5 % against
-0.0 %). Reconstructions: ``double_horn`` emit_z +10.1 to +11.6 % -> +2.9 to
-+6.3 % (seeds 0-2), ``chirp_negative`` +16.5 to +18.6 % -> +11.4 to +12.9 %.
+The alternative criterion ``prior="gaussian"`` solves ``tr(P V_off) = 0`` over
+the direction's whole off-diagonal part: the direction also touches seen
+entries (the z-pz chirp), so it weighs in their partial correlations and
+places strongly chirped truths off (a compressed double-horn bunch, z-pz
+-0.91: emit_z +11.9 % at its truth, where ``"pair"`` leaves it).
 
 Known limit: a beam whose traded correlation is set by its shape is placed
-wrong. ``family_draw_b`` (px-pz partial correlation +0.09 from a transverse
+wrong. A beam with a px-pz partial correlation of +0.09 (from a transverse
 curvature times a tilted curved chirp, z-pz -0.95) is placed at emit_z -35 %
 at its truth by ``"pair"`` (+16 % by ``"gaussian"``); with a z-pz coefficient
-of 0.95 the 10 % limit leaves rms pz about 1 % of room. Conditioning the
-partial correlation also on the quadratic monomials of (x, px, y, py) puts
-every audit truth within 0.4 % (``correlated``: emit_z -6 %) but rests on the
-reconstruction's fourth moments (its regressions on those monomials), which
-the reconstructions did not reproduce closely enough: held in
-training (582ecdd..3b83105, reverted in 4b4a566) it regressed ``wide`` and the
-shared file's y emittance; applied after training with a 30-step refit it gave
-``chirp_negative`` pz -13 %, emit_z -20 % and ``family_draw_b`` emit_z -37 %
-(seed 0). Conditioning on x^2 and y^2 alone (session stop 17) puts every
-audit truth within 0.3 % and 30 random family draws within 1.4 %, but in the
-pipeline (placement, the covariance-held refit, placement again) it met 31 of
-36 audit runs against the pair prior's 32 of 33 (family_draw_b +47 / +104 %).
-That criterion is not even consistent on the reconstruction's own particles:
-the move changes pz's moments with x^2 too, and placing again on the moved
-particles goes elsewhere (draw2028_3, seed 0: -5.9 % after one placement,
--20.7 % when iterated to its fixed point; pair -15.4 %; session stop 18), so
-the images do not pin the third moments it rests on. With the generator's
-quadratic term (stop 18) the reconstructions land where the pair prior puts
-the truth: family_draw_b emit_z -38 / -39 / -19 % on seeds 0-2.
+of 0.95 a 10 % limit leaves rms pz about 1 % of room. Conditioning the partial
+correlation also on quadratic monomials of (x, px, y, py) would rest on the
+reconstruction's fourth moments, which the images do not pin closely enough,
+so the prior conditions on the second moments alone.
+:mod:`diffaccel.reconstruction.prior_dependence` states with every result how
+much the prior decides.
 
 The transverse plane has a barely seen direction too: x-y coupling
 (:func:`coupling_directions`; x-py and px-y against px-py, singular value
 0.03-0.07 of the largest where the longitudinal ones are below 0.005).
-Training settles along it where the image shapes pull: ``nonlinear_ypy``
-(three modes in x-y) came out with 4D and 6D emittances 10-16 % low while each
-plane's emittance was within 1 %. On every audit beam the largest determinant
-along the direction is the truth (within 0.2 % of 6D emittance; nonlinear_ypy
-included, whose three modes give it x-y correlations of up to 0.38), and
-:func:`place_members` with ``coupling=True`` moves each member there
-(``ReconstructionConfig.place_coupling``, ``reconstruct --uncoupled``). It is
-off by default: a beam rotated in x-y (after a solenoid) is not at that point,
-and its training had found the coupling from the image shapes (6D emittance
--3.9 %, +11.7 % placed; session stop 19, docs/generalisation_6d.md).
+Training settles along it where the image shapes pull: a beam of three modes
+in x-y comes out with 4D and 6D emittances 10-16 % low while each plane's
+emittance is within 1 %. For beams not turned in x-y the largest determinant
+along the direction is the truth (within 0.2 % of 6D emittance on the
+synthetic test beams, x-y correlations of up to 0.38 from the mode structure
+included), and :func:`place_members` with ``coupling=True`` moves each member
+there (``ReconstructionConfig.place_coupling``, ``reconstruct --uncoupled``).
+It is off by default: a beam rotated in x-y (after a solenoid) is not at that
+point, and training finds its coupling from the image shapes (6D emittance
+-3.9 % trained, +11.7 % placed).
 """
 
 from __future__ import annotations
@@ -181,7 +163,7 @@ def unseen_directions(
 _COUPLING = [(0, 2), (0, 3), (1, 2), (1, 3)]
 #: A cross-plane direction is barely seen when its singular value of the
 #: scaled moment design (the other entries held) is below this fraction of the
-#: largest. AWA 6D layout, the 11 audit beams and x-y rotated ones: 0.028-0.072
+#: largest. AWA 6D layout, synthetic test beams and x-y rotated ones: 0.028-0.072
 #: for one direction (x-py and px-y against px-py), the next 0.175 or more.
 COUPLING_TOLERANCE = 0.1
 
@@ -199,9 +181,9 @@ def coupling_directions(
     moments nearly unchanged (a second screen at another distance, and the
     quadrupole's length, see it weakly: singular value 0.03-0.07 of the
     largest on the AWA 6D layout). Training then settles along it where the
-    fit of the image shapes pulls, not at the largest entropy: the audit beam
-    ``nonlinear_ypy`` came out with 4D and 6D emittances 10-16 % low while
-    each plane's emittance was within 1 %.
+    fit of the image shapes pulls, not at the largest entropy: a beam of three
+    modes in x-y comes out with 4D and 6D emittances 10-16 % low while each
+    plane's emittance is within 1 %.
 
     Args:
         maps: Each scan's affine maps to its screen ``(K_s, 7, 7)``.
@@ -264,7 +246,7 @@ def place_unseen(
     placed off, see the module). ``coupling`` directions
     (:func:`coupling_directions`, cross-plane entries only) are moved at the
     same time to the largest determinant along them (``tr(P V_k) = 0``): the
-    largest entropy of a Gaussian, the point of the issue's maximum-entropy
+    largest entropy of a Gaussian, the point of the maximum-entropy
     loss. Damped Newton steps that keep the covariance positive definite.
 
     Shapes:
@@ -378,11 +360,11 @@ class UnseenHold(MomentHold):
     every ``HOLD_EVERY`` steps); each step then needs only the moments it has
     anyway and no host read (:meth:`surrogate`).
 
-    Opt-in (``ReconstructionConfig.hold_unseen``): on the generalisation
-    audit (docs/generalisation_6d.md) it brought every held-out image within
-    0.10 relative L1 (chirp_weak_tilted from 0.14-0.20) but moved the seen
-    z-pz chirp on other beams (the z direction carries 0.19 of it per unit):
-    28 of 33 runs met, as without it, with other misses.
+    Opt-in (``ReconstructionConfig.hold_unseen``): on the synthetic test beams
+    of ``benchmarks/reconstruction_6d_beams.py`` it brings every held-out image
+    within 0.10 relative L1 (0.14-0.20 placed after training on a weakly
+    chirped tilted beam) but moves the seen z-pz chirp on other beams (the z
+    direction carries 0.19 of it per unit), so it is not the default.
 
     Args:
         maps: Each scan's affine maps of its training settings ``(K_s, 7, 7)``.

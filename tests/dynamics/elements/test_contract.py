@@ -29,6 +29,21 @@ CASES: dict[str, tuple[type[Element], dict, dict]] = {
         {"length": 0.3, "voltage": [1e5, 2e5, 3e5], "frequency": 2.856e9},
     ),
     "Screen": (dyn.Screen, {}, {}),
+    "Solenoid": (
+        dyn.Solenoid,
+        {"length": 0.3, "ks": 3.0, "dx": 2e-4, "dy": -1e-4},
+        {"length": 0.3, "ks": [-2.0, 0.0, 4.0]},
+    ),
+    "Sextupole": (
+        dyn.Sextupole,
+        {"length": 0.2, "k2": 80.0, "tilt": 0.1, "dx": 2e-4, "dy": -1e-4},
+        {"length": 0.2, "k2": [-50.0, 0.0, 90.0], "tilt": 0.1},
+    ),
+    "RFCavity": (
+        dyn.RFCavity,
+        {"length": 0.5, "voltage": 2e6, "frequency": 1.3e9, "phase": 0.3},
+        {"length": 0.5, "voltage": [1e6, 0.0, 3e6], "frequency": 1.3e9, "phase": 0.2},
+    ),
     "LinearMap": (
         dyn.LinearMap,
         {"matrix": (torch.eye(6) + 0.1 * torch.ones(6, 6)).tolist()},

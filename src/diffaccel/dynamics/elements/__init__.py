@@ -7,7 +7,10 @@ from diffaccel.dynamics.elements.drift import Drift
 from diffaccel.dynamics.elements.element import Element
 from diffaccel.dynamics.elements.linear_map import LinearMap
 from diffaccel.dynamics.elements.quadrupole import Quadrupole
+from diffaccel.dynamics.elements.rf_cavity import RFCavity
 from diffaccel.dynamics.elements.screen import Screen
+from diffaccel.dynamics.elements.sextupole import Sextupole
+from diffaccel.dynamics.elements.solenoid import Solenoid
 from diffaccel.dynamics.elements.transverse_deflecting_cavity import (
     TransverseDeflectingCavity,
 )
@@ -18,6 +21,9 @@ __all__ = [
     "Element",
     "LinearMap",
     "Quadrupole",
+    "RFCavity",
     "Screen",
+    "Sextupole",
+    "Solenoid",
     "TransverseDeflectingCavity",
 ]

@@ -29,8 +29,10 @@ class Dipole(Element):
     helix of horizontal radius ``sqrt((1 + pz)^2 - py^2) / g`` with ``g = angle /
     length`` the reference curvature; positive ``angle`` bends towards -x (Bmad).
     Hard-edge pole faces with angles ``e1`` (entrance) and ``e2`` (exit) give
-    linear kicks ``px += g tan(e) x``, ``py -= g tan(e) y`` (no fringe-field
-    integral). Chromatic effects follow from the exact body. ``z`` follows Bmad:
+    linear kicks ``px += g tan(e) x``, ``py -= g tan(e - psi) y``, with Bmad's
+    linear fringe correction ``psi = 2 fint hgap g (1 + sin^2 e) / cos e``
+    (``psi = 0`` without a fringe-field integral or gap: the default).
+    Chromatic effects follow from the exact body. ``z`` follows Bmad:
     ``z += L beta/beta0 - (path length)``.
 
     Args:
@@ -41,6 +43,10 @@ class Dipole(Element):
         e1: Entrance pole-face angle [rad] (0 for a pure sector bend).
         e2: Exit pole-face angle [rad].
         tilt: Roll about the beam axis [rad]; ``pi / 2`` bends vertically.
+        hgap: Half gap of the magnet at the entrance [m] (Bmad/elegant HGAP).
+        hgapx: Half gap at the exit [m].
+        fint: Fringe-field integral of the entrance face (Bmad/elegant FINT).
+        fintx: Fringe-field integral of the exit face.
 
     Shapes:
         ``track``: ``(*K, N, 6) -> (*K, N, 6)``; ``transfer_map``: ``(*K, 7, 7)``.
@@ -51,9 +57,19 @@ class Dipole(Element):
         torch.Size([7, 7])
     """
 
-    param_names = ("length", "angle", "e1", "e2", "tilt")
+    param_names = (
+        "length",
+        "angle",
+        "e1",
+        "e2",
+        "tilt",
+        "hgap",
+        "hgapx",
+        "fint",
+        "fintx",
+    )
     reads_z = False
-    optional_params = ("e1", "e2", "tilt")
+    optional_params = ("e1", "e2", "tilt", "hgap", "hgapx", "fint", "fintx")
     nonnegative_params = (("length", "m"),)
 
     def __init__(
@@ -64,8 +80,23 @@ class Dipole(Element):
         e1: Tensor | float = 0.0,
         e2: Tensor | float = 0.0,
         tilt: Tensor | float = 0.0,
+        hgap: Tensor | float = 0.0,
+        hgapx: Tensor | float = 0.0,
+        fint: Tensor | float = 0.0,
+        fintx: Tensor | float = 0.0,
     ) -> None:
-        super().__init__(name, length=length, angle=angle, e1=e1, e2=e2, tilt=tilt)
+        super().__init__(
+            name,
+            length=length,
+            angle=angle,
+            e1=e1,
+            e2=e2,
+            tilt=tilt,
+            hgap=hgap,
+            hgapx=hgapx,
+            fint=fint,
+            fintx=fintx,
+        )
         bad = (self.length.detach() == 0) & (self.angle.detach() != 0)
         if bool(bad.any()):
             raise ValueError(f"{self.owner}: a non-zero angle needs a length > 0 m.")
@@ -75,11 +106,13 @@ class Dipole(Element):
         like = coords[0]
         length, angle = bcast(self.length, like), bcast(self.angle, like)
         g = _curvature(length, angle)
-        h1 = g * bcast(self.e1, like).tan()
-        h2 = g * bcast(self.e2, like).tan()
+        e1, e2 = bcast(self.e1, like), bcast(self.e2, like)
+        h1, h2 = g * e1.tan(), g * e2.tan()
+        v1 = _vertical_edge(g, e1, bcast(self.fint, like), bcast(self.hgap, like))
+        v2 = _vertical_edge(g, e2, bcast(self.fintx, like), bcast(self.hgapx, like))
         mu2 = (species.mass_ev / p0c).square().unsqueeze(-1)
         return self._in_element_frame(
-            coords, lambda c: _bend_body(c, g, length, angle, h1, h2, mu2)
+            coords, lambda c: _bend_body(c, g, length, angle, (h1, v1), (h2, v2), mu2)
         )
 
     def transfer_map(self, p0c: Tensor | float, species: Species = ELECTRON) -> Tensor:
@@ -87,7 +120,9 @@ class Dipole(Element):
 
         The reference particle stays on the axis (zero offset column).
         """
-        length, angle, e1, e2, tilt, p0c = self._map_params(p0c, *self.param_names)
+        length, angle, e1, e2, tilt, hgap, hgapx, fint, fintx, p0c = self._map_params(
+            p0c, *self.param_names
+        )
         g = _curvature(length, angle)
         mu2 = (species.mass_ev / p0c).square()
         c, s = angle.cos(), angle.sin()
@@ -110,7 +145,9 @@ class Dipole(Element):
         r[..., 4, 4] = 1.0
         r[..., 4, 5] = length * mu2 / (1.0 + mu2) - length * (1.0 - sinc)
         r[..., 5, 5] = 1.0
-        return lab_frame_map(_edge_map(g, e2) @ r @ _edge_map(g, e1), tilt)
+        entrance = _edge_map(g, e1, _vertical_edge(g, e1, fint, hgap))
+        exit_ = _edge_map(g, e2, _vertical_edge(g, e2, fintx, hgapx))
+        return lab_frame_map(exit_ @ r @ entrance, tilt)
 
     def linear_map_is_exact(self, monochromatic: bool) -> bool:
         """Only when it does not bend (a drift); the exact body has ``g x^2`` terms."""
@@ -122,11 +159,20 @@ def _curvature(length: Tensor, angle: Tensor) -> Tensor:
     return angle / length.where(length > 0, torch.ones_like(length))
 
 
-def _edge_map(g: Tensor, e: Tensor) -> Tensor:
-    """Affine map ``(*K, 7, 7)`` of a hard-edge pole face at angle ``e`` [rad]."""
+def _vertical_edge(g: Tensor, e: Tensor, fint: Tensor, hgap: Tensor) -> Tensor:
+    """Vertical edge focusing ``g tan(e - psi)`` [1/m] with Bmad's fringe ``psi``."""
+    psi = 2 * fint * hgap * g * (1 + e.sin().square()) / e.cos()
+    return g * (e - psi).tan()
+
+
+def _edge_map(g: Tensor, e: Tensor, v: Tensor) -> Tensor:
+    """Affine map ``(*K, 7, 7)`` of a pole face at angle ``e`` [rad].
+
+    ``v`` is the vertical focusing of :func:`_vertical_edge` [1/m].
+    """
     r = affine_identity(g.shape, g)
     r[..., 1, 0] = g * e.tan()
-    r[..., 3, 2] = -g * e.tan()
+    r[..., 3, 2] = -v
     return r
 
 
@@ -135,13 +181,17 @@ def _bend_body(
     g: Tensor,
     length: Tensor,
     angle: Tensor,
-    h1: Tensor,
-    h2: Tensor,
+    edge1: tuple[Tensor, Tensor],
+    edge2: tuple[Tensor, Tensor],
     mu2: Tensor,
 ) -> Coords:
-    """Bend-frame body: entrance face kick ``h1``, exact body, exit face ``h2``."""
+    """Bend-frame body: entrance face kicks, exact body, exit face kicks.
+
+    ``edge1``, ``edge2``: horizontal and vertical focusing ``(h, v)`` [1/m] of
+    the entrance and exit faces.
+    """
     x, px, y, py, z, pz = coords
-    px, py = px + h1 * x, py - h1 * y
+    px, py = px + edge1[0] * x, py - edge1[1] * y
 
     small = angle.abs() < _SMALL_ANGLE
     one = torch.ones_like(angle)
@@ -168,5 +218,5 @@ def _bend_body(
         z = None if zd is None else zd.where(small, z1)
         px = px.where(small, px1)
 
-    px, py = px + h2 * x, py - h2 * y
+    px, py = px + edge2[0] * x, py - edge2[1] * y
     return x, px, y, py, z, pz

@@ -1,0 +1,238 @@
+"""``diffaccel design``: what the scans determine, and which settings to add."""
+
+from __future__ import annotations
+
+import json
+import statistics
+from pathlib import Path
+
+import click
+import torch
+
+from diffaccel.data import FormatError
+from diffaccel.data.atomic import atomic_write
+from diffaccel.data.scans import read_scans
+from diffaccel.plotting.design import plot_expected_std, plot_spectrum
+from diffaccel.reconstruction import design as dz
+from diffaccel.reconstruction import load
+
+__all__ = ["design_command"]
+
+
+def _load(data: Path, result: Path | None) -> tuple[list, torch.Tensor, object]:
+    """Layouts, beam covariance and moment posterior (or None) of the inputs."""
+    posterior, rel = None, None
+    if data.suffix.lower() == ".json":
+        try:
+            spec = json.loads(data.read_text())
+        except (OSError, json.JSONDecodeError) as err:
+            raise click.ClickException(
+                f"{data}: not a readable JSON file ({err})"
+            ) from None
+        if not isinstance(spec, dict):
+            raise click.ClickException(f"{data}: expected a JSON object")
+        try:
+            layouts, cov = dz.layouts_from_spec(spec)
+        except ValueError as err:
+            raise click.ClickException(f"{data}: {err}") from None
+    else:
+        try:
+            ds = read_scans(data)
+        except (FormatError, OSError, ValueError) as err:
+            raise click.ClickException(f"{data}: {err}") from None
+        layouts = dz.layouts_from_dataset(ds)
+        cov = None
+        if result is None:
+            try:
+                cov = dz.beam_from_images(ds)
+            except ValueError as err:
+                raise click.ClickException(f"{data}: {err}") from None
+    if result is not None:
+        try:
+            rec = load(result)
+        except (FileNotFoundError, ValueError, OSError) as err:
+            raise click.ClickException(f"--result {result}: {err}") from None
+        unc = rec.uncertainty
+        if unc is None:
+            raise click.ClickException(
+                f"--result {result}: the reconstruction has no moment posterior "
+                "(run reconstruct without --no-uncertainty)"
+            )
+        cov = unc.cov.to(torch.float64).clone()
+        if unc.dims == 4:
+            for i in (4, 5):
+                cov[i, :] = 0.0
+                cov[:, i] = 0.0
+                cov[i, i] = dz.LONGITUDINAL_RMS[i - 4] ** 2
+        posterior = unc.theta_cov
+        scales = unc.diagnostics.get("error_scale_second_moments") or []
+        if scales:
+            rel = float(statistics.median(scales))
+    return layouts, cov, (posterior, rel)
+
+
+def _table(report: dict, obs: dict) -> list[str]:
+    lines = [obs["summary"]]
+    sv = obs["singular_values"]
+    lines.append(
+        "singular values (relative, smallest 4): "
+        + ", ".join(f"{v:.2g}" for v in sv[-4:])
+        + (
+            "; longitudinal block: "
+            + ", ".join(f"{v:.2g}" for v in obs["longitudinal_singular_values"][-3:])
+            if obs["longitudinal_singular_values"]
+            else ""
+        )
+    )
+    lines.append("determined: " + ", ".join(obs["determined"]))
+    lines.append("left to the prior: " + (", ".join(obs["left_to_prior"]) or "none"))
+    for u in obs["unseen"]:
+        moves = ", ".join(
+            f"{q} "
+            + " / ".join("n/a" if c is None else f"{100 * c:+.1f} %" for c in ch)
+            for q, ch in u["moves"].items()
+            if any(c is not None and abs(c) > 0.005 for c in ch)
+        )
+        lines.append(
+            f"  unseen: {u['words']} (singular value {u['singular_value']:.1e}); "
+            f"{u['pair']} partial correlation -0.6 / +0.6 moves: {moves or 'nothing'}"
+        )
+    if report is None:
+        return lines
+    targets = report["targets"]
+    base = report["baseline_std"]
+    lines.append(
+        "today's relative std: "
+        + ", ".join(f"{t} {100 * base[t]:.3g} %" for t in targets)
+    )
+    if not report["recommended"]:
+        lines.append("no candidate setting reduces the targets' std")
+    else:
+        head = f"{'#':>2}  {'scan':<14} {'images':>6}  " + "  ".join(
+            f"{t + ' std':>12}" for t in targets
+        )
+        lines += ["recommended added settings:", head]
+        for n, r in enumerate(report["recommended"], 1):
+            stds = "  ".join(f"{100 * r['expected_std'][t]:>10.3g} %" for t in targets)
+            lines.append(f"{n:>2}  {r['scan']:<14} {r['n_images']:>6}  {stds}")
+            lines.append("      " + ", ".join(r["names"]) + ":")
+            for v in r["values"]:
+                lines.append("        " + ", ".join(f"{x:g}" for x in v))
+    for e in report["excluded"]:
+        lines.append(f"excluded: {e}")
+    return lines
+
+
+@click.command("design")
+@click.argument("data", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option(
+    "--knob",
+    "knobs",
+    multiple=True,
+    metavar="ELEMENT.param=LOW:HIGH[:N]",
+    help="Candidate knob and the range the hardware allows (repeatable), e.g. "
+    "SCAN_TDC.voltage=-4e6:4e6 or SCAN_DIPOLE.angle=-0.40:-0.30; N grid values "
+    "(default 5).",
+)
+@click.option(
+    "--target",
+    "targets",
+    multiple=True,
+    help="Quantity whose posterior std the added settings reduce (repeatable; "
+    "default emit_z and emit_6d).",
+)
+@click.option(
+    "--result",
+    type=click.Path(exists=True, file_okay=False, path_type=Path),
+    default=None,
+    help="Result folder of reconstruct: use its beam and moment posterior "
+    "(default: the Gaussian fit of the images, or the spec's beam).",
+)
+@click.option(
+    "--relative-error",
+    type=click.FloatRange(min=1e-6, max=1.0),
+    default=None,
+    help="Relative error of each screen second moment [default: the result's "
+    "fitted error scale, else 0.01].",
+)
+@click.option(
+    "--max-images-per-scan",
+    type=click.IntRange(min=1),
+    default=8,
+    show_default=True,
+    help="Most added images per scan.",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
+@click.option(
+    "--plots",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=None,
+    help="Folder for the singular-value spectrum and the std-vs-images figure.",
+)
+def design_command(
+    data: Path,
+    knobs: tuple[str, ...],
+    targets: tuple[str, ...],
+    result: Path | None,
+    relative_error: float | None,
+    max_images_per_scan: int,
+    as_json: bool,
+    plots: Path | None,
+) -> None:
+    """What the scans in DATA determine and which settings to add.
+
+    DATA is a scan file (HDF5) or a JSON spec of planned scans (beamlines,
+    knob grids, a prior beam; docs/design.md). Without --knob: which second
+    moments and quantities the scans determine and which they leave to the
+    prior. With --knob: also the added settings, ranked by the reduction of
+    the targets' posterior std per image. No training.
+    """
+    layouts, cov, (posterior, rel) = _load(data, result)
+    r = relative_error or rel or dz.RELATIVE_ERROR
+    try:
+        parsed = [dz.parse_knob(k) for k in knobs]
+        obs = dz.observability(layouts, cov, relative_error=r, posterior=posterior)
+        report = None
+        if parsed:
+            report = dz.recommend(
+                layouts,
+                cov,
+                parsed,
+                targets=targets or dz.DEFAULT_TARGETS,
+                relative_error=r,
+                posterior=posterior,
+                max_images_per_scan=max_images_per_scan,
+            )
+    except ValueError as err:
+        raise click.ClickException(str(err)) from None
+    od = obs.to_dict()
+    if plots is not None:
+        plots.mkdir(parents=True, exist_ok=True)
+        figs = [("singular_values.png", plot_spectrum(od))]
+        if report is not None and report["recommended"]:
+            figs.append(("expected_std.png", plot_expected_std(report)))
+        for name, fig in figs:
+            try:
+                atomic_write(
+                    plots / name,
+                    lambda p, f=fig: f.savefig(p, format="png", dpi=120),
+                    overwrite=False,
+                )
+            except FileExistsError:
+                raise click.ClickException(
+                    f"--plots: {plots / name} exists; remove it or choose another "
+                    "folder"
+                ) from None
+    if as_json:
+        out = {
+            "unseen": (report or {}).get("unseen", od["unseen"]),
+            "recommended": [] if report is None else report["recommended"],
+            "observability": od,
+        }
+        if report is not None:
+            out["baseline_std"] = report["baseline_std"]
+            out["excluded"] = report["excluded"]
+        click.echo(json.dumps(out, indent=1))
+    else:
+        for line in _table(report, od):
+            click.echo(line)

@@ -1,0 +1,159 @@
+"""``diffaccel lattice``: read a lattice file through cheetah and list its elements."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+from typing import Any
+
+import click
+
+from diffaccel.cli.output import check_out_file
+from diffaccel.data.atomic import atomic_write_json
+from diffaccel.dynamics import Beamline
+from diffaccel.dynamics.cheetah_interop import LatticeImportError
+
+__all__ = ["lattice"]
+
+#: Units of element parameters, for the listing.
+UNITS = {
+    "length": "m",
+    "k1": "1/m^2",
+    "k2": "1/m^3",
+    "ks": "1/m",
+    "angle": "rad",
+    "e1": "rad",
+    "e2": "rad",
+    "tilt": "rad",
+    "dx": "m",
+    "dy": "m",
+    "voltage": "V",
+    "frequency": "Hz",
+    "phase": "rad",
+    "hgap": "m",
+    "hgapx": "m",
+    "fint": "",
+    "fintx": "",
+    "num_steps": "",
+}
+
+
+def _describe(entry: dict[str, Any]) -> str:
+    """``key = value unit`` for each parameter of a spec entry."""
+    parts = []
+    for key, value in entry.items():
+        if key in ("type", "name"):
+            continue
+        if key == "matrix":
+            parts.append("matrix = (7 x 7 affine map)")
+        elif key == "shape":
+            parts.append(f"shape = {value[0]} x {value[1]} px")
+        elif key in ("pixel_size", "center"):
+            parts.append(f"{key} = ({value[0]:.6g}, {value[1]:.6g}) m")
+        else:
+            unit = UNITS.get(key, "")
+            parts.append(f"{key} = {value:.10g}{' ' + unit if unit else ''}")
+    return ", ".join(parts)
+
+
+@click.command("lattice")
+@click.argument("file", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--start", default=None, help="First element to keep (by name).")
+@click.option("--end", default=None, help="Last element to keep (by name).")
+@click.option(
+    "--line",
+    default=None,
+    help="Beam line to use (default: the file's USE, else the last line defined).",
+)
+@click.option(
+    "--format",
+    "fmt",
+    type=click.Choice(["bmad", "elegant", "latticejson"]),
+    default=None,
+    help="Lattice format (default: by suffix: .bmad/.lat Bmad, .lte/.ele "
+    "elegant, .json cheetah LatticeJSON).",
+)
+@click.option(
+    "--screen",
+    "screens",
+    multiple=True,
+    help="Make this marker or monitor a screen (repeat for several).",
+)
+@click.option(
+    "--approximate",
+    type=click.Choice(["drift", "linear"]),
+    default=None,
+    is_flag=False,
+    flag_value="drift",
+    help="Replace elements diffaccel lacks by a drift of the same length "
+    "('--approximate' or '--approximate drift') or by their linear map "
+    "('--approximate linear', needs --p0c). Without it such elements are an error.",
+)
+@click.option(
+    "--p0c",
+    type=float,
+    default=None,
+    help="Reference momentum [eV] for linear maps (--approximate linear, EMATRIX).",
+)
+@click.option(
+    "--out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Write the beamline spec (JSON list of elements) here.",
+)
+@click.option("--force", is_flag=True, help="Overwrite --out if it exists.")
+def lattice(
+    file: Path,
+    start: str | None,
+    end: str | None,
+    line: str | None,
+    fmt: str | None,
+    screens: tuple[str, ...],
+    approximate: str | None,
+    p0c: float | None,
+    out: Path | None,
+    force: bool,
+) -> None:
+    """List a lattice FILE (Bmad, elegant, LatticeJSON) read through cheetah."""
+    if out is not None:
+        check_out_file(out, force, {"FILE": file})
+        if out.exists() and not force:
+            raise click.ClickException(
+                f"--out {out} exists; pass --force to overwrite it."
+            )
+    if p0c is not None and not p0c > 0:
+        raise click.ClickException(f"--p0c must be > 0 eV; got {p0c}.")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            beamline = Beamline.from_lattice(
+                file,
+                start,
+                end,
+                line=line,
+                fmt=fmt,
+                approximate=approximate,
+                p0c=p0c,
+                screens=screens,
+            )
+        except ImportError as err:
+            raise click.ClickException(str(err)) from None
+        except LatticeImportError as err:
+            raise click.ClickException(str(err)) from None
+    for w in caught:
+        click.echo(f"warning: {w.message}", err=True)
+    spec = beamline.to_spec()
+    width = max((len(e["name"]) for e in spec), default=4)
+    kinds = max((len(e["type"]) for e in spec), default=4)
+    s = 0.0
+    click.echo(f"{file}: {len(spec)} elements, {float(beamline.length):.6g} m")
+    click.echo(f"{'s [m]':>10}  {'name':<{width}}  {'type':<{kinds}}  parameters")
+    for entry in spec:
+        click.echo(
+            f"{s:10.6f}  {entry['name']:<{width}}  {entry['type']:<{kinds}}  "
+            f"{_describe(entry)}"
+        )
+        s += float(entry.get("length", 0.0))
+    if out is not None:
+        atomic_write_json(out, spec, overwrite=True)
+        click.echo(f"wrote {out}")

@@ -1,0 +1,109 @@
+"""Figures of the experiment design: singular-value spectrum and expected std."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+from matplotlib.figure import Figure
+
+__all__ = ["plot_expected_std", "plot_spectrum"]
+
+
+def plot_spectrum(observability: Mapping[str, Any]) -> Figure:
+    """Relative singular values of the moment design, the unseen directions named.
+
+    Args:
+        observability: ``Observability.to_dict()`` of
+            :func:`diffaccel.reconstruction.design.observability`.
+
+    Returns:
+        A figure: singular values (log scale, descending) with each unseen
+        direction's words at its bar, and the tolerance line.
+    """
+    sv = np.asarray(observability["singular_values"], dtype=float)
+    fig = Figure(figsize=(7.0, 3.6), layout="constrained")
+    ax = fig.add_subplot()
+    idx = np.arange(1, len(sv) + 1)
+    unseen = {
+        round(u["singular_value"], 15): u["words"] for u in observability["unseen"]
+    }
+    colors = ["C3" if round(v, 15) in unseen else "C0" for v in sv]
+    ax.bar(idx, np.maximum(sv, 1e-16), color=colors)
+    ax.set_yscale("log")
+    ax.set_xlabel("direction (descending singular value)")
+    ax.set_ylabel("singular value / largest")
+    notes = []
+    for i, v in zip(idx, sv, strict=True):
+        words = unseen.get(round(v, 15))
+        if words:
+            ax.annotate(
+                str(i),
+                (i, max(v, 1e-16)),
+                xytext=(0, 2),
+                textcoords="offset points",
+                ha="center",
+                va="bottom",
+                fontsize=8,
+            )
+            notes.append(f"{i}: {words} ({v:.1e})")
+    if notes:
+        ax.text(
+            0.02,
+            0.04,
+            "unseen:\n" + "\n".join(notes),
+            transform=ax.transAxes,
+            fontsize=8,
+            va="bottom",
+            ha="left",
+            bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "0.7"},
+        )
+    extra = observability.get("not_seen") or []
+    title = "moment design"
+    if extra:
+        title += f" ({', '.join(extra)} not seen at all)"
+    ax.set_title(title)
+    return fig
+
+
+def plot_expected_std(
+    report: Mapping[str, Any], names: list[str] | None = None
+) -> Figure:
+    """Expected relative std of each quantity against the number of added images.
+
+    Args:
+        report: :func:`diffaccel.reconstruction.design.recommend`'s result.
+        names: Quantities to draw (default: the targets and any other whose
+            std changes by more than 20 % of today's).
+
+    Returns:
+        A figure: one line per quantity, x the cumulative added images
+        (0: today's scans).
+    """
+    base = report["baseline_std"]
+    steps = report["recommended"]
+    n = np.cumsum([0] + [r["n_images"] for r in steps])
+    if names is None:
+        names = list(report["targets"])
+        for q in base:
+            if q in names or not steps:
+                continue
+            if abs(steps[-1]["all_std"][q] - base[q]) > 0.2 * max(base[q], 1e-12):
+                names.append(q)
+    fig = Figure(figsize=(6.0, 3.8), layout="constrained")
+    ax = fig.add_subplot()
+    for q in names:
+        ys = [base[q]] + [r["all_std"][q] for r in steps]
+        ax.plot(
+            n,
+            100 * np.asarray(ys),
+            marker="o",
+            lw=2 if q in report["targets"] else 1,
+            label=q,
+        )
+    ax.set_yscale("log")
+    ax.set_xlabel("added images")
+    ax.set_ylabel("expected relative std [%]")
+    ax.legend(fontsize=8, ncols=2)
+    return fig

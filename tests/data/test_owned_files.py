@@ -1,0 +1,75 @@
+from __future__ import annotations
+
+import errno
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from diffaccel.data import make_synthetic_quad_scan, write_quad_scan
+from diffaccel.data.atomic import os_condition
+from diffaccel.data.owned_files import mark_npz, save_npy, written_by_diffaccel
+
+
+def test_npy_and_npz_records_are_read_back(tmp_path: Path) -> None:
+    a = np.arange(12, dtype=np.float32).reshape(3, 4)
+    ours, theirs = tmp_path / "ours.npy", tmp_path / "theirs.npy"
+    with ours.open("wb") as f:
+        save_npy(f, a)
+    np.save(theirs, a)
+    assert np.array_equal(np.load(ours), a) and np.load(ours).dtype == np.float32
+    assert np.load(ours, mmap_mode="r").shape == (3, 4)
+    assert (len(ours.read_bytes()) - len(a.tobytes())) % 64 == 0  # aligned header
+    assert written_by_diffaccel(ours) and not written_by_diffaccel(theirs)
+    npz = tmp_path / "s.npz"
+    np.savez(npz, scan=a)
+    assert not written_by_diffaccel(npz)
+    mark_npz(npz)
+    assert written_by_diffaccel(npz)
+    with np.load(npz) as z:
+        assert z.files == ["scan"] and np.array_equal(z["scan"], a)
+
+
+def test_hdf5_and_csv_records(tmp_path: Path) -> None:
+    h5 = tmp_path / "scan.h5"
+    write_quad_scan(make_synthetic_quad_scan("gaussian", n_particles=200), h5)
+    assert written_by_diffaccel(h5)
+    with h5py.File(h5, "r+") as f:
+        assert str(f.attrs["written_by"]).startswith("diffaccel ")
+        del f.attrs["written_by"]
+    assert not written_by_diffaccel(h5)
+    csv = tmp_path / "p.csv"
+    csv.write_text("current_A,prediction,prediction_std\n1,2,3\n")
+    cols = ("prediction", "prediction_std")
+    assert written_by_diffaccel(csv, csv_columns=cols)
+    assert not written_by_diffaccel(csv, csv_columns=("other",))
+    assert not written_by_diffaccel(tmp_path / "missing.h5")
+    (tmp_path / "x.txt").write_text("mine")
+    assert not written_by_diffaccel(tmp_path / "x.txt")
+
+
+def test_os_conditions_are_named() -> None:
+    assert os_condition(OSError(errno.ENOSPC, "x")).startswith("no space left")
+    assert os_condition(OSError(errno.EROFS, "x")) == "read-only file system"
+    assert os_condition(PermissionError(errno.EACCES, "x")) == "permission denied"
+    locked = OSError("Unable to open file (unable to lock file, errno = 11)")
+    assert os_condition(locked).startswith("locked by another program")
+    wrapped = ValueError("writing failed")
+    wrapped.__cause__ = OSError(errno.ENOSPC, "x")
+    assert os_condition(wrapped).startswith("no space left")
+    assert os_condition(OSError(errno.ENOENT, "x")) is None
+
+
+def test_a_locked_file_is_not_taken_for_a_foreign_one(
+    tmp_path: Path, monkeypatch
+) -> None:
+    h5 = tmp_path / "scan.h5"
+    write_quad_scan(make_synthetic_quad_scan("gaussian", n_particles=200), h5)
+
+    def locked(*a, **kw):
+        raise OSError(errno.EAGAIN, "Unable to open file (unable to lock file)")
+
+    monkeypatch.setattr(h5py, "File", locked)
+    with pytest.raises(OSError, match="unable to lock"):
+        written_by_diffaccel(h5)

@@ -1,0 +1,119 @@
+"""The library's result-folder writer and resume policy."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from click.testing import CliRunner
+
+from diffaccel.cli import main
+from diffaccel.data import (
+    make_synthetic_quad_scan,
+    partial_folder,
+    read_scans,
+    result_folder,
+    write_quad_scan,
+)
+from diffaccel.reconstruction import (
+    ReconstructionConfig,
+    as_scans,
+    reconstruct,
+    training_selection,
+)
+from diffaccel.reconstruction.results import (
+    OWNED,
+    SELECTION,
+    ResumeError,
+    resume_checkpoint,
+    resume_config,
+    resume_selection,
+    store_selection,
+    write_result,
+)
+
+FAST = ["--particles", "512", "--steps", "6", "--snapshots", "2"]
+
+
+@pytest.fixture(scope="module")
+def scan_file(tmp_path_factory) -> Path:
+    ds = make_synthetic_quad_scan(
+        "gaussian",
+        n_particles=2000,
+        n_settings=6,
+        k1_range=(-8.0, 8.0),
+        screen_shape=(24, 24),
+        pixel_size=(1e-3, 1e-3),
+        seed=2,
+    )
+    path = tmp_path_factory.mktemp("scan") / "scan.h5"
+    write_quad_scan(ds, path)
+    return path
+
+
+def test_cli_and_library_write_byte_identical_summaries(
+    scan_file: Path, tmp_path: Path, monkeypatch
+) -> None:
+    # a frozen clock: the wall times are the only numbers that differ by run
+    monkeypatch.setattr(time, "perf_counter", lambda: 0.0)
+    cli_out = tmp_path / "cli"
+    args = ["reconstruct", str(scan_file), "--out", str(cli_out), "--no-figures"]
+    r = CliRunner().invoke(main, [*args, "--train-indices", "even", *FAST])
+    assert r.exit_code == 0, r.output
+    ds = as_scans(read_scans(scan_file))
+    selection = training_selection(ds, "even")
+    config = ReconstructionConfig(n_particles=512, steps=6, snapshots=2)
+    lib_out = tmp_path / "lib"
+    with result_folder(lib_out, command="reconstruct", owned=OWNED) as folder:
+        result = reconstruct(ds, config, train_indices=selection, device="cpu")
+        summary = write_result(
+            result, ds, folder.path, dataset_path=scan_file, train_indices=selection
+        )
+    want = (cli_out / "summary.json").read_bytes()
+    assert (lib_out / "summary.json").read_bytes() == want
+    assert summary["train_indices"] == [0, 2, 4]
+    assert {p.name for p in lib_out.iterdir()} == {
+        ".diffaccel-result",
+        "ensemble.pt",
+        "particles.h5",
+        "report.md",
+        "summary.json",
+    }
+
+
+def test_resume_policy_refuses_other_settings_and_options(
+    scan_file: Path, tmp_path: Path
+) -> None:
+    ds = as_scans(read_scans(scan_file))
+    even, odd = training_selection(ds, "even"), training_selection(ds, "odd")
+    store_selection(tmp_path, even)
+    assert json.loads((tmp_path / SELECTION).read_text()) == {
+        "train_indices": {"scan": [0, 2, 4]}
+    }
+    assert resume_selection(tmp_path, ds, odd, given=False) == even
+    with pytest.raises(ResumeError, match="trained on other settings"):
+        resume_selection(tmp_path, ds, odd, given=True)
+    # a run without the file resumes with what is given
+    assert resume_selection(tmp_path / "none", ds, odd, given=True) == odd
+    stored = ReconstructionConfig(steps=6, snapshots=2)
+    asked = ReconstructionConfig(steps=8, snapshots=2)
+    assert resume_config(stored, asked, given=set()) is stored
+    with pytest.raises(ResumeError, match=r"--steps 8 \(checkpoint: 6\)"):
+        resume_config(stored, asked, given={"--steps"})
+
+
+def test_resume_checkpoint_prefers_the_staging_folder(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    with pytest.raises(ResumeError, match="run without --resume"):
+        resume_checkpoint(out)
+    partial_folder(out).mkdir()
+    with pytest.raises(ResumeError, match="--force instead of --resume"):
+        resume_checkpoint(out)
+    out.mkdir()
+    torch.save({}, out / "checkpoint.pt")
+    assert resume_checkpoint(out) == out / "checkpoint.pt"
+    torch.save({}, partial_folder(out) / "checkpoint.pt")
+    assert resume_checkpoint(out) == partial_folder(out) / "checkpoint.pt"
