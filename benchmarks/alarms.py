@@ -6,8 +6,8 @@ with KDE, cloud-in-cell or histogram images, Poisson noise of 0-3 % at the peak;
 two and three scans of one beam on other drifts) and bad ones, one per alarm
 pattern (a scan's quadrupole length doubled in its file, a scan's images a
 copy of another's, a screen that cuts the beam, a 4D fit of the AWA 6D layout
-with its cavity and dipole, a pedestal of 10 % of the peak left in the images, a
-mislabelled
+with its cavity and dipole, a pedestal of 10 % of the peak left in the images, settings
+twice their true scale, a mislabelled
 setting, a scan of three with a wrong pixel size). Prints one line per case
 and JSON on its last line: ``false_alarm_rate`` over the good fits (any
 alarm), ``detection_rate`` over the bad ones (the expected alarm raised), and
@@ -140,6 +140,16 @@ def bad_cases() -> list[tuple[str, str, MultiScanDataset]]:
             "pedestal",
             "moment_miss",
             MultiScanDataset.from_scan(dataclasses.replace(scan, images=images)),
+        )
+    )
+    scaled = single("nonlinear", 406)["scan"]
+    cases.append(
+        (
+            "k1_scale_wrong",
+            "moment_miss",
+            MultiScanDataset.from_scan(
+                dataclasses.replace(scaled, settings=2.0 * scaled.settings)
+            ),
         )
     )
     swap = single("correlated", 404)["scan"]

@@ -401,6 +401,10 @@ def fit_signals(fits: Sequence[ScanFit], cov: Tensor, dims: int) -> dict[str, An
     allm = torch.cat(misses)
     out["moment_residual"] = float(allm.square().mean().sqrt())
     out["halo_excess"] = max(s["halo_excess"] for s in out["scans"].values())
+    l1 = [v for s in out["scans"].values() for v in s["image_l1"]]
+    med = float(torch.tensor(l1).median())
+    out["image_l1_worst"] = max(l1)
+    out["image_l1_worst_ratio"] = max(l1) / max(med, 1e-12)
     one = _fit_residual(designs, residuals, scales, cov, dims)
     own = [
         _fit_residual([d], [r], [s], cov, dims)[0]
