@@ -212,11 +212,15 @@ def as_real_tensor(
         raise ValueError(_not_real(name, type(value).__name__))
     if not isinstance(value, Tensor):
         try:
-            value = torch.as_tensor(value)
+            probe = torch.as_tensor(value)  # its dtype says bool or complex
+            if not (probe.is_complex() or probe.dtype == torch.bool):
+                # straight to ``dtype``: Python floats are exact in float64
+                probe = torch.as_tensor(value, dtype=dtype, device=device)
         except (TypeError, ValueError, RuntimeError) as err:
             raise ValueError(
                 f"{name} must be real numbers; got {type(value).__name__} ({err})."
             ) from None
+        value = probe
     if value.is_complex() or value.dtype == torch.bool:
         raise ValueError(_not_real(name, str(value.dtype)))
     if dtype is None and device is None:

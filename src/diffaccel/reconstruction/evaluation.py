@@ -271,12 +271,18 @@ def evaluate(
         4D: empty), ``moment_polish`` (6D: each member's
         :class:`~diffaccel.reconstruction.moment_polish.PolishReport`; empty
         where none ran), notes,
-        ``config``, ``snapshots``, ``timings_s`` and ``warnings`` (a list of
-        sentences; one when a scan's training images or all of them together
-        have a relative L1 above :data:`POOR_FIT_RELATIVE_L1`: the
-        reconstruction does not reproduce its own data, and its moments are
-        not a measurement; one per scan whose predicted beam mostly misses
-        the screen at some of its settings, training or held out, from
+        ``config``, ``snapshots``, ``timings_s``, ``fit_quality`` (the
+        signals of :func:`~diffaccel.reconstruction.alarms.fit_signals`),
+        ``fit_alarms`` (each :class:`~diffaccel.reconstruction.alarms.FitAlarm`
+        as a dict) and ``warnings`` (a list of sentences; one when a scan's
+        training images or all of them together have a relative L1 above
+        :data:`POOR_FIT_RELATIVE_L1`: the reconstruction does not reproduce
+        its own data, and its moments are not a measurement, its causes
+        ordered by the other signals; one per fit-quality alarm (moments
+        missed, scans that disagree, an image or scan that stands out, a beam
+        cut by a screen edge, a 4D result through elements that read z or
+        pz); one per scan whose predicted beam mostly misses the screen at
+        some of its settings, training or held out, from
         :func:`off_screen_warnings`); for a single scan also
         ``train_indices``/``held_out_indices`` at the top level.
     """
