@@ -43,7 +43,7 @@ benchmark files fitted with the defaults (4D: ``gpsr_4d_synthetic.h5``,
   6D file 0.28 % (the moment polish leaves 0.05 %), the GPSR 4D file 3.1 %,
   the AWA measurement 13.7 % (its images are thresholded: their tails are
   cut, the fit's are not); a mislabelled setting 26 %, settings shuffled
-  against their images, a 4D fit through a cavity 22 %.
+  against their images 44 %, a 4D fit through a cavity 22 %.
 - :data:`MOMENT_MISS` (left after the best linear change of the beam): good
   fits at most 1.1 %, the shared files at most 4.5 % (AWA); the bad fits above
   22-29 %.
@@ -51,7 +51,10 @@ benchmark files fitted with the defaults (4D: ``gpsr_4d_synthetic.h5``,
   beam per scan on the two- and three-scan good fits 0.86-1.14 (the shared 6D
   file 0.97), with at most 1.1 % left; a scan's quadrupole length doubled,
   a copy of another scan's images, one of three scans with a 40 % wrong pixel
-  size, a 4D fit of a cavity and dipole layout: 30-180x, 8.8-27 % left.
+  size, a 4D fit of a cavity and dipole layout: 30-180x, 8.8-27 % left. On
+  the shared 6D file (120 steps, 4096 particles): the dipole-on scan's
+  quadrupole doubled 14x (40 % left), its images a copy of the dipole-off
+  scan's 2.4x (17 % left).
 - :data:`OUTLIER_RATIO` and :data:`OUTLIER_L1`: the worst training image of a
   good fit is at most 3.1x the median (relative L1 at most 0.15, the shared 6D
   file 1.6x); an image recorded at another setting 6.1x (L1 0.70).
@@ -115,7 +118,7 @@ MOMENT_MISS = 0.08
 MOMENT_MISS_RAW = 0.2
 #: One beam's moment residual over one change per scan's, above which (with
 #: :data:`INCONSISTENT_LEVEL`) the scans are reported as disagreeing.
-INCONSISTENT_RATIO = 2.5
+INCONSISTENT_RATIO = 2.0
 #: One beam's moment residual (rms, relative) needed for that report.
 INCONSISTENT_LEVEL = 0.06
 #: A training image's relative L1 over the median of the others above which
@@ -517,6 +520,8 @@ def fit_alarms(
         per = ", ".join(
             f"{n!r} {100 * scans[n]['moment_residual']:.1f} %" for n in names
         )
+        if len(names) >= 2 and one is not None and one > 1.5 * max(own, 1e-12):
+            first += _INCONSISTENT[:2]  # one beam fits the scans worse than each
         rest = _UNDERFIT + _NO_BEAM if reachable and not first else _NO_BEAM + _UNDERFIT
         alarms.append(
             FitAlarm(
