@@ -19,8 +19,8 @@ the good fits (any warning), ``detection_rate`` over the bad ones (the
 expected alarm raised), ``limits`` (what the two limit cases raised), and
 each case's signals (see :mod:`diffaccel.reconstruction.alarms`).
 
-Run: ``OMP_NUM_THREADS=1 python benchmarks/alarms.py`` (about 10 minutes on
-one free core); ``--quick`` runs 7 good and every bad case.
+Run: ``OMP_NUM_THREADS=1 python benchmarks/alarms.py`` (221 s on a shared
+2-core machine); ``--quick`` runs 7 good and every bad case.
 """
 
 from __future__ import annotations
