@@ -10,6 +10,7 @@ import torch
 
 from diffaccel.data import FormatError, make_synthetic_quad_scan
 from diffaccel.dynamics import (
+    Beamline,
     bmad_to_openpmd,
     emittance,
     emittance_4d,
@@ -114,3 +115,26 @@ def test_float16_and_float64_images_within_float32_are_kept(scan) -> None:
     images[0, 0, 0, 0] = 1e-42
     ds = dataclasses.replace(scan, images=images)
     assert float(ds.images[0, 0, 0, 0]) == 0.0
+
+
+def test_half_precision_particles_are_tracked_in_float32() -> None:
+    spec = [
+        {
+            "type": "TransverseDeflectingCavity",
+            "name": "T",
+            "length": 0.2,
+            "voltage": 4e6,
+            "frequency": 1.3e9,
+            "phase": 0.0,
+            "tilt": 0.0,
+        },
+        {"type": "Drift", "name": "D", "length": 1.0},
+        {"type": "Screen", "name": "S"},
+    ]
+    line = Beamline.from_spec(spec)
+    half = _beam(torch.float16)[:2000]
+    out = line.track(half, p0c=43e6)
+    assert out.dtype == torch.float32
+    # the same numbers tracked in float64 (float16 p0c was inf)
+    ref = line.track(half.double(), p0c=43e6)
+    torch.testing.assert_close(out.double(), ref, rtol=1e-5, atol=1e-9)

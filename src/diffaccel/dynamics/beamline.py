@@ -14,6 +14,7 @@ from diffaccel.dynamics._validate import (
     as_p0c,
     broadcast_shapes,
     check_particles,
+    compute_dtype,
     finite_checks_enabled,
 )
 from diffaccel.dynamics.elements._kernels import stack_columns
@@ -359,6 +360,7 @@ class Beamline(nn.Module):
         :meth:`Screen.image`. Every screen needs a geometry.
         """
         check_particles(particles)
+        particles = particles.to(compute_dtype(particles))  # float16: p0c overflows
         p0c = as_p0c(p0c, particles)
         line = self._scanned(settings, names, particles)
         return line.images_of_columns(
@@ -447,6 +449,7 @@ class Beamline(nn.Module):
         species: Species,
     ) -> tuple[Tensor, dict[str, Tensor]]:
         check_particles(particles)
+        particles = particles.to(compute_dtype(particles))  # float16: p0c overflows
         p0c = as_p0c(p0c, particles)
         line = self._scanned(settings, names, particles)
         screens: dict[str, Tensor] = {}
