@@ -98,7 +98,8 @@ class Beamline(nn.Module):
 
     Shapes:
         ``track``: particles ``(N, 6)`` or ``(*K, N, 6)`` and settings ``(*K, P)``
-        -> ``(*K, N, 6)``.
+        -> ``(*K, N, 6)``, in the particles' dtype; half-precision particles
+        (float16, bfloat16) are tracked in float32 and returned as float32.
 
     Example:
         >>> spec = [
