@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from diffaccel.data.quad_scan import check_setting_limits
-from diffaccel.dynamics import as_p0c, check_particles
+from diffaccel.dynamics import as_p0c, as_real_tensor, check_particles
 from diffaccel.dynamics.beamline import Beamline
 from diffaccel.dynamics.elements.element import Coords
 from diffaccel.dynamics.elements.screen import Screen
@@ -144,7 +144,7 @@ class ScreenForwardModel:
             ValueError: for a wrong shape, non-finite values or values beyond
                 :data:`~diffaccel.data.quad_scan.PARAMETER_LIMITS`.
         """
-        s = torch.as_tensor(settings, dtype=torch.float64)
+        s = as_real_tensor(settings, "settings", dtype=torch.float64)
         if s.ndim == 1 and len(self.names) == 1:
             s = s[:, None]
         if s.ndim != 2 or s.shape[1] != len(self.names):
