@@ -182,3 +182,30 @@ def test_each_image_is_smoothed_by_its_own_size():
         want = image_rms_pixels(ms[k : k + 1].double())[0]
         got = image_rms_pixels(sim.double())[0]
         assert got.tolist() == pytest.approx(want.tolist(), rel=0.01)
+
+
+def test_images_finer_than_the_sample_resolves_are_warned():
+    from diffaccel.data.synthetic import make_synthetic_quad_scan
+    from diffaccel.reconstruction.evaluation import resolution_warnings
+    from diffaccel.reconstruction.pipeline import as_scans
+
+    g = torch.Generator().manual_seed(6)
+    truth = sample_preset_beam("gaussian", 50_000, g)
+    truth[:, :4] *= 0.5
+    scans = {}
+    for pixels in (64, 320):
+        ds = make_synthetic_quad_scan(
+            particles=truth,
+            n_settings=5,
+            k1_range=(-20.0, 20.0),
+            screen_shape=(pixels, pixels),
+            pixel_size=(SCREEN_M / pixels,) * 2,
+            image_method="histogram",
+        )
+        scans[pixels] = as_scans(ds)
+    default = ReconstructionConfig(dims=4)
+    assert resolution_warnings(default, scans[64], {}) == []
+    [line] = resolution_warnings(default, scans[320], {})
+    assert "--loss-smoothing auto" in line and "6144 particles" in line
+    auto = ReconstructionConfig(dims=4, loss_smoothing="auto")
+    assert resolution_warnings(auto, scans[320], {}) == []

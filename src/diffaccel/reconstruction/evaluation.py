@@ -40,6 +40,7 @@ from diffaccel.reconstruction.metrics import (
 )
 from diffaccel.reconstruction.pipeline import as_scans
 from diffaccel.reconstruction.prior_dependence import prior_dependence
+from diffaccel.reconstruction.training import ReconstructionConfig, sampling_smoothing
 
 __all__ = [
     "LOW_ON_SCREEN_FRACTION",
@@ -380,6 +381,7 @@ def evaluate(
         _poor_fit_warnings(per_scan, metrics, alarms)
         + [a.text() for a in alarms]
         + screen_warnings
+        + resolution_warnings(result.config, scans, selected)
     )
     dependence: list[dict] = []
     if result.config.dims == 6:
@@ -437,6 +439,41 @@ def _signal_summary(signals: Mapping[str, Any]) -> dict[str, Any]:
         }
         for name, s in signals.get("scans", {}).items()
     }
+    return out
+
+
+#: Sampling bandwidth [camera pixels] of the training sample
+#: (:func:`~diffaccel.reconstruction.training.sampling_smoothing`) above which
+#: images compared pixel by pixel are dominated by the sample's noise:
+#: ``benchmarks/resolution.py`` measured the emittances 30-300 % high at a
+#: bandwidth of 8-13 pixels with the default comparison, within 3 % with
+#: ``loss_smoothing="auto"``.
+SPARSE_SAMPLE_PIXELS = 4.0
+
+
+def resolution_warnings(
+    config: ReconstructionConfig,
+    scans: MultiScanDataset,
+    train: Mapping[str, Sequence[int]],
+) -> list[str]:
+    """One sentence per scan whose training images are finer than the training
+    sample resolves (bandwidth above :data:`SPARSE_SAMPLE_PIXELS` and twice the
+    loss smoothing used); none with ``loss_smoothing="auto"``."""
+    if config.loss_smoothing == "auto":
+        return []
+    out = []
+    for name, scan in scans:
+        rows = list(train.get(name, [])) or list(range(scan.n_settings))
+        images = scan.mean_images()[rows]
+        h = float(sampling_smoothing(images, config.n_particles).max())
+        if h > SPARSE_SAMPLE_PIXELS and h > 2.0 * float(config.loss_smoothing):
+            out.append(
+                f"scan {name!r}: {config.n_particles} particles per step resolve "
+                f"its images only to about {h:.1f} camera pixels, and images "
+                "compared pixel by pixel at that sampling over-estimate the "
+                "emittances; rerun with --loss-smoothing auto (compares them at "
+                "the resolution the sample supports) or with more --particles"
+            )
     return out
 
 
