@@ -5,7 +5,8 @@ A 4D quadrupole scan (Quadrupole 0.1 m + Drift 1 m, 11 settings k1 = -20 ... 20
 2.5 times wider; the halo holds about 45 % of the beam's variance) is imaged on
 a 20.48 mm square screen as histograms of 200 000 particles (shot noise of a
 camera counting that many electrons), at several pixel counts per axis, and
-reconstructed with the default settings at several numbers of training
+reconstructed with the default settings, except the loss smoothing
+(``--loss-smoothing``, default ``auto``), at several numbers of training
 particles per step. Each cell reports the normalised x and y emittance errors
 against the truth and their reported std.
 
@@ -50,7 +51,9 @@ def emittance(p: torch.Tensor, i: int) -> float:
     return float(torch.linalg.det(c).sqrt())
 
 
-def cell(truth: torch.Tensor, pixels: int, n_particles: int, seed: int) -> dict:
+def cell(
+    truth: torch.Tensor, pixels: int, n_particles: int, seed: int, smoothing: object
+) -> dict:
     """Reconstruct the scan imaged on ``pixels`` x ``pixels`` at ``n_particles``."""
     ds = make_synthetic_quad_scan(
         particles=truth,
@@ -61,7 +64,9 @@ def cell(truth: torch.Tensor, pixels: int, n_particles: int, seed: int) -> dict:
         image_method="histogram",
         seed=seed,
     )
-    config = ReconstructionConfig(dims=4, n_particles=n_particles, seed=seed)
+    config = ReconstructionConfig(
+        dims=4, n_particles=n_particles, seed=seed, loss_smoothing=smoothing
+    )
     t0 = time.perf_counter()
     rec = reconstruct(ds, config)
     seconds = time.perf_counter() - t0
@@ -84,20 +89,30 @@ def main() -> None:
         "--particles", type=int, nargs="+", default=[6144, 16384, 65536]
     )
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--loss-smoothing",
+        default="auto",
+        help="'auto' (sized by the data) or a number of pixels; 'default' for the "
+        "dims default",
+    )
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     truth = halo_beam()
+    smoothing = {"auto": "auto", "default": None}.get(args.loss_smoothing)
+    if smoothing is None and args.loss_smoothing != "default":
+        smoothing = float(args.loss_smoothing)
     grid = []
     for pixels in args.pixels:
         for n in args.particles:
-            grid.append(cell(truth, pixels, n, args.seed))
+            grid.append(cell(truth, pixels, n, args.seed, smoothing))
             print(grid[-1], flush=True)
     worst = max(max(abs(c["emit_x_rel_err"]), abs(c["emit_y_rel_err"])) for c in grid)
     emit(
         {
             "max_abs_emit_rel_err": worst,
+            "loss_smoothing": args.loss_smoothing,
             "grid": grid,
             "command": "python benchmarks/resolution.py",
             "machine": f"{platform.machine()} {torch.get_num_threads()} threads",

@@ -874,7 +874,9 @@ def test_reconstruct_warns_when_the_fit_misses_its_training_images(
     assert r.exit_code == 0, r.output
     s = json.loads((out / "summary.json").read_text())
     assert s["metrics"]["images_train"]["relative_l1"] > 0.5
-    fit, screen = s["warnings"]
+    # (the fit-quality alarms add their own warnings: moments missed...)
+    (fit,) = [w for w in s["warnings"] if "does not reproduce" in w]
+    (screen,) = [w for w in s["warnings"] if "only part of the predicted" in w]
     assert "does not reproduce its training images" in fit
     # settings 200x too strong also throw the reconstructed beam off the screen
     assert "only part of the predicted beam lands on the screen at 6 of 6" in screen

@@ -24,7 +24,7 @@ from diffaccel.reconstruction.training import (
 SCREEN_M = 20.48e-3
 
 
-def _forward(pixels: int) -> ScreenForwardModel:
+def _forward(pixels: int, blur: float = 1.0) -> ScreenForwardModel:
     size = SCREEN_M / pixels
     line = Beamline(
         [
@@ -33,7 +33,7 @@ def _forward(pixels: int) -> ScreenForwardModel:
             Screen("SCREEN", shape=(pixels, pixels), pixel_size=(size, size)),
         ]
     )
-    return ScreenForwardModel(line, ["Q1.k1"], 43.36e6, blur_pixels=1.0)
+    return ScreenForwardModel(line, ["Q1.k1"], 43.36e6, blur_pixels=blur)
 
 
 def _gaussian_image(pixels: int, sigma_m: float) -> torch.Tensor:
@@ -49,15 +49,17 @@ def test_smoothing_is_fixed_in_metres_and_follows_the_sample_size():
     widths = []
     for pixels in (64, 320):
         im = _gaussian_image(pixels, 1.5e-3)
-        widths.append(sampling_smoothing(im, 4096) * SCREEN_M / pixels)
-    assert widths[1] == pytest.approx(widths[0], rel=0.02)
-    assert widths[0] == pytest.approx(1.5e-3 * 4096 ** (-1 / 6), rel=0.02)
+        widths.append(sampling_smoothing(im, 4096)[0] * SCREEN_M / pixels)
+    assert widths[1].tolist() == pytest.approx(widths[0].tolist(), rel=0.02)
+    assert widths[0].tolist() == pytest.approx(
+        [1.5e-3 * 4096 ** (-1 / 6)] * 2, rel=0.02
+    )
     im = _gaussian_image(64, 1.5e-3)
     ratio = sampling_smoothing(im, 4096 * 64) / sampling_smoothing(im, 4096)
-    assert ratio == pytest.approx(0.5, rel=1e-6)
-    assert sampling_smoothing(im, 4096, floor=3.0) == pytest.approx(
-        math.hypot(3.0, sampling_smoothing(im, 4096)), rel=1e-9
-    )
+    assert ratio[0].tolist() == pytest.approx([0.5, 0.5], rel=1e-6)
+    plain = sampling_smoothing(im, 4096)[0, 0].item()
+    floored = sampling_smoothing(im, 4096, floor=3.0)[0, 0].item()
+    assert floored == pytest.approx(math.hypot(3.0, plain), rel=1e-9)
 
 
 def test_image_rms_ignores_negative_noise():
@@ -65,16 +67,21 @@ def test_image_rms_ignores_negative_noise():
     im[0, 4, 2] = im[0, 4, 6] = 0.5
     noisy = im.clone()
     noisy[0, 0, 0] = -0.2
-    assert image_rms_pixels(noisy) == pytest.approx(2.0)
+    assert image_rms_pixels(noisy).tolist() == [[2.0, 0.0]]
 
 
 def test_loss_smoothing_given_or_sized_by_the_data():
     im = _gaussian_image(64, 1.5e-3)
     assert loss_smoothing_for(ReconstructionConfig(loss_smoothing=0.5), [im]) == [0.5]
-    auto = loss_smoothing_for(ReconstructionConfig(dims=4, n_particles=4096), [im])
-    assert auto == [pytest.approx(sampling_smoothing(im, 4096))]
-    six = loss_smoothing_for(ReconstructionConfig(dims=6, n_particles=4096), [im])
-    assert six == [pytest.approx(math.hypot(1.0, sampling_smoothing(im, 4096)))]
+    assert loss_smoothing_for(ReconstructionConfig(dims=4), [im]) == [0.0]
+    assert loss_smoothing_for(ReconstructionConfig(dims=6), [im]) == [1.0]
+    auto4 = ReconstructionConfig(dims=4, n_particles=4096, loss_smoothing="auto")
+    [auto] = loss_smoothing_for(auto4, [im])
+    assert auto == pytest.approx(float(sampling_smoothing(im, 4096).max()))
+    auto6 = ReconstructionConfig(dims=6, n_particles=4096, loss_smoothing="auto")
+    assert loss_smoothing_for(auto6, [im]) == [pytest.approx(math.hypot(1.0, auto))]
+    with pytest.raises(ValueError, match="loss_smoothing"):
+        ReconstructionConfig(loss_smoothing="fine")
 
 
 def test_pool_images_keeps_mass_and_centroid():
@@ -128,7 +135,9 @@ def _fit(pixels: int) -> tuple[float, float]:
         pixel_size=(SCREEN_M / pixels,) * 2,
         image_method="histogram",
     )
-    config = ReconstructionConfig(dims=4, n_particles=2048, steps=150, snapshots=3)
+    config = ReconstructionConfig(
+        dims=4, n_particles=2048, steps=150, snapshots=3, loss_smoothing="auto"
+    )
     m = reconstruct(ds, config, uncertainty=False).moments(20_000)
     true = [
         float(torch.linalg.det(torch.cov(truth[:, i : i + 2].T)).sqrt()) for i in (0, 2)
@@ -137,11 +146,66 @@ def _fit(pixels: int) -> tuple[float, float]:
 
 
 def test_same_beam_at_two_resolutions_gives_the_same_emittance():
-    """64 and 320 pixels per axis, 2048 particles per step: without the
-    data-sized smoothing (``loss_smoothing=0``) the same fits give +8 % at 64
+    """64 and 320 pixels per axis, 2048 particles per step, ``loss_smoothing=
+    "auto"``: without it (``loss_smoothing=0``) the same fits give +8 % at 64
     pixels and +22 to +150 % at 320."""
     coarse = _fit(64)
     fine = _fit(320)
     for c, f in zip(coarse, fine, strict=True):
         assert abs(f) < 0.04 and abs(c) < 0.04
         assert f == pytest.approx(c, abs=0.03)
+
+
+def test_each_image_is_smoothed_by_its_own_size():
+    """A waist image and a wide one of the same scan get smoothings in
+    proportion to their own rms sizes, per axis, and the simulated images get
+    the same smoothing as the measured ones, image by image."""
+    fwd = _forward(200, math.sqrt(1 / 6))  # the measured images: bare CIC
+    sizes = (2.0e-3, 0.3e-3)
+    measured = torch.cat([_gaussian_image(200, sc) for sc in sizes])
+    sigma = sampling_smoothing(measured, 4096)
+    assert (sigma[0] / sigma[1]).tolist() == pytest.approx([2.0 / 0.3] * 2, rel=0.02)
+    [fs], [ms] = smoothed_for_loss([fwd], [measured], [sigma])
+    assert fs.screen.shape == (200, 200)  # the narrow image keeps the camera pixels
+    g = torch.Generator().manual_seed(5)
+    unit = torch.zeros(200_000, 6)
+    unit[:, [0, 2]] = torch.randn(200_000, 2, generator=g)
+    for k, sc in enumerate(sizes):
+        one = ScreenForwardModel(
+            fs.beamline,
+            fs.names,
+            fs.p0c,
+            blur_pixels=fs.blur_pixels,
+            image_smoothing=sigma[k : k + 1],
+        )
+        sim = one.images(unit * torch.tensor([sc, 1, sc, 1, 1, 1]), torch.zeros(1, 1))
+        want = image_rms_pixels(ms[k : k + 1].double())[0]
+        got = image_rms_pixels(sim.double())[0]
+        assert got.tolist() == pytest.approx(want.tolist(), rel=0.01)
+
+
+def test_images_finer_than_the_sample_resolves_are_warned():
+    from diffaccel.data.synthetic import make_synthetic_quad_scan
+    from diffaccel.reconstruction.evaluation import resolution_warnings
+    from diffaccel.reconstruction.pipeline import as_scans
+
+    g = torch.Generator().manual_seed(6)
+    truth = sample_preset_beam("gaussian", 50_000, g)
+    truth[:, :4] *= 0.5
+    scans = {}
+    for pixels in (64, 320):
+        ds = make_synthetic_quad_scan(
+            particles=truth,
+            n_settings=5,
+            k1_range=(-20.0, 20.0),
+            screen_shape=(pixels, pixels),
+            pixel_size=(SCREEN_M / pixels,) * 2,
+            image_method="histogram",
+        )
+        scans[pixels] = as_scans(ds)
+    default = ReconstructionConfig(dims=4)
+    assert resolution_warnings(default, scans[64], {}) == []
+    [line] = resolution_warnings(default, scans[320], {})
+    assert "--loss-smoothing auto" in line and "6144 particles" in line
+    auto = ReconstructionConfig(dims=4, loss_smoothing="auto")
+    assert resolution_warnings(auto, scans[320], {}) == []

@@ -20,6 +20,7 @@ from diffaccel.reconstruction import (
     predict_dataset,
     predicted_dataset,
 )
+from diffaccel.reconstruction.alarms import prediction_alarms
 
 __all__ = ["parse_settings", "predict"]
 
@@ -198,6 +199,7 @@ def predict(
                     on_screen[name], scan.settings, scan.setting_names, scan=name
                 )
             ]
+            warnings += [a.text() for a in prediction_alarms(result, other)]
         else:
             fwd = result.forward
             settings = parse_settings(settings_text, fwd.names)
@@ -219,6 +221,7 @@ def predict(
             warnings = off_screen_warnings(
                 fraction, settings, fwd.names, scan=result.scan_names[0]
             )
+            warnings += [a.text() for a in prediction_alarms(result, None, settings)]
     except (FormatError, ValueError, FileNotFoundError, OSError) as err:
         raise click.ClickException(str(err)) from err
     # every refusal before the first file or folder is made

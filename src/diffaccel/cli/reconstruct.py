@@ -132,9 +132,23 @@ PARAMETER_FLAGS = {
     "seed": "--seed",
     "image_loss": "--image-loss",
     "blur": "--blur",
+    "loss_smoothing": "--loss-smoothing",
     "uncoupled": "--uncoupled",
     "probe": "--probe",
 }
+
+
+def _loss_smoothing(value: str | None) -> float | str | None:
+    """``--loss-smoothing`` as the config takes it (one-line error otherwise)."""
+    if value is None or value == "auto":
+        return value
+    try:
+        return float(value)
+    except ValueError:
+        raise click.BadParameter(
+            f"expected a number of pixels or 'auto'; got {value!r}.",
+            param_hint="--loss-smoothing",
+        ) from None
 
 
 def check_device(device: str) -> torch.device:
@@ -334,13 +348,23 @@ def run_reconstruction(
     "for --dims 6].",
 )
 @click.option(
+    "--loss-smoothing",
+    default=None,
+    metavar="PIXELS|auto",
+    help="Rms of the Gaussian applied to measured and simulated images before "
+    "they are compared [camera pixels], or 'auto': sized by the data (the largest "
+    "image's rms times N^(-1/6) for N particles per step), for camera images of "
+    "hundreds of pixels per axis, where the default over-estimates emittances "
+    "[default: 0 for --dims 4, 1 for --dims 6].",
+)
+@click.option(
     "--uncoupled",
     is_flag=True,
     help="--dims 6: put the x-y coupling that the screens barely see (x-py, "
     "px-y against px-py) at the largest entropy instead of where training "
     "settled: the 4D and 6D emittances then do not depend on training there. "
     "Right for beams not turned in x-y; wrong for beams turned in x-y (e.g. "
-    "by a solenoid); see docs/generalisation_6d.md.",
+    "by a solenoid).",
 )
 @click.option(
     "--probe/--no-probe",
@@ -410,6 +434,7 @@ def reconstruct_command(
     dims: str,
     image_loss: str,
     blur: float | None,
+    loss_smoothing: str | None,
     uncoupled: bool,
     probe: bool | None,
     no_figures: bool,
@@ -447,6 +472,7 @@ def reconstruct_command(
         "seed": seed,
         "image_loss": image_loss,
         "blur_pixels": blur,
+        "loss_smoothing": _loss_smoothing(loss_smoothing),
         "place_coupling": uncoupled,
         "probe_unseen": None if probe is None else PROBE_STEP if probe else 0.0,
     }

@@ -189,7 +189,7 @@ class QuadScanDataset:
             raise FormatError(
                 f"images: expected real intensities; found dtype {self.images.dtype}"
             )
-        _set(self, "images", self.images.detach().to(torch.float32))
+        _set(self, "images", _float32_images(self.images.detach()))
         _set(self, "settings", self.settings.detach().to(torch.float64))
         if self.ground_truth is not None:
             gt = self.ground_truth
@@ -557,6 +557,76 @@ def _check_setting_signs(
             )
 
 
+#: Largest float32 number (images are stored and computed in float32).
+FLOAT32_MAX = float(torch.finfo(torch.float32).max)
+#: Smallest normal float32 number; below it float32 numbers are subnormal.
+FLOAT32_TINY = float(torch.finfo(torch.float32).tiny)
+#: Smallest image peak accepted: float32 resolves pixels down to its epsilon
+#: (1.2e-7) times the peak, and those must stay normal numbers (subnormal ones
+#: lose digits, and CPUs compute with them up to 40x slower).
+MIN_IMAGE_PEAK = FLOAT32_TINY / float(torch.finfo(torch.float32).eps)
+
+
+def _first(mask: Tensor) -> str:
+    """``"setting k, shot s"`` of the first True of a ``(K, S, ...)`` mask."""
+    k, s = (int(v) for v in torch.nonzero(mask)[0][:2])
+    return f"setting {k}, shot {s}"
+
+
+def _float32_images(images: Tensor) -> Tensor:
+    """``images`` as float32, their values checked in their own dtype first.
+
+    Refused (FormatError): float16 infinities (values beyond float16's largest,
+    65504, when the images were stored), values or image sums beyond float32's
+    largest (they would become inf), and images whose peak is below
+    :data:`MIN_IMAGE_PEAK` (their pixels would be subnormal float32 numbers).
+    Subnormal pixels of an image with a normal peak (below float32's
+    resolution relative to it) are set to 0. Every other check is done on the
+    float32 images by the dataset.
+    """
+    if images.ndim != 4 or images.numel() == 0 or not images.is_floating_point():
+        return images.to(torch.float32)  # the shape and dtype checks name it
+    if images.dtype == torch.float16 and bool(torch.isinf(images).any()):
+        where = _first(torch.isinf(images))
+        raise FormatError(
+            f"images: float16 values of inf ({int(torch.isinf(images).sum())}, first "
+            f"at {where}): float16 holds at most 65504, so these overflowed when the "
+            "images were stored; store them as float32"
+        )
+    wide = images.to(torch.float64) if images.dtype != torch.float64 else images
+    finite = torch.isfinite(wide)
+    mag = torch.where(finite, wide.abs(), torch.zeros((), dtype=wide.dtype))
+    big = mag > FLOAT32_MAX
+    if bool(big.any()):
+        raise FormatError(
+            f"images: {int(big.sum())} value(s) beyond float32's largest number "
+            f"{FLOAT32_MAX:.4g} (up to {float(mag[big].max()):.4g}, first at "
+            f"{_first(big)}); "
+            "images are computed in float32: scale them down (each image is "
+            "normalised to unit sum, so a common factor changes nothing)"
+        )
+    total = mag.sum((-2, -1))
+    if bool((total > FLOAT32_MAX).any()):
+        over = total > FLOAT32_MAX
+        raise FormatError(
+            f"images: image of {_first(over)} sums to {float(total[over].max()):.4g}, "
+            f"beyond float32's largest number {FLOAT32_MAX:.4g}; scale the images "
+            "down (each is normalised to unit sum, so a common factor changes nothing)"
+        )
+    peak = mag.amax((-2, -1))
+    faint = (peak > 0) & (peak < MIN_IMAGE_PEAK)
+    if bool(faint.any()):
+        raise FormatError(
+            f"images: image of {_first(faint)} peaks at "
+            f"{float(peak[faint].min()):.4g}, "
+            f"below {MIN_IMAGE_PEAK:.3g} (float32 numbers below {FLOAT32_TINY:.3g} are "
+            "subnormal: they lose digits and slow computation); scale the images up "
+            "(each is normalised to unit sum, so a common factor changes nothing)"
+        )
+    out = images.to(torch.float32)
+    return torch.where(out.abs() < FLOAT32_TINY, torch.zeros((), dtype=out.dtype), out)
+
+
 def _validate(ds: QuadScanDataset) -> None:
     images, settings = ds.images, ds.settings
     if not images.is_floating_point():
@@ -876,6 +946,10 @@ def _read_array(group: h5py.Group, key: str, where: str, dtype: Any) -> Tensor:
             f"{where}{key}: expected real numbers (integer or float); found dtype "
             f"{data.dtype}"
         )
+    if dtype is None:  # the stored numbers, for checks before a cast
+        kind, size = data.dtype.kind, data.dtype.itemsize
+        dtype = data.dtype if kind == "f" and size in (2, 4, 8) else np.float64
+        dtype = np.dtype(dtype).newbyteorder("=")
     try:
         return torch.from_numpy(np.asarray(data[()], dtype=dtype))
     except (TypeError, ValueError) as err:
@@ -891,7 +965,7 @@ def _read_scan(group: h5py.Group, where: str, root: _Root) -> QuadScanDataset:
     ``"/scans/NAME/"`` for version 2); errors name the field by that path.
     """
     spec = _json_attr(group, "beamline", where.rstrip("/") or "/")
-    images = _read_array(group, "images", where, np.float32)
+    images = _read_array(group, "images", where, None)  # checked, then float32
     settings = _read_array(group, "settings", where, np.float64)
     settings_ds = _dataset(group, "settings", where)
     names = _string_list(

@@ -9,6 +9,7 @@ from __future__ import annotations
 from diffaccel.dynamics import elements
 from diffaccel.dynamics._validate import (
     as_p0c,
+    as_real_tensor,
     check_particles,
     finite_checks,
     is_integer,
@@ -57,6 +58,7 @@ __all__ = [
     "Species",
     "Twiss",
     "as_p0c",
+    "as_real_tensor",
     "bmad_to_cheetah",
     "bmad_to_openpmd",
     "centroid",

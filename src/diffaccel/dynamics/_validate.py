@@ -172,3 +172,71 @@ def check_finite(name: str, value: Tensor, owner: str) -> None:
     v = value.detach()
     if not bool(torch.isfinite(v).all()):
         raise ValueError(f"{owner}: {name} must be finite; got {v.cpu().tolist()}.")
+
+
+def as_real_tensor(
+    value: object,
+    name: str,
+    *,
+    dtype: torch.dtype | None = None,
+    device: torch.device | str | None = None,
+) -> Tensor:
+    """``value`` (tensor, array, number or nested list) as a real tensor.
+
+    Complex and boolean values are refused rather than cast (a cast drops the
+    imaginary part, or reads True as 1), as the tracking API refuses them.
+
+    Args:
+        value: The input.
+        name: Its name in the message (e.g. ``"inputs"``).
+        dtype: Floating dtype to return (default: the value's own).
+        device: Device to return it on.
+
+    Raises:
+        ValueError: naming ``name`` and the dtype for complex, boolean, text or
+            other non-numeric input.
+
+    Example:
+        >>> as_real_tensor([1, 2], "u", dtype=torch.float64).dtype
+        torch.float64
+        >>> as_real_tensor(torch.tensor([True]), "u")
+        Traceback (most recent call last):
+        ...
+        ValueError: u must be real numbers; got torch.bool (booleans are not cast).
+    """
+    if isinstance(value, str | bytes):
+        raise ValueError(f"{name} must be real numbers; got the text {value!r}.")
+    if isinstance(value, np.ndarray) and value.dtype.kind not in "iuf":
+        raise ValueError(_not_real(name, f"numpy {value.dtype}"))
+    if isinstance(value, bool | np.bool_ | complex | np.complexfloating):
+        raise ValueError(_not_real(name, type(value).__name__))
+    if not isinstance(value, Tensor):
+        try:
+            probe = torch.as_tensor(value)  # its dtype says bool or complex
+            if not (probe.is_complex() or probe.dtype == torch.bool):
+                # straight to ``dtype``: Python floats are exact in float64
+                probe = torch.as_tensor(value, dtype=dtype, device=device)
+        except (TypeError, ValueError, RuntimeError) as err:
+            raise ValueError(
+                f"{name} must be real numbers; got {type(value).__name__} ({err})."
+            ) from None
+        value = probe
+    if value.is_complex() or value.dtype == torch.bool:
+        raise ValueError(_not_real(name, str(value.dtype)))
+    if dtype is None and device is None:
+        return value
+    return value.to(dtype=dtype or value.dtype, device=device or value.device)
+
+
+def _not_real(name: str, got: str) -> str:
+    kind = "booleans" if "bool" in got else "complex numbers"
+    return f"{name} must be real numbers; got {got} ({kind} are not cast)."
+
+
+def compute_dtype(particles: Tensor) -> torch.dtype:
+    """Dtype of results computed from ``particles``: float32 for half
+    precision (float16, bfloat16: too few digits for moments of ~1e-9 m rad),
+    else their own."""
+    if particles.dtype in (torch.float16, torch.bfloat16):
+        return torch.float32
+    return particles.dtype

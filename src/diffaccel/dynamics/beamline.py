@@ -14,6 +14,7 @@ from diffaccel.dynamics._validate import (
     as_p0c,
     broadcast_shapes,
     check_particles,
+    compute_dtype,
     finite_checks_enabled,
 )
 from diffaccel.dynamics.cheetah_interop import (
@@ -108,7 +109,8 @@ class Beamline(nn.Module):
 
     Shapes:
         ``track``: particles ``(N, 6)`` or ``(*K, N, 6)`` and settings ``(*K, P)``
-        -> ``(*K, N, 6)``.
+        -> ``(*K, N, 6)``, in the particles' dtype; half-precision particles
+        (float16, bfloat16) are tracked in float32 and returned as float32.
 
     Example:
         >>> spec = [
@@ -409,6 +411,7 @@ class Beamline(nn.Module):
         :meth:`Screen.image`. Every screen needs a geometry.
         """
         check_particles(particles)
+        particles = particles.to(compute_dtype(particles))  # float16: p0c overflows
         p0c = as_p0c(p0c, particles)
         line = self._scanned(settings, names, particles)
         return line.images_of_columns(
@@ -497,6 +500,7 @@ class Beamline(nn.Module):
         species: Species,
     ) -> tuple[Tensor, dict[str, Tensor]]:
         check_particles(particles)
+        particles = particles.to(compute_dtype(particles))  # float16: p0c overflows
         p0c = as_p0c(p0c, particles)
         line = self._scanned(settings, names, particles)
         screens: dict[str, Tensor] = {}

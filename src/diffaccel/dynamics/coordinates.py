@@ -13,6 +13,9 @@ describe particles at a fixed longitudinal position ``s`` (all ``z`` equal), as 
 a screen; the HDF5 reading and writing lives in ``diffaccel.data``.
 
 Shapes: ``(..., N, 6)`` for coordinate tensors, ``(..., N)`` for openPMD columns.
+Results are in the input dtype; half-precision particles (float16, bfloat16)
+are converted in float32 and give float32 (a momentum of 43e6 eV/c is beyond
+float16's largest number).
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from diffaccel.dynamics._validate import as_p0c, check_particles
+from diffaccel.dynamics._validate import as_p0c, check_particles, compute_dtype
 from diffaccel.dynamics.constants import SPEED_OF_LIGHT
 from diffaccel.dynamics.species import ELECTRON, Species
 
@@ -93,6 +96,7 @@ def bmad_to_cheetah(
         True
     """
     check_particles(particles)
+    particles = particles.to(compute_dtype(particles))  # float16: p0c overflows
     p0c = as_p0c(p0c, particles).unsqueeze(-1)
     z, pz = particles[..., 4], particles[..., 5]
     e, beta = _gamma_beta((1.0 + pz) * p0c, species.mass_ev)
@@ -117,6 +121,7 @@ def cheetah_to_bmad(
     if particles.dim() >= 2 and particles.shape[-1] == 7:
         particles = particles[..., :6]
     check_particles(particles, check_momentum=False)  # delta: checked below
+    particles = particles.to(compute_dtype(particles))
     p0c = as_p0c(p0c, particles).unsqueeze(-1)
     tau, delta = particles[..., 4], particles[..., 5]
     e0 = (p0c.square() + species.mass_ev**2).sqrt()
@@ -154,6 +159,7 @@ def bmad_to_openpmd(
         in m, eV/c, s and C.
     """
     check_particles(particles)
+    particles = particles.to(compute_dtype(particles))
     p0c = as_p0c(p0c, particles).unsqueeze(-1)
     x, px, y, py, z, pz = particles.unbind(-1)
     p = (1.0 + pz) * p0c

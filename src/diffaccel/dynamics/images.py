@@ -138,10 +138,18 @@ def pixel_centers(
     return xs, ys
 
 
-def _gaussian_matrix(n: int, sigma_px: float, like: Tensor) -> Tensor:
-    """``(n, n)`` blur matrix; columns sum to 1 before truncation by the edges."""
+def _gaussian_matrix(n: int, sigma_px: float | Tensor, like: Tensor) -> Tensor:
+    """``(n, n)`` blur matrix, or ``(K, n, n)`` for ``K`` rms values ``(K,)``;
+    columns sum to 1 before truncation by the edges."""
     idx = torch.arange(n, dtype=like.dtype, device=like.device)
     d = idx[:, None] - idx[None, :]
+    if isinstance(sigma_px, Tensor):
+        s = sigma_px.to(dtype=like.dtype, device=like.device).clamp_min(1e-6)
+        g = torch.exp(-0.5 * (d / s[:, None, None]).square())
+        r = math.ceil(8 * float(s.max())) + n
+        full = torch.arange(-r, r + 1, dtype=like.dtype, device=like.device)
+        norm = torch.exp(-0.5 * (full / s[:, None]).square()).sum(-1)
+        return g / norm[:, None, None]
     g = torch.exp(-0.5 * (d / sigma_px).square())
     r = math.ceil(8 * sigma_px) + n
     full = torch.arange(-r, r + 1, dtype=like.dtype, device=like.device)
@@ -153,12 +161,16 @@ def gaussian_blur(
 ) -> Tensor:
     """Gaussian blur of images ``(*K, H, W)`` with rms ``sigma`` [m] (x, y).
 
-    Mass blurred past the edge is lost (the screen does not see it). Computed as
-    two matrix products, so it is exact and differentiable.
+    ``sigma`` is one pair for all images, or a tensor ``(K, 2)`` of one pair
+    per image (images ``(K, H, W)``). Mass blurred past the edge is lost (the
+    screen does not see it). Computed as two matrix products, so it is exact
+    and differentiable.
     """
     if not isinstance(image, Tensor) or image.dim() < 2:
         got = tuple(image.shape) if isinstance(image, Tensor) else type(image).__name__
         raise ValueError(f"image must be a tensor shaped (*K, H, W); got {got}.")
+    if isinstance(sigma, Tensor) and sigma.dim() == 2:
+        return _blur_per_image(image, sigma, pixel_size)
     sx, sy = _pair(sigma, "blur_sigma [m]")
     psx, psy = _pair(pixel_size, "pixel_size [m]")
     if sx < 0 or sy < 0:
@@ -169,6 +181,24 @@ def gaussian_blur(
     if sx > 0:
         image = image @ _gaussian_matrix(w, sx / psx, image).transpose(0, 1)
     return image
+
+
+def _blur_per_image(
+    image: Tensor, sigma: Tensor, pixel_size: Sequence[float] | float
+) -> Tensor:
+    """:func:`gaussian_blur` with one rms pair [m] per image, ``sigma (K, 2)``."""
+    if image.dim() != 3 or sigma.shape != (image.shape[0], 2):
+        raise ValueError(
+            f"per-image blur needs images (K, H, W) and sigma (K, 2); got "
+            f"{tuple(image.shape)} and {tuple(sigma.shape)}."
+        )
+    if not bool(torch.isfinite(sigma).all()) or bool((sigma < 0).any()):
+        raise ValueError("blur_sigma must be finite and >= 0 m.")
+    psx, psy = _pair(pixel_size, "pixel_size [m]")
+    h, w = image.shape[-2:]
+    sig = sigma.detach()
+    image = _gaussian_matrix(h, sig[:, 1] / psy, image) @ image
+    return image @ _gaussian_matrix(w, sig[:, 0] / psx, image).transpose(-1, -2)
 
 
 def cic_image(

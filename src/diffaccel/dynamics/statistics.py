@@ -1,7 +1,9 @@
 """Batched, differentiable beam statistics of particles ``(*K, N, 6)``.
 
 Second moments are accumulated in float64 (emittances are small differences of
-large products) and returned in the input dtype. Geometric emittances use the
+large products) and returned in the input dtype; half-precision particles
+(float16, bfloat16) get float32 results (an emittance of 1e-7 m rad is 19 %
+off in float16, and 1e-14 m^2 rad^2 is 0). Geometric emittances use the
 Bmad momenta ``px = Px/P0`` directly as the angle-like coordinate; normalised
 emittances multiply by ``beta0 gamma0 = p0c / (m c^2)``.
 """
@@ -13,7 +15,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from diffaccel.dynamics._validate import as_p0c, check_particles
+from diffaccel.dynamics._validate import as_p0c, check_particles, compute_dtype
 from diffaccel.dynamics.species import ELECTRON, Species
 
 __all__ = [
@@ -66,7 +68,7 @@ def centroid(particles: Tensor, weights: Tensor | None = None) -> Tensor:
         mean = p.mean(-2)
     else:
         mean = (w.unsqueeze(-1) * p).sum(-2) / w.sum(-1, keepdim=True)
-    return mean.to(particles.dtype)
+    return mean.to(compute_dtype(particles))
 
 
 def _need(particles: Tensor, n: int, what: str) -> None:
@@ -101,13 +103,15 @@ def covariance(particles: Tensor, weights: Tensor | None = None) -> Tensor:
         particles: Bmad coordinates ``(*K, N, 6)`` [m, 1, m, 1, m, 1].
         weights: Optional non-negative weights broadcastable to ``(*K, N)``.
     """
-    return _cov64(particles, weights).to(particles.dtype)
+    return _cov64(particles, weights).to(compute_dtype(particles))
 
 
 def rms_sizes(particles: Tensor, weights: Tensor | None = None) -> Tensor:
     """Rms spread of each coordinate, shape ``(*K, 6)``."""
     cov = _cov64(particles, weights)
-    return cov.diagonal(dim1=-2, dim2=-1).clamp(min=0).sqrt().to(particles.dtype)
+    return (
+        cov.diagonal(dim1=-2, dim2=-1).clamp(min=0).sqrt().to(compute_dtype(particles))
+    )
 
 
 def _det_sqrt(block: Tensor) -> Tensor:
@@ -135,7 +139,7 @@ def emittance(
     i = _PLANES[plane]
     c = _cov64(particles, weights)[..., i : i + 2, i : i + 2]
     det = c[..., 0, 0] * c[..., 1, 1] - c[..., 0, 1].square()
-    return det.clamp(min=0).sqrt().to(particles.dtype)
+    return det.clamp(min=0).sqrt().to(compute_dtype(particles))
 
 
 def normalized_emittance(
@@ -156,12 +160,14 @@ def normalized_emittance(
 
 def emittance_4d(particles: Tensor, weights: Tensor | None = None) -> Tensor:
     """Transverse 4D emittance ``sqrt(det Sigma_4)`` [m^2 rad^2], ``(*K,)``."""
-    return _det_sqrt(_cov64(particles, weights)[..., :4, :4]).to(particles.dtype)
+    return _det_sqrt(_cov64(particles, weights)[..., :4, :4]).to(
+        compute_dtype(particles)
+    )
 
 
 def emittance_6d(particles: Tensor, weights: Tensor | None = None) -> Tensor:
     """6D emittance ``sqrt(det Sigma_6)`` [m^3 rad^2], shape ``(*K,)``."""
-    return _det_sqrt(_cov64(particles, weights)).to(particles.dtype)
+    return _det_sqrt(_cov64(particles, weights)).to(compute_dtype(particles))
 
 
 class Twiss(NamedTuple):
@@ -191,7 +197,7 @@ def twiss(particles: Tensor, plane: str = "x", weights: Tensor | None = None) ->
     i = _PLANES[plane]
     c = _cov64(particles, weights)[..., i : i + 2, i : i + 2]
     eps = (c[..., 0, 0] * c[..., 1, 1] - c[..., 0, 1].square()).clamp(min=0).sqrt()
-    dt = particles.dtype
+    dt = compute_dtype(particles)
     return Twiss(
         beta=(c[..., 0, 0] / eps).to(dt),
         alpha=(-c[..., 0, 1] / eps).to(dt),

@@ -40,6 +40,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from diffaccel.dynamics import as_real_tensor
 from diffaccel.hysteresis.preisach import PreisachModel
 from diffaccel.hysteresis.stream import StreamPredictor, StreamSpec
 
@@ -166,7 +167,9 @@ class LaplaceBand(nn.Module):
         Raises:
             ValueError: for inputs that are not one non-empty history, or NaN.
         """
-        u = torch.as_tensor(u, dtype=model.alpha.dtype, device=model.alpha.device)
+        u = as_real_tensor(
+            u, "inputs", dtype=model.alpha.dtype, device=model.alpha.device
+        )
         if u.ndim != 1 or u.numel() == 0:
             raise ValueError(
                 f"inputs need shape (T,) with T >= 1; got {tuple(u.shape)}."

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from diffaccel.dynamics import as_real_tensor
 from diffaccel.dynamics.linalg import lstsq
 from diffaccel.hysteresis.preisach import PreisachModel
 
@@ -129,8 +130,8 @@ def check_series(
         ValueError: naming the problem (shape, length, NaN/inf, magnitude,
             constant output, too few points).
     """
-    u = torch.as_tensor(current, dtype=dtype, device=device)
-    y = torch.as_tensor(field_, dtype=dtype, device=device)
+    u = as_real_tensor(current, "current", dtype=dtype, device=device)
+    y = as_real_tensor(field_, "output", dtype=dtype, device=device)
     if u.ndim != 1 or y.ndim != 1:
         raise ValueError(
             "fit_preisach needs 1-D time series; got current shape "

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from diffaccel.dynamics import is_integer, is_real
+from diffaccel.dynamics import as_real_tensor, is_integer, is_real
 from diffaccel.hysteresis.preisach import PreisachModel
 from diffaccel.hysteresis.setpoint import solve_step
 from diffaccel.hysteresis.states import smooth_states
@@ -163,10 +163,10 @@ def invert_preisach(
     if not (is_real(tol) and tol > 0):
         raise ValueError(f"tol must be a positive finite number; got {tol!r}.")
     dtype, device = model.alpha.dtype, model.alpha.device
-    y_t = torch.as_tensor(target, dtype=dtype, device=device).reshape(-1)
+    y_t = as_real_tensor(target, "target", dtype=dtype, device=device).reshape(-1)
     if not torch.isfinite(y_t).all():
         raise ValueError("target contains NaN or infinite values.")
-    h = torch.as_tensor(history, dtype=dtype, device=device)
+    h = as_real_tensor(history, "history", dtype=dtype, device=device)
     if h.ndim != 1 or h.numel() < 1:
         raise ValueError(f"history must have shape (H,) with H >= 1; got {h.shape}.")
     r_lo, r_hi = model.input_range

@@ -10,6 +10,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from diffaccel.dynamics import as_real_tensor
 from diffaccel.hysteresis.mesh import PreisachMesh, Warp, check_warp, warp_input
 from diffaccel.hysteresis.states import (
     RowLayout,
@@ -274,7 +275,9 @@ class PreisachModel(nn.Module):
 
     @density.setter
     def density(self, value: Tensor) -> None:
-        value = torch.as_tensor(value, dtype=self.alpha.dtype, device=self.alpha.device)
+        value = as_real_tensor(
+            value, "density", dtype=self.alpha.dtype, device=self.alpha.device
+        )
         if value.shape != self.raw_density.shape or not (value > 0).all():
             raise ValueError(
                 f"density must be positive with shape {tuple(self.raw_density.shape)}."
@@ -297,7 +300,9 @@ class PreisachModel(nn.Module):
         Raises:
             ValueError: if ``u`` has no time axis or NaN/inf values.
         """
-        u = torch.as_tensor(u, dtype=self.alpha.dtype, device=self.alpha.device)
+        u = as_real_tensor(
+            u, "inputs", dtype=self.alpha.dtype, device=self.alpha.device
+        )
         if u.ndim < 1 or u.shape[-1] < 1:
             raise ValueError(
                 f"inputs need shape (*B, T) with T >= 1; got {tuple(u.shape)}."
@@ -323,7 +328,7 @@ class PreisachModel(nn.Module):
         Raises:
             ValueError: naming the span of ``u`` and the ``input_range``.
         """
-        u = torch.as_tensor(u, dtype=self.alpha.dtype, device=self.alpha.device)
+        u = as_real_tensor(u, what, dtype=self.alpha.dtype, device=self.alpha.device)
         lo, hi = self.input_range
         tol = RANGE_TOL * (hi - lo)
         if u.numel() and (float(u.min()) < lo - tol or float(u.max()) > hi + tol):
@@ -344,7 +349,9 @@ class PreisachModel(nn.Module):
         kind = self.initial_state_kind if initial_state is None else initial_state
         m = self.alpha.numel()
         if isinstance(kind, Tensor):
-            s = kind.to(dtype=self.alpha.dtype, device=self.alpha.device)
+            s = as_real_tensor(
+                kind, "initial_state", dtype=self.alpha.dtype, device=self.alpha.device
+            )
             if s.shape[-1:] != (m,):
                 raise ValueError(
                     f"initial_state tensor must have shape (*B, {m}); got "
@@ -544,10 +551,12 @@ class PreisachModel(nn.Module):
             ValueError: if the batch shapes of ``history`` and ``u`` do not
                 broadcast (also a ``RuntimeError``, as raised before).
         """
-        u = torch.as_tensor(u, dtype=self.alpha.dtype, device=self.alpha.device)
+        u = as_real_tensor(u, "u", dtype=self.alpha.dtype, device=self.alpha.device)
         if history is None:
             return self(u, initial_state, smooth=smooth)
-        h = torch.as_tensor(history, dtype=self.alpha.dtype, device=self.alpha.device)
+        h = as_real_tensor(
+            history, "history", dtype=self.alpha.dtype, device=self.alpha.device
+        )
         if h.ndim < 1 or h.shape[-1] < 1 or u.ndim < 1:
             raise ValueError(
                 f"history and u need shape (*B, T); got {tuple(h.shape)}, "

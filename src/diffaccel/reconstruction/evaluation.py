@@ -18,6 +18,15 @@ from torch import Tensor
 from diffaccel.data.atomic import clean_json
 from diffaccel.data.quad_scan import QuadScanDataset
 from diffaccel.data.scans import MultiScanDataset
+from diffaccel.reconstruction.alarms import (
+    FitAlarm,
+    dataset_maps,
+    fit_alarms,
+    fit_signals,
+    longitudinal_alarm,
+    poor_fit_causes,
+    scan_fits,
+)
 from diffaccel.reconstruction.design import observability_line
 from diffaccel.reconstruction.ensemble import Reconstruction
 from diffaccel.reconstruction.forward import ScreenForwardModel
@@ -31,6 +40,7 @@ from diffaccel.reconstruction.metrics import (
 )
 from diffaccel.reconstruction.pipeline import as_scans
 from diffaccel.reconstruction.prior_dependence import prior_dependence
+from diffaccel.reconstruction.training import ReconstructionConfig, sampling_smoothing
 
 __all__ = [
     "LOW_ON_SCREEN_FRACTION",
@@ -49,12 +59,6 @@ __all__ = [
 # images they trained on (held-out 0.07-0.15 in the benchmarks);
 # 0.5 means half of the image intensity is misplaced
 POOR_FIT_RELATIVE_L1 = 0.5
-POOR_FIT_CAUSES = (
-    "likely causes: settings in the wrong units or scale (e.g. k1 in 1/m^2 vs "
-    "T/m or a current), a beamline that is not the measurement's (element "
-    "lengths, order, drift to the screen), a wrong screen calibration (pixel "
-    "size, centre) or a wrong beam energy (p0c)"
-)
 
 #: Fraction of a predicted beam on the screen (dimensionless) below which a
 #: predicted image is reported as showing only part of the beam
@@ -280,12 +284,18 @@ def evaluate(
         4D: empty), ``moment_polish`` (6D: each member's
         :class:`~diffaccel.reconstruction.moment_polish.PolishReport`; empty
         where none ran), notes,
-        ``config``, ``snapshots``, ``timings_s`` and ``warnings`` (a list of
-        sentences; one when a scan's training images or all of them together
-        have a relative L1 above :data:`POOR_FIT_RELATIVE_L1`: the
-        reconstruction does not reproduce its own data, and its moments are
-        not a measurement; one per scan whose predicted beam mostly misses
-        the screen at some of its settings, training or held out, from
+        ``config``, ``snapshots``, ``timings_s``, ``fit_quality`` (the
+        signals of :func:`~diffaccel.reconstruction.alarms.fit_signals`),
+        ``fit_alarms`` (each :class:`~diffaccel.reconstruction.alarms.FitAlarm`
+        as a dict) and ``warnings`` (a list of sentences; one when a scan's
+        training images or all of them together have a relative L1 above
+        :data:`POOR_FIT_RELATIVE_L1`: the reconstruction does not reproduce
+        its own data, and its moments are not a measurement, its causes
+        ordered by the other signals; one per fit-quality alarm (moments
+        missed, scans that disagree, an image or scan that stands out, a beam
+        cut by a screen edge, a 4D result through elements that read z or
+        pz); one per scan whose predicted beam mostly misses the screen at
+        some of its settings, training or held out, from
         :func:`off_screen_warnings`); for a single scan also
         ``train_indices``/``held_out_indices`` at the top level.
     """
@@ -296,6 +306,7 @@ def evaluate(
     per_scan: dict[str, Any] = {}
     screen_warnings: list[str] = []
     train_parts, test_parts = [], []
+    selected: dict[str, list[int]] = {}
     for name, scan in scans:
         k = scan.n_settings
         if train_indices is not None:
@@ -303,6 +314,7 @@ def evaluate(
         else:
             train = _train_indices(result, name, k)
         test = [i for i in range(k) if i not in set(train)]
+        selected[name] = train
         meas = scan.mean_images()
         p = pred[name]
         entry: dict[str, Any] = {"train_indices": train, "held_out_indices": test}
@@ -355,7 +367,22 @@ def evaluate(
             sliced_wasserstein(sample[:20_000, :dims], truth[:, :dims], generator=g)
         )
         metrics["ground_truth"] = gt
-    warnings = _poor_fit_warnings(per_scan, metrics) + screen_warnings
+    signals = fit_signals(
+        scan_fits(result, scans, pred, selected),
+        torch.tensor(moments["cov"]["mean"], dtype=torch.float64),
+        result.config.dims,
+    )
+    maps, specs = dataset_maps(scans)
+    longitudinal = longitudinal_alarm(result.config.dims, maps, specs)
+    alarms = fit_alarms(signals, longitudinal=longitudinal)
+    if longitudinal is not None:
+        alarms.append(longitudinal)
+    warnings = (
+        _poor_fit_warnings(per_scan, metrics, alarms)
+        + [a.text() for a in alarms]
+        + screen_warnings
+        + resolution_warnings(result.config, scans, selected)
+    )
     dependence: list[dict] = []
     if result.config.dims == 6:
         try:
@@ -367,6 +394,8 @@ def evaluate(
             warnings.append(f"prior_dependence not computed: {err}")
     summary: dict[str, Any] = {
         "warnings": warnings,
+        "fit_alarms": [a.to_dict() for a in alarms],
+        "fit_quality": _signal_summary(signals),
         "config": result.config.to_dict(),
         "scans": per_scan,
         "snapshots": result.n_snapshots,
@@ -398,8 +427,60 @@ def evaluate(
     return clean_json(summary)
 
 
+def _signal_summary(signals: Mapping[str, Any]) -> dict[str, Any]:
+    """The pooled fit-quality signals and, per scan, the worst edge level."""
+    out = {k: v for k, v in signals.items() if k != "scans"}
+    out["scans"] = {
+        name: {
+            "moment_residual": s["moment_residual"],
+            "moment_residual_one_beam": s.get("moment_residual_one_beam"),
+            "moment_residual_own_beam": s.get("moment_residual_own_beam"),
+            "edge_level_max": max(s["edge_level"], default=0.0),
+        }
+        for name, s in signals.get("scans", {}).items()
+    }
+    return out
+
+
+#: Sampling bandwidth [camera pixels] of the training sample
+#: (:func:`~diffaccel.reconstruction.training.sampling_smoothing`) above which
+#: images compared pixel by pixel are dominated by the sample's noise:
+#: ``benchmarks/resolution.py`` measured the emittances 30-300 % high at a
+#: bandwidth of 8-13 pixels with the default comparison, within 3 % with
+#: ``loss_smoothing="auto"``.
+SPARSE_SAMPLE_PIXELS = 4.0
+
+
+def resolution_warnings(
+    config: ReconstructionConfig,
+    scans: MultiScanDataset,
+    train: Mapping[str, Sequence[int]],
+) -> list[str]:
+    """One sentence per scan whose training images are finer than the training
+    sample resolves (bandwidth above :data:`SPARSE_SAMPLE_PIXELS` and twice the
+    loss smoothing used); none with ``loss_smoothing="auto"``."""
+    if config.loss_smoothing == "auto":
+        return []
+    out = []
+    for name, scan in scans:
+        rows = list(train.get(name, [])) or list(range(scan.n_settings))
+        images = scan.mean_images()[rows]
+        h = float(sampling_smoothing(images, config.n_particles).max())
+        if h > SPARSE_SAMPLE_PIXELS and h > 2.0 * float(config.loss_smoothing):
+            out.append(
+                f"scan {name!r}: {config.n_particles} particles per step resolve "
+                f"its images only to about {h:.1f} camera pixels, and images "
+                "compared pixel by pixel at that sampling over-estimate the "
+                "emittances; rerun with --loss-smoothing auto (compares them at "
+                "the resolution the sample supports) or with more --particles"
+            )
+    return out
+
+
 def _poor_fit_warnings(
-    per_scan: Mapping[str, Any], metrics: Mapping[str, Any]
+    per_scan: Mapping[str, Any],
+    metrics: Mapping[str, Any],
+    alarms: Sequence[FitAlarm] = (),
 ) -> list[str]:
     """Warnings for training images the reconstruction does not reproduce."""
     bad = {
@@ -412,11 +493,12 @@ def _poor_fit_warnings(
     if not bad and (pooled is None or pooled <= POOR_FIT_RELATIVE_L1):
         return []
     where = "".join(f", scan {n!r}: {v:.3g}" for n, v in bad.items())
+    causes = "; ".join(f"({i}) {c}" for i, c in enumerate(poor_fit_causes(alarms), 1))
     return [
         "the reconstruction does not reproduce its training images: relative L1 "
         f"{pooled:.3g} over all training images{where} (good fits end below "
         f"~0.15; warned above {POOR_FIT_RELATIVE_L1}), so its moments are not a "
-        f"measurement of the beam; {POOR_FIT_CAUSES}."
+        f"measurement of the beam; likely causes, most likely first: {causes}."
     ]
 
 

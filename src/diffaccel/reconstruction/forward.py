@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from diffaccel.data.quad_scan import check_setting_limits
-from diffaccel.dynamics import as_p0c, check_particles
+from diffaccel.dynamics import as_p0c, as_real_tensor, check_particles
 from diffaccel.dynamics.beamline import Beamline
 from diffaccel.dynamics.elements.element import Coords
 from diffaccel.dynamics.elements.screen import Screen
@@ -39,6 +39,10 @@ class ScreenForwardModel:
             deposition already spreads each particle with variance 1/6 pixel^2
             per axis, so the Gaussian blur applied afterwards has rms
             ``sqrt(blur_pixels^2 - 1/6)`` pixels (none below ``sqrt(1/6)``).
+        image_smoothing: Optional extra Gaussian rms per image ``(K, 2)``
+            [pixels] (x, y), added in quadrature to the blur, for images of
+            exactly ``K`` settings at a time (the image term of training, see
+            :func:`~diffaccel.reconstruction.training.smoothed_for_loss`).
 
     Shapes:
         ``images(particles (N, 6), settings (K, P))`` -> ``(K, H, W)``.
@@ -56,6 +60,7 @@ class ScreenForwardModel:
         *,
         species: str = "electron",
         blur_pixels: float = 1.0,
+        image_smoothing: Tensor | None = None,
     ) -> None:
         screens = [e for e in beamline if isinstance(e, Screen)]
         if len(screens) != 1:
@@ -80,6 +85,14 @@ class ScreenForwardModel:
         self.p0c = float(p0c)
         self.species = species
         self.blur_pixels = float(blur_pixels)
+        if image_smoothing is not None:
+            image_smoothing = torch.as_tensor(image_smoothing, dtype=torch.float64)
+            if image_smoothing.dim() != 2 or image_smoothing.shape[1] != 2:
+                raise ValueError(
+                    "image_smoothing must be (K, 2) pixels; got shape "
+                    f"{tuple(image_smoothing.shape)}."
+                )
+        self.image_smoothing = image_smoothing
         self.device = torch.device("cpu")
 
     # ----------------------------------------------------------------- spec I/O
@@ -131,7 +144,7 @@ class ScreenForwardModel:
             ValueError: for a wrong shape, non-finite values or values beyond
                 :data:`~diffaccel.data.quad_scan.PARAMETER_LIMITS`.
         """
-        s = torch.as_tensor(settings, dtype=torch.float64)
+        s = as_real_tensor(settings, "settings", dtype=torch.float64)
         if s.ndim == 1 and len(self.names) == 1:
             s = s[:, None]
         if s.ndim != 2 or s.shape[1] != len(self.names):
@@ -194,13 +207,23 @@ class ScreenForwardModel:
             self._blur(),
         )
 
-    def _blur(self) -> tuple[float, float] | None:
-        """Rms of the Gaussian applied after CIC ``(x, y)`` [m], or None."""
+    def _blur(self) -> tuple[float, float] | Tensor | None:
+        """Rms of the Gaussian applied after CIC ``(x, y)`` [m], or None; one
+        pair per image ``(K, 2)`` with ``image_smoothing``."""
         extra = self.blur_pixels**2 - 1.0 / 6.0
+        psx, psy = self.screen.pixel_size
+        if self.image_smoothing is not None:
+            total = (extra + self.image_smoothing.square()).clamp_min(0.0).sqrt()
+            return total * torch.tensor([psx, psy], dtype=torch.float64)
         if extra <= 1e-6:
             return None
-        psx, psy = self.screen.pixel_size
         return (math.sqrt(extra) * psx, math.sqrt(extra) * psy)
+
+    def _max_blur_pixels(self) -> float:
+        """Largest total point-spread rms of the images [pixels]."""
+        if self.image_smoothing is None:
+            return self.blur_pixels
+        return math.sqrt(self.blur_pixels**2 + float(self.image_smoothing.max()) ** 2)
 
     def pixel_kernel_sum_sq(self, samples: int = 64) -> float:
         """Sum over pixels of the squared deposit weights of one particle.
@@ -221,9 +244,11 @@ class ScreenForwardModel:
             0.4444
         """
         blur = self._blur()
+        if isinstance(blur, Tensor):  # per image: the median image's spread
+            blur = tuple(float(v) for v in blur.median(0).values)
         kappa = 1.0
         for axis in range(2):
-            n = 2 * math.ceil(6.0 * self.blur_pixels) + 3
+            n = 2 * math.ceil(6.0 * self._max_blur_pixels()) + 3
             u = (torch.arange(samples, dtype=torch.float64) + 0.5) / samples
             w = torch.zeros(samples, n, dtype=torch.float64)
             w[:, n // 2] = 1.0 - u
@@ -387,7 +412,19 @@ class LinearScreenImages:
         self.n = n
         blur = forward._blur()
         self.by = self.bx_t = None
-        if blur is not None:
+        if isinstance(blur, Tensor):  # one blur per image: (K, H, H), (K, W, W)
+            zero = torch.zeros_like(blur[:, 0])
+            eye_h = torch.eye(h, dtype=torch.float64).expand(k, h, h)
+            eye_w = torch.eye(w, dtype=torch.float64).expand(k, w, w)
+            sy = torch.stack([zero, blur[:, 1]], -1)
+            sx = torch.stack([blur[:, 0], zero], -1)
+            self.by = gaussian_blur(eye_h, sy, (psx, psy)).to(**kw)
+            self.bx_t = gaussian_blur(eye_w, sx, (psx, psy)).to(**kw)
+            self.by_k = self.by.contiguous()
+            self.bx_t_k = self.bx_t.contiguous()
+            self.by_t_k = self.by.transpose(1, 2).contiguous()
+            self.bx_k = self.bx_t.transpose(1, 2).contiguous()
+        elif blur is not None:
             # the blur of dynamics.images.gaussian_blur as two matrices: blurring
             # the identity in one direction gives that direction's matrix
             eye_h = torch.eye(h, dtype=torch.float64)[None]

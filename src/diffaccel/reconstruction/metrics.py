@@ -7,6 +7,8 @@ import math
 import torch
 from torch import Tensor
 
+from diffaccel.dynamics import as_real_tensor
+
 #: Bmad coordinate names in column order.
 COORDINATES = ("x", "px", "y", "py", "z", "pz")
 
@@ -35,7 +37,7 @@ def beam_moments(particles: Tensor) -> dict[str, Tensor]:
         >>> round(float(m["emit_x"]) * 1e6, 1)
         1.0
     """
-    particles = torch.as_tensor(particles)  # numpy arrays too
+    particles = as_real_tensor(particles, "particles")  # numpy arrays too
     if particles.ndim != 2 or particles.shape[1] != 6 or particles.shape[0] < 2:
         raise ValueError(
             f"particles must have shape (N >= 2, 6); got {tuple(particles.shape)}."
@@ -185,7 +187,8 @@ def image_errors(predicted: Tensor, measured: Tensor) -> dict[str, float]:
         ValueError: if the shapes differ or are empty, a pixel is NaN or
             infinite, or a measured image does not sum to > 0.
     """
-    predicted, measured = torch.as_tensor(predicted), torch.as_tensor(measured)
+    predicted = as_real_tensor(predicted, "predicted images")
+    measured = as_real_tensor(measured, "measured images")
     if predicted.shape != measured.shape or predicted.ndim != 3:
         raise ValueError(
             f"predicted {tuple(predicted.shape)} and measured "

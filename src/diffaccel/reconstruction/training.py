@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import torch
 import torch.distributed as tdist
@@ -274,6 +274,16 @@ class ReconstructionConfig:
             ~12 pixels and puts the minimum back near the true size (within
             0.4-1.4 % at 16 384 particles; ``sampling_offset`` removes that). 0 compares
             the images as they are. None: 0 for ``dims = 4``, 1 for ``dims = 6``.
+            ``"auto"``: sized by the data, :func:`sampling_smoothing` (the
+            largest image's rms times ``N^(-1/6)``, with the default as floor);
+            where that spans several camera pixels the images are compared on
+            pooled pixels (:func:`smoothed_for_loss`). On camera-resolution
+            scans of a beam with a halo (``benchmarks/resolution.py``, 64-400
+            pixels per axis, 6k-64k particles) it keeps the emittances within
+            3 %, where the default is 8-12 % high at 64 pixels and 30-300 %
+            high at 320; on the GPSR 4D benchmark (thin filaments in x-px,
+            100 pixels) it puts the x emittance 21 % high, where the default is
+            within 3 %, so it is not the default.
         sampling_offset: Offset ``c`` of the KL image distance against the
             sampling noise of the simulated images: ``eps = c kappa / N`` is
             added to every pixel of each sum-normalised simulated image
@@ -449,7 +459,7 @@ class ReconstructionConfig:
     quasi_random: bool = True
     blur_pixels: float | None = None
     entropy_radius: float = 4.0
-    loss_smoothing: float | None = None
+    loss_smoothing: float | Literal["auto"] | None = None
     sampling_offset: float | None = None
     burn_in: int | None = None
     longitudinal_scale: tuple[float, float] = (1e-3, 1e-3)
@@ -564,13 +574,15 @@ class ReconstructionConfig:
             raise ValueError(
                 f"image_loss must be 'l1', 'l2' or 'kl'; got {self.image_loss!r}."
             )
-        if self.loss_smoothing is not None and not (
+        if self.loss_smoothing is None:
+            object.__setattr__(self, "loss_smoothing", defaults.loss_smoothing)
+        if self.loss_smoothing != "auto" and not (
             math.isfinite(self.loss_smoothing)
             and 0 <= self.loss_smoothing <= MAX_BLUR_PIXELS
         ):
             raise ValueError(
-                f"loss_smoothing must be in [0, {MAX_BLUR_PIXELS:g}] pixels or None "
-                f"(sized by the data); got {self.loss_smoothing}."
+                f"loss_smoothing must be in [0, {MAX_BLUR_PIXELS:g}] pixels or "
+                f"'auto' (sized by the data); got {self.loss_smoothing!r}."
             )
         if (
             self.blur_pixels is not None
@@ -603,7 +615,11 @@ class ReconstructionConfig:
         type or a NaN fails here, naming the field, instead of deep in training."""
         for f in fields(self):
             value = getattr(self, f.name)
-            if value is None or f.name in ("image_loss", "unseen_prior"):
+            if (
+                value is None
+                or f.name in ("image_loss", "unseen_prior")
+                or (f.name == "loss_smoothing" and value == "auto")
+            ):
                 continue  # None: the dims default, set below; text checked below
             if f.name in _BOOL_FIELDS:
                 ok = isinstance(value, bool)
@@ -821,15 +837,15 @@ def _kl_offset(c: float, forward: ScreenForwardModel, n: int) -> float:
     return c * forward.pixel_kernel_sum_sq() / n if c > 0 else 0.0
 
 
-def image_rms_pixels(measured: Tensor) -> float:
-    """Largest rms beam size [pixels] over images ``(K, H, W)`` and both axes.
+def image_rms_pixels(measured: Tensor) -> Tensor:
+    """Rms beam sizes [pixels] ``(K, 2)`` (x, y) of images ``(K, H, W)``.
 
     Negative pixels (noise left by a background subtraction) count as zero.
 
     Example:
         >>> im = torch.zeros(1, 5, 5); im[0, 2, 1] = im[0, 2, 3] = 0.5
         >>> image_rms_pixels(im)
-        1.0
+        tensor([[1., 0.]], dtype=torch.float64)
     """
     w = measured.detach().to(torch.float64).clamp_min(0.0)
     total = w.sum((-2, -1)).clamp_min(1e-300)
@@ -839,11 +855,14 @@ def image_rms_pixels(measured: Tensor) -> float:
         idx = torch.arange(n, dtype=torch.float64, device=w.device)
         mean = (marginal * idx).sum(-1, keepdim=True)
         rms.append(((marginal * (idx - mean) ** 2).sum(-1)).sqrt())
-    return float(torch.stack(rms).max())
+    return torch.stack(rms, -1).cpu()
 
 
-def sampling_smoothing(measured: Tensor, n_particles: int, floor: float = 0.0) -> float:
-    """Rms [pixels] of the Gaussian that compares ``n_particles``' images fairly.
+def sampling_smoothing(
+    measured: Tensor, n_particles: int, floor: float = 0.0
+) -> Tensor:
+    """Rms [pixels] ``(K, 2)`` of the Gaussian that compares ``n_particles``'
+    image of each setting with the measured one fairly.
 
     An image of ``N`` sampled particles is a histogram whose pixel noise grows as
     the pixels get finer or the beam larger; a divergence between such a sparse
@@ -851,14 +870,14 @@ def sampling_smoothing(measured: Tensor, n_particles: int, floor: float = 0.0) -
     (its tails cover more measured pixels), so the fitted beam would depend on
     the camera's pixel size. Smoothing both images with the bandwidth at which
     a kernel density estimate of ``N`` samples is consistent removes that
-    dependence: Scott's/Silverman's rule for two dimensions,
-    ``h = sigma N^(-1/6)``, with ``sigma`` the largest rms size of the scan's
-    images (:func:`image_rms_pixels`), so that every image of the scan is
-    compared at a resolution its sample supports. Both sides get the same
-    Gaussian, so second moments are unchanged (each gains ``h^2``); the result
-    depends on the beam size in pixels and ``N`` only, not on how finely the
-    camera samples it. ``floor`` (the point spread the images need anyway) is
-    added in quadrature.
+    dependence: Scott's rule for a product kernel in two dimensions, ``h =
+    sigma N^(-1/6)`` per axis, with ``sigma`` that image's rms size along the
+    axis (:func:`image_rms_pixels`), so that every image is compared at the
+    resolution its sample supports. Both sides get the same Gaussian, so
+    second moments are unchanged (each gains ``h^2``); the result depends on
+    the beam size and ``N`` only, not on how finely the camera samples it.
+    ``floor`` (the point spread the images need anyway) is added in
+    quadrature.
 
     Args:
         measured: Measured images of one scan ``(K, H, W)``.
@@ -866,30 +885,32 @@ def sampling_smoothing(measured: Tensor, n_particles: int, floor: float = 0.0) -
         floor: Smoothing applied regardless [pixels].
 
     Returns:
-        ``hypot(floor, sigma N^(-1/6))`` [pixels].
+        ``hypot(floor, sigma N^(-1/6))`` [pixels], ``(K, 2)`` float64.
 
     Example:
         >>> im = torch.zeros(1, 64, 64); im[0, 32, 22] = im[0, 32, 42] = 0.5
-        >>> round(sampling_smoothing(im, 4096), 3)
-        2.5
+        >>> sampling_smoothing(im, 4096)
+        tensor([[2.5000, 0.0000]], dtype=torch.float64)
     """
     if n_particles < 1:
         raise ValueError(f"n_particles must be >= 1; got {n_particles}.")
     h = image_rms_pixels(measured) * float(n_particles) ** (-1.0 / 6.0)
-    return float(min(math.hypot(floor, h), MAX_BLUR_PIXELS))
+    return torch.hypot(torch.full_like(h, float(floor)), h).clamp_max(MAX_BLUR_PIXELS)
 
 
 def loss_smoothing_for(
     config: ReconstructionConfig, measured: Sequence[Tensor]
 ) -> list[float]:
-    """Loss smoothing [pixels] of each scan: ``config.loss_smoothing`` when set,
-    else :func:`sampling_smoothing` of the scan's images at ``n_particles`` with
-    the floor of ``config.dims`` (0 for 4D; 1 pixel for 6D, whose images are
-    histograms of spots down to about a pixel)."""
-    if config.loss_smoothing is not None:
+    """Loss smoothing [pixels] of each scan: ``config.loss_smoothing``, or with
+    ``"auto"`` the largest :func:`sampling_smoothing` over the scan's images
+    and axes at ``n_particles``, with the default smoothing of
+    ``config.dims`` as its floor (0 for 4D, 1 pixel for 6D)."""
+    if config.loss_smoothing != "auto":
         return [float(config.loss_smoothing)] * len(measured)
     floor = _DIMS_DEFAULTS[config.dims].loss_smoothing
-    return [sampling_smoothing(m, config.n_particles, floor) for m in measured]
+    return [
+        float(sampling_smoothing(m, config.n_particles, floor).max()) for m in measured
+    ]
 
 
 #: Loss-smoothing rms per pixel of the compared images: a scan whose smoothing
@@ -944,48 +965,53 @@ def pooled_screen(
 def smoothed_for_loss(
     forwards: list[ScreenForwardModel],
     measured: list[Tensor],
-    sigma_px: float | Sequence[float],
+    sigma_px: float | Sequence[float | Tensor],
 ) -> tuple[list[ScreenForwardModel], list[Tensor]]:
     """Forward models and measured images both smoothed by ``sigma_px`` camera
-    pixels (one value for all scans, or one per scan), as the image term
-    compares them.
+    pixels, as the image term compares them: one value for all scans, or per
+    scan one value or one ``(x, y)`` pair per image ``(K_s, 2)``.
 
-    A scan smoothed by at least ``2 LOSS_SMOOTHING_PER_PIXEL`` pixels is
-    compared on pooled pixels (:func:`pool_images`): the measured images are
-    summed over ``p x p`` pixels and the simulated ones are deposited on the
-    coarse pixels, with point spreads that keep both sides' total variance
-    equal: the camera's own (``blur_pixels``), the pooling's ``(p^2 - 1) / 12``
-    and the smoothing's ``sigma^2`` [camera pixels^2].
+    A scan whose every image is smoothed by at least ``2
+    LOSS_SMOOTHING_PER_PIXEL`` pixels is compared on pooled pixels
+    (:func:`pool_images`): the measured images are summed over ``p x p``
+    pixels and the simulated ones are deposited on the coarse pixels, with
+    point spreads that keep both sides' total variance equal: the camera's own
+    (``blur_pixels``), the pooling's ``(p^2 - 1) / 12`` and the smoothing's
+    ``sigma^2`` [camera pixels^2].
     """
-    sigmas = (
+    per_scan = (
         [float(sigma_px)] * len(forwards)
         if isinstance(sigma_px, int | float)
-        else [float(v) for v in sigma_px]
+        else list(sigma_px)
     )
     out_f, out_m = [], []
-    for f, m, sigma in zip(forwards, measured, sigmas, strict=True):
-        if sigma <= 0:
+    for f, m, sigma in zip(forwards, measured, per_scan, strict=True):
+        s = torch.as_tensor(sigma, dtype=torch.float64).cpu()
+        s = s.reshape(-1, 1).expand(m.shape[0], 2) if s.dim() < 2 else s
+        if not bool((s > 0).any()):
             out_f.append(f)
             out_m.append(m)
             continue
-        p = max(1, int(sigma // LOSS_SMOOTHING_PER_PIXEL))
+        p = max(1, int(float(s.min()) // LOSS_SMOOTHING_PER_PIXEL))
         beamline = f.beamline
         if p > 1:
             m, before = pool_images(m, p)
             shape, pixel, center = pooled_screen(f, p, before)
             beamline = beamline.with_screen(f.screen.name, shape, pixel, center)
-        variance = f.blur_pixels**2 + (p * p - 1) / 12.0 + sigma**2
+        base = math.sqrt(f.blur_pixels**2 + (p * p - 1) / 12.0) / p
         out_f.append(
             ScreenForwardModel(
                 beamline,
                 f.names,
                 f.p0c,
                 species=f.species,
-                blur_pixels=min(math.sqrt(variance) / p, MAX_BLUR_PIXELS),
+                blur_pixels=min(base, MAX_BLUR_PIXELS),
+                image_smoothing=s / p,
             )
         )
-        psx, psy = (v * p for v in f.screen.pixel_size)
-        blurred = gaussian_blur(m, (sigma * psx / p, sigma * psy / p), (psx, psy))
+        fine = torch.tensor(f.screen.pixel_size, dtype=torch.float64)
+        coarse = tuple(float(v) * p for v in f.screen.pixel_size)
+        blurred = gaussian_blur(m, (s * fine).to(m.device), coarse)
         # not renormalised: mass blurred off the screen is lost on both sides
         out_m.append(blurred)
     return out_f, out_m

@@ -14,6 +14,7 @@ from diffaccel.dynamics._validate import (
     check_finite,
     check_nonnegative,
     check_particles,
+    compute_dtype,
 )
 from diffaccel.dynamics.elements._kernels import (
     is_zero,
@@ -163,6 +164,7 @@ class Element(nn.Module):
                 f"{type(self).__name__} does not implement track."
             )
         check_particles(particles)
+        particles = particles.to(compute_dtype(particles))  # float16: p0c overflows
         p0c = as_p0c(p0c, particles)
         coords = self.track_columns(tuple(particles.unbind(-1)), p0c, species)
         return stack_columns(coords)

@@ -8,7 +8,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from diffaccel.dynamics._validate import check_particles
+from diffaccel.dynamics._validate import check_particles, compute_dtype
 from diffaccel.dynamics.elements.element import Coords, Element
 from diffaccel.dynamics.images import _geometry, cic_image, kde_image, pixel_centers
 from diffaccel.dynamics.species import ELECTRON, Species
@@ -148,6 +148,7 @@ class Screen(Element):
                 an option does not belong to the method.
         """
         check_particles(particles, check_finite=False)  # x, y are checked below
+        particles = particles.to(compute_dtype(particles))  # float16 counts saturate
         x, y = particles[..., 0:3:2].unbind(-1)
         return self.image_xy(x, y, method, bandwidth, blur_sigma, weights)
 
