@@ -39,6 +39,7 @@ GROUPS = (
             "reconstruction_6d",
             "reconstruction_6d_beams",
             "calibration",
+            "background_bias",
         ),
     ),
     (
