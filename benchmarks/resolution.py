@@ -22,12 +22,11 @@ Prints one JSON object on the last line:
 from __future__ import annotations
 
 import argparse
-import platform
 import time
 from pathlib import Path
 
 import torch
-from _meta import emit, git_commit
+from _meta import emit
 
 from diffaccel.data.synthetic import make_synthetic_quad_scan, sample_preset_beam
 from diffaccel.reconstruction import ReconstructionConfig, reconstruct
@@ -114,10 +113,6 @@ def main() -> None:
             "max_abs_emit_rel_err": worst,
             "loss_smoothing": args.loss_smoothing,
             "grid": grid,
-            "command": "python benchmarks/resolution.py",
-            "machine": f"{platform.machine()} {torch.get_num_threads()} threads",
-            "commit": git_commit(),
-            "date": time.strftime("%Y-%m-%d", time.gmtime()),
         },
         args.out,
     )

@@ -5,8 +5,8 @@ and either a drift to a screen (`dipole_off`) or a spectrometer dipole to a seco
 screen (`dipole_on`). The cavity streaks z into a transverse coordinate, the
 dipole turns pz into x: together the scans see all six coordinates. The
 synthetic beam is the `correlated` preset; every other quadrupole strength trains
-(cavity off and on), the others are held out. The 6D defaults run with fewer particles per step so that the
-page builds in a few minutes. Read each emittance together with its reported std:
+(cavity off and on), the others are held out. The 6D defaults run with fewer
+particles per step so that the page builds in a few minutes. Read each emittance together with its reported std:
 the directions of the covariance the scans cannot see are set by a stated prior
 (see [the 6D estimator](../../methods/reconstruction_6d.md) and
 [uncertainty](../../methods/uncertainty.md)).

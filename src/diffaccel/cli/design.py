@@ -182,7 +182,7 @@ def design_command(
     """What the scans in DATA determine and which settings to add.
 
     DATA is a scan file (HDF5) or a JSON spec of planned scans (beamlines,
-    knob grids, a prior beam; docs/design.md). Without --knob: which second
+    knob grids, a prior beam; docs/methods/design.md). Without --knob: which second
     moments and quantities the scans determine and which they leave to the
     prior. With --knob: also the added settings, ranked by the reduction of
     the targets' posterior std per image. No training.

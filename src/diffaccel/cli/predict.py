@@ -140,7 +140,7 @@ def parse_settings(text: str, names: list[str]) -> torch.Tensor:
     help="Also write the per-pixel spread (1-sigma) of the predicted images, on "
     "their unit-sum scale: .npy (K, H, W) float32 for one scan, or .npz with one "
     "such array per scan name (ensemble scatter and the moment-space posterior; "
-    "see docs/uncertainty.md).",
+    "see docs/methods/uncertainty.md).",
 )
 @click.option("--force", is_flag=True, help="Overwrite --out (and --std-out).")
 def predict(

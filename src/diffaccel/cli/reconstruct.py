@@ -374,7 +374,7 @@ def run_reconstruction(
     "correlation) where members refitted there fit clearly better: a "
     "likelihood-ratio probe on the side away from where training left the "
     "members, one or more extra refits per member (about 20 s on two CPU cores) "
-    "[default: on for --dims 6; see docs/generalisation_6d.md].",
+    "[default: on for --dims 6].",
 )
 @click.option("--no-figures", is_flag=True, help="Skip the PNG figures.")
 @click.option(
@@ -389,8 +389,8 @@ def run_reconstruction(
     "--uncertainty/--no-uncertainty",
     default=True,
     show_default=True,
-    help="Calibrated moment std (moment-space posterior, see docs/uncertainty.md) "
-    "and the per-pixel spread in the image figures; --no-uncertainty reports "
+    help="Calibrated moment std (moment-space posterior, see "
+    "docs/methods/uncertainty.md) and the per-pixel spread in the image figures; --no-uncertainty reports "
     "the ensemble scatter only (faster, under-covers).",
 )
 @click.option(

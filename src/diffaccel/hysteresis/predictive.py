@@ -14,7 +14,7 @@ share of its thresholds where the training output changes, so that a coercive
 field far below the input range (soft iron: ``1e-3`` of it) spans many cells;
 the share is chosen from :data:`MESH_ADAPT_CANDIDATES` on validation rows held
 out *inside* the training history, every fourth row, which score how well
-each mesh interpolates where the data switch (see ``docs/preisach.md``).
+each mesh interpolates where the data switch (see ``docs/methods/preisach_fit.md``).
 """
 
 from __future__ import annotations
