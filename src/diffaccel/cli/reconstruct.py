@@ -390,8 +390,8 @@ def run_reconstruction(
     default=True,
     show_default=True,
     help="Calibrated moment std (moment-space posterior, see "
-    "docs/methods/uncertainty.md) and the per-pixel spread in the image figures; --no-uncertainty reports "
-    "the ensemble scatter only (faster, under-covers).",
+    "docs/methods/uncertainty.md) and the per-pixel spread in the image figures; "
+    "--no-uncertainty reports the ensemble scatter only (faster, under-covers).",
 )
 @click.option(
     "--force",
