@@ -318,3 +318,39 @@ def test_append_columns_writes_boolean_flags_as_0_and_1() -> None:
     x[1] = np.nan
     text = append_columns(["a", "b", "c"], [x, flag], [2, 1])
     assert text == "a,1.5e+00,0\nb,nan,1\nc,3.0e+00,0\n"
+
+
+@pytest.mark.parametrize(
+    ("cell", "hint"),
+    [
+        ("1_000", "digit separators"),
+        ("0x10", "hexadecimal"),
+        ("1,5", "decimal comma"),
+    ],
+)
+def test_numbers_are_read_strictly(tmp_path, cell, hint):
+    """Python's float() reads '1_000' as 1000; a magnet file must not."""
+    from diffaccel.data import iter_magnet_csv
+
+    path = tmp_path / "m.csv"
+    quoted = f'"{cell}"' if "," in cell else cell
+    path.write_text(f"current_A,field_Tm\n1.0,0.1\n{quoted},0.2\n")
+    with pytest.raises(FormatError, match=f"data row 2.*{hint}"):
+        read_magnet_csv(path)
+    header, chunks = iter_magnet_csv(path, "current_A")
+    with pytest.raises(FormatError, match=f"data row 2.*{hint}"):
+        list(chunks)
+
+
+def test_a_semicolon_file_is_named_as_such(tmp_path):
+    path = tmp_path / "m.csv"
+    path.write_text("current_A;field_Tm\n1,0;0,1\n2,0;0,2\n")
+    with pytest.raises(FormatError, match="';' or tabs"):
+        read_magnet_csv(path)
+
+
+def test_plain_decimals_and_exponents_still_read(tmp_path):
+    path = tmp_path / "m.csv"
+    path.write_text("current_A,field_Tm\n-1.5e2,0.1\n+.5,2E-3\n 7 ,1.\n")
+    h = read_magnet_csv(path)
+    assert h.input.tolist() == [-150.0, 0.5, 7.0]

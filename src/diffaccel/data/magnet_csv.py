@@ -32,6 +32,7 @@ from diffaccel.data.magnet_stream import (
     _OrderCheck,
     _parse_column,
     _reader_batches,
+    separator_hint,
 )
 
 __all__ = [
@@ -133,11 +134,12 @@ def read_magnet_csv(
         if len(row) != len(header):
             raise FormatError(
                 f"{path_s}: data row {i + 1} has {len(row)} cells; the header has "
-                f"{len(header)}."
+                f"{len(header)}{separator_hint(header)}."
             )
     if input_column not in header:
         raise FormatError(
-            f"{path_s}: no input column {input_column!r}; columns are {header}."
+            f"{path_s}: no input column {input_column!r}; columns are "
+            f"{header}{separator_hint(header)}."
         )
     if output_column == input_column:
         raise FormatError(
@@ -153,7 +155,8 @@ def read_magnet_csv(
         y = torch.from_numpy(_parse_column(data, col, output_column, path_s))
     elif require_output:
         raise FormatError(
-            f"{path_s}: no output column {output_column!r}; columns are {header}."
+            f"{path_s}: no output column {output_column!r}; columns are "
+            f"{header}{separator_hint(header)}."
         )
     order = _OrderCheck(path_s, header, time_column, run_column)
     if order.time is not None:

@@ -26,6 +26,7 @@ import io
 import itertools
 import operator
 import os
+import re
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 
@@ -61,8 +62,39 @@ def _parse_column(
     return _parse_cells(cells, name, path, first)
 
 
+_DECIMAL_COMMA = re.compile(r"\s*[+-]?\d+,\d+\s*")
+
+
+def separator_hint(header: Sequence[str]) -> str:
+    """A hint for a header read as one column that holds ``;`` or tabs."""
+    if len(header) == 1 and (";" in header[0] or "\t" in header[0]):
+        return (
+            " (the header is one column: the file seems to separate cells with "
+            "';' or tabs; diffaccel reads ',' with a decimal point)"
+        )
+    return ""
+
+
+def _number_hint(cell: str) -> str:
+    """Why ``cell`` is not a plain decimal number, for the error message."""
+    if "_" in cell:
+        return " (digit separators such as '_' are not read; write 1000, not 1_000)"
+    if cell.strip().lower().startswith(("0x", "-0x", "+0x")):
+        return " (hexadecimal is not read; write the decimal value)"
+    if _DECIMAL_COMMA.fullmatch(cell) or ";" in cell:
+        return (
+            " (this looks like a decimal comma or a ';'-separated file: write "
+            "numbers with a decimal point, cells separated by ',')"
+        )
+    return ""
+
+
 def _parse_cells(cells: list[str], name: str, path: str, first: int = 0) -> np.ndarray:
-    """Cells of column ``name`` (data rows ``first + 1 ...``) as finite float64."""
+    """Cells of column ``name`` (data rows ``first + 1 ...``) as finite float64.
+
+    Only plain decimal numbers are read (Python's ``float`` would also take
+    ``1_000`` and ``infinity``): a cell that is not one is named with its row.
+    """
     try:
         values = np.array(list(map(float, cells)), dtype=np.float64)
     except ValueError:
@@ -70,7 +102,14 @@ def _parse_cells(cells: list[str], name: str, path: str, first: int = 0) -> np.n
     if values is not None:
         bad = ~np.isfinite(values)
         if not bad.any():
-            return values
+            strange = [i for i, c in enumerate(cells) if "_" in c]
+            if not strange:
+                return values
+            i = strange[0]
+            raise FormatError(
+                f"{path}: column {name!r}, data row {first + i + 1}: expected a "
+                f"number; found {cells[i]!r}{_number_hint(cells[i])}."
+            )
         i = int(np.flatnonzero(bad)[0])
         raise FormatError(
             f"{path}: column {name!r}, data row {first + i + 1}: expected a finite "
@@ -82,7 +121,7 @@ def _parse_cells(cells: list[str], name: str, path: str, first: int = 0) -> np.n
         except ValueError:
             raise FormatError(
                 f"{path}: column {name!r}, data row {first + i + 1}: expected a "
-                f"number; found {cell!r}."
+                f"number; found {cell!r}{_number_hint(cell)}."
             ) from None
     raise AssertionError("unreachable")  # pragma: no cover
 
@@ -267,7 +306,8 @@ def _stream_chunks(
                 )
             if input_column not in header:
                 raise FormatError(
-                    f"{path_s}: no input column {input_column!r}; columns are {header}."
+                    f"{path_s}: no input column {input_column!r}; columns are "
+                    f"{header}{separator_hint(header)}."
                 )
             col = header.index(input_column)
             keep = [i for i, c in enumerate(header) if c not in drop]
@@ -339,6 +379,8 @@ def _fast_chunk(
         # for both would wake the garbage collector (~3x slower)
         wanted = (col,) if time is None else (col, time)
         picked = [[t.split(",", c + 1)[c] for t in texts] for c in wanted]
+    if any("_" in c for c in picked[0]):  # not a plain decimal: the careful way
+        return None
     try:
         x = np.array(list(map(float, picked[0])), dtype=np.float64)
     except ValueError:  # a blank line or a cell that is not a number
