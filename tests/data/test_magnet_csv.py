@@ -337,7 +337,7 @@ def test_numbers_are_read_strictly(tmp_path, cell, hint):
     path.write_text(f"current_A,field_Tm\n1.0,0.1\n{quoted},0.2\n")
     with pytest.raises(FormatError, match=f"data row 2.*{hint}"):
         read_magnet_csv(path)
-    header, chunks = iter_magnet_csv(path, "current_A")
+    _, chunks = iter_magnet_csv(path, "current_A")
     with pytest.raises(FormatError, match=f"data row 2.*{hint}"):
         list(chunks)
 
