@@ -734,6 +734,7 @@ def scan_fits(
     dataset: QuadScanDataset | MultiScanDataset,
     predicted: Mapping[str, Tensor],
     train_indices: Mapping[str, Sequence[int]],
+    maps: Mapping[str, Tensor] | None = None,
 ) -> list[ScanFit]:
     """:class:`ScanFit` of every scan of ``dataset`` with training settings.
 
@@ -743,6 +744,8 @@ def scan_fits(
         predicted: ``{scan: (K_s, H_s, W_s)}`` images of every setting
             (``evaluation.predict_dataset``).
         train_indices: ``{scan: indices}`` of the training settings.
+        maps: ``{scan: (K_s, 7, 7)}`` maps of every setting
+            (:func:`dataset_maps`), computed here when None.
     """
     fits = []
     for name, scan in as_scans(dataset):
@@ -759,7 +762,11 @@ def scan_fits(
                 name=name,
                 measured=meas[train],
                 predicted=predicted[name][train],
-                maps=fwd.transfer_maps(scan.settings[train]),
+                maps=(
+                    fwd.transfer_maps(scan.settings[train])
+                    if maps is None
+                    else maps[name][train]
+                ),
                 xs=xs,
                 ys=ys,
                 train_indices=train,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from functools import partial
 from pathlib import Path
 
@@ -76,6 +76,8 @@ class Reconstruction:
         forward: ScreenForwardModel | Mapping[str, ScreenForwardModel],
         history: dict,
         info: dict | None = None,
+        *,
+        training_maps: Sequence[Tensor] | None = None,
     ) -> None:
         if not snapshots:
             raise ValueError("a reconstruction needs at least one snapshot.")
@@ -89,6 +91,8 @@ class Reconstruction:
         self.history = history
         self.info = dict(info or {})
         self._generators = [self._build(s) for s in snapshots]
+        # the maps of training_maps(), when the caller has them already
+        self._training_maps = None if training_maps is None else list(training_maps)
 
     def _build(self, state: dict) -> BeamGenerator:
         c = self.config
@@ -379,7 +383,9 @@ class Reconstruction:
 
     def training_maps(self) -> list[Tensor]:
         """Each scan's affine maps ``(K_s, 7, 7)`` at its training settings
-        (scans without recorded training settings left out)."""
+        (scans without recorded training settings left out); computed once."""
+        if self._training_maps is not None:
+            return list(self._training_maps)
         per_scan = self.info.get("scans")
         if not isinstance(per_scan, dict):
             per_scan = {self.scan_names[0]: self.info}
@@ -390,7 +396,8 @@ class Reconstruction:
             )
             if sets.numel():
                 maps.append(fwd.transfer_maps(sets))
-        return maps
+        self._training_maps = maps
+        return list(maps)
 
     def save(self, directory: str | os.PathLike, *, overwrite: bool = False) -> Path:
         """Write the ensemble to ``directory/ensemble.pt`` atomically.

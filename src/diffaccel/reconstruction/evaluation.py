@@ -139,6 +139,7 @@ def predict_dataset(
     return_std: bool = False,
     n_draws: int = 4,
     return_on_screen: bool = False,
+    maps: Mapping[str, Tensor] | None = None,
 ) -> dict[str, Tensor] | tuple[dict[str, Tensor], ...]:
     """Ensemble-mean images of every scan and setting of ``dataset``.
 
@@ -160,6 +161,8 @@ def predict_dataset(
         return_on_screen: Also return the fraction of the beam on the screen
             at every setting (``Reconstruction.predict_images(
             return_on_screen=True)``: from the same images, no extra tracking).
+        maps: ``{scan: (K_s, 7, 7)}`` transfer maps of every setting when the
+            caller has them (:func:`~diffaccel.reconstruction.alarms.dataset_maps`).
 
     Returns:
         ``{scan name: (K_s, H_s, W_s)}`` float32 images, each summing to 1;
@@ -190,6 +193,7 @@ def predict_dataset(
             return_std=return_std,
             n_draws=n_draws,
             return_on_screen=True,
+            maps=None if maps is None else maps[name],
         )
         out[name], on_screen[name] = pred[0], pred[-1]
         if return_std:
@@ -300,8 +304,11 @@ def evaluate(
         ``train_indices``/``held_out_indices`` at the top level.
     """
     scans = as_scans(dataset)
+    maps, specs = dataset_maps(scans)
     if predicted is None:
-        predicted, on_screen = predict_dataset(result, scans, return_on_screen=True)
+        predicted, on_screen = predict_dataset(
+            result, scans, return_on_screen=True, maps=maps
+        )
     pred = dict(predicted)
     per_scan: dict[str, Any] = {}
     screen_warnings: list[str] = []
@@ -368,11 +375,10 @@ def evaluate(
         )
         metrics["ground_truth"] = gt
     signals = fit_signals(
-        scan_fits(result, scans, pred, selected),
+        scan_fits(result, scans, pred, selected, maps),
         torch.tensor(moments["cov"]["mean"], dtype=torch.float64),
         result.config.dims,
     )
-    maps, specs = dataset_maps(scans)
     longitudinal = longitudinal_alarm(result.config.dims, maps, specs)
     alarms = fit_alarms(signals, longitudinal=longitudinal)
     if longitudinal is not None:

@@ -92,7 +92,12 @@ class ScreenForwardModel:
                     "image_smoothing must be (K, 2) pixels; got shape "
                     f"{tuple(image_smoothing.shape)}."
                 )
+            if not bool(torch.isfinite(image_smoothing).all()) or bool(
+                (image_smoothing < 0).any()
+            ):
+                raise ValueError("image_smoothing must be finite and >= 0 pixels.")
         self.image_smoothing = image_smoothing
+        self._blur_per_image: Tensor | None = None
         self.device = torch.device("cpu")
 
     # ----------------------------------------------------------------- spec I/O
@@ -213,8 +218,11 @@ class ScreenForwardModel:
         extra = self.blur_pixels**2 - 1.0 / 6.0
         psx, psy = self.screen.pixel_size
         if self.image_smoothing is not None:
-            total = (extra + self.image_smoothing.square()).clamp_min(0.0).sqrt()
-            return total * torch.tensor([psx, psy], dtype=torch.float64)
+            if self._blur_per_image is None:  # made once: no tensor per step
+                total = (extra + self.image_smoothing.square()).clamp_min(0.0).sqrt()
+                scale = torch.tensor([psx, psy], dtype=torch.float64)
+                self._blur_per_image = total * scale
+            return self._blur_per_image
         if extra <= 1e-6:
             return None
         return (math.sqrt(extra) * psx, math.sqrt(extra) * psy)

@@ -408,7 +408,9 @@ def reconstruct(
         info["moment_polish"] = [r.to_dict() for r in polish]
     if len(scans) == 1:
         info.update(per_scan[used[0]])
-    result = Reconstruction(config, snapshots, forwards, state.history, info)
+    result = Reconstruction(
+        config, snapshots, forwards, state.history, info, training_maps=maps
+    )
     if uncertainty:
         t2 = time.perf_counter()
         attach_uncertainty(
