@@ -130,3 +130,30 @@ def test_gp_fit_on_slac_beats_the_plain_gp_with_default_options(
     assert s["heldout_rmse"] < s["plain_gp_heldout_rmse"]
     assert s["noise_sigma"] < 0.005 and s["heldout_rmse"] < 0.005
     assert s["warnings"] == []
+
+
+def test_a_stray_input_cell_is_named_with_its_row(
+    magnet_csv: Path, tmp_path: Path
+) -> None:
+    lines = magnet_csv.read_text().splitlines()
+    cells = lines[5].split(",")
+    cells[2] = "1e99"  # data row 5's current
+    lines[5] = ",".join(cells)
+    bad = tmp_path / "stray.csv"
+    bad.write_text("\n".join(lines) + "\n")
+    result = _fit(bad, tmp_path / "fit", "--steps", "30")
+    assert result.exit_code == 0, result.output
+    summary = json.loads((tmp_path / "fit" / "summary.json").read_text())
+    stray = [w for w in summary["warnings"] if "data row 5: 1e+99" in w]
+    assert len(stray) == 1 and "typo" in stray[0]
+    assert f"warning: {stray[0]}" in result.output
+
+
+def test_the_good_magnet_has_no_stray_input(magnet_csv: Path) -> None:
+    from diffaccel.data import read_magnet_csv
+    from diffaccel.hysteresis.alarms import input_outlier_alarms
+
+    h = read_magnet_csv(magnet_csv, input_column="I", output_column="B")
+    assert input_outlier_alarms(h.input.tolist(), "I") == []
+    slac = read_magnet_csv(SLAC)
+    assert input_outlier_alarms(slac.input.tolist(), "current_A") == []

@@ -35,7 +35,7 @@ from diffaccel.hysteresis import (
     fit_magnet,
     save_fit,
 )
-from diffaccel.hysteresis.alarms import preisach_alarms
+from diffaccel.hysteresis.alarms import input_outlier_alarms, preisach_alarms
 from diffaccel.hysteresis.predictive import (
     MAX_MESH_SIZE,
     check_mesh_size,
@@ -269,6 +269,7 @@ def fit_command(
             input_range=(lo, hi), train_span=float(u_tr.max() - u_tr.min()),
             cell_width=(hi - lo) / mesh_size, output_range=span,
         )  # fmt: skip
+        alarms = input_outlier_alarms(u.tolist(), input_col) + alarms
         inside = (resid[train_rows:].abs() <= 2.0 * std[train_rows:]).double()
 
         def pct(v: float | None) -> float | None:

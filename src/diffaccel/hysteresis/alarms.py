@@ -34,8 +34,10 @@ __all__ = [
     "GP_HELDOUT_RATIO",
     "GP_NOISE_RATIO",
     "LINE_RATIO",
+    "OUTLIER_GAP",
     "WIDE_RANGE",
     "hgp_alarms",
+    "input_outlier_alarms",
     "preisach_alarms",
 ]
 
@@ -47,6 +49,49 @@ GP_NOISE_RATIO = 1.1
 GP_HELDOUT_RATIO = 1.1
 #: input range / training inputs' span beyond which the range is named first
 WIDE_RANGE = 3.0
+#: gap between the largest (smallest) input and the next one, in spans of the
+#: other inputs, beyond which that input is reported as a stray value
+OUTLIER_GAP = 10.0
+
+
+def input_outlier_alarms(values: list[float], column: str) -> list[str]:
+    """One line per end of the inputs that a single stray value stretches.
+
+    An input cell far outside all the others (a typo such as ``1e99``, a value
+    in another unit) sets the fit's input range by itself, and the mesh then
+    has no cells where the data are. The largest and the smallest input are
+    each compared with the span of all the others: a gap above
+    :data:`OUTLIER_GAP` spans is reported with its row (1-based data row).
+    Measured histories have gaps of one step of their scan at most (a ramp of
+    ``N`` even steps: ``1 / (N - 1)`` spans; the SLAC quadrupole's, which
+    revisits its extremes: below 1e-4 spans).
+
+    Example:
+        >>> input_outlier_alarms([0.0, 1.0, 2.0, 1e99, 1.5], "current_A")[0][:37]
+        "input column 'current_A', data row 4:"
+        >>> input_outlier_alarms([0.0, 1.0, 2.0, 1.5], "current_A")
+        []
+    """
+    finite = [(v, i) for i, v in enumerate(values) if math.isfinite(v)]
+    if len(finite) < 3:
+        return []
+    ordered = sorted(finite)
+    out = []
+    for value, row, neighbour, rest in (
+        (*ordered[-1], ordered[-2][0], ordered[:-1]),
+        (*ordered[0], ordered[1][0], ordered[1:]),
+    ):
+        span = rest[-1][0] - rest[0][0]
+        gap = abs(value - neighbour)
+        if span > 0 and gap > OUTLIER_GAP * span:
+            out.append(
+                f"input column {column!r}, data row {row + 1}: {value:g} lies "
+                f"{gap / span:.3g} spans of the other inputs ({rest[0][0]:g} .. "
+                f"{rest[-1][0]:g}) beyond them and sets the fit's input range by "
+                "itself. Likely causes: a typo or a stray value in that cell; a "
+                "value in another unit; a row from another measurement"
+            )
+    return out
 
 
 def _ok(*values: float | None) -> bool:
