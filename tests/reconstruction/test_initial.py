@@ -189,3 +189,19 @@ def test_the_shared_files_guesses_are_plausible() -> None:
             fwd, [s.mean_images() for _, s in ms], [s.settings for _, s in ms]
         )
         check_guess(guess, ms.names)  # does not raise
+
+
+def test_an_unphysical_guess_without_a_focusing_scan_says_so_first() -> None:
+    from diffaccel.reconstruction.initial import GaussianGuess, check_guess
+
+    cov = torch.diag(torch.tensor([1e-6, 1.0, 1e-6, 1e-8, 1e-6, 1e-6]).double())
+    guess = GaussianGuess(torch.zeros(6, dtype=torch.float64), cov)
+    with pytest.raises(ValueError, match="rms px") as info:
+        check_guess(guess, ["tdc_only"], focusing_scanned=False)
+    text = str(info.value)
+    assert text.index("no scan varies a focusing strength") < text.index(
+        "screen calibration"
+    )
+    with pytest.raises(ValueError) as plain:
+        check_guess(guess, ["scan"])
+    assert "focusing strength" not in str(plain.value)

@@ -72,12 +72,17 @@ MAX_GUESS_SIZE = 0.05
 MAX_GUESS_ANGLE = 0.05
 
 
-def check_guess(guess: GaussianGuess, scans: Sequence[str] = ()) -> None:
+def check_guess(
+    guess: GaussianGuess, scans: Sequence[str] = (), focusing_scanned: bool = True
+) -> None:
     """Refuse an initial guess whose beam no quadrupole scan could image.
 
     Args:
         guess: The fit of :func:`fit_gaussian`.
         scans: Names of the scans it was fitted to (named in the error).
+        focusing_scanned: Whether any scan varies a focusing strength
+            (quadrupole ``k1``, solenoid ``ks``); without one the angles are
+            not determined, and the error says so first.
 
     Raises:
         ValueError: if an rms size (x, y) exceeds :data:`MAX_GUESS_SIZE` or an
@@ -96,13 +101,22 @@ def check_guess(guess: GaussianGuess, scans: Sequence[str] = ()) -> None:
             found.append(f"mean {name} {float(guess.mean[i]):.3g} rad")
     if found:
         where = f" of scan(s) {', '.join(repr(s) for s in scans)}" if scans else ""
+        first = (
+            "check the screen calibration first (pixel_size_x/y and center_x/y "
+            "are in m: 1 mm is 1e-3), then the settings' units, the beamline "
+            "(drift to the screen) and p0c."
+        )
+        if not focusing_scanned:
+            first = (
+                "no scan varies a focusing strength (a quadrupole's k1 or a "
+                "solenoid's ks), so the images cannot tell the beam's angles: add "
+                "a quadrupole scan; if one is there, " + first
+            )
         raise ValueError(
             f"the image moments{where} imply an unphysical beam ("
             + ", ".join(found)
             + f"; expected rms sizes <= {MAX_GUESS_SIZE:g} m and angles <= "
-            f"{MAX_GUESS_ANGLE:g} rad): check the screen calibration first "
-            "(pixel_size_x/y and center_x/y are in m: 1 mm is 1e-3), then the "
-            "settings' units, the beamline (drift to the screen) and p0c."
+            f"{MAX_GUESS_ANGLE:g} rad): " + first
         )
 
 

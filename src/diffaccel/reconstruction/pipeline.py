@@ -167,6 +167,22 @@ def _check_quadrupole_values(
         )
 
 
+def _scans_focusing(dataset: MultiScanDataset, used: Sequence[str]) -> bool:
+    """Whether any of the ``used`` scans varies a quadrupole's k1 or a
+    solenoid's ks."""
+    focusing = {"Quadrupole": "k1", "Solenoid": "ks"}
+    for name in used:
+        scan = dataset[name]
+        types = {e["name"]: e["type"] for e in scan.beamline_spec}
+        for j, n in enumerate(scan.setting_names):
+            element, _, param = n.partition(".")
+            if focusing.get(types.get(element, "")) == param and bool(
+                (scan.settings[:, j] != scan.settings[0, j]).any()
+            ):
+                return True
+    return False
+
+
 def _selection(
     dataset: MultiScanDataset, train_indices: TrainIndices
 ) -> TrainingSelection:
@@ -318,7 +334,7 @@ def reconstruct(
         fwd.transfer_maps(s) for fwd, s in zip(forwards.values(), settings, strict=True)
     ]
     guess = fit_gaussian(list(forwards.values()), measured, settings, maps=maps)
-    check_guess(guess, used)
+    check_guess(guess, used, focusing_scanned=_scans_focusing(scans, used))
     t1 = time.perf_counter()
     # the placed members' refit runs where the scans leave longitudinal
     # directions unseen (not when they see z or pz not at all: quad-only 6D);
