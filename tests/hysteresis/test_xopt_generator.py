@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 
 import pytest
 import torch
@@ -18,6 +19,8 @@ from diffaccel.hysteresis.xopt_generator import (  # noqa: E402
     HysteresisBayesianGenerator,
     HysteresisModelConstructor,
 )
+
+DOCS = Path(__file__).resolve().parents[2] / "docs"
 
 YAML = """
 generator:
@@ -81,3 +84,32 @@ def test_bad_options_are_one_line_errors() -> None:
         HysteresisBayesianGenerator(vocs=vocs, gp_constructor="standard")
     with pytest.raises(ValueError, match="initial_state"):
         HysteresisModelConstructor(initial_state="sideways")
+
+
+def test_docs_yaml_runs_under_xopt() -> None:
+    text = (DOCS / "xopt.md").read_text()
+    config = yaml.safe_load(text.split("```yaml\n", 1)[1].split("```", 1)[0])
+    assert config["generator"]["name"] == "hysteresis_bayesian"
+    assert config["evaluator"]["function"] == "my_machine.measure"
+    assert config["stopping_condition"]["max_evaluations"] == 50
+    config["generator"]["gp_constructor"].update(mesh_n=4, fit_max_iter=20)
+    config["stopping_condition"]["max_evaluations"] = 6
+    truth = PreisachModel(PreisachMesh.triangular(n=6), input_range=(-10.0, 10.0))
+    history: list[list[float]] = []
+
+    def measure(inputs: dict) -> dict:
+        history.append([float(inputs[n]) for n in ("Q1", "Q2", "Q3")])
+        with torch.no_grad():
+            m = truth.magnetization(torch.tensor(history, dtype=torch.float64).T)
+        return {"distance": float((m[:, -1] - 0.1).norm())}
+
+    X = Xopt.model_validate({**config, "evaluator": Evaluator(function=measure)})
+    torch.manual_seed(1)
+    X.random_evaluate(4)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        X.run()
+    assert len(X.data) == 6
+    assert X.data[["Q1", "Q2", "Q3"]].abs().le(10.0).all().all()
+    assert isinstance(X.generator.model, HysteresisGP)
+    assert X.generator.gp_constructor.hysteretic_inputs == ["Q1", "Q2", "Q3"]
