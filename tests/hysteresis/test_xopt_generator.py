@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import warnings
 from pathlib import Path
 
@@ -113,3 +115,14 @@ def test_docs_yaml_runs_under_xopt() -> None:
     assert X.data[["Q1", "Q2", "Q3"]].abs().le(10.0).all().all()
     assert isinstance(X.generator.model, HysteresisGP)
     assert X.generator.gp_constructor.hysteretic_inputs == ["Q1", "Q2", "Q3"]
+
+
+def test_hysteresis_room_does_not_import_xopt() -> None:
+    code = (
+        "import sys, diffaccel.hysteresis as h; h.HysteresisBO; h.HysteresisGP; "
+        "print(sorted(m for m in sys.modules if m.split('.')[0] == 'xopt'))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    )
+    assert out.stdout.strip() == "[]", out.stdout
