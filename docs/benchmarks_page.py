@@ -58,6 +58,7 @@ GROUPS = (
             "hysteresis_alarms",
             "hgp_vs_gp",
             "bo_hysteresis",
+            "xopt_hysteresis",
         ),
     ),
     ("GPU", ("gpu_checks",)),
