@@ -126,3 +126,20 @@ def test_hysteresis_room_does_not_import_xopt() -> None:
         [sys.executable, "-c", code], capture_output=True, text=True, check=True
     )
     assert out.stdout.strip() == "[]", out.stdout
+
+
+def test_importing_the_generator_keeps_torchs_default_dtype() -> None:
+    """Xopt sets float64 as torch's default when imported; the module restores
+    the caller's default (a fresh interpreter: this one may have it cached)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import torch; torch.set_default_dtype(torch.float32); "
+        "import diffaccel.hysteresis.xopt_generator; "
+        "print(torch.get_default_dtype())"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    )
+    assert out.stdout.strip() == "torch.float32"

@@ -35,6 +35,9 @@ from typing import Any
 
 import torch
 
+# importing Xopt sets torch's default dtype to float64 for the whole process;
+# the rest of diffaccel (and the user's code) keeps its own default
+_DEFAULT_DTYPE = torch.get_default_dtype()
 try:
     from pydantic import Field, SerializeAsAny, field_validator, model_validator
     from xopt.generators import generators as _xopt_generators
@@ -46,6 +49,8 @@ except ImportError as err:  # pragma: no cover - exercised without the extra
     raise ImportError(
         "the Xopt generator needs Xopt: pip install diffaccel[xopt]"
     ) from err
+finally:
+    torch.set_default_dtype(_DEFAULT_DTYPE)
 
 from diffaccel.hysteresis.hgp import HysteresisGP, fit_hysteresis_gp
 from diffaccel.hysteresis.mesh import PreisachMesh
