@@ -35,6 +35,10 @@ from typing import Any
 
 import torch
 
+from diffaccel.hysteresis.hgp import HysteresisGP, fit_hysteresis_gp
+from diffaccel.hysteresis.mesh import PreisachMesh
+from diffaccel.hysteresis.preisach import INITIAL_STATES, PreisachModel
+
 # importing Xopt sets torch's default dtype to float64 for the whole process;
 # the rest of diffaccel (and the user's code) keeps its own default
 _DEFAULT_DTYPE = torch.get_default_dtype()
@@ -52,9 +56,6 @@ except ImportError as err:  # pragma: no cover - exercised without the extra
 finally:
     torch.set_default_dtype(_DEFAULT_DTYPE)
 
-from diffaccel.hysteresis.hgp import HysteresisGP, fit_hysteresis_gp
-from diffaccel.hysteresis.mesh import PreisachMesh
-from diffaccel.hysteresis.preisach import INITIAL_STATES, PreisachModel
 
 __all__ = ["HysteresisBayesianGenerator", "HysteresisModelConstructor"]
 
