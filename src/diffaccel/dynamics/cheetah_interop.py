@@ -484,14 +484,14 @@ def elements_to_cheetah(
     out = []
     for e in beamline:
         name = e.name
+        # every element: its own name, kept as is, in float64
+        common = {"name": name, "sanitize_name": False, **kw}
         if isinstance(e, Screen):
             if e.shape is None:
                 out.append(
                     cheetah.Screen(
-                        name=name,
-                        sanitize_name=False,
                         metadata={_METADATA_KEY: "screen without geometry"},
-                        **kw,
+                        **common,
                     )
                 )
             else:
@@ -502,9 +502,7 @@ def elements_to_cheetah(
                         pixel_size=torch.tensor(e.pixel_size, dtype=F64),
                         misalignment=torch.tensor(e.center, dtype=F64),
                         method="cloud-in-cell",
-                        name=name,
-                        sanitize_name=False,
-                        **kw,
+                        **common,
                     )
                 )
         elif isinstance(e, Drift):
@@ -512,9 +510,7 @@ def elements_to_cheetah(
                 cheetah.Drift(
                     t(e.length),
                     tracking_method="drift_kick_drift",
-                    name=name,
-                    sanitize_name=False,
-                    **kw,
+                    **common,
                 )
             )
         elif isinstance(e, Quadrupole):
@@ -525,9 +521,7 @@ def elements_to_cheetah(
                     misalignment=torch.stack([t(e.dx), t(e.dy)]),
                     tilt=t(e.tilt),
                     tracking_method="drift_kick_drift",
-                    name=name,
-                    sanitize_name=False,
-                    **kw,
+                    **common,
                 )
             )
         elif isinstance(e, Dipole):
@@ -543,9 +537,7 @@ def elements_to_cheetah(
                     fringe_integral=t(e.fint),
                     fringe_integral_exit=t(e.fintx),
                     tracking_method="drift_kick_drift",
-                    name=name,
-                    sanitize_name=False,
-                    **kw,
+                    **common,
                 )
             )
         elif isinstance(e, TransverseDeflectingCavity):
@@ -556,9 +548,7 @@ def elements_to_cheetah(
                     t(e.phase) / (2 * math.pi),
                     t(e.frequency),
                     tilt=t(e.tilt),
-                    name=name,
-                    sanitize_name=False,
-                    **kw,
+                    **common,
                 )
             )
         elif isinstance(e, Solenoid):
@@ -567,9 +557,7 @@ def elements_to_cheetah(
                     t(e.length),
                     t(e.ks) / 2,
                     misalignment=torch.stack([t(e.dx), t(e.dy)]),
-                    name=name,
-                    sanitize_name=False,
-                    **kw,
+                    **common,
                 )
             )
         elif isinstance(e, Sextupole):
@@ -579,9 +567,7 @@ def elements_to_cheetah(
                     t(e.k2),
                     misalignment=torch.stack([t(e.dx), t(e.dy)]),
                     tilt=t(e.tilt),
-                    name=name,
-                    sanitize_name=False,
-                    **kw,
+                    **common,
                 )
             )
         elif isinstance(e, RFCavity):
@@ -598,9 +584,7 @@ def elements_to_cheetah(
                     torch.tensor(v * -float(species.charge), dtype=F64),
                     torch.tensor(math.degrees(phase - math.pi / 2), dtype=F64),
                     t(e.frequency),
-                    name=name,
-                    sanitize_name=False,
-                    **kw,
+                    **common,
                 )
             )
         elif isinstance(e, LinearMap):
@@ -614,9 +598,7 @@ def elements_to_cheetah(
                 cheetah.CustomTransferMap(
                     r,
                     length=t(e.length),
-                    name=name,
-                    sanitize_name=False,
-                    **kw,
+                    **common,
                 )
             )
         else:
