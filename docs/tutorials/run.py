@@ -29,7 +29,13 @@ ROOT = HERE.parents[1]
 OUT = ROOT / "docs" / "generated" / "tutorials"
 
 #: Tutorial scripts in page order (file stems in this folder).
-TUTORIALS = ("quad_scan_4d", "scan_6d", "magnet_fit", "hysteresis_bo")
+TUTORIALS = (
+    "quad_scan_4d",
+    "scan_6d",
+    "bring_your_own",
+    "magnet_fit",
+    "hysteresis_bo",
+)
 
 
 def _split(source: str) -> tuple[str, str]:
