@@ -60,3 +60,17 @@ def test_every_benchmark_is_on_the_page_with_a_stored_result() -> None:
         assert result["headline"], name
         prov = result["provenance"]
         assert prov["command"] and prov["machine"] and prov["date"], name
+
+
+def test_the_build_fails_on_broken_links_and_anchors() -> None:
+    # `mkdocs build --strict` turns these warnings into errors: a link to a page
+    # that does not exist, to an anchor a page lacks, a page outside the nav
+    text = (ROOT / "mkdocs.yml").read_text()
+    assert re.search(r"^strict: true$", text, re.MULTILINE)
+    block = text[text.index("\nvalidation:") :].split("\nnav:")[0]
+    keys = ("omitted_files", "not_found", "absolute_links", "unrecognized_links")
+    for key in (*keys, "anchors"):
+        assert re.search(rf"^\s+{key}: warn$", block, re.MULTILINE), key
+    ci = (ROOT / ".ci" / "docs").read_text()
+    assert "set -euo pipefail" in ci and "make docs" in ci
+    assert "--strict" in (ROOT / "Makefile").read_text()
