@@ -5,7 +5,9 @@ frame was taken at which knob values, and a lattice file of the beamline. This
 tutorial writes such a folder from a known beam, so that every number can be
 checked against the truth, describes it in an `experiment.yaml` (its schema:
 "Experiment descriptions" in [file formats](../../file_formats.md)), imports it
-with `diffaccel data import` and reconstructs the beam.
+with `diffaccel data import` and reconstructs the beam. Reading PNG/TIFF and YAML
+needs `pip install diffaccel[images]`, reading lattice files
+`pip install diffaccel[cheetah]`.
 
 The beamline is an elegant lattice (Bmad and LatticeJSON files work the same,
 see [lattice files](../../lattices.md)): a scanned quadrupole `Q1`, a fixed
