@@ -17,7 +17,7 @@ from diffaccel.cli.hysteresis import (
     check_time_column,
     time_column_option,
 )
-from diffaccel.cli.output import output_folder, save_png
+from diffaccel.cli.output import output_folder
 from diffaccel.data import (
     DEFAULT_INPUT_COLUMN,
     DEFAULT_OUTPUT_COLUMN,
@@ -42,6 +42,7 @@ from diffaccel.hysteresis.predictive import (
     min_training_rows,
     rms,
 )
+from diffaccel.plotting.files import save_png
 from diffaccel.plotting.hysteresis import plot_preisach_density, plot_preisach_fit
 
 __all__ = ["fit_command"]

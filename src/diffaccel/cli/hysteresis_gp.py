@@ -16,7 +16,7 @@ from diffaccel.cli.hysteresis import (
     check_time_column,
     time_column_option,
 )
-from diffaccel.cli.output import output_folder, save_png
+from diffaccel.cli.output import output_folder
 from diffaccel.data import DEFAULT_TIME_COLUMN, atomic_write_json, read_magnet_csv
 from diffaccel.hysteresis import (
     HysteresisGP,
@@ -28,6 +28,7 @@ from diffaccel.hysteresis.alarms import hgp_alarms
 from diffaccel.hysteresis.fit import MIN_FIT_POINTS
 from diffaccel.hysteresis.hgp import joint_gp_from_preisach
 from diffaccel.hysteresis.mesh import MAX_CLI_MESH_SIZE
+from diffaccel.plotting.files import save_png
 from diffaccel.plotting.hgp import plot_hgp_history
 
 __all__ = ["gp_fit"]

@@ -9,8 +9,8 @@ import click
 import numpy as np
 import torch
 
+from diffaccel.cli.options import echo_warnings
 from diffaccel.cli.output import check_out_file, os_error
-from diffaccel.cli.reconstruct import echo_warnings
 from diffaccel.data import FormatError, atomic_write, read_scans, write_scans
 from diffaccel.data.owned_files import mark_npz, save_npy
 from diffaccel.reconstruction import (

@@ -88,6 +88,7 @@ __all__ = [
     "check_finished_run",
     "clean_for_resume",
     "discard_selection",
+    "finding_lines",
     "headline_lines",
     "prior_dependence_lines",
     "report_markdown",
@@ -97,6 +98,8 @@ __all__ = [
     "resume_selection",
     "resume_start",
     "run_in_folder",
+    "score_lines",
+    "stopped_note",
     "store_selection",
     "stored_config",
     "write_result",
@@ -785,6 +788,83 @@ def headline_lines(summary: Mapping[str, Any]) -> list[str]:
         text = f"{label} {mean:.4g} +- {_std(std)}" + (f" {unit}" if unit else "")
         lines.setdefault(group, []).append(text)
     return [f"{group}: " + ", ".join(items) for group, items in lines.items()]
+
+
+def score_lines(summary: Mapping[str, Any]) -> list[str]:
+    """The image fit of a summary: held-out (where any) and training relative L1.
+
+    Example:
+        >>> score_lines({"metrics": {"images_train": {"relative_l1": 0.0123}}})
+        ['train image relative L1: 0.0123']
+    """
+    m = summary["metrics"]
+    lines = []
+    if "images_held_out" in m:
+        held = m["images_held_out"]["relative_l1"]
+        lines.append(f"held-out image relative L1: {held:.4f}")
+    lines.append(f"train image relative L1: {m['images_train']['relative_l1']:.4f}")
+    return lines
+
+
+def finding_lines(summary: Mapping[str, Any]) -> list[str]:
+    """What a summary found, as lines of text.
+
+    The coordinates the scans do not constrain, the headline numbers
+    (:func:`headline_lines`), the unseen correlations set by the prior
+    (:func:`prior_dependence_lines`), the observability note and the moment
+    polish (the training images' second moments off by ... % rms per member,
+    before and after it); each line only where the summary holds it.
+    """
+    lines = []
+    if summary["unconstrained_coordinates"]:
+        lines.append(
+            "not constrained by the scan: "
+            + ", ".join(summary["unconstrained_coordinates"])
+        )
+    lines += headline_lines(summary)
+    lines += prior_dependence_lines(summary.get("prior_dependence", []))
+    if summary.get("observability"):
+        lines.append(summary["observability"])
+    polish = summary.get("moment_polish", [])
+    if polish:
+        before = ", ".join(f"{100 * p['residual_before']:.2f}" for p in polish)
+        after = ", ".join(f"{100 * p['residual_after']:.2f}" for p in polish)
+        lines.append(
+            "moment polish: training images' second moments off by "
+            f"{before} % rms (per member) before, {after} % after"
+        )
+    return lines
+
+
+def stopped_note(
+    out: str | os.PathLike, interrupted: bool, checkpoint_every: int
+) -> str | None:
+    """What is left of a run into ``out`` that stopped (refused, failed, interrupted).
+
+    Args:
+        out: The run's result folder.
+        interrupted: The run was interrupted (Ctrl-C), not stopped by an error.
+        checkpoint_every: Steps between the run's checkpoints.
+
+    Returns:
+        A ``note: ...`` line naming the checkpoint kept in the staging folder,
+        or (interrupted before the first checkpoint) saying that nothing is
+        left to resume; None where neither applies. Call it only for a run
+        that had the folder (not one refused at the lock): a checkpoint there
+        would be another run's.
+    """
+    staging = partial_folder(out)
+    if (staging / CHECKPOINT).is_file():
+        return (
+            f"note: the run's checkpoint is kept in {staging}; --resume continues "
+            f"it ({out} is unchanged)"
+        )
+    if interrupted:
+        return (
+            "note: interrupted before the first checkpoint (written every "
+            f"{checkpoint_every} steps): nothing to resume, {out} is unchanged"
+        )
+    return None
 
 
 def report_markdown(summary: Mapping[str, Any]) -> str:
