@@ -28,6 +28,7 @@ from diffaccel.reconstruction.results import (
     OWNED,
     SELECTION,
     ResumeError,
+    demo_report_markdown,
     finding_lines,
     resume_checkpoint,
     resume_config,
@@ -174,3 +175,20 @@ def test_stopped_note_names_the_kept_checkpoint(tmp_path: Path) -> None:
             f"note: the run's checkpoint is kept in {partial_folder(out)}; "
             f"--resume continues it ({out} is unchanged)"
         )
+
+
+def test_demo_report_lists_the_moments_against_the_truth() -> None:
+    rms = {"mean": [1e-3, 2e-3, 3e-3, 4e-3, 5e-3, 6e-3], "std": [1e-5] * 6}
+    moments = {"rms": rms}
+    moments.update({k: {"mean": 1e-6, "std": 1e-8} for k in ("emit_x", "emit_y")})
+    moments["emit_6d"] = {"mean": 1e-18, "std": 1e-20}
+    summary = _summary(unconstrained_coordinates=["z"])
+    summary["moments"] = moments
+    summary["metrics"]["ground_truth"] = {"rms_x": 0.012, "emit_6d": -0.5}
+    text = demo_report_markdown(summary, "dataset.h5", 42.4)
+    assert "Dataset: `dataset.h5`" in text and "Total time 42 s." in text
+    assert "| rms x [mm] | 1 +- 0.01 | +1.2 % |" in text
+    assert "| rms pz [1e-3] | 6 +- 0.01 | n/a |" in text
+    assert "| emit_6d [m^3] | 1e-18 +- 1e-20 | -50.0 % |" in text
+    assert "Held-out image relative L1: 0.0500; training: 0.0123." in text
+    assert "treat them as unknown): z\n" in text
