@@ -8,6 +8,7 @@ from pathlib import Path
 
 import click
 
+from diffaccel.cli.options import seed_option
 from diffaccel.cli.output import output_folder
 from diffaccel.cli.reconstruct import run_reconstruction
 from diffaccel.data import (
@@ -35,7 +36,7 @@ __all__ = ["demo"]
 @click.option(
     "--force", is_flag=True, help="Replace an earlier demo in --out (at the end)."
 )
-@click.option("--seed", type=int, default=0, show_default=True)
+@seed_option
 def demo(out: Path, force: bool, seed: int) -> None:
     """Simulate a 6D quad scan and reconstruct it end to end (a few minutes on CPU)."""
     t0 = time.perf_counter()

@@ -8,7 +8,7 @@ import click
 import numpy as np
 import torch
 
-from diffaccel.cli.options import echo_warnings
+from diffaccel.cli.options import echo_warnings, seed_option
 from diffaccel.cli.output import check_out_file, os_error
 from diffaccel.data import FormatError, read_scans, write_scans
 from diffaccel.data.owned_files import save_arrays
@@ -110,7 +110,7 @@ def parse_settings(text: str, names: list[str]) -> torch.Tensor:
     show_default=True,
     help="Particles per ensemble member.",
 )
-@click.option("--seed", type=int, default=0, show_default=True)
+@seed_option
 @click.option(
     "--std-out",
     type=click.Path(dir_okay=False, path_type=Path),
