@@ -187,6 +187,7 @@ def reconstruct_command(
             "--split members needs --distributed (processes started by torchrun).",
             param_hint="--split",
         )
+    # _init_distributed: a module name, looked up here (tests replace it)
     dev = _init_distributed(device) if distributed else check_device(device)
     writer = not distributed or tdist.get_rank() == 0
     options = config_options(
