@@ -9,7 +9,12 @@ import pytest
 
 from diffaccel.data import make_synthetic_quad_scan, write_quad_scan
 from diffaccel.data.atomic import os_condition
-from diffaccel.data.owned_files import mark_npz, save_npy, written_by_diffaccel
+from diffaccel.data.owned_files import (
+    mark_npz,
+    save_arrays,
+    save_npy,
+    written_by_diffaccel,
+)
 
 
 def test_npy_and_npz_records_are_read_back(tmp_path: Path) -> None:
@@ -73,3 +78,19 @@ def test_a_locked_file_is_not_taken_for_a_foreign_one(
     monkeypatch.setattr(h5py, "File", locked)
     with pytest.raises(OSError, match="unable to lock"):
         written_by_diffaccel(h5)
+
+
+def test_save_arrays_writes_marked_npy_or_npz(tmp_path) -> None:
+    one = np.arange(6, dtype=np.float32).reshape(2, 3)
+    npy = save_arrays(tmp_path / "new" / "a.NPY", {"x": one})
+    assert npy == tmp_path / "new" / "a.NPY"  # the folder made
+    np.testing.assert_array_equal(np.load(npy), one)
+    assert written_by_diffaccel(npy)
+    npz = save_arrays(tmp_path / "b.npz", {"a": one, "b": 2 * one})
+    with np.load(npz) as z:
+        assert sorted(z.files) == ["a", "b"]
+        np.testing.assert_array_equal(z["b"], 2 * one)
+    assert written_by_diffaccel(npz)
+    with pytest.raises(ValueError, match=r"2 arrays; write them to an \.npz"):
+        save_arrays(tmp_path / "c.npy", {"a": one, "b": one})
+    assert not (tmp_path / "c.npy").exists()

@@ -9,7 +9,12 @@ from matplotlib.figure import Figure
 
 from diffaccel.hysteresis import PreisachMesh, PreisachModel
 from diffaccel.hysteresis.synthetic import synthetic_magnet, synthetic_measurement
-from diffaccel.plotting.hysteresis import plot_preisach_density, plot_preisach_fit
+from diffaccel.plotting.hysteresis import (
+    FIT_FIGURES,
+    plot_preisach_density,
+    plot_preisach_fit,
+    write_fit_figures,
+)
 
 
 @pytest.mark.parametrize(
@@ -62,3 +67,15 @@ def test_fit_figure_draws_band() -> None:
     assert len(res.collections) == 1  # the residual band
     with pytest.raises(ValueError, match="std must have shape"):
         plot_preisach_fit(magnet, current, field, std=std[:-1])
+
+
+def test_write_fit_figures_writes_both_pngs(tmp_path) -> None:
+    current, field, _ = synthetic_measurement(noise=0.0)
+    magnet = synthetic_magnet()
+    std = torch.full_like(field, 1e-3)
+    names = write_fit_figures(
+        tmp_path, magnet, current, field, 21, std, "current_A", "field_Tm"
+    )
+    assert names == list(FIT_FIGURES) == ["fit.png", "density.png"]
+    for name in names:
+        assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"

@@ -4,14 +4,20 @@ import pytest
 import torch
 from matplotlib.figure import Figure
 
-from diffaccel.data import make_synthetic_quad_scan
+from diffaccel.data import MultiScanDataset, make_synthetic_quad_scan
 from diffaccel.plotting import (
     plot_corner,
     plot_image_comparison,
     plot_rms_evolution,
     plot_training_curves,
 )
-from diffaccel.reconstruction import ReconstructionConfig, reconstruct
+from diffaccel.plotting.reconstruction import (
+    image_figures,
+    result_figures,
+    write_image_figures,
+    write_result_figures,
+)
+from diffaccel.reconstruction import ReconstructionConfig, as_scans, reconstruct
 
 
 @pytest.fixture(scope="module")
@@ -75,3 +81,40 @@ def test_image_comparison_panels_keep_their_scales_and_blocks(tmp_path) -> None:
     titles = {t.get_text(): t.get_color() for a in fig.axes for t in a.texts}
     assert titles["1 (test)"] == "C3" and titles["2"] == "k"
     fig.savefig(tmp_path / "x.png")
+
+
+def test_result_figures_are_the_three_summary_figures(scan_and_result) -> None:
+    ds, r = scan_and_result
+    names = [name for name, fig in result_figures(r, ds)]
+    assert names == ["phase_space.png", "training.png", "rms_evolution.png"]
+
+
+def test_image_figures_name_and_mark_each_scan(scan_and_result, tmp_path) -> None:
+    ds, r = scan_and_result
+    scans = as_scans(ds)
+    (name,) = scans.names
+    pred = {name: r.predict_images(ds.settings, n_particles=500)}
+    calls = []
+
+    def spy(*args, **kw):
+        calls.append(kw)
+        return plot_image_comparison(*args, **kw)
+
+    written = write_image_figures(scans, {name: [0, 2]}, tmp_path, pred, plot=spy)
+    assert written == ["images.png"]  # one scan: no scan name in the file
+    assert calls[0]["held_out"] == [False, True, False, True]
+    assert calls[0]["title"] == "" and calls[0]["predicted_std"] is None
+    assert (tmp_path / "images.png").stat().st_size > 0
+    two = MultiScanDataset({"a": scans[name], "b": scans[name]})
+    both = {"a": pred[name], "b": pred[name]}
+    figs = dict(image_figures(two, {"a": [0]}, both, both))
+    assert list(figs) == ["images_a.png", "images_b.png"]
+    # b is not trained on: every setting held out; the spread adds a fourth row
+    assert sum(len(a.images) for a in figs["images_b.png"].axes) == 4 * 4
+
+
+def test_write_result_figures_writes_the_files(scan_and_result, tmp_path) -> None:
+    ds, r = scan_and_result
+    names = write_result_figures(r, as_scans(ds), tmp_path)
+    assert sorted(names) == sorted(p.name for p in tmp_path.iterdir())
+    assert len(names) == 3

@@ -28,9 +28,13 @@ from diffaccel.reconstruction.results import (
     OWNED,
     SELECTION,
     ResumeError,
+    demo_report_markdown,
+    finding_lines,
     resume_checkpoint,
     resume_config,
     resume_selection,
+    score_lines,
+    stopped_note,
     store_selection,
     write_result,
 )
@@ -117,3 +121,74 @@ def test_resume_checkpoint_prefers_the_staging_folder(tmp_path: Path) -> None:
     assert resume_checkpoint(out) == out / "checkpoint.pt"
     torch.save({}, partial_folder(out) / "checkpoint.pt")
     assert resume_checkpoint(out) == partial_folder(out) / "checkpoint.pt"
+
+
+def _summary(**extra) -> dict:
+    moments = {"norm_emit_x": {"mean": 2e-6, "std": 1e-7}}
+    metrics = {
+        "images_train": {"relative_l1": 0.01234},
+        "images_held_out": {"relative_l1": 0.05},
+    }
+    return {"metrics": metrics, "moments": moments, **extra}
+
+
+def test_score_lines_give_held_out_then_training() -> None:
+    assert score_lines(_summary()) == [
+        "held-out image relative L1: 0.0500",
+        "train image relative L1: 0.0123",
+    ]
+
+
+def test_finding_lines_hold_only_what_the_summary_found() -> None:
+    plain = finding_lines(_summary(unconstrained_coordinates=[]))
+    assert plain == ["emittance (normalised): x 2 +- 0.1 mm mrad"]
+    polish = [
+        {"residual_before": 0.031, "residual_after": 0.002},
+        {"residual_before": 0.02, "residual_after": 0.001},
+    ]
+    full = finding_lines(
+        _summary(
+            unconstrained_coordinates=["z", "pz"],
+            observability="only 3 of 4 directions seen",
+            moment_polish=polish,
+        )
+    )
+    assert full[0] == "not constrained by the scan: z, pz"
+    assert full[1] == plain[0]
+    assert full[2] == "only 3 of 4 directions seen"
+    assert full[3] == (
+        "moment polish: training images' second moments off by 3.10, 2.00 % rms "
+        "(per member) before, 0.20, 0.10 % after"
+    )
+
+
+def test_stopped_note_names_the_kept_checkpoint(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    assert stopped_note(out, interrupted=False, checkpoint_every=50) is None
+    note = stopped_note(out, interrupted=True, checkpoint_every=50)
+    assert note is not None and "every 50 steps): nothing to resume" in note
+    partial_folder(out).mkdir()
+    torch.save({}, partial_folder(out) / "checkpoint.pt")
+    for interrupted in (False, True):
+        note = stopped_note(out, interrupted=interrupted, checkpoint_every=50)
+        assert note == (
+            f"note: the run's checkpoint is kept in {partial_folder(out)}; "
+            f"--resume continues it ({out} is unchanged)"
+        )
+
+
+def test_demo_report_lists_the_moments_against_the_truth() -> None:
+    rms = {"mean": [1e-3, 2e-3, 3e-3, 4e-3, 5e-3, 6e-3], "std": [1e-5] * 6}
+    moments = {"rms": rms}
+    moments.update({k: {"mean": 1e-6, "std": 1e-8} for k in ("emit_x", "emit_y")})
+    moments["emit_6d"] = {"mean": 1e-18, "std": 1e-20}
+    summary = _summary(unconstrained_coordinates=["z"])
+    summary["moments"] = moments
+    summary["metrics"]["ground_truth"] = {"rms_x": 0.012, "emit_6d": -0.5}
+    text = demo_report_markdown(summary, "dataset.h5", 42.4)
+    assert "Dataset: `dataset.h5`" in text and "Total time 42 s." in text
+    assert "| rms x [mm] | 1 +- 0.01 | +1.2 % |" in text
+    assert "| rms pz [1e-3] | 6 +- 0.01 | n/a |" in text
+    assert "| emit_6d [m^3] | 1e-18 +- 1e-20 | -50.0 % |" in text
+    assert "Held-out image relative L1: 0.0500; training: 0.0123." in text
+    assert "treat them as unknown): z\n" in text

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import click
 
+from diffaccel.cli.options import seed_option
 from diffaccel.cli.output import output_folder
 from diffaccel.cli.reconstruct import run_reconstruction
 from diffaccel.data import (
@@ -20,56 +21,9 @@ from diffaccel.reconstruction import (
     as_scans,
     training_selection,
 )
-from diffaccel.reconstruction.results import OWNED
+from diffaccel.reconstruction.results import OWNED, demo_report_markdown
 
 __all__ = ["demo"]
-
-
-def _report(summary: dict, dataset: Path, seconds: float) -> str:
-    m = summary["metrics"]
-    mo = summary["moments"]
-    lines = [
-        "# diffaccel demo: phase-space reconstruction of a synthetic quad scan",
-        "",
-        f"Dataset: `{dataset.name}` (preset `correlated` 6D beam, 0.5 % energy spread,"
-        " chromatic quadrupole, 20 settings, Poisson noise); trained on the even"
-        f" settings, tested on the odd ones. Total time {seconds:.0f} s.",
-        "",
-        "| quantity | reconstruction (mean +- ensemble std) | error vs truth |",
-        "|---|---|---|",
-    ]
-    gt = m.get("ground_truth", {})
-    names = ("x", "px", "y", "py", "z", "pz")
-    units = (1e3, 1e3, 1e3, 1e3, 1e3, 1e3)
-    labels = ("mm", "mrad", "mm", "mrad", "mm", "1e-3")
-    for i, c in enumerate(names):
-        v, s = mo["rms"]["mean"][i], mo["rms"]["std"][i]
-        err = gt.get(f"rms_{c}")
-        e = f"{100 * err:+.1f} %" if err is not None else "n/a"
-        lines.append(
-            f"| rms {c} [{labels[i]}] | {v * units[i]:.4g} "
-            f"+- {s * units[i]:.2g} | {e} |"
-        )
-    for key, unit in (("emit_x", "m"), ("emit_y", "m"), ("emit_6d", "m^3")):
-        v, s = mo[key]["mean"], mo[key]["std"]
-        err = gt.get(key)
-        e = f"{100 * err:+.1f} %" if err is not None else "n/a"
-        lines.append(f"| {key} [{unit}] | {v:.4g} +- {s:.2g} | {e} |")
-    lines += [
-        "",
-        f"Held-out image relative L1: {m['images_held_out']['relative_l1']:.4f}; "
-        f"training: {m['images_train']['relative_l1']:.4f}.",
-        "",
-        "Not constrained by the scan (values follow the prior; treat them as "
-        "unknown): " + (", ".join(summary["unconstrained_coordinates"]) or "none"),
-        "",
-        "Figures: ![phase space](phase_space.png) ![images](images.png) "
-        "![training](training.png) ![rms](rms_evolution.png)",
-        "",
-        "All numbers: `summary.json`; ensemble: `ensemble.pt` "
-        "(`diffaccel.reconstruction.load`); particles: `particles.h5` (openPMD).",
-    ]
-    return "\n".join(lines) + "\n"
 
 
 @click.command("demo")
@@ -82,7 +36,7 @@ def _report(summary: dict, dataset: Path, seconds: float) -> str:
 @click.option(
     "--force", is_flag=True, help="Replace an earlier demo in --out (at the end)."
 )
-@click.option("--seed", type=int, default=0, show_default=True)
+@seed_option
 def demo(out: Path, force: bool, seed: int) -> None:
     """Simulate a 6D quad scan and reconstruct it end to end (a few minutes on CPU)."""
     t0 = time.perf_counter()
@@ -124,7 +78,9 @@ def demo(out: Path, force: bool, seed: int) -> None:
             resume=False,
         )
         seconds = time.perf_counter() - t0
-        atomic_write_text(folder.path / "report.md", _report(summary, path, seconds))
+        atomic_write_text(
+            folder.path / "report.md", demo_report_markdown(summary, path.name, seconds)
+        )
     report = out / "report.md"
     click.echo(json.dumps({"report": str(report), "seconds": round(seconds, 1)}))
     click.echo(f"report: {report}")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import statistics
 from pathlib import Path
 
 import click
@@ -12,16 +11,21 @@ import torch
 from diffaccel.data import FormatError
 from diffaccel.data.atomic import atomic_write
 from diffaccel.data.scans import read_scans
-from diffaccel.plotting.design import plot_expected_std, plot_spectrum
+from diffaccel.plotting.design import design_figures
 from diffaccel.reconstruction import design as dz
 from diffaccel.reconstruction import load
+from diffaccel.reconstruction.design_report import (
+    design_json,
+    design_lines,
+    posterior_beam,
+)
 
 __all__ = ["design_command"]
 
 
 def _load(data: Path, result: Path | None) -> tuple[list, torch.Tensor, object]:
     """Layouts, beam covariance and moment posterior (or None) of the inputs."""
-    posterior, rel = None, None
+    posterior = rel = None
     if data.suffix.lower() == ".json":
         try:
             spec = json.loads(data.read_text())
@@ -58,69 +62,8 @@ def _load(data: Path, result: Path | None) -> tuple[list, torch.Tensor, object]:
                 f"--result {result}: the reconstruction has no moment posterior "
                 "(run reconstruct without --no-uncertainty)"
             )
-        cov = unc.cov.to(torch.float64).clone()
-        if unc.dims == 4:
-            for i in (4, 5):
-                cov[i, :] = 0.0
-                cov[:, i] = 0.0
-                cov[i, i] = dz.LONGITUDINAL_RMS[i - 4] ** 2
-        posterior = unc.theta_cov
-        scales = unc.diagnostics.get("error_scale_second_moments") or []
-        if scales:
-            rel = float(statistics.median(scales))
+        cov, posterior, rel = posterior_beam(unc)
     return layouts, cov, (posterior, rel)
-
-
-def _table(report: dict, obs: dict) -> list[str]:
-    lines = [obs["summary"]]
-    sv = obs["singular_values"]
-    lines.append(
-        "singular values (relative, smallest 4): "
-        + ", ".join(f"{v:.2g}" for v in sv[-4:])
-        + (
-            "; longitudinal block: "
-            + ", ".join(f"{v:.2g}" for v in obs["longitudinal_singular_values"][-3:])
-            if obs["longitudinal_singular_values"]
-            else ""
-        )
-    )
-    lines.append("determined: " + ", ".join(obs["determined"]))
-    lines.append("left to the prior: " + (", ".join(obs["left_to_prior"]) or "none"))
-    for u in obs["unseen"]:
-        moves = ", ".join(
-            f"{q} "
-            + " / ".join("n/a" if c is None else f"{100 * c:+.1f} %" for c in ch)
-            for q, ch in u["moves"].items()
-            if any(c is not None and abs(c) > 0.005 for c in ch)
-        )
-        lines.append(
-            f"  unseen: {u['words']} (singular value {u['singular_value']:.1e}); "
-            f"{u['pair']} partial correlation -0.6 / +0.6 moves: {moves or 'nothing'}"
-        )
-    if report is None:
-        return lines
-    targets = report["targets"]
-    base = report["baseline_std"]
-    lines.append(
-        "today's relative std: "
-        + ", ".join(f"{t} {100 * base[t]:.3g} %" for t in targets)
-    )
-    if not report["recommended"]:
-        lines.append("no candidate setting reduces the targets' std")
-    else:
-        head = f"{'#':>2}  {'scan':<14} {'images':>6}  " + "  ".join(
-            f"{t + ' std':>12}" for t in targets
-        )
-        lines += ["recommended added settings:", head]
-        for n, r in enumerate(report["recommended"], 1):
-            stds = "  ".join(f"{100 * r['expected_std'][t]:>10.3g} %" for t in targets)
-            lines.append(f"{n:>2}  {r['scan']:<14} {r['n_images']:>6}  {stds}")
-            lines.append("      " + ", ".join(r["names"]) + ":")
-            for v in r["values"]:
-                lines.append("        " + ", ".join(f"{x:g}" for x in v))
-    for e in report["excluded"]:
-        lines.append(f"excluded: {e}")
-    return lines
 
 
 @click.command("design")
@@ -208,10 +151,7 @@ def design_command(
     od = obs.to_dict()
     if plots is not None:
         plots.mkdir(parents=True, exist_ok=True)
-        figs = [("singular_values.png", plot_spectrum(od))]
-        if report is not None and report["recommended"]:
-            figs.append(("expected_std.png", plot_expected_std(report)))
-        for name, fig in figs:
+        for name, fig in design_figures(od, report):
             try:
                 atomic_write(
                     plots / name,
@@ -224,15 +164,7 @@ def design_command(
                     "folder"
                 ) from None
     if as_json:
-        out = {
-            "unseen": (report or {}).get("unseen", od["unseen"]),
-            "recommended": [] if report is None else report["recommended"],
-            "observability": od,
-        }
-        if report is not None:
-            out["baseline_std"] = report["baseline_std"]
-            out["excluded"] = report["excluded"]
-        click.echo(json.dumps(out, indent=1))
+        click.echo(json.dumps(design_json(report, od), indent=1))
     else:
-        for line in _table(report, od):
+        for line in design_lines(report, od):
             click.echo(line)

@@ -7,7 +7,6 @@ import warnings
 from pathlib import Path
 
 import click
-import torch
 from tqdm import tqdm
 
 from diffaccel.cli.hysteresis import (
@@ -17,7 +16,7 @@ from diffaccel.cli.hysteresis import (
     check_time_column,
     time_column_option,
 )
-from diffaccel.cli.output import output_folder, save_png
+from diffaccel.cli.output import output_folder
 from diffaccel.data import (
     DEFAULT_INPUT_COLUMN,
     DEFAULT_OUTPUT_COLUMN,
@@ -25,29 +24,25 @@ from diffaccel.data import (
     atomic_write_json,
     read_magnet_csv,
 )
-from diffaccel.dynamics.linalg import lstsq
 from diffaccel.hysteresis import (
     CONFIG_FILE,
     MODEL_FILE,
     STREAM_FILE,
     BandFallbackWarning,
-    InputRangeWarning,
     fit_magnet,
     save_fit,
 )
-from diffaccel.hysteresis.alarms import input_outlier_alarms, preisach_alarms
+from diffaccel.hysteresis.fit_report import fit_line, score_fit
 from diffaccel.hysteresis.predictive import (
     MAX_MESH_SIZE,
     check_mesh_size,
     min_training_rows,
-    rms,
 )
-from diffaccel.plotting.hysteresis import plot_preisach_density, plot_preisach_fit
+from diffaccel.plotting.hysteresis import FIT_FIGURES, write_fit_figures
 
 __all__ = ["fit_command"]
 
 SUMMARY_FILE = "summary.json"
-FIGURES = ("fit.png", "density.png")
 # beyond it the data term (a normalised mse, ~1 at most) is lost in the float64
 # round-off of the penalty, and far beyond it the loss overflows
 MAX_SMOOTHNESS = 1e12
@@ -211,11 +206,10 @@ def fit_command(
         out_dir,
         "hysteresis fit",
         force=force,
-        owned=(SUMMARY_FILE, MODEL_FILE, CONFIG_FILE, STREAM_FILE, *FIGURES),
+        owned=(SUMMARY_FILE, MODEL_FILE, CONFIG_FILE, STREAM_FILE, *FIT_FIGURES),
         inputs=[data],
     ) as folder:
         u, y = hist.input, hist.output
-        u_tr, y_tr = u[:train_rows], y[:train_rows]
         try:
             with (
                 tqdm(desc="fit", unit="eval", leave=False) as bar,
@@ -228,8 +222,8 @@ def fit_command(
                     bar.set_postfix(loss=f"{loss:.3g}", refresh=False)
 
                 fit = fit_magnet(
-                    u_tr,
-                    y_tr,
+                    u[:train_rows],
+                    y[:train_rows],
                     mesh_size=mesh_size,
                     symmetric=symmetric,
                     initial_state=initial_state,
@@ -243,108 +237,29 @@ def fit_command(
             for w in fit_caught:
                 if w.category is not BandFallbackWarning:
                     warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-            model = fit.model
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always", InputRangeWarning)
-                with torch.no_grad():
-                    pred = model(u)
-                    std = fit.band.std(model, u)
+            score = score_fit(
+                fit, u, y, train_rows, data=str(data), input_column=input_col,
+                output_column=output_col, mesh_size=mesh_size,
+                smoothness=smoothness, initial_state=initial_state,
+            )  # fmt: skip
         except ValueError as err:
             raise click.ClickException(str(err)) from err
-        notes = [str(w.message) for w in caught if w.category is InputRangeWarning]
-        span = float(y_tr.max() - y_tr.min())
-        n_te = len(hist) - train_rows
-        resid = pred - y
-        train_rmse = rms(resid[:train_rows])
-        test_rmse = rms(resid[train_rows:]) if n_te else None
-        basis = torch.stack([torch.ones_like(u), u], dim=1)
-        coef = lstsq(basis[:train_rows], y_tr[:, None])
-        line_rmse = rms((basis @ coef).squeeze(1)[train_rows:] - y[train_rows:])
-        line_train = rms((basis @ coef).squeeze(1)[:train_rows] - y_tr)
-        lo, hi = model.input_range
-        rows = (test_rmse, line_rmse, "held-out") if n_te else None
-        alarms = preisach_alarms(
-            *(rows or (train_rmse, line_train, "training")),
-            train_rmse=train_rmse, line_train_rmse=line_train,
-            input_range=(lo, hi), train_span=float(u_tr.max() - u_tr.min()),
-            cell_width=(hi - lo) / mesh_size, output_range=span,
-        )  # fmt: skip
-        alarms = input_outlier_alarms(u.tolist(), input_col) + alarms
-        inside = (resid[train_rows:].abs() <= 2.0 * std[train_rows:]).double()
-
-        def pct(v: float | None) -> float | None:
-            return None if v is None else 100.0 * v / span
-
-        summary = {
-            "data": str(data),
-            "input_column": input_col,
-            "output_column": output_col,
-            "rows": len(hist),
-            "train_rows": train_rows,
-            "test_rows": n_te,
-            "output_range": span,
-            "output_range_rows": "training",
-            "train_rmse": train_rmse,
-            "train_rmse_percent": pct(train_rmse),
-            "test_rmse": test_rmse,
-            "test_rmse_percent": pct(test_rmse),
-            "straight_line_test_rmse": line_rmse if n_te else None,
-            "test_inside_2std": float(inside.mean()) if n_te else None,
-            "test_mean_std": float(std[train_rows:].mean()) if n_te else None,
-            "fit_seconds": fit.seconds,
-            "steps": fit.result.steps,
-            "mesh_size": mesh_size,
-            "n_hysterons": int(model.alpha.numel()),
-            "symmetric": fit.symmetric,
-            "odd": model.odd,
-            "mesh_adapt": fit.mesh_adapt,
-            "mesh_validation": fit.mesh_validation,
-            "band_fallback": fit.band_fallback,
-            "band_calibration": fit.calibration,
-            "band_directions": int(fit.band.directions.shape[0]),
-            "validation": fit.validation,
-            "smoothness": smoothness,
-            "initial_state": initial_state,
-            "input_range": list(model.input_range),
-            "notes": notes,
-            "warnings": alarms,
-        }
         save_fit(
             folder.path,
-            model,
+            fit.model,
             fit.band,
             extra={"input_column": input_col, "output_column": output_col},
         )
         if not no_figures:
-            fig = plot_preisach_fit(
-                model,
-                u,
-                y,
-                n_train=train_rows,
-                std=std,
-                input_label=input_col,
-                output_label=output_col,
-            )
-            save_png(fig, folder.path / "fit.png")
-            fig = plot_preisach_density(model, input_label=input_col)
-            save_png(fig, folder.path / "density.png")
-        atomic_write_json(folder.path / SUMMARY_FILE, summary)
+            write_fit_figures(
+                folder.path, fit.model, u, y, train_rows, score.std, input_col,
+                output_col,
+            )  # fmt: skip
+        atomic_write_json(folder.path / SUMMARY_FILE, score.summary)
     if fit.band_fallback is not None:
         click.echo(f"warning: {fit.band_fallback}", err=True)
-    for note in notes:
+    for note in score.notes:
         click.echo(f"note: {note}", err=True)
-    for alarm in alarms:
+    for alarm in score.alarms:
         click.echo(f"warning: {alarm}", err=True)
-    test_txt = (
-        "n/a"
-        if test_rmse is None
-        else f"{test_rmse:.4g} ({pct(test_rmse):.3f} %; straight line "
-        f"{pct(line_rmse):.3f} %), {100 * float(inside.mean()):.0f} % of them "
-        "inside 2 std"
-    )
-    click.echo(
-        f"fit {train_rows} rows in {fit.seconds:.2f} s (symmetric {fit.symmetric}): "
-        f"train rmse {train_rmse:.4g} ({pct(train_rmse):.3f} %), held-out rmse "
-        f"{test_txt}; percentages of the training output range {span:.4g}; "
-        f"wrote {out_dir}"
-    )
+    click.echo(f"{fit_line(score.summary)}; wrote {out_dir}")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import warnings
 from pathlib import Path
 
 import click
@@ -16,18 +15,12 @@ from diffaccel.cli.hysteresis import (
     check_time_column,
     time_column_option,
 )
-from diffaccel.cli.output import output_folder, save_png
+from diffaccel.cli.output import output_folder
 from diffaccel.data import DEFAULT_TIME_COLUMN, atomic_write_json, read_magnet_csv
-from diffaccel.hysteresis import (
-    HysteresisGP,
-    PreisachMesh,
-    PreisachModel,
-    fit_hysteresis_gp,
-)
-from diffaccel.hysteresis.alarms import hgp_alarms
 from diffaccel.hysteresis.fit import MIN_FIT_POINTS
-from diffaccel.hysteresis.hgp import joint_gp_from_preisach
+from diffaccel.hysteresis.hgp_compare import fit_gps, gp_line, gp_setup, gp_summary
 from diffaccel.hysteresis.mesh import MAX_CLI_MESH_SIZE
+from diffaccel.plotting.files import save_png
 from diffaccel.plotting.hgp import plot_hgp_history
 
 __all__ = ["gp_fit"]
@@ -36,14 +29,10 @@ logger = logging.getLogger(__name__)
 
 SUMMARY_FILE = "gp_summary.json"
 FIGURE_FILE = "gp_fit.png"
-# margin added to the data range of the hysteretic input (fraction of the range)
-RANGE_MARGIN = 0.01
 # largest seed torch takes
 SEED_MAX = 2**64 - 1
 # share of the last rows held out by default
 HOLDOUT = 0.25
-# L-BFGS iterations of the Preisach fit that starts the H-GP's density
-PREISACH_STEPS = 300
 
 
 @click.command("gp-fit")
@@ -189,23 +178,10 @@ def gp_fit(
                 f"{data}: --holdout {holdout:g} leaves {n_tr} of {X.shape[0]} rows "
                 f"to fit; need at least {MIN_FIT_POINTS}."
             )
-        # the settings of every row are known in advance (the responses of the
-        # held-out rows are not used): ranges and bounds cover them all
-        lo, hi = (float(X[:, 0].min()), float(X[:, 0].max()))
-        if input_range is None:
-            margin = RANGE_MARGIN * max(hi - lo, 1e-12)
-            input_range = (lo - margin, hi + margin)
-        prior = PreisachModel(
-            PreisachMesh.triangular(n=mesh_size),
+        setup = gp_setup(
+            X, Y, n_tr, mesh_size=mesh_size, initial_state=initial_state,
             input_range=input_range,
-            initial_state=initial_state,
-        )
-        bounds = torch.stack([X.min(dim=0).values, X.max(dim=0).values])
-        X_tr, Y_tr = X[:n_tr], Y[:n_tr]
-        model, start = joint_gp_from_preisach(
-            X_tr, Y_tr, prior, column=0, steps=PREISACH_STEPS, bounds=bounds
-        )
-        plain = HysteresisGP(X_tr, Y_tr, hysteresis={}, bounds=bounds)
+        )  # fmt: skip
     except ValueError as err:  # FormatError is a ValueError
         raise click.ClickException(str(err)) from err
 
@@ -216,83 +192,27 @@ def gp_fit(
         owned=(SUMMARY_FILE, FIGURE_FILE),
         inputs=[data],
     ) as folder:
-        with (
-            warnings.catch_warnings(),
-            tqdm(
-                total=max(restarts, 2), desc="H-GP restarts", unit="fit", disable=None
-            ) as bar,
-        ):
-            warnings.filterwarnings("ignore", message=".*not p.d.*")
+        with tqdm(
+            total=max(restarts, 2), desc="H-GP restarts", unit="fit", disable=None
+        ) as bar:
 
             def progress(restart: int, mll: float) -> None:
                 bar.set_postfix(mll=f"{mll:.3f}", refresh=False)
                 bar.update(1)
 
-            res = fit_hysteresis_gp(
-                model,
-                restarts=restarts,
-                max_iter=max_iter,
-                seed=seed,
+            res, plain_fit = fit_gps(
+                setup, restarts=restarts, max_iter=max_iter, seed=seed,
                 callback=progress,
-                density_starts=start.density_starts,
-            )
-
-            plain_fit = fit_hysteresis_gp(
-                plain, restarts=1, max_iter=max_iter, seed=seed
-            )
-        with torch.no_grad():
-            post = model.posterior_on_history()
-            mean = post.mean.squeeze(-1)
-            sigma = post.variance.squeeze(-1).clamp_min(0).sqrt()
-            heldout = plain_heldout = None
-            if n_te:
-                X_te, y_te = X[n_tr:], Y[n_tr:, 0]
-                pred = model.posterior_sequence(X_te).mean.reshape(-1)
-                heldout = float((pred - y_te).pow(2).mean().sqrt())
-                pred = plain.posterior(X_te.unsqueeze(0)).mean.reshape(-1)
-                plain_heldout = float((pred - y_te).pow(2).mean().sqrt())
-        alarms = hgp_alarms(
-            res.noise_sigma, plain_fit.noise_sigma, heldout, plain_heldout
-        )
-        summary = {
-            "data": str(data),
-            "x": x_col,
-            "y": y_col,
-            "plain_inputs": list(plain_cols),
-            "n_points": int(X.shape[0]),
-            "train_rows": n_tr,
-            "test_rows": n_te,
-            "n_hysterons": int(prior.alpha.numel()),
-            "input_range": list(input_range),
-            "initial_state": initial_state,
-            "noise_sigma": res.noise_sigma,
-            "mean_predictive_sigma": float(sigma.mean()),
-            "rmse_vs_data": float((mean - Y_tr.squeeze(-1)).pow(2).mean().sqrt()),
-            "heldout_rmse": heldout,
-            "mll_per_point": res.mll,
-            "restart_mlls": list(res.restart_mlls),
-            "fit_s": res.fit_s,
-            "plain_gp_noise_sigma": plain_fit.noise_sigma,
-            "plain_gp_mll_per_point": plain_fit.mll,
-            "plain_gp_heldout_rmse": plain_heldout,
-            "preisach_start_rmse": start.preisach_rmse,
-            "preisach_start_s": start.preisach_seconds,
-            "warnings": alarms,
-        }
-        fig = plot_hgp_history(model, column=0, xlabel=x_col, ylabel=y_col)
+            )  # fmt: skip
+        summary = gp_summary(
+            setup, X, Y, res, plain_fit, data=str(data), x=x_col, y=y_col,
+            plain_inputs=plain_cols, initial_state=initial_state,
+        )  # fmt: skip
+        fig = plot_hgp_history(setup.model, column=0, xlabel=x_col, ylabel=y_col)
         save_png(fig, folder.path / FIGURE_FILE)
         atomic_write_json(folder.path / SUMMARY_FILE, summary)
-    for alarm in alarms:
+    for alarm in summary["warnings"]:
         click.echo(f"warning: {alarm}", err=True)
-    held = (
-        ""
-        if heldout is None
-        else f", held-out rmse {heldout:.4g} (plain GP {plain_heldout:.4g}) on the "
-        f"last {n_te} rows"
-    )
     click.echo(
-        f"H-GP noise sigma {res.noise_sigma:.4g} "
-        f"(plain GP {plain_fit.noise_sigma:.4g}){held}, "
-        f"fit {res.fit_s:.1f} s; wrote {out_dir / SUMMARY_FILE}, "
-        f"{out_dir / FIGURE_FILE}"
+        f"{gp_line(summary)}; wrote {out_dir / SUMMARY_FILE}, {out_dir / FIGURE_FILE}"
     )

@@ -1,7 +1,7 @@
 """``diffaccel hysteresis predict``: predict a long magnet history, streamed.
 
-Imports only what predicting needs: numpy, the streaming code of fitted models
-(:mod:`diffaccel.hysteresis.stream`) and the CSV streaming of
+Imports only what predicting needs: numpy, the streaming prediction of a CSV
+(:mod:`diffaccel.hysteresis.stream_csv`) and the CSV streaming of
 :mod:`diffaccel.data.magnet_stream`; no torch (~2 s of start-up), no plotting,
 no GP libraries (see ``benchmarks/preisach_stream.py``). A fit folder saved
 before ``stream.npz`` existed is read with torch instead.
@@ -16,19 +16,10 @@ which no fitted number can measure. Rows inside the range are unaffected.
 
 from __future__ import annotations
 
-import csv
-import math
-import queue
-import threading
-import warnings
-from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import TypeVar
 
 import click
-import numpy as np
 
-import diffaccel.hysteresis as hysteresis
 from diffaccel.cli.hysteresis import (
     check_magnitude,
     check_time_column,
@@ -38,25 +29,21 @@ from diffaccel.cli.output import check_out_file, os_error
 from diffaccel.data import (
     DEFAULT_INPUT_COLUMN,
     DEFAULT_TIME_COLUMN,
-    append_columns,
     atomic_write,
     iter_magnet_csv,
 )
 from diffaccel.data.atomic import os_condition
-from diffaccel.hysteresis import (
-    InputRangeWarning,
-    StreamPredictor,
-    StreamSpec,
-    load_stream_fit,
-    outside_input_range,
+from diffaccel.hysteresis.stream_csv import (
+    COLUMNS,
+    StreamStats,
+    outside_warning,
+    read_ahead,
+    write_predictions,
 )
+from diffaccel.hysteresis.stream_csv import stream_fit as _load  # tests replace it
 
 __all__ = ["predict_command", "read_ahead"]
 
-PREDICTION = "prediction"
-PREDICTION_STD = "prediction_std"
-OUTSIDE = "outside_input_range"
-COLUMNS = (PREDICTION, PREDICTION_STD, OUTSIDE)
 CHUNK_ROWS = 20_000
 # cap of --chunk-rows: a chunk is held in memory (10^9 rows: tens of GB)
 MAX_CHUNK_ROWS = 10**9
@@ -139,49 +126,17 @@ def predict_command(
             f"{data} already has column(s) {clash}; pass --force to replace them "
             "in the output (the input file is never changed)."
         )
-    out_header = [c for c in header if c not in clash] + list(COLUMNS)
-    stats = {"rows": 0, "finite": True, "min": math.inf, "max": -math.inf}
-    outside = {"rows": 0, "first": 0}  # count, first data row (0: none)
+    stats = StreamStats()
 
     def write(path: Path) -> None:
-        pending: list[list[str]] = []
-
-        def inputs():
-            first_row = 1  # data row of the chunk's first row (1: below the header)
-            for rows, x in chunks:
-                check_magnitude(data, in_col, x, first_row)
-                first_row += len(rows)
-                pending.append(rows)
-                stats["min"] = min(stats["min"], float(x.min()))
-                stats["max"] = max(stats["max"], float(x.max()))
-                yield x
-
-        def texts():
-            predictor = StreamPredictor(spec)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", InputRangeWarning)  # noted below
-                # CSV parsing (next chunk) overlaps the model (this chunk):
-                # numpy and scipy release the GIL
-                for x in read_ahead(inputs()):
-                    pred, std = predictor(x)
-                    flag = outside_input_range(x, spec.input_range)
-                    n_out = int(flag.sum())
-                    if n_out and not outside["first"]:
-                        outside["first"] = stats["rows"] + int(flag.argmax()) + 1
-                    outside["rows"] += n_out
-                    rows = pending.pop(0)
-                    stats["rows"] += len(rows)
-                    stats["finite"] &= bool(np.isfinite(pred).all())
-                    if std is None:
-                        std = np.full_like(pred, math.nan)
-                    # 15 significant digits (all a float64 keeps in decimal);
-                    # the std (float32 sums) to 7; the flag as 0 or 1
-                    yield rows, [pred, std, flag]
-
-        with open(path, "w", newline="", encoding="utf-8") as f:
-            csv.writer(f, lineterminator="\n").writerow(out_header)
-            for rows, columns in read_ahead(texts()):
-                f.write(append_columns(rows, columns, [15, 7, 1]))
+        write_predictions(
+            path,
+            spec,
+            header,
+            chunks,
+            check=lambda x, first_row: check_magnitude(data, in_col, x, first_row),
+            stats=stats,
+        )
 
     try:
         # as fit and gp-fit create their --out folder
@@ -198,77 +153,9 @@ def predict_command(
         raise click.ClickException(str(err)) from err
     except OSError as err:  # a read-only folder, a full disk
         raise os_error(err, out_file) from err
-    if outside["rows"]:
-        lo, hi = spec.input_range
-        beyond = max(lo - stats["min"], stats["max"] - hi, 0.0)
-        click.echo(
-            f"warning: {outside['rows']} of {stats['rows']} rows (the first: data "
-            f"row {outside['first']}) have {in_col} outside the fit's input range "
-            f"[{lo:.6g}, {hi:.6g}] {in_col}, by up to {beyond:.4g} {in_col} "
-            f"({100 * beyond / (hi - lo):.3g} % of the range); {OUTSIDE} = 1 "
-            "there. They are extrapolated as saturated (every hysteron switched) "
-            f"plus the linear term; their {PREDICTION_STD} widens with the linear "
-            "term's uncertainty only, not with any doubt about the saturation.",
-            err=True,
-        )
-    click.echo(
-        f"predicted {stats['rows']} rows ({', '.join(COLUMNS)}); wrote {out_file}"
-    )
-    if not stats["finite"]:
+    warning = outside_warning(stats, spec.input_range, in_col)
+    if warning:
+        click.echo(f"warning: {warning}", err=True)
+    click.echo(f"predicted {stats.rows} rows ({', '.join(COLUMNS)}); wrote {out_file}")
+    if not stats.finite:
         raise click.ClickException("predictions contain non-finite values.")
-
-
-_DONE = object()
-T = TypeVar("T")
-
-
-def read_ahead(items: Iterable[T], depth: int = 2) -> Iterator[T]:
-    """Iterate ``items`` in a background thread, up to ``depth`` items ahead.
-
-    Lets Python work (CSV parsing, formatting) overlap torch and numpy work,
-    which releases the GIL. An exception raised by ``items`` is raised here,
-    in the caller's thread, when its turn comes.
-    """
-    buffer: queue.Queue = queue.Queue(maxsize=depth)
-    stop = threading.Event()
-
-    def work() -> None:
-        try:
-            for item in items:
-                while not stop.is_set():
-                    try:
-                        buffer.put((item, None), timeout=0.1)
-                        break
-                    except queue.Full:
-                        continue
-                if stop.is_set():
-                    return
-        except BaseException as err:  # handed over to the consumer
-            buffer.put((_DONE, err))
-            return
-        buffer.put((_DONE, None))
-
-    thread = threading.Thread(target=work, daemon=True)
-    thread.start()
-    try:
-        while True:
-            item, err = buffer.get()
-            if err is not None:
-                raise err
-            if item is _DONE:
-                return
-            yield item
-    finally:
-        stop.set()
-
-
-def _load(fit_dir: Path) -> tuple[StreamSpec, dict]:
-    """The fit's stream spec and settings: from ``stream.npz`` without torch, or
-    (a folder saved before that file existed) from the model with torch."""
-    try:
-        return load_stream_fit(fit_dir)
-    except FileNotFoundError:
-        pass
-    model, band, config = hysteresis.load_fit(fit_dir)
-    spec = band.stream_spec(model) if band is not None else model.stream_spec()
-    return spec, config

@@ -8,7 +8,6 @@ prediction ``predict`` makes after the same history and the returned inputs.
 from __future__ import annotations
 
 import json
-import math
 import warnings
 from pathlib import Path
 
@@ -21,7 +20,6 @@ from diffaccel.cli.hysteresis import (
     check_time_column,
     time_column_option,
 )
-from diffaccel.cli.hysteresis_predict import _load
 from diffaccel.data import DEFAULT_INPUT_COLUMN, DEFAULT_TIME_COLUMN, iter_magnet_csv
 from diffaccel.hysteresis import (
     InputRangeWarning,
@@ -29,16 +27,15 @@ from diffaccel.hysteresis import (
     field_for_k1,
     plan_setpoint,
 )
+from diffaccel.hysteresis.setpoint_report import (
+    jump_text,
+    setpoint_lines,
+    setpoint_summary,
+    unreachable_text,
+)
+from diffaccel.hysteresis.stream_csv import stream_fit
 
 __all__ = ["set_command"]
-
-#: largest |error| of a set point accepted, as a fraction of the output range
-ACCEPT = 1e-6
-
-
-def _g(v: float) -> str:
-    """A number to 12 significant digits (set again, it gives the same output)."""
-    return f"{v:.12g}"
 
 
 @click.command("set")
@@ -126,7 +123,7 @@ def set_command(
             raise click.UsageError(f"{' and '.join(given)} only go with --k1.")
         field = target
     try:
-        spec, config = _load(fit_dir)
+        spec, config = stream_fit(fit_dir)
     except ValueError as err:
         raise click.ClickException(f"cannot load a fit from {fit_dir}: {err}") from err
     in_col = config.get("input_column", DEFAULT_INPUT_COLUMN)
@@ -153,83 +150,37 @@ def set_command(
             first_row += len(rows)
             yield x
 
+    # a k1 target: its calibration; an output target: none
+    k1 = {"length": length, "p0c": p0c} if is_k1 else {}
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", InputRangeWarning)
         try:
             plan = plan_setpoint(spec, inputs(), field, limits)
         except UnreachableTargetError as err:
-            lo, hi = err.reachable
-            what = f"{out_col} {_g(target)}"
-            span = f"{out_col} {lo:.6g} .. {hi:.6g}"
-            if is_k1:
-                per = field / target if target else field_for_k1(1.0, length, p0c)
-                what = f"k1 {_g(target)} 1/m^2 ({out_col} {field:.6g})"
-                span = f"k1 {lo / per:.6g} .. {hi / per:.6g} 1/m^2 ({span})"
-            raise click.ClickException(
-                f"{what} cannot be reached: the fit reaches {span} within "
-                f"{in_col} {err.limits[0]:.6g} .. {err.limits[1]:.6g} after this "
-                "history."
-            ) from err
+            text = unreachable_text(
+                err, target=target, output=field, input_column=in_col,
+                output_column=out_col, **k1,
+            )  # fmt: skip
+            raise click.ClickException(text) from err
         except ValueError as err:
             raise click.ClickException(f"{data}: {err}") from err
     notes = sorted({str(w.message) for w in caught if w.category is InputRangeWarning})
-    span = spec.output_scale
-    if abs(plan.error) > ACCEPT * abs(span):
-        raise click.ClickException(
-            f"{out_col} {_g(field)} lies in a jump of the fitted model (a row of "
-            f"hysterons switching) for every approach tried; nearest: {in_col} "
-            f"{_g(plan.input)} gives {plan.output:.6g}."
-        )
+    jump = jump_text(plan, field, spec.output_scale, in_col, out_col)
+    if jump:
+        raise click.ClickException(jump)
     if as_json:
-        summary = {
-            "fit": str(fit_dir),
-            "history": str(data),
-            "input_column": in_col,
-            "output_column": out_col,
-            "target": target,
-            "target_kind": "k1" if is_k1 else "output",
-            "target_output": field,
-            "input": plan.input,
-            "approach": plan.approach,
-            "kind": plan.kind,
-            "cycle": list(plan.cycle),
-            "sequence": list(plan.sequence),
-            "predicted_output": plan.output,
-            "predicted_std": plan.std,
-            "error": plan.error,
-            "error_fraction_of_range": plan.error / span,
-            "reachable": list(plan.reachable),
-            "limits": list(plan.limits),
-            "present_input": plan.present_input,
-            "present_output": plan.present_output,
-            "notes": notes,
-        }
-        if is_k1:
-            summary.update(length=length, p0c=p0c)
+        summary = setpoint_summary(
+            plan, fit=str(fit_dir), history=str(data), input_column=in_col,
+            output_column=out_col, target=target, output=field,
+            output_scale=spec.output_scale, notes=notes, **k1,
+        )  # fmt: skip
         click.echo(json.dumps(summary, allow_nan=False))
         return
     for note in notes:
         click.echo(f"note: {note}", err=True)
-    if plan.kind == "cycle":
-        first = (
-            f"first a degaussing cycle: {in_col} {_g(plan.cycle[0])}, then "
-            f"{_g(plan.cycle[1])}; then "
-        )
-    elif plan.kind == "overshoot":
-        steps = ", then ".join(_g(v) for v in plan.cycle)
-        first = f"first {in_col} {steps} (overshoot); then "
-    else:
-        first = ""
-    std = "" if plan.std is None or math.isnan(plan.std) else f" +- {plan.std:.4g}"
-    want = f"k1 {_g(target)} 1/m^2: " if is_k1 else ""
-    click.echo(
-        f"{first}set {in_col} to {_g(plan.input)} {plan.approach} (present "
-        f"{in_col} {_g(plan.present_input)}, {out_col} {plan.present_output:.6g}): "
-        f"{want}{out_col} {plan.output:.8g}{std} (1 std) predicted there"
-    )
-    lo, hi = plan.reachable
-    click.echo(
-        f"reachable {out_col} {lo:.6g} .. {hi:.6g} within {in_col} "
-        f"{plan.limits[0]:.6g} .. {plan.limits[1]:.6g}; inputs to apply: "
-        f"{', '.join(_g(v) for v in plan.sequence)}"
-    )
+    lines = setpoint_lines(
+        plan, input_column=in_col, output_column=out_col,
+        k1=target if is_k1 else None,
+    )  # fmt: skip
+    for line in lines:
+        click.echo(line)

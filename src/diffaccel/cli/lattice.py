@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import warnings
 from pathlib import Path
-from typing import Any
 
 import click
 
@@ -12,48 +11,9 @@ from diffaccel.cli.output import check_out_file
 from diffaccel.data.atomic import atomic_write_json
 from diffaccel.dynamics import Beamline
 from diffaccel.dynamics.cheetah_interop import LatticeImportError
+from diffaccel.dynamics.listing import spec_table
 
 __all__ = ["lattice"]
-
-#: Units of element parameters, for the listing.
-UNITS = {
-    "length": "m",
-    "k1": "1/m^2",
-    "k2": "1/m^3",
-    "ks": "1/m",
-    "angle": "rad",
-    "e1": "rad",
-    "e2": "rad",
-    "tilt": "rad",
-    "dx": "m",
-    "dy": "m",
-    "voltage": "V",
-    "frequency": "Hz",
-    "phase": "rad",
-    "hgap": "m",
-    "hgapx": "m",
-    "fint": "",
-    "fintx": "",
-    "num_steps": "",
-}
-
-
-def _describe(entry: dict[str, Any]) -> str:
-    """``key = value unit`` for each parameter of a spec entry."""
-    parts = []
-    for key, value in entry.items():
-        if key in ("type", "name"):
-            continue
-        if key == "matrix":
-            parts.append("matrix = (7 x 7 affine map)")
-        elif key == "shape":
-            parts.append(f"shape = {value[0]} x {value[1]} px")
-        elif key in ("pixel_size", "center"):
-            parts.append(f"{key} = ({value[0]:.6g}, {value[1]:.6g}) m")
-        else:
-            unit = UNITS.get(key, "")
-            parts.append(f"{key} = {value:.10g}{' ' + unit if unit else ''}")
-    return ", ".join(parts)
 
 
 @click.command("lattice")
@@ -143,17 +103,9 @@ def lattice(
     for w in caught:
         click.echo(f"warning: {w.message}", err=True)
     spec = beamline.to_spec()
-    width = max((len(e["name"]) for e in spec), default=4)
-    kinds = max((len(e["type"]) for e in spec), default=4)
-    s = 0.0
     click.echo(f"{file}: {len(spec)} elements, {float(beamline.length):.6g} m")
-    click.echo(f"{'s [m]':>10}  {'name':<{width}}  {'type':<{kinds}}  parameters")
-    for entry in spec:
-        click.echo(
-            f"{s:10.6f}  {entry['name']:<{width}}  {entry['type']:<{kinds}}  "
-            f"{_describe(entry)}"
-        )
-        s += float(entry.get("length", 0.0))
+    for row in spec_table(spec):
+        click.echo(row)
     if out is not None:
         atomic_write_json(out, spec, overwrite=True)
         click.echo(f"wrote {out}")

@@ -5,14 +5,12 @@ from __future__ import annotations
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
 
 import click
 
 from diffaccel.data import (
     ResultFolder,
     ResultFolderError,
-    atomic_write,
     result_folder,
 )
 from diffaccel.data.atomic import os_condition
@@ -23,7 +21,6 @@ __all__ = [
     "check_out_file",
     "os_error",
     "output_folder",
-    "save_png",
 ]
 
 
@@ -61,24 +58,6 @@ def output_folder(
             f"writing the results for {out} failed: {os_condition(err) or err}; "
             f"{out} was left as it was."
         ) from err
-
-
-#: zlib level of the PNG figures: 3 encodes ~2x faster than PIL's default 6
-#: for ~20 % larger files (the same pixels)
-PNG_COMPRESS_LEVEL = 3
-
-
-def save_png(fig: Any, path: Path, dpi: int = 120) -> Path:
-    """Write a matplotlib figure as PNG (atomically); returns ``path``."""
-    return atomic_write(
-        path,
-        lambda p: fig.savefig(
-            p,
-            format="png",
-            dpi=dpi,
-            pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL},
-        ),
-    )
 
 
 def check_out_file(

@@ -2,56 +2,34 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 
 import click
 import numpy as np
 import torch
 
+from diffaccel.cli.options import echo_warnings, seed_option
 from diffaccel.cli.output import check_out_file, os_error
-from diffaccel.cli.reconstruct import echo_warnings
-from diffaccel.data import FormatError, atomic_write, read_scans, write_scans
-from diffaccel.data.owned_files import mark_npz, save_npy
-from diffaccel.reconstruction import (
-    check_on_screen,
-    load,
-    off_screen_warnings,
-    predict_dataset,
-    predicted_dataset,
-)
-from diffaccel.reconstruction.alarms import prediction_alarms
+from diffaccel.data import FormatError, read_scans, write_scans
+from diffaccel.data.owned_files import save_arrays
+from diffaccel.reconstruction import check_on_screen, load, predicted_dataset
+from diffaccel.reconstruction.prediction import predict_scans, predict_settings
 
 __all__ = ["parse_settings", "predict"]
 
 
-def _write(path: Path, save: Callable[[Path], None]) -> None:
-    """``save`` into ``path`` atomically (folder made); OS conditions as one line."""
+def _save(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """:func:`~diffaccel.data.owned_files.save_arrays`; OS conditions as one line."""
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write(path, save)
+        save_arrays(path, arrays)
     except OSError as err:  # read-only folder, disk full...
         raise os_error(err, path) from err
 
 
 def _write_spread(path: Path, spread: dict[str, torch.Tensor]) -> None:
-    """Per-pixel spreads as .npy (one scan) or .npz (one array per scan), atomically."""
+    """Per-pixel spreads as .npy (one scan) or .npz (one array per scan)."""
     arrays = {k: v.detach().cpu().numpy().astype(np.float32) for k, v in spread.items()}
-    if path.suffix.lower() == ".npy" and len(arrays) != 1:
-        raise click.ClickException(
-            f"--std-out {path}: {len(arrays)} scans; write them to an .npz file"
-        )
-
-    def _save(p: Path) -> None:
-        with p.open("wb") as f:
-            if path.suffix.lower() == ".npy":
-                save_npy(f, next(iter(arrays.values())))
-            else:
-                np.savez(f, **arrays)
-        if path.suffix.lower() != ".npy":
-            mark_npz(p)
-
-    _write(path, _save)
+    _save(path, arrays)
     click.echo(f"wrote {path}: per-pixel spread of {len(arrays)} scan(s)")
 
 
@@ -132,7 +110,7 @@ def parse_settings(text: str, names: list[str]) -> torch.Tensor:
     show_default=True,
     help="Particles per ensemble member.",
 )
-@click.option("--seed", type=int, default=0, show_default=True)
+@seed_option
 @click.option(
     "--std-out",
     type=click.Path(dir_okay=False, path_type=Path),
@@ -180,74 +158,35 @@ def predict(
         result = load(result_dir)
         if dataset_path is not None:
             other = read_scans(dataset_path)
-            predicted = predict_dataset(
-                result,
-                other,
-                n_particles=particles,
-                seed=seed,
-                return_std=want_std,
-                return_on_screen=True,
+            pred = predict_scans(
+                result, other, n_particles=particles, seed=seed, return_std=want_std
             )
-            if want_std:
-                predicted, spread, on_screen = predicted
-            else:
-                predicted, on_screen = predicted
-            warnings = [
-                w
-                for name, scan in other
-                for w in off_screen_warnings(
-                    on_screen[name], scan.settings, scan.setting_names, scan=name
-                )
-            ]
-            warnings += [a.text() for a in prediction_alarms(result, other)]
         else:
-            fwd = result.forward
-            settings = parse_settings(settings_text, fwd.names)
-            images = result.predict_images(
-                settings,
-                forward=fwd,
-                n_particles=particles,
-                seed=seed,
-                return_std=want_std,
-                n_draws=4,
-                return_on_screen=True,
+            settings = parse_settings(settings_text, result.forward.names)
+            pred = predict_settings(
+                result, settings, n_particles=particles, seed=seed, return_std=want_std
             )
-            if want_std:
-                images, std, fraction = images
-                spread = {result.scan_names[0]: std}
-            else:
-                images, fraction = images
-            check_on_screen(images, settings)
-            warnings = off_screen_warnings(
-                fraction, settings, fwd.names, scan=result.scan_names[0]
-            )
-            warnings += [a.text() for a in prediction_alarms(result, None, settings)]
     except (FormatError, ValueError, FileNotFoundError, OSError) as err:
         raise click.ClickException(str(err)) from err
+    predicted, spread, warnings = pred.images, pred.spread, pred.warnings
     # every refusal before the first file or folder is made
     if std_out is not None and std_out.suffix.lower() == ".npy" and len(spread) != 1:
         raise click.ClickException(
             f"--std-out {std_out}: {len(spread)} scans; write them to an .npz file"
         )
     if suffix == ".npy":
+        images = next(iter(predicted.values()))
         if dataset_path is not None:
             if len(predicted) != 1:
                 raise click.ClickException(
                     f"{dataset_path} holds {len(predicted)} scans; write them to an "
                     ".h5 file (--out PRED.h5)"
                 )
-            images = next(iter(predicted.values()))
             try:
                 check_on_screen(images, other[other.names[0]].settings)
             except ValueError as err:
                 raise click.ClickException(str(err)) from err
-        array = images.numpy().astype(np.float32)
-
-        def _save(p: Path) -> None:
-            with p.open("wb") as f:
-                save_npy(f, array)
-
-        _write(out, _save)
+        _save(out, {"images": images.numpy().astype(np.float32)})
         k, h, w = images.shape
         click.echo(f"wrote {out}: {k} images of {h} x {w} pixels")
         if std_out is not None:
@@ -258,7 +197,7 @@ def predict(
         out.parent.mkdir(parents=True, exist_ok=True)
         written = write_scans(
             predicted_dataset(
-                other, predicted, source=str(result_dir), on_screen=on_screen
+                other, predicted, source=str(result_dir), on_screen=pred.on_screen
             ),
             out,
             overwrite=force,

@@ -1,15 +1,14 @@
 """``diffaccel reconstruct``: phase-space reconstruction into a result folder.
 
-The command parses its options, trains with
-:func:`diffaccel.reconstruction.reconstruct` and writes the folder with
-:func:`diffaccel.reconstruction.results.write_result` (figures drawn by the
-callbacks here); the resume policy is that of
+The command parses its options (:mod:`diffaccel.cli.reconstruct_options`),
+trains with :func:`diffaccel.reconstruction.reconstruct` and writes the folder
+with :func:`diffaccel.reconstruction.results.run_in_folder` (figures drawn by
+:mod:`diffaccel.plotting.reconstruction`); the resume policy is that of
 :mod:`diffaccel.reconstruction.results`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
 from contextlib import nullcontext
 from pathlib import Path
 from types import SimpleNamespace
@@ -21,24 +20,34 @@ import torch.distributed as tdist
 from click.core import ParameterSource
 from tqdm import tqdm
 
-from diffaccel.cli.output import output_folder, save_png
-from diffaccel.data import FormatError, MultiScanDataset, partial_folder, read_scans
+from diffaccel.cli.options import (
+    check_device,
+    check_memory,
+    echo_lines,
+    echo_warnings,
+    read_dataset,
+    shared_refusal,
+)
+from diffaccel.cli.options import join_distributed as _init_distributed
+from diffaccel.cli.output import output_folder
+from diffaccel.cli.reconstruct_options import (
+    config_options,
+    given_flags,
+    reconstruct_options,
+)
+from diffaccel.data import MultiScanDataset, partial_folder
 from diffaccel.plotting.reconstruction import (
     plot_corner,
     plot_image_comparison,
-    plot_rms_evolution,
-    plot_training_curves,
+    write_image_figures,
+    write_result_figures,
 )
 from diffaccel.reconstruction import (
-    Reconstruction,
     ReconstructionConfig,
-    ScreenForwardModel,
     StepInfo,
-    as_scans,
     reconstruct,
     training_selection,
 )
-from diffaccel.reconstruction.probe import PROBE_STEP
 from diffaccel.reconstruction.results import (
     CHECKPOINT,
     OWNED,
@@ -49,17 +58,12 @@ from diffaccel.reconstruction.results import (
     ResumeError,
     RunError,
     bunch_charge,
-    headline_lines,
-    prior_dependence_lines,
+    finding_lines,
     resume_plan,
     resume_start,
     run_in_folder,
-)
-from diffaccel.reconstruction.runtime import (
-    init_distributed,
-    memory_shortfall,
-    resolve_device,
-    shared_refusal,
+    score_lines,
+    stopped_note,
 )
 
 __all__ = [
@@ -71,145 +75,11 @@ __all__ = [
     "run_reconstruction",
 ]
 
-_DEFAULTS = {d: ReconstructionConfig(dims=d) for d in (4, 6)}
-
-
-def write_result_figures(
-    result: Reconstruction, dataset: MultiScanDataset, out: Path
-) -> list[str]:
-    """Write ``phase_space.png``, ``training.png`` and ``rms_evolution.png``.
-
-    The corner plot (truth overlaid when known), the training curves and the
-    rms sizes during training; returns the file names.
-    """
-    figs = {
-        "phase_space.png": plot_corner(result, dataset.ground_truth),
-        "training.png": plot_training_curves(result),
-        "rms_evolution.png": plot_rms_evolution(result, dataset.ground_truth),
-    }
-    return [save_png(fig, out / name, dpi=110).name for name, fig in figs.items()]
-
-
-def write_image_figures(
-    dataset: MultiScanDataset,
-    train_indices: Mapping[str, Sequence[int]],
-    out: Path,
-    predicted: dict[str, torch.Tensor],
-    predicted_std: dict[str, torch.Tensor] | None = None,
-) -> list[str]:
-    """Write one measured-vs-predicted image grid per scan; returns the file names.
-
-    ``images.png`` for a single scan, ``images_<scan>.png`` otherwise
-    (settings not in ``train_indices`` marked held out; with
-    ``predicted_std`` a fourth row shows the per-pixel spread of the
-    prediction).
-    """
-    names = []
-    for name, scan in dataset:
-        train = {int(i) for i in train_indices.get(name, [])}
-        fwd = ScreenForwardModel.from_dataset(scan)
-        fig_name = "images.png" if len(dataset) == 1 else f"images_{name}.png"
-        fig = plot_image_comparison(
-            scan.mean_images(),
-            predicted[name],
-            scan.settings,
-            setting_name=", ".join(scan.setting_names),
-            extent=fwd.extent_mm(),
-            held_out=[i not in train for i in range(scan.n_settings)],
-            title=f"scan {name!r}" if len(dataset) > 1 else "",
-            predicted_std=None if predicted_std is None else predicted_std[name],
-        )
-        names.append(save_png(fig, out / fig_name, dpi=110).name)
-    return names
-
-
-#: Parameters of ``reconstruct`` that set the config, by their flags.
-PARAMETER_FLAGS = {
-    "dims": "--dims",
-    "particles": "--particles",
-    "steps": "--steps",
-    "snapshots": "--snapshots",
-    "seed": "--seed",
-    "image_loss": "--image-loss",
-    "blur": "--blur",
-    "loss_smoothing": "--loss-smoothing",
-    "uncoupled": "--uncoupled",
-    "probe": "--probe",
-}
-
-
-def _loss_smoothing(value: str | None) -> float | str | None:
-    """``--loss-smoothing`` as the config takes it (one-line error otherwise)."""
-    if value is None or value == "auto":
-        return value
-    try:
-        return float(value)
-    except ValueError:
-        raise click.BadParameter(
-            f"expected a number of pixels or 'auto'; got {value!r}.",
-            param_hint="--loss-smoothing",
-        ) from None
-
-
-def check_device(device: str) -> torch.device:
-    """``--device`` as a torch device that exists here (one-line error otherwise)."""
-    try:
-        return resolve_device(device)
-    except ValueError as err:
-        raise click.BadParameter(str(err), param_hint="--device") from err
-
-
-def check_memory(config: ReconstructionConfig, n_images: int) -> None:
-    """Refuse (one line, ``--particles``) a run that cannot fit in the RAM."""
-    problem = memory_shortfall(config, n_images)
-    if problem is not None:
-        raise click.BadParameter(problem, param_hint="--particles")
-
-
-def read_dataset(path: Path) -> MultiScanDataset:
-    """The scans of a quad-scan file, or a one-line click error naming the problem."""
-    try:
-        return as_scans(read_scans(path))
-    except (FormatError, OSError) as err:
-        text = str(err)  # reader errors already read "PATH: field: problem"
-        if not text.startswith(str(path)):
-            text = f"{path}: {text}"
-        raise click.ClickException(f"cannot read {text}") from err
-
-
-def _init_distributed(device: str) -> str:
-    """Join the process group that torchrun describes; this process's device."""
-    try:
-        return init_distributed(device)
-    except ValueError as err:
-        raise click.ClickException(str(err)) from err
-
-
-def _shared_refusal(target: Any, distributed: bool) -> Any:
-    """Enter ``target`` (process 0's result folder); every process learns a refusal.
-
-    See :func:`~diffaccel.reconstruction.runtime.shared_refusal`; the others
-    raise ``process 0 stopped: <its one-line error>``.
-    """
-    return shared_refusal(
-        target,
-        distributed,
-        refusal=click.ClickException,
-        text=lambda err: err.format_message(),
-        stopped=lambda text: click.ClickException(f"process 0 stopped: {text}"),
-    )
-
-
-def echo_warnings(warnings: Sequence[str]) -> None:
-    """Each warning on stderr as ``warning: ...`` (``reconstruct`` and ``predict``)."""
-    for warning in warnings:
-        click.echo(f"warning: {warning}", err=True)
-
-
 #: The figures of a result folder, drawn with :mod:`diffaccel.plotting`.
 FIGURES = ResultFigures(
-    summary=lambda *a: write_result_figures(*a),
-    images=lambda *a: write_image_figures(*a),
+    # the drawing functions are looked up here at each call: tests replace them
+    summary=lambda *a: write_result_figures(*a, corner=plot_corner),
+    images=lambda *a: write_image_figures(*a, plot=plot_image_comparison),
 )
 
 
@@ -280,148 +150,7 @@ def run_reconstruction(
 
 
 @click.command("reconstruct")
-@click.argument("dataset", type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option(
-    "--out",
-    type=click.Path(file_okay=False, path_type=Path),
-    required=True,
-    help="Output directory (ensemble, summary.json, figures).",
-)
-@click.option(
-    "--particles",
-    type=click.IntRange(min=16),
-    default=None,
-    help="Fresh particles per training step [default: "
-    f"{_DEFAULTS[4].n_particles} for --dims 4, {_DEFAULTS[6].n_particles} for "
-    "--dims 6].",
-)
-@click.option(
-    "--steps",
-    "--epochs",
-    "steps",
-    type=click.IntRange(min=1),
-    default=None,
-    help="Optimisation steps (multiple of --snapshots); --epochs is an alias "
-    f"[default: {_DEFAULTS[4].steps} for --dims 4, {_DEFAULTS[6].steps} for "
-    "--dims 6].",
-)
-@click.option(
-    "--snapshots",
-    type=click.IntRange(min=1),
-    default=None,
-    help="Cosine learning-rate cycles; the ensemble keeps the last snapshots - "
-    f"burn-in (burn-in {_DEFAULTS[4].burn_in} for --dims 4, "
-    f"{_DEFAULTS[6].burn_in} for --dims 6) [default: {_DEFAULTS[4].snapshots} for "
-    f"--dims 4, {_DEFAULTS[6].snapshots} for --dims 6].",
-)
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--device", default="cpu", show_default=True, help="cpu, cuda, cuda:1...")
-@click.option(
-    "--train-indices",
-    default="all",
-    show_default=True,
-    help="Settings to train on, per scan: all, even, odd or a list like 0,2,4 "
-    "(the same rule in every scan), or SCAN:RULE;SCAN:RULE (e.g. "
-    "'dipole_off:0,1,4,5;dipole_on:all'; scans not named are held out). The "
-    "others are held out and scored.",
-)
-@click.option(
-    "--dims",
-    type=click.Choice(["4", "6"]),
-    default="4",
-    show_default=True,
-    help="4: transverse phase space only; 6: also z, pz (seen with a deflecting "
-    "cavity and/or dispersion; otherwise weakly constrained).",
-)
-@click.option(
-    "--image-loss",
-    type=click.Choice(["kl", "l1", "l2"]),
-    default=_DEFAULTS[4].image_loss,
-    show_default=True,
-)
-@click.option(
-    "--blur",
-    type=click.FloatRange(min=0),
-    default=None,
-    help="Point-spread rms of simulated images [pixels] [default: the file's "
-    "screen resolution_pixels where recorded, else 1.0 for --dims 4, sqrt(1/12) "
-    "for --dims 6].",
-)
-@click.option(
-    "--loss-smoothing",
-    default=None,
-    metavar="PIXELS|auto",
-    help="Rms of the Gaussian applied to measured and simulated images before "
-    "they are compared [camera pixels], or 'auto': sized by the data (the largest "
-    "image's rms times N^(-1/6) for N particles per step), for camera images of "
-    "hundreds of pixels per axis, where the default over-estimates emittances "
-    "[default: 0 for --dims 4, 1 for --dims 6].",
-)
-@click.option(
-    "--uncoupled",
-    is_flag=True,
-    help="--dims 6: put the x-y coupling that the screens barely see (x-py, "
-    "px-y against px-py) at the largest entropy instead of where training "
-    "settled: the 4D and 6D emittances then do not depend on training there. "
-    "Right for beams not turned in x-y; wrong for beams turned in x-y (e.g. "
-    "by a solenoid).",
-)
-@click.option(
-    "--probe/--no-probe",
-    default=None,
-    help="--dims 6: let the training images move the beam off the stated prior "
-    "point along the px-pz direction the screens cannot see (zero px-pz partial "
-    "correlation) where members refitted there fit clearly better: a "
-    "likelihood-ratio probe on the side away from where training left the "
-    "members, one or more extra refits per member (about 20 s on two CPU cores) "
-    "[default: on for --dims 6].",
-)
-@click.option("--no-figures", is_flag=True, help="Skip the PNG figures.")
-@click.option(
-    "--charge",
-    "charge_pc",
-    type=click.FloatRange(min=0, min_open=True),
-    default=None,
-    help="Bunch charge [pC] of the particles in particles.h5 [default: the "
-    "dataset's metadata charge_C where recorded, else 1 pC].",
-)
-@click.option(
-    "--uncertainty/--no-uncertainty",
-    default=True,
-    show_default=True,
-    help="Calibrated moment std (moment-space posterior, see "
-    "docs/methods/uncertainty.md) and the per-pixel spread in the image figures; "
-    "--no-uncertainty reports the ensemble scatter only (faster, under-covers).",
-)
-@click.option(
-    "--force",
-    is_flag=True,
-    help="Replace an earlier reconstruction in --out (at the end); discard an "
-    "interrupted run's checkpoint in .OUT.partial.",
-)
-@click.option(
-    "--resume",
-    is_flag=True,
-    help="Continue the interrupted run into --out from its checkpoint (same data; "
-    "options not given are the checkpoint's).",
-)
-@click.option(
-    "--distributed",
-    is_flag=True,
-    help="Run on the processes started by torchrun (gloo on CPUs, NCCL with "
-    "--device cuda: one GPU per process), sharing the work as --split says; "
-    "process 0 writes --out. See docs/distributed.md.",
-)
-@click.option(
-    "--split",
-    type=click.Choice(["particles", "members"]),
-    default="particles",
-    show_default=True,
-    help="With --distributed: 'particles' splits every step's particles across "
-    "the processes (one ensemble, same answer as one process); 'members' trains "
-    "one independent ensemble per process (process r: seed + 7919 r) and joins "
-    "all members into one ensemble (P processes: P times the members).",
-)
+@reconstruct_options
 def reconstruct_command(
     dataset: Path,
     out: Path,
@@ -452,30 +181,20 @@ def reconstruct_command(
     its checkpoint there and ``--resume`` continues it (``--force`` discards it).
     """
     ctx = click.get_current_context()
-    given = {
-        flag
-        for name, flag in PARAMETER_FLAGS.items()
-        if ctx.get_parameter_source(name) in (ParameterSource.COMMANDLINE,)
-    }
+    given = given_flags(ctx)
     if split != "particles" and not distributed:
         raise click.BadParameter(
             "--split members needs --distributed (processes started by torchrun).",
             param_hint="--split",
         )
+    # _init_distributed: a module name, looked up here (tests replace it)
     dev = _init_distributed(device) if distributed else check_device(device)
     writer = not distributed or tdist.get_rank() == 0
-    options: dict[str, Any] = {
-        "dims": int(dims),
-        "n_particles": particles,
-        "steps": steps,
-        "snapshots": snapshots,
-        "seed": seed,
-        "image_loss": image_loss,
-        "blur_pixels": blur,
-        "loss_smoothing": _loss_smoothing(loss_smoothing),
-        "place_coupling": uncoupled,
-        "probe_unseen": None if probe is None else PROBE_STEP if probe else 0.0,
-    }
+    options = config_options(
+        dims=dims, particles=particles, steps=steps, snapshots=snapshots,
+        seed=seed, image_loss=image_loss, blur=blur, loss_smoothing=loss_smoothing,
+        uncoupled=uncoupled, probe=probe,
+    )  # fmt: skip
     checkpoint = stored = None
     if resume:  # options not given are the checkpoint's
         try:
@@ -541,7 +260,7 @@ def reconstruct_command(
             )
         else:  # process 0 owns the folder; the others read its checkpoint
             target = nullcontext(SimpleNamespace(path=partial_folder(out)))
-        with _shared_refusal(target, distributed) as folder:
+        with shared_refusal(target, distributed) as folder:
             started = True  # the folder is this run's (not refused, not locked)
             summary = run_reconstruction(
                 ds,
@@ -559,50 +278,18 @@ def reconstruct_command(
             )
     except (KeyboardInterrupt, click.ClickException) as err:
         # a refused run (another run's lock) must not point at that run's files
-        interrupted = started and isinstance(err, KeyboardInterrupt)
-        if started and (partial_folder(out) / CHECKPOINT).is_file():
-            click.echo(
-                f"note: the run's checkpoint is kept in {partial_folder(out)}; "
-                f"--resume continues it ({out} is unchanged)",
-                err=True,
-            )
-        elif interrupted:
-            click.echo(
-                "note: interrupted before the first checkpoint (written every "
-                f"{config.checkpoint_every} steps): nothing to resume, {out} is "
-                "unchanged",
-                err=True,
-            )
+        note = started and stopped_note(
+            out, isinstance(err, KeyboardInterrupt), config.checkpoint_every
+        )
+        if note:
+            click.echo(note, err=True)
         raise
     if distributed:
         tdist.destroy_process_group()
     if not summary:  # a process other than 0 of a distributed run
         return
-    m = summary["metrics"]
     click.echo(f"wrote {out / 'summary.json'}")
-    if "images_held_out" in m:
-        click.echo(
-            f"held-out image relative L1: {m['images_held_out']['relative_l1']:.4f}"
-        )
-    click.echo(f"train image relative L1: {m['images_train']['relative_l1']:.4f}")
+    echo_lines(score_lines(summary))
     echo_warnings(summary.get("warnings", []))
-    if summary["unconstrained_coordinates"]:
-        click.echo(
-            "not constrained by the scan: "
-            + ", ".join(summary["unconstrained_coordinates"])
-        )
-    for line in headline_lines(summary):
-        click.echo(line)
-    for line in prior_dependence_lines(summary.get("prior_dependence", [])):
-        click.echo(line)
-    if summary.get("observability"):
-        click.echo(summary["observability"])
-    polish = summary.get("moment_polish", [])
-    if polish:
-        before = ", ".join(f"{100 * p['residual_before']:.2f}" for p in polish)
-        after = ", ".join(f"{100 * p['residual_after']:.2f}" for p in polish)
-        click.echo(
-            "moment polish: training images' second moments off by "
-            f"{before} % rms (per member) before, {after} % after"
-        )
+    echo_lines(finding_lines(summary))
     click.echo(f"report: {out / REPORT}")

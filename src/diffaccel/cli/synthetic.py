@@ -2,25 +2,16 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import click
-import torch
 
 from diffaccel.cli.output import check_out_file, os_error
-from diffaccel.data import (
-    FormatError,
-    make_synthetic_awa6d,
-    make_synthetic_quad_scan,
-    make_synthetic_rf6d,
-    read_openpmd_particles,
-    write_quad_scan,
-    write_scans,
-)
+from diffaccel.data import FormatError
 from diffaccel.data.quad_scan import PARAMETER_LIMITS, check_p0c
 from diffaccel.data.synthetic import PRESETS
+from diffaccel.data.synthetic_file import SyntheticRequest, write_synthetic
 
 __all__ = ["synthetic"]
 
@@ -136,7 +127,7 @@ _K1 = PARAMETER_LIMITS["k1"]
 @click.option("--force", is_flag=True, help="Overwrite OUT if it exists.")
 def synthetic(out: Path, force: bool, **options: Any) -> None:
     """Simulate a quadrupole scan of a known beam and write it to OUT (HDF5)."""
-    opts = _Options(**options)
+    opts = SyntheticRequest(**options)
     if out.suffix.lower() not in (".h5", ".hdf5"):
         raise click.BadParameter(
             f"{out}: expected a .h5 or .hdf5 file name (the quad-scan file is HDF5)",
@@ -149,14 +140,14 @@ def synthetic(out: Path, force: bool, **options: Any) -> None:
             message = str(err).removeprefix("--p0c: ")
             raise click.BadParameter(message, param_hint="--p0c") from err
     check_out_file(out, force, {"--particle-file": opts.particle_file})
-    beam = (
-        f"preset {opts.preset}"
-        if opts.particle_file is None
-        else f"beam {opts.particle_file}"
-    )
-    build = {"awa6d": _awa6d, "rf6d": _awa6d}.get(opts.layout, _quad)
+    if opts.layout != "quad" and opts.pixel_size is not None:
+        raise click.BadParameter(
+            f"the {opts.layout} layout uses the DYG1/DYG2 calibration; scale it with "
+            "--shape",
+            param_hint="--pixel-size",
+        )
     try:
-        click.echo(build(opts, out, force, beam))
+        click.echo(write_synthetic(opts, out, force))
     except (FormatError, ValueError, FileExistsError) as err:
         raise click.ClickException(str(err)) from err
     except OSError as err:  # a read-only folder, a full disk, a locked file
@@ -168,106 +159,3 @@ def synthetic(out: Path, force: bool, **options: Any) -> None:
             "not enough memory for the images and tracking asked for (--shape, "
             "--settings, --shots, --particles); reduce them"
         ) from err
-
-
-@dataclass(frozen=True)
-class _Options:
-    """The command's options besides OUT and --force (None: the layout's default)."""
-
-    layout: str
-    preset: str
-    particle_file: Path | None
-    n_particles: int
-    n_settings: int | None
-    k1_min: float | None
-    k1_max: float | None
-    shape: tuple[int, int] | None
-    pixel_size: float | None
-    p0c: float | None
-    image_method: str | None
-    noise: float
-    noise_model: str
-    shots: int
-    seed: int
-
-
-def _quad(opts: _Options, out: Path, force: bool, beam: str) -> str:
-    """``--layout quad``: one scan (format version 1); returns the report line."""
-    lo = -25.0 if opts.k1_min is None else opts.k1_min
-    hi = 15.0 if opts.k1_max is None else opts.k1_max
-    pixel_size = 1e-3 if opts.pixel_size is None else opts.pixel_size
-    image_method = opts.image_method or "kde"
-    ds = make_synthetic_quad_scan(
-        opts.preset,  # type: ignore[arg-type]
-        particle_file=opts.particle_file,
-        n_particles=opts.n_particles,
-        p0c=opts.p0c,
-        n_settings=20 if opts.n_settings is None else opts.n_settings,
-        k1_range=(lo, hi),
-        screen_shape=(64, 64) if opts.shape is None else opts.shape,
-        pixel_size=(pixel_size, pixel_size),
-        image_method=image_method,  # type: ignore[arg-type]
-        noise=opts.noise,
-        noise_model=opts.noise_model,  # type: ignore[arg-type]
-        shots=opts.shots,
-        seed=opts.seed,
-    )
-    write_quad_scan(ds, out, overwrite=force)
-    k, s, h, w = ds.shape
-    return (
-        f"wrote {out}: {k} settings (k1 {lo:g} .. {hi:g} 1/m^2) x {s} shot(s) "
-        f"of {h}x{w} px at {pixel_size * 1e3:g} mm, {beam}, "
-        f"{ds.ground_truth.shape[0]} particles, p0c {ds.p0c / 1e6:g} MeV, "
-        f"{image_method} images, noise {opts.noise:g} ({opts.noise_model}), "
-        f"seed {opts.seed}"
-    )
-
-
-def _awa6d(opts: _Options, out: Path, force: bool, beam: str) -> str:
-    """``--layout awa6d`` / ``rf6d``: two scans of a 6D layout (version 2)."""
-    if opts.pixel_size is not None:
-        raise click.BadParameter(
-            f"the {opts.layout} layout uses the DYG1/DYG2 calibration; scale it with "
-            "--shape",
-            param_hint="--pixel-size",
-        )
-    k = 9 if opts.n_settings is None else opts.n_settings
-    lo = -12.0 if opts.k1_min is None else opts.k1_min
-    hi = 12.0 if opts.k1_max is None else opts.k1_max
-    image_method = opts.image_method or "histogram"
-    p0c = opts.p0c
-    particles = None
-    if opts.particle_file is not None:
-        particles, file_p0c, _ = read_openpmd_particles(opts.particle_file)
-        p0c = file_p0c if p0c is None else p0c
-    make = make_synthetic_rf6d if opts.layout == "rf6d" else make_synthetic_awa6d
-    ms = make(
-        opts.preset,  # type: ignore[arg-type]
-        particles=particles,
-        n_particles=opts.n_particles,
-        p0c=43.36e6 if p0c is None else p0c,
-        k1_values=torch.linspace(lo, hi, k, dtype=torch.float64),
-        screen_shape=(96, 96) if opts.shape is None else opts.shape,
-        image_method=image_method,  # type: ignore[arg-type]
-        noise=opts.noise,
-        noise_model=opts.noise_model,  # type: ignore[arg-type]
-        shots=opts.shots,
-        seed=opts.seed,
-    )
-    write_scans(ms, out, overwrite=force)
-    sizes = ", ".join(
-        f"{name} {s.n_settings}x{s.n_shots} of {s.screen_shape[0]}x{s.screen_shape[1]}"
-        for name, s in ms
-    )
-    scanned = (
-        "RF {off, 4 MV at phase 0, pi} (dipole_on)"
-        if opts.layout == "rf6d"
-        else "TDC {0, 4 MV}"
-    )
-    layout = "RF-phase-plus-dipole 6D" if opts.layout == "rf6d" else "AWA 6D"
-    return (
-        f"wrote {out} (format version 2, {layout} layout): scans {sizes}; k1 {lo:g} "
-        f".. {hi:g} 1/m^2 x {scanned}; {beam}, "
-        f"{ms.ground_truth.shape[0]} particles, {image_method} images, noise "
-        f"{opts.noise:g}, seed {opts.seed}"
-    )

@@ -22,20 +22,21 @@ import csv
 import os
 import struct
 import zipfile
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import BinaryIO
 
 import numpy as np
 
 from diffaccel import __version__
-from diffaccel.data.atomic import os_condition
+from diffaccel.data.atomic import atomic_write, os_condition
 
 __all__ = [
     "H5_ATTRIBUTE",
     "MARK",
     "h5_mark",
     "mark_npz",
+    "save_arrays",
     "save_npy",
     "written_by_diffaccel",
 ]
@@ -86,6 +87,42 @@ def mark_npz(path: str | os.PathLike) -> None:
     """Set the zip comment of the ``.npz`` archive ``path`` to :data:`MARK`."""
     with zipfile.ZipFile(path, "a") as z:
         z.comment = MARK.encode()
+
+
+def save_arrays(path: str | os.PathLike, arrays: Mapping[str, np.ndarray]) -> Path:
+    """Write arrays as one marked ``.npy`` (one array) or ``.npz`` file, atomically.
+
+    A ``.npy`` name (any case) writes the single array of ``arrays``
+    (:func:`save_npy`); any other name writes an ``.npz`` archive with one
+    entry per key (:func:`mark_npz`). A missing parent folder is created.
+
+    Args:
+        path: The file to write (an existing one is replaced).
+        arrays: ``{name: array}``; exactly one for a ``.npy`` file.
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path`.
+
+    Raises:
+        ValueError: several arrays for a ``.npy`` file.
+        OSError: the file or its folder cannot be written.
+    """
+    path = Path(path)
+    npy = path.suffix.lower() == ".npy"
+    if npy and len(arrays) != 1:
+        raise ValueError(f"{path}: {len(arrays)} arrays; write them to an .npz file")
+
+    def save(p: Path) -> None:
+        with p.open("wb") as f:
+            if npy:
+                save_npy(f, next(iter(arrays.values())))
+            else:
+                np.savez(f, **arrays)
+        if not npy:
+            mark_npz(p)
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return atomic_write(path, save)
 
 
 def _npy_marked(path: Path) -> bool:

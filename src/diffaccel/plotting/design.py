@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
 
-__all__ = ["plot_expected_std", "plot_spectrum"]
+__all__ = ["design_figures", "plot_expected_std", "plot_spectrum"]
 
 
 def plot_spectrum(observability: Mapping[str, Any]) -> Figure:
@@ -107,3 +107,17 @@ def plot_expected_std(
     ax.set_ylabel("expected relative std [%]")
     ax.legend(fontsize=8, ncols=2)
     return fig
+
+
+def design_figures(
+    observability: Mapping[str, Any], report: Mapping[str, Any] | None = None
+) -> Iterator[tuple[str, Figure]]:
+    """The figures of a design, as ``(file name, figure)`` pairs.
+
+    ``singular_values.png`` (:func:`plot_spectrum`) and, where ``report``
+    (of :func:`~diffaccel.reconstruction.design.recommend`) recommends
+    settings, ``expected_std.png`` (:func:`plot_expected_std`).
+    """
+    yield "singular_values.png", plot_spectrum(observability)
+    if report is not None and report["recommended"]:
+        yield "expected_std.png", plot_expected_std(report)

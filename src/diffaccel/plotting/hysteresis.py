@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import torch
 from matplotlib.figure import Figure
@@ -9,9 +11,18 @@ from matplotlib.tri import Triangulation
 from torch import Tensor
 
 from diffaccel.hysteresis import PreisachModel
+from diffaccel.plotting.files import save_png
 from diffaccel.plotting.text import literal, no_usetex
 
-__all__ = ["plot_preisach_density", "plot_preisach_fit"]
+__all__ = [
+    "FIT_FIGURES",
+    "plot_preisach_density",
+    "plot_preisach_fit",
+    "write_fit_figures",
+]
+
+#: The figures of a fit folder (:func:`write_fit_figures`).
+FIT_FIGURES = ("fit.png", "density.png")
 
 
 def _np(x: Tensor) -> np.ndarray:
@@ -154,3 +165,44 @@ def plot_preisach_fit(
     ax_res.set_xlabel("row (time order)")
     ax_res.set_ylabel("measured - model [% of output range]")
     return fig
+
+
+def write_fit_figures(
+    folder: Path,
+    model: PreisachModel,
+    current: Tensor,
+    field: Tensor,
+    n_train: int,
+    std: Tensor,
+    input_label: str,
+    output_label: str,
+) -> list[str]:
+    """Write ``fit.png`` (:func:`plot_preisach_fit`) and ``density.png``
+    (:func:`plot_preisach_density`) of a fit into ``folder``.
+
+    Args:
+        folder: An existing folder.
+        model: The fitted model.
+        current: Inputs of every row in time order, shape ``(T,)``.
+        field: Measured outputs, shape ``(T,)``.
+        n_train: Rows ``[:n_train]`` were fitted.
+        std: Predictive std of every row, shape ``(T,)``.
+        input_label: Input axis label (a column name, with unit where it has one).
+        output_label: Output axis label.
+
+    Returns:
+        The file names, :data:`FIT_FIGURES`.
+    """
+    fig = plot_preisach_fit(
+        model,
+        current,
+        field,
+        n_train=n_train,
+        std=std,
+        input_label=input_label,
+        output_label=output_label,
+    )
+    save_png(fig, folder / FIT_FIGURES[0])
+    fig = plot_preisach_density(model, input_label=input_label)
+    save_png(fig, folder / FIT_FIGURES[1])
+    return list(FIT_FIGURES)

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -12,14 +13,21 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import LogFormatter
 from torch import Tensor
 
+from diffaccel.data import MultiScanDataset
+from diffaccel.plotting.files import save_figures
 from diffaccel.plotting.text import literal, no_usetex
-from diffaccel.reconstruction import Reconstruction
+from diffaccel.reconstruction import Reconstruction, ScreenForwardModel
 
 __all__ = [
+    "FIGURE_DPI",
+    "image_figures",
     "plot_corner",
     "plot_image_comparison",
     "plot_rms_evolution",
     "plot_training_curves",
+    "result_figures",
+    "write_image_figures",
+    "write_result_figures",
 ]
 
 _LABELS = ("x [mm]", "px [mrad]", "y [mm]", "py [mrad]", "z [mm]", "pz [1e-3]")
@@ -398,3 +406,105 @@ def plot_rms_evolution(
     fig.suptitle("RMS sizes during training (dashed: snapshots)")
     _fixed_margins(fig, 0.75, 0.15, 0.55, 0.45, wspace=0.3, hspace=0.3)
     return fig
+
+
+#: Resolution of the figures of a result folder [dots per inch].
+FIGURE_DPI = 110
+
+
+def result_figures(
+    result: Reconstruction,
+    dataset: MultiScanDataset,
+    *,
+    corner: Callable[..., Figure] | None = None,
+) -> Iterator[tuple[str, Figure]]:
+    """The summary figures of a result folder, as ``(file name, figure)`` pairs.
+
+    ``phase_space.png`` (``corner``, default :func:`plot_corner`, the
+    dataset's ground truth overlaid where known), ``training.png``
+    (:func:`plot_training_curves`) and ``rms_evolution.png``
+    (:func:`plot_rms_evolution`), drawn in that order.
+    """
+    truth = dataset.ground_truth
+    draw_corner = plot_corner if corner is None else corner
+    figs = {
+        "phase_space.png": draw_corner(result, truth),
+        "training.png": plot_training_curves(result),
+        "rms_evolution.png": plot_rms_evolution(result, truth),
+    }
+    yield from figs.items()
+
+
+def image_figures(
+    dataset: MultiScanDataset,
+    train_indices: Mapping[str, Sequence[int]],
+    predicted: Mapping[str, Tensor],
+    predicted_std: Mapping[str, Tensor] | None = None,
+    *,
+    plot: Callable[..., Figure] | None = None,
+) -> Iterator[tuple[str, Figure]]:
+    """One measured-vs-predicted image grid per scan, as ``(file name, figure)``.
+
+    ``images.png`` for a single scan, ``images_<scan>.png`` otherwise; each
+    drawn when it is taken (a generator).
+
+    Args:
+        dataset: The measured scans.
+        train_indices: Trained settings per scan; the others are marked held out.
+        predicted: Predicted images per scan, ``(K, H, W)``.
+        predicted_std: Per-pixel spread of the prediction per scan, ``(K, H, W)``
+            (a fourth row of each grid); None: no such row.
+        plot: The drawing function (default :func:`plot_image_comparison`).
+    """
+    draw = plot_image_comparison if plot is None else plot
+    for name, scan in dataset:
+        train = {int(i) for i in train_indices.get(name, [])}
+        fwd = ScreenForwardModel.from_dataset(scan)
+        fig_name = "images.png" if len(dataset) == 1 else f"images_{name}.png"
+        fig = draw(
+            scan.mean_images(),
+            predicted[name],
+            scan.settings,
+            setting_name=", ".join(scan.setting_names),
+            extent=fwd.extent_mm(),
+            held_out=[i not in train for i in range(scan.n_settings)],
+            title=f"scan {name!r}" if len(dataset) > 1 else "",
+            predicted_std=None if predicted_std is None else predicted_std[name],
+        )
+        yield fig_name, fig
+
+
+def write_result_figures(
+    result: Reconstruction,
+    dataset: MultiScanDataset,
+    folder: Path,
+    *,
+    corner: Callable[..., Figure] | None = None,
+) -> list[str]:
+    """Write :func:`result_figures` into ``folder``; returns the file names.
+
+    The ``summary`` callback of
+    :class:`~diffaccel.reconstruction.results.ResultFigures` (``corner``: as
+    for :func:`result_figures`).
+    """
+    figs = result_figures(result, dataset, corner=corner)
+    return save_figures(figs, folder, dpi=FIGURE_DPI)
+
+
+def write_image_figures(
+    dataset: MultiScanDataset,
+    train_indices: Mapping[str, Sequence[int]],
+    folder: Path,
+    predicted: Mapping[str, Tensor],
+    predicted_std: Mapping[str, Tensor] | None = None,
+    *,
+    plot: Callable[..., Figure] | None = None,
+) -> list[str]:
+    """Write :func:`image_figures` into ``folder``; returns the file names.
+
+    The ``images`` callback of
+    :class:`~diffaccel.reconstruction.results.ResultFigures` (``plot``: as
+    for :func:`image_figures`).
+    """
+    figs = image_figures(dataset, train_indices, predicted, predicted_std, plot=plot)
+    return save_figures(figs, folder, dpi=FIGURE_DPI)

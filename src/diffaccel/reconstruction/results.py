@@ -87,7 +87,9 @@ __all__ = [
     "bunch_charge",
     "check_finished_run",
     "clean_for_resume",
+    "demo_report_markdown",
     "discard_selection",
+    "finding_lines",
     "headline_lines",
     "prior_dependence_lines",
     "report_markdown",
@@ -97,6 +99,8 @@ __all__ = [
     "resume_selection",
     "resume_start",
     "run_in_folder",
+    "score_lines",
+    "stopped_note",
     "store_selection",
     "stored_config",
     "write_result",
@@ -787,6 +791,83 @@ def headline_lines(summary: Mapping[str, Any]) -> list[str]:
     return [f"{group}: " + ", ".join(items) for group, items in lines.items()]
 
 
+def score_lines(summary: Mapping[str, Any]) -> list[str]:
+    """The image fit of a summary: held-out (where any) and training relative L1.
+
+    Example:
+        >>> score_lines({"metrics": {"images_train": {"relative_l1": 0.0123}}})
+        ['train image relative L1: 0.0123']
+    """
+    m = summary["metrics"]
+    lines = []
+    if "images_held_out" in m:
+        held = m["images_held_out"]["relative_l1"]
+        lines.append(f"held-out image relative L1: {held:.4f}")
+    lines.append(f"train image relative L1: {m['images_train']['relative_l1']:.4f}")
+    return lines
+
+
+def finding_lines(summary: Mapping[str, Any]) -> list[str]:
+    """What a summary found, as lines of text.
+
+    The coordinates the scans do not constrain, the headline numbers
+    (:func:`headline_lines`), the unseen correlations set by the prior
+    (:func:`prior_dependence_lines`), the observability note and the moment
+    polish (the training images' second moments off by ... % rms per member,
+    before and after it); each line only where the summary holds it.
+    """
+    lines = []
+    if summary["unconstrained_coordinates"]:
+        lines.append(
+            "not constrained by the scan: "
+            + ", ".join(summary["unconstrained_coordinates"])
+        )
+    lines += headline_lines(summary)
+    lines += prior_dependence_lines(summary.get("prior_dependence", []))
+    if summary.get("observability"):
+        lines.append(summary["observability"])
+    polish = summary.get("moment_polish", [])
+    if polish:
+        before = ", ".join(f"{100 * p['residual_before']:.2f}" for p in polish)
+        after = ", ".join(f"{100 * p['residual_after']:.2f}" for p in polish)
+        lines.append(
+            "moment polish: training images' second moments off by "
+            f"{before} % rms (per member) before, {after} % after"
+        )
+    return lines
+
+
+def stopped_note(
+    out: str | os.PathLike, interrupted: bool, checkpoint_every: int
+) -> str | None:
+    """What is left of a run into ``out`` that stopped (refused, failed, interrupted).
+
+    Args:
+        out: The run's result folder.
+        interrupted: The run was interrupted (Ctrl-C), not stopped by an error.
+        checkpoint_every: Steps between the run's checkpoints.
+
+    Returns:
+        A ``note: ...`` line naming the checkpoint kept in the staging folder,
+        or (interrupted before the first checkpoint) saying that nothing is
+        left to resume; None where neither applies. Call it only for a run
+        that had the folder (not one refused at the lock): a checkpoint there
+        would be another run's.
+    """
+    staging = partial_folder(out)
+    if (staging / CHECKPOINT).is_file():
+        return (
+            f"note: the run's checkpoint is kept in {staging}; --resume continues "
+            f"it ({out} is unchanged)"
+        )
+    if interrupted:
+        return (
+            "note: interrupted before the first checkpoint (written every "
+            f"{checkpoint_every} steps): nothing to resume, {out} is unchanged"
+        )
+    return None
+
+
 def report_markdown(summary: Mapping[str, Any]) -> str:
     """``report.md`` of a result folder: headline numbers, fit quality, warnings.
 
@@ -845,4 +926,64 @@ def report_markdown(summary: Mapping[str, Any]) -> str:
         f"`{summary.get('particles_file', 'particles.h5')}` (openPMD, bunch charge "
         f"{summary.get('particles_charge_C', DEFAULT_CHARGE_C):.4g} C)."
     )
+    return "\n".join(lines) + "\n"
+
+
+def demo_report_markdown(
+    summary: Mapping[str, Any], dataset_name: str, seconds: float
+) -> str:
+    """``report.md`` of ``diffaccel demo``: the 6D reconstruction of its synthetic scan.
+
+    The rms sizes [mm, mrad, 1e-3] and emittances (mean +- ensemble std, error
+    vs the known beam), the image errors on the held-out (odd) and training
+    (even) settings, the unconstrained coordinates and the figures.
+
+    Args:
+        summary: ``summary.json`` of the run (:func:`write_result`).
+        dataset_name: File name of the simulated scan.
+        seconds: Wall time of the whole demo [s].
+    """
+    m = summary["metrics"]
+    mo = summary["moments"]
+    lines = [
+        "# diffaccel demo: phase-space reconstruction of a synthetic quad scan",
+        "",
+        f"Dataset: `{dataset_name}` (preset `correlated` 6D beam, 0.5 % energy spread,"
+        " chromatic quadrupole, 20 settings, Poisson noise); trained on the even"
+        f" settings, tested on the odd ones. Total time {seconds:.0f} s.",
+        "",
+        "| quantity | reconstruction (mean +- ensemble std) | error vs truth |",
+        "|---|---|---|",
+    ]
+    gt = m.get("ground_truth", {})
+    names = ("x", "px", "y", "py", "z", "pz")
+    units = (1e3, 1e3, 1e3, 1e3, 1e3, 1e3)
+    labels = ("mm", "mrad", "mm", "mrad", "mm", "1e-3")
+    for i, c in enumerate(names):
+        v, s = mo["rms"]["mean"][i], mo["rms"]["std"][i]
+        err = gt.get(f"rms_{c}")
+        e = f"{100 * err:+.1f} %" if err is not None else "n/a"
+        lines.append(
+            f"| rms {c} [{labels[i]}] | {v * units[i]:.4g} "
+            f"+- {s * units[i]:.2g} | {e} |"
+        )
+    for key, unit in (("emit_x", "m"), ("emit_y", "m"), ("emit_6d", "m^3")):
+        v, s = mo[key]["mean"], mo[key]["std"]
+        err = gt.get(key)
+        e = f"{100 * err:+.1f} %" if err is not None else "n/a"
+        lines.append(f"| {key} [{unit}] | {v:.4g} +- {s:.2g} | {e} |")
+    lines += [
+        "",
+        f"Held-out image relative L1: {m['images_held_out']['relative_l1']:.4f}; "
+        f"training: {m['images_train']['relative_l1']:.4f}.",
+        "",
+        "Not constrained by the scan (values follow the prior; treat them as "
+        "unknown): " + (", ".join(summary["unconstrained_coordinates"]) or "none"),
+        "",
+        "Figures: ![phase space](phase_space.png) ![images](images.png) "
+        "![training](training.png) ![rms](rms_evolution.png)",
+        "",
+        "All numbers: `summary.json`; ensemble: `ensemble.pt` "
+        "(`diffaccel.reconstruction.load`); particles: `particles.h5` (openPMD).",
+    ]
     return "\n".join(lines) + "\n"
