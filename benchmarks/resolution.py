@@ -75,7 +75,7 @@ def cell(
         true = emittance(truth, i)
         out[f"emit_{axis}_rel_err"] = round(m[f"emit_{axis}"]["mean"] / true - 1, 4)
         out[f"emit_{axis}_rel_std"] = round(m[f"emit_{axis}"]["std"] / true, 4)
-    sm = loss_smoothing_for(config, [ds.mean_images()])[0]
+    sm = loss_smoothing_for(config, [ds.mean_images()], [config.blur_for(ds)])[0]
     out["loss_smoothing_px"] = round(sm, 2)
     out["seconds"] = round(seconds, 1)
     return out

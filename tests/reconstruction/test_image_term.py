@@ -18,6 +18,7 @@ from diffaccel.reconstruction.training import (
     pool_images,
     pooled_screen,
     sampling_smoothing,
+    scan_smoothing,
     smoothed_for_loss,
 )
 
@@ -73,15 +74,35 @@ def test_image_rms_ignores_negative_noise():
 def test_loss_smoothing_given_or_sized_by_the_data():
     im = _gaussian_image(64, 1.5e-3)
     assert loss_smoothing_for(ReconstructionConfig(loss_smoothing=0.5), [im]) == [0.5]
-    assert loss_smoothing_for(ReconstructionConfig(dims=4), [im]) == [0.0]
+    assert ReconstructionConfig(dims=4).loss_smoothing == "auto"
     assert loss_smoothing_for(ReconstructionConfig(dims=6), [im]) == [1.0]
     auto4 = ReconstructionConfig(dims=4, n_particles=4096, loss_smoothing="auto")
     [auto] = loss_smoothing_for(auto4, [im])
     assert auto == pytest.approx(float(sampling_smoothing(im, 4096).max()))
+    assert loss_smoothing_for(ReconstructionConfig(dims=4, n_particles=4096), [im]) == [
+        pytest.approx(auto)
+    ]
     auto6 = ReconstructionConfig(dims=6, n_particles=4096, loss_smoothing="auto")
     assert loss_smoothing_for(auto6, [im]) == [pytest.approx(math.hypot(1.0, auto))]
     with pytest.raises(ValueError, match="loss_smoothing"):
         ReconstructionConfig(loss_smoothing="fine")
+
+
+def test_the_smallest_spot_caps_the_smoothing():
+    """A scan with a waist of 0.3 mm rms and a 3 mm wide image: Scott's rule
+    for the wide image (3 mm x 4096^(-1/6), 0.75 mm) would blur the waist
+    away, so the scan is smoothed by the waist's own rms size."""
+    pixels = 128
+    wide, waist = _gaussian_image(pixels, 3e-3), _gaussian_image(pixels, 0.3e-3)
+    scan = torch.cat([wide, waist])
+    per_pixel = SCREEN_M / pixels
+    scott = float(sampling_smoothing(wide, 4096).max())
+    assert scott * per_pixel == pytest.approx(3e-3 * 4096 ** (-1 / 6), rel=0.02)
+    h = scan_smoothing(scan, 4096)
+    assert h == pytest.approx(float(image_rms_pixels(waist).min()), rel=1e-9)
+    assert h * per_pixel == pytest.approx(0.3e-3, rel=0.1)  # CIC adds 1/6 pixel^2
+    assert scan_smoothing(wide, 4096) == pytest.approx(scott, rel=1e-9)
+    assert scan_smoothing(scan, 4096, floor=1.0) == pytest.approx(math.hypot(1.0, h))
 
 
 def test_pool_images_keeps_mass_and_centroid():
@@ -135,9 +156,7 @@ def _fit(pixels: int) -> tuple[float, float]:
         pixel_size=(SCREEN_M / pixels,) * 2,
         image_method="histogram",
     )
-    config = ReconstructionConfig(
-        dims=4, n_particles=2048, steps=150, snapshots=3, loss_smoothing="auto"
-    )
+    config = ReconstructionConfig(dims=4, n_particles=2048, steps=150, snapshots=3)
     m = reconstruct(ds, config, uncertainty=False).moments(20_000)
     true = [
         float(torch.linalg.det(torch.cov(truth[:, i : i + 2].T)).sqrt()) for i in (0, 2)
@@ -146,9 +165,10 @@ def _fit(pixels: int) -> tuple[float, float]:
 
 
 def test_same_beam_at_two_resolutions_gives_the_same_emittance():
-    """64 and 320 pixels per axis, 2048 particles per step, ``loss_smoothing=
-    "auto"``: without it (``loss_smoothing=0``) the same fits give +8 % at 64
-    pixels and +22 to +150 % at 320."""
+    """64 and 320 pixels per axis, 2048 particles per step, default settings
+    (each scan smoothed by ``scan_smoothing``): compared pixel by pixel
+    (``loss_smoothing=0``) the same fits give +8 % at 64 pixels and +22 to
+    +150 % at 320."""
     coarse = _fit(64)
     fine = _fit(320)
     for c, f in zip(coarse, fine, strict=True):
@@ -203,9 +223,12 @@ def test_images_finer_than_the_sample_resolves_are_warned():
             image_method="histogram",
         )
         scans[pixels] = as_scans(ds)
-    default = ReconstructionConfig(dims=4)
-    assert resolution_warnings(default, scans[64], {}) == []
-    [line] = resolution_warnings(default, scans[320], {})
+    pixelwise = ReconstructionConfig(dims=4, loss_smoothing=0.0)
+    assert resolution_warnings(pixelwise, scans[64], {}) == []
+    [line] = resolution_warnings(pixelwise, scans[320], {})
     assert "--loss-smoothing auto" in line and "6144 particles" in line
-    auto = ReconstructionConfig(dims=4, loss_smoothing="auto")
+    auto = ReconstructionConfig(dims=4)
     assert resolution_warnings(auto, scans[320], {}) == []
+    few = ReconstructionConfig(dims=4, n_particles=16)  # Scott's 4x the waist
+    [line] = resolution_warnings(few, scans[320], {})
+    assert "smallest spot" in line and "--particles" in line

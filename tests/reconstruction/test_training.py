@@ -273,7 +273,18 @@ def test_sampling_offset_reaches_the_image_penalty(small_scan, monkeypatch) -> N
     monkeypatch.setattr(losses.ImagePenalty, "__init__", spy)
     cfg = ReconstructionConfig(**{**FAST, "sampling_offset": 0.5})
     r = reconstruct(small_scan, cfg, uncertainty=False)
-    kappa = r.forward.pixel_kernel_sum_sq()  # the file's 1-pixel screens
+    # the noise of the images as compared: the file's 1-pixel screens with the
+    # scan's loss smoothing on top
+    from diffaccel.reconstruction.training import loss_smoothing_for, smoothed_for_loss
+
+    measured = [small_scan.mean_images()]
+    [compared], _ = smoothed_for_loss(
+        [r.forward],
+        measured,
+        loss_smoothing_for(cfg, measured, [r.forward.blur_pixels]),
+    )
+    kappa = compared.pixel_kernel_sum_sq()
+    assert kappa < r.forward.pixel_kernel_sum_sq()  # smoothing lowers the noise
     assert seen == [pytest.approx(0.5 * kappa / cfg.n_particles, rel=1e-12)]
 
 

@@ -163,10 +163,11 @@ _OPTIONS = [
         default=None,
         metavar="PIXELS|auto",
         help="Rms of the Gaussian applied to measured and simulated images before "
-        "they are compared [camera pixels], or 'auto': sized by the data (the largest "
-        "image's rms times N^(-1/6) for N particles per step), for camera images of "
-        "hundreds of pixels per axis, where the default over-estimates emittances "
-        "[default: 0 for --dims 4, 1 for --dims 6].",
+        "they are compared [camera pixels], or 'auto': sized per scan by the data "
+        "(the widest image's rms times N^(-1/6) for N particles per step, at most "
+        "the beam's smallest spot), so that the fit does not depend on the "
+        "camera's pixel size; 0 compares pixel by pixel [default: auto for --dims "
+        "4, 1 for --dims 6].",
     ),
     click.option(
         "--uncoupled",

@@ -40,7 +40,11 @@ from diffaccel.reconstruction.metrics import (
 )
 from diffaccel.reconstruction.pipeline import as_scans
 from diffaccel.reconstruction.prior_dependence import prior_dependence
-from diffaccel.reconstruction.training import ReconstructionConfig, sampling_smoothing
+from diffaccel.reconstruction.training import (
+    ReconstructionConfig,
+    loss_smoothing_for,
+    sampling_smoothing,
+)
 
 __all__ = [
     "LOW_ON_SCREEN_FRACTION",
@@ -450,10 +454,9 @@ def _signal_summary(signals: Mapping[str, Any]) -> dict[str, Any]:
 
 #: Sampling bandwidth [camera pixels] of the training sample
 #: (:func:`~diffaccel.reconstruction.training.sampling_smoothing`) above which
-#: images compared pixel by pixel are dominated by the sample's noise:
+#: a comparison at less than half of it is dominated by the sample's noise:
 #: ``benchmarks/resolution.py`` measured the emittances 30-300 % high at a
-#: bandwidth of 8-13 pixels with the default comparison, within 3 % with
-#: ``loss_smoothing="auto"``.
+#: bandwidth of 8-13 pixels compared pixel by pixel.
 SPARSE_SAMPLE_PIXELS = 4.0
 
 
@@ -463,22 +466,36 @@ def resolution_warnings(
     train: Mapping[str, Sequence[int]],
 ) -> list[str]:
     """One sentence per scan whose training images are finer than the training
-    sample resolves (bandwidth above :data:`SPARSE_SAMPLE_PIXELS` and twice the
-    loss smoothing used); none with ``loss_smoothing="auto"``."""
-    if config.loss_smoothing == "auto":
-        return []
+    sample resolves: its bandwidth (Scott's rule at ``n_particles``) above
+    :data:`SPARSE_SAMPLE_PIXELS` and above twice the loss smoothing used
+    (:func:`~diffaccel.reconstruction.training.loss_smoothing_for`; with
+    ``"auto"`` that is capped by the scan's smallest spot, see
+    :func:`~diffaccel.reconstruction.training.scan_smoothing`)."""
     out = []
     for name, scan in scans:
         rows = list(train.get(name, [])) or list(range(scan.n_settings))
         images = scan.mean_images()[rows]
         h = float(sampling_smoothing(images, config.n_particles).max())
-        if h > SPARSE_SAMPLE_PIXELS and h > 2.0 * float(config.loss_smoothing):
+        [used] = loss_smoothing_for(config, [images], [config.blur_for(scan)])
+        if not (h > SPARSE_SAMPLE_PIXELS and h > 2.0 * used):
+            continue
+        head = (
+            f"scan {name!r}: {config.n_particles} particles per step resolve its "
+            f"images only to about {h:.1f} camera pixels"
+        )
+        if config.loss_smoothing == "auto":
+            need = config.n_particles * (h / max(used, 1e-9)) ** 6
             out.append(
-                f"scan {name!r}: {config.n_particles} particles per step resolve "
-                f"its images only to about {h:.1f} camera pixels, and images "
-                "compared pixel by pixel at that sampling over-estimate the "
-                "emittances; rerun with --loss-smoothing auto (compares them at "
-                "the resolution the sample supports) or with more --particles"
+                f"{head}, coarser than its smallest spot ({used:.1f} pixels rms), "
+                "so the fit is limited by the sample's noise and may over-estimate "
+                f"the emittances; rerun with more --particles (about {need:.2g} "
+                "resolve the smallest spot)"
+            )
+        else:
+            out.append(
+                f"{head}, and images compared at {used:g} pixels over-estimate "
+                "the emittances; rerun with --loss-smoothing auto (compares them "
+                "at the resolution the sample supports) or with more --particles"
             )
     return out
 

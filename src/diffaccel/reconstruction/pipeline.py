@@ -574,7 +574,8 @@ def polish_placed(
     simulated images alike) and the run's generator size and seed."""
     fwds = [f.to("cpu") for f in forwards]
     meas = [m.detach().to("cpu", torch.float32) for m in measured]
-    fwds, meas = smoothed_for_loss(fwds, meas, loss_smoothing_for(config, meas))
+    smoothing = loss_smoothing_for(config, meas, [f.blur_pixels for f in fwds])
+    fwds, meas = smoothed_for_loss(fwds, meas, smoothing)
     return polish_members(
         snapshots,
         fwds,

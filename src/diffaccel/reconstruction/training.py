@@ -157,6 +157,7 @@ class _DimsDefaults:
     penalty_end: float
     refit_steps: int
     probe_unseen: float
+    smoothing: float | Literal["auto"]  # loss_smoothing when None ("auto": by the data)
 
 
 #: 4D: tuned on the GPSR 4D benchmark (KDE images of one-pixel bandwidth).
@@ -179,8 +180,10 @@ _BYTES_PER_PARTICLE = 1536
 _BYTES_PER_PARTICLE_IMAGE_6D = 512
 
 _DIMS_DEFAULTS: dict[int, _DimsDefaults] = {
-    4: _DimsDefaults(6144, 300, 5, 1.0, 0.0, 0, 0.0, 1e4, 0, 0.0),
-    6: _DimsDefaults(16384, 360, 6, math.sqrt(1.0 / 12.0), 1.0, 3, 0.25, 3e4, 60, 0.05),
+    4: _DimsDefaults(6144, 300, 5, 1.0, 0.0, 0, 0.0, 1e4, 0, 0.0, "auto"),
+    6: _DimsDefaults(
+        16384, 360, 6, math.sqrt(1.0 / 12.0), 1.0, 3, 0.25, 3e4, 60, 0.05, 1.0
+    ),
 }
 
 
@@ -266,24 +269,32 @@ class ReconstructionConfig:
             tail-robust covariance (see ``robust_covariance``).
         loss_smoothing: Rms [pixels] of a Gaussian applied to both the measured
             and the simulated images before they are compared (the simulated
-            ones get it on top of ``blur_pixels``). A sample of N particles makes
+            ones get it on top of ``blur_pixels``), or ``"auto"``: sized per scan
+            by the data (:func:`scan_smoothing`). A sample of N particles makes
             sparse, noisy images, and the KL distance of noisy images is lower
-            for a wider beam (its tails cover more measured pixels): on the 6D
-            benchmark, 6144 truth particles imaged at 0.5 pixel scored better
-            10 % wider than true. Smoothing by one pixel averages the noise over
-            ~12 pixels and puts the minimum back near the true size (within
-            0.4-1.4 % at 16 384 particles; ``sampling_offset`` removes that). 0 compares
-            the images as they are. None: 0 for ``dims = 4``, 1 for ``dims = 6``.
-            ``"auto"``: sized by the data, :func:`sampling_smoothing` (the
-            largest image's rms times ``N^(-1/6)``, with the default as floor);
-            where that spans several camera pixels the images are compared on
-            pooled pixels (:func:`smoothed_for_loss`). On camera-resolution
-            scans of a beam with a halo (``benchmarks/resolution.py``, 64-400
-            pixels per axis, 6k-64k particles) it keeps the emittances within
-            3 %, where the default is 8-12 % high at 64 pixels and 30-300 %
-            high at 320; on the GPSR 4D benchmark (thin filaments in x-px,
-            100 pixels) it puts the x emittance 21 % high, where the default is
-            within 3 %, so it is not the default.
+            for a wider beam (its tails cover more measured pixels), so compared
+            pixel by pixel the fitted beam depends on the camera's pixel size
+            and on N. ``"auto"`` smooths by Scott's bandwidth of the scan's
+            widest image (the finest comparison the sample supports), capped by
+            the beam's smallest rms spot on the screen (the finest detail the
+            scan must resolve); where that spans several camera pixels the
+            images are compared on pooled pixels (:func:`smoothed_for_loss`).
+            One beam imaged on 64-400 pixels per axis with a 12 % halo
+            (``benchmarks/resolution.py``, 6k-64k particles) comes out within
+            2.3 % of its emittances this way, 12-300 % high compared pixel by
+            pixel. On the GPSR 4D benchmark (100 pixels, a 0.6-pixel x waist
+            behind a 1-pixel point spread) the cap sets 0.58 pixels, and the x
+            emittance comes out 1-1.3 points lower than compared pixel by pixel
+            (-3.8 / -3.8 / -5.1 % against -2.9 / -2.2 / -3.8 % at seeds 0-2,
+            2 threads): the price of one estimator for every camera. A number
+            fixes the smoothing; 0 compares
+            the images as they are. None: ``"auto"`` for ``dims = 4``; 1 for
+            ``dims = 6``, whose waists of ~1 pixel the 1-pixel smoothing also
+            keeps unbiased for sparse simulated images (on the 6D benchmark,
+            6144 truth particles imaged at 0.5 pixel scored better 10 % wider
+            than true; smoothed by one pixel, within 0.4-1.4 % at 16 384
+            particles, and ``sampling_offset`` removes the rest); ``"auto"``
+            in 6D adds :func:`scan_smoothing` in quadrature to that pixel.
         sampling_offset: Offset ``c`` of the KL image distance against the
             sampling noise of the simulated images: ``eps = c kappa / N`` is
             added to every pixel of each sum-normalised simulated image
@@ -575,7 +586,7 @@ class ReconstructionConfig:
                 f"image_loss must be 'l1', 'l2' or 'kl'; got {self.image_loss!r}."
             )
         if self.loss_smoothing is None:
-            object.__setattr__(self, "loss_smoothing", defaults.loss_smoothing)
+            object.__setattr__(self, "loss_smoothing", defaults.smoothing)
         if self.loss_smoothing != "auto" and not (
             math.isfinite(self.loss_smoothing)
             and 0 <= self.loss_smoothing <= MAX_BLUR_PIXELS
@@ -898,18 +909,73 @@ def sampling_smoothing(
     return torch.hypot(torch.full_like(h, float(floor)), h).clamp_max(MAX_BLUR_PIXELS)
 
 
+def scan_smoothing(
+    measured: Tensor, n_particles: int, floor: float = 0.0, point_spread: float = 0.0
+) -> float:
+    """Loss smoothing [camera pixels] of one scan sized by its images and the
+    number of particles per step.
+
+    Two limits set it. The sample's: an image of ``N`` particles resolves a
+    beam of rms ``sigma`` only to Scott's bandwidth ``sigma N^(-1/6)``
+    (:func:`sampling_smoothing`); compared more finely, the sparse simulated
+    image favours beams wider than the one sampled, so the scan's largest
+    bandwidth (its widest image) is the finest consistent comparison. The
+    scan's: smoothing by ``h`` leaves a beam spot of rms ``s`` only the
+    fraction ``s^2 / (s^2 + h^2)`` of its width's sensitivity to the beam, so
+    ``h`` never exceeds the beam's smallest spot of the scan along either axis
+    (its waist: the smallest rms image size with the screen's
+    ``point_spread`` taken out in quadrature), beyond which the images stop
+    telling beam sizes apart and the entropy would fill in what they lost.
+    The result is the smaller of the two, in quadrature with ``floor``. Where
+    the first limit exceeds the second, the particles per step are too few
+    for the scan's resolution
+    (:func:`~diffaccel.reconstruction.evaluation.resolution_warnings`).
+
+    Args:
+        measured: Measured images of the scan ``(K, H, W)``.
+        n_particles: Particles per training step ``N``.
+        floor: Smoothing applied regardless [pixels].
+        point_spread: Rms point spread of the measured images [pixels] (the
+            simulated images' ``blur_pixels``).
+
+    Returns:
+        ``hypot(floor, min(max sigma N^(-1/6), s_min))`` [pixels], at most
+        :data:`MAX_BLUR_PIXELS`.
+
+    Example:
+        >>> im = torch.zeros(2, 64, 64)
+        >>> im[0, 12, 12] = im[0, 52, 52] = 0.5  # 20 pixels rms per axis
+        >>> im[1, 31, 31] = im[1, 33, 33] = 0.5  # a waist: 1 pixel rms
+        >>> scan_smoothing(im, 4096)  # the waist caps Scott's 5 pixels
+        1.0
+        >>> round(scan_smoothing(im, 4096, point_spread=0.6), 6)  # its beam: 0.8
+        0.8
+        >>> scan_smoothing(im[:1], 4096)  # without it: Scott's rule
+        5.0
+    """
+    sampled = float(sampling_smoothing(measured, n_particles).max())
+    smallest = float(image_rms_pixels(measured).min())
+    beam = math.sqrt(max(smallest**2 - float(point_spread) ** 2, 0.0))
+    return min(math.hypot(floor, min(sampled, beam)), MAX_BLUR_PIXELS)
+
+
 def loss_smoothing_for(
-    config: ReconstructionConfig, measured: Sequence[Tensor]
+    config: ReconstructionConfig,
+    measured: Sequence[Tensor],
+    point_spreads: Sequence[float] | None = None,
 ) -> list[float]:
     """Loss smoothing [pixels] of each scan: ``config.loss_smoothing``, or with
-    ``"auto"`` the largest :func:`sampling_smoothing` over the scan's images
-    and axes at ``n_particles``, with the default smoothing of
-    ``config.dims`` as its floor (0 for 4D, 1 pixel for 6D)."""
+    ``"auto"`` :func:`scan_smoothing` at ``n_particles`` and the scan's point
+    spread (``point_spreads``, one per scan [pixels]; 0 if None), with the
+    fixed smoothing of ``config.dims`` as its floor (0 for 4D, 1 pixel for
+    6D)."""
     if config.loss_smoothing != "auto":
         return [float(config.loss_smoothing)] * len(measured)
     floor = _DIMS_DEFAULTS[config.dims].loss_smoothing
+    spreads = [0.0] * len(measured) if point_spreads is None else list(point_spreads)
     return [
-        float(sampling_smoothing(m, config.n_particles, floor).max()) for m in measured
+        scan_smoothing(m, config.n_particles, floor, b)
+        for m, b in zip(measured, spreads, strict=True)
     ]
 
 
@@ -1182,7 +1248,9 @@ def train_generator(
     measured_list = [m.to(device=device, dtype=torch.float32) for m in measured_list]
     settings_list = [s.to(device=device) for s in settings_list]
     forwards, measured_list = smoothed_for_loss(
-        forwards, measured_list, loss_smoothing_for(config, measured_list)
+        forwards,
+        measured_list,
+        loss_smoothing_for(config, measured_list, [f.blur_pixels for f in forwards]),
     )
     forwards = [f.to(device) for f in forwards]
     gen_rng = torch.Generator(device=device).manual_seed(config.seed)
