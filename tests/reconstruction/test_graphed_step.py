@@ -78,9 +78,15 @@ def eager_graph(monkeypatch):
     return _EagerReplay
 
 
-def test_captured_step_body_trains_like_eager_steps(small_scan, eager_graph) -> None:
-    cfg = ReconstructionConfig(**FAST)
-    ref = reconstruct(small_scan, ReconstructionConfig(**FAST, cuda_graph=False))
+@pytest.mark.parametrize("smoothing", [0.0, "auto"], ids=["pixelwise", "smoothed"])
+def test_captured_step_body_trains_like_eager_steps(
+    small_scan, eager_graph, smoothing
+) -> None:
+    cfg = ReconstructionConfig(**FAST, loss_smoothing=smoothing)
+    ref = reconstruct(
+        small_scan,
+        ReconstructionConfig(**FAST, loss_smoothing=smoothing, cuda_graph=False),
+    )
     got = reconstruct(small_scan, cfg, uncertainty=False)
     (replay,) = eager_graph.made
     # the body replaces every step after the eager warm-up, each with its row
@@ -96,9 +102,13 @@ def test_captured_step_body_trains_like_eager_steps(small_scan, eager_graph) -> 
     # the same steps up to the rounding of the factors (float32 parameters)
     assert got.history["loss"] == pytest.approx(ref.history["loss"], rel=1e-4)
     assert got.history["snapshot_steps"] == ref.history["snapshot_steps"]
+    # the smoothed images' blur matrices sum in another order inside the body:
+    # the first captured step's loss differs by ~5e-6 (float32 rounding), and
+    # 19 Adam steps carry that to ~1e-5 in a few small weights
+    atol = 1e-5 if smoothing == 0.0 else 3e-5
     for sa, sb in zip(got.snapshots, ref.snapshots, strict=True):
         for k in sa:
-            torch.testing.assert_close(sa[k], sb[k], rtol=1e-4, atol=1e-5)
+            torch.testing.assert_close(sa[k], sb[k], rtol=1e-4, atol=atol)
 
 
 def test_captured_6d_step_body_trains_like_eager_steps(

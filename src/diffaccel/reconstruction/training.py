@@ -204,10 +204,9 @@ class ReconstructionConfig:
     Defaults are sized so that a 4D reconstruction of a 20-setting, 100 x 100 pixel
     quad scan takes ~2-2.5 s on two quiet CPU cores (``benchmarks/reconstruction.py``):
     6144 fresh quasi-random particles x 300 steps of ~7 ms, MLP 2 x 48. On the
-    GPSR 4D benchmark (seeds 0, 1, 2) 300 steps gave rms sizes within 1.9 %,
-    x/y emittances within 3.3 % and held-out relative L1 0.079-0.087 (gpsr:
-    0.117); 400 steps gave rms within 1.9 %, emittances within 3.9 % and
-    held-out L1 0.070-0.076 at 4/3 of the time.
+    GPSR 4D benchmark 300 steps give rms sizes within 1.3 % (seed 0), x emittances of
+    -3.8 / -3.8 / -5.1 % and y emittances within 1 % (seeds 0, 1, 2; two
+    threads) and held-out relative L1 0.081 (seed 0; gpsr: 0.117).
 
     Args:
         dims: 4 reconstructs (x, px, y, py) with ``z = pz = 0``; 6 also generates
