@@ -29,7 +29,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from diffaccel.data import atomic_write_text
+from diffaccel.data import atomic_write_json, atomic_write_text
 
 #: where the stored results live (one ``NAME.json`` per benchmark)
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -182,11 +182,13 @@ def store(
     name: str | None = None,
     results: Path = RESULTS,
 ) -> Path:
-    """Write ``results/NAME.json`` atomically (:func:`stored_result`); its path."""
+    """Write ``results/NAME.json`` atomically (:func:`stored_result`); its path.
+
+    Standard JSON: NaN and infinite floats are written as ``null``.
+    """
     stored = stored_result(result, headline, note, name)
     path = Path(results) / f"{stored['name']}.json"
-    atomic_write_text(path, json.dumps(stored, indent=2) + "\n")
-    return path
+    return atomic_write_json(path, stored)
 
 
 def emit(

@@ -52,7 +52,7 @@ def meta() -> ModuleType:
 
 
 def _fake_result() -> dict:
-    return {"name": "fake", "seconds": 1.25, "ratio": 7.5}
+    return {"name": "fake", "seconds": 1.25, "ratio": 7.5, "std": float("nan")}
 
 
 def _fake_headline(result: dict) -> dict[str, str]:
@@ -74,6 +74,8 @@ def test_store_writes_the_page_format(meta, tmp_path, monkeypatch) -> None:
     assert prov["date"].endswith(" UTC") and prov["git_commit"]
     # the full result under its own key, with the run's provenance
     assert stored["result"]["seconds"] == 1.25
+    assert stored["result"]["std"] is None  # standard JSON: NaN as null
+    assert "NaN" not in path.read_text()
     assert stored["result"]["provenance"]["date"] == prov["date"]
     # the page renders it: one table row per figure, the provenance line, the note
     monkeypatch.setattr(page, "RESULTS", tmp_path)
