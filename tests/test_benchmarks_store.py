@@ -314,7 +314,7 @@ FAKES: dict[str, dict] = {
         ]
     },
     "preisach_slac": {
-        "cli_default": {"test_rms_pct": 0.060, "fit_seconds": 1.3},
+        "validation_selected": {"test_rms_pct": 0.060, "fit_seconds": 1.3},
         "straight_line_test_rms_pct": 0.197,
         "anchor_test_rms_pct": {"adam_10000_steps": 4.26},
         "train_rows": 62,
