@@ -297,22 +297,6 @@ FAKES: dict[str, dict] = {
             {"case": "bh-1", "ratio_to_line": 0.12, "fit_seconds": 3.0},
         ],
     },
-    "preisach_bh_loops": {
-        "records": [
-            {
-                "case": f"iron-{shape}",
-                "test_rms_pct": err,
-                "line_test_rms_pct": line,
-                "inside_2std": 1.0,
-                "fit_seconds": secs,
-            }
-            for shape, err, line, secs in (
-                ("tanh", 1.15, 43.0, 12.0),
-                ("atan", 2.62, 51.0, 17.0),
-                ("erf", 0.34, 45.0, 14.0),
-            )
-        ]
-    },
     "preisach_slac": {
         "validation_selected": {"test_rms_pct": 0.060, "fit_seconds": 1.3},
         "straight_line_test_rms_pct": 0.197,
@@ -426,7 +410,6 @@ FAKES: dict[str, dict] = {
 #: stored figures no single run of the benchmark gives (the stored value was
 #: assembled from other runs or annotated by hand)
 NOT_FROM_ONE_RUN = {
-    "preisach_bh_loops": {"fit time"},
     "resolution": {
         "default comparison (no smoothing), 64 / 320 pixels, 6144 particles"
     },
