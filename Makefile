@@ -32,9 +32,10 @@ format: $(BIN)/diffaccel
 	$(BIN)/ruff format src tests benchmarks
 	$(BIN)/ruff check --fix src tests benchmarks
 
+# every CPU benchmark; `make bench STORE=--store` also rewrites benchmarks/results/
 bench: $(BIN)/diffaccel
 	$(BIN)/pip install --quiet -e ".[bench]"
-	for b in benchmarks/[!_]*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
+	for b in benchmarks/[!_]*.py; do echo "== $$b"; $(BIN)/python $$b $(STORE) || exit 1; done
 
 # the docs site: runs the tutorials, writes the benchmarks page, builds site/
 # with warnings as errors (docs/index.md says why MkDocs)

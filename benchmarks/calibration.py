@@ -60,7 +60,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import torch
-from _meta import emit, git_commit
+from _meta import add_store_flag, emit, git_commit
 from reconstruction_6d_beams import BEAM_SEEDS, beam_scans
 
 from diffaccel.data import make_synthetic_quad_scan, read_quad_scan
@@ -163,6 +163,23 @@ def run(name: str, ds, dims: int, train=None, uncertainty: bool = True) -> dict:
     return entry
 
 
+def headline(result: dict) -> dict[str, str]:
+    """The docs page's figures: pooled 2-std coverage and median relative std."""
+    pooled, datasets = result["pooled"], result["datasets"]
+    dims = {d["dims"] for d in datasets.values()}
+    kind = {frozenset({6}): "6D quantities", frozenset({4}): "4D quantities"}.get(
+        frozenset(dims), "quantities"
+    )
+    rel = pooled["median_rel_std_constrained"]
+    return {
+        f"{kind} within 2 reported std ({len(datasets)} datasets, "
+        f"{pooled['n']} quantities)": f"{100 * pooled['coverage_2sigma']:.0f} %",
+        "median relative std of the constrained quantities": (
+            "none constrained" if rel is None else f"{100 * rel:.1f} %"
+        ),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="one seed, two presets")
@@ -208,6 +225,7 @@ def main() -> None:
         help="ensemble scatter only (today's std), for comparison",
     )
     ap.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+    add_store_flag(ap)
     args = ap.parse_args()
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
     unc = not args.no_uncertainty
@@ -346,7 +364,7 @@ def main() -> None:
         "commit": git_commit(),
         "note": "timings under contention on a shared 2-core machine",
     }
-    emit(result, args.out)
+    emit(result, args.out, headline=headline, store_result=args.store)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 import torch
-from _meta import emit, git_commit
+from _meta import add_store_flag, emit, git_commit
 
 
 def _time(cmd: list[str]) -> float:
@@ -30,10 +30,24 @@ def _time(cmd: list[str]) -> float:
     return time.perf_counter() - t0
 
 
+def headline(result: dict) -> dict[str, str]:
+    """The docs page's figures: the two start-up ratios against ``import torch``."""
+    limit = result["acceptance_max_ratio"]
+    return {
+        f"`diffaccel --help` / `python -c 'import torch'` (limit {limit:g}x)": (
+            f"{result['ratio_help_vs_import_torch']:.2g}x"
+        ),
+        f"`diffaccel reconstruct --help` / import torch (limit {limit:g}x)": (
+            f"{result['ratio_reconstruct_help_vs_import_torch']:.3g}x"
+        ),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--json", type=Path, default=None)
+    add_store_flag(parser)
     args = parser.parse_args()
     exe = shutil.which("diffaccel", path=str(Path(sys.executable).parent))
     runs = {
@@ -65,6 +79,8 @@ def main() -> None:
             "git_commit": git_commit(),
         },
         args.json,
+        headline=headline,
+        store_result=args.store,
     )
 
 

@@ -33,7 +33,7 @@ import itertools
 import statistics
 
 import torch
-from _meta import emit, git_commit
+from _meta import add_store_flag, emit, git_commit
 
 from diffaccel.dynamics import Beamline
 from diffaccel.dynamics.images import cic_image
@@ -129,6 +129,21 @@ def run_arm(imager: Imager, k1: torch.Tensor, r: float | None) -> dict:
     return quad_scan_posterior(maps, imager.moments(k1), floor=FLOOR, relative_error=r)
 
 
+def headline(result: dict) -> dict[str, str]:
+    """The docs page's figures: median emittance std and error of each arm."""
+    figures = {}
+    for arm, label in (
+        ("designed", "sequentially designed quadrupole settings"),
+        ("even", "evenly spaced settings"),
+    ):
+        a = result[arm]
+        figures[f"{a['n_settings']} {label}: median emittance std / error"] = (
+            f"{100 * a['median_emit_rel_std']:.2f} % / "
+            f"{100 * a['median_emit_abs_rel_err']:.2f} %"
+        )
+    return figures
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=10)
@@ -151,6 +166,7 @@ def main() -> None:
         help="Known relative error of each screen variance (default: fitted to "
         "the residuals).",
     )
+    add_store_flag(ap)
     args = ap.parse_args()
     fwd = beamline()
     cand = torch.linspace(*K1, 61, dtype=torch.float64)
@@ -202,7 +218,7 @@ def main() -> None:
             f"{arms['designed']['std'][-2:]} err {arms['designed']['err'][-2:]}; even "
             f"std {arms['even']['std'][-2:]} err {arms['even']['err'][-2:]}"
         )
-    out = {"commit": git_commit()}
+    out = {"name": "design", "commit": git_commit()}
     for arm, n in (("designed", args.designed), ("even", args.even)):
         out[arm] = {
             "n_settings": n,
@@ -210,7 +226,7 @@ def main() -> None:
             "median_emit_abs_rel_err": statistics.median(arms[arm]["err"]),
             "mean_emit_abs_rel_err": statistics.fmean(arms[arm]["err"]),
         }
-    emit(out)
+    emit(out, headline=headline, store_result=args.store)
 
 
 if __name__ == "__main__":

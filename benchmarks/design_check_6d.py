@@ -23,7 +23,7 @@ import argparse
 import time
 
 import torch
-from _meta import emit, git_commit
+from _meta import add_store_flag, emit, git_commit
 from _sixd import DATA
 
 from diffaccel.data import make_synthetic_awa6d, make_synthetic_quad_scan
@@ -64,10 +64,25 @@ def emittances(result, n: int = 100_000) -> dict[str, float]:
     return {"emit_z": m["emit_z"]["mean"], "emit_6d": m["emit_6d"]["mean"]}
 
 
+def headline(result: dict) -> dict[str, str]:
+    """The docs page's figures: emit_z and 6D emittance errors, before and after."""
+
+    def pair(errors: dict) -> str:
+        return f"{100 * errors['emit_z']:+.1f} % / {100 * errors['emit_6d']:+.1f} %"
+
+    added = result["with_added"]["n_images"] - result["today"]["n_images"]
+    return {
+        f"beam at px-pz and py-z partial correlations {result['partial']:+.1f}, "
+        "emit_z / emit_6d error, scan alone": pair(result["today"]["rel_err"]),
+        f"with the {added} recommended images": pair(result["with_added"]["rel_err"]),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--partial", type=float, default=0.5)
     ap.add_argument("--seed", type=int, default=0)
+    add_store_flag(ap)
     args = ap.parse_args()
     beam = shifted_beam(args.partial)
     cov = torch.cov(beam.T)
@@ -102,6 +117,7 @@ def main() -> None:
         )
     added = MultiScanDataset(scans)
     out = {
+        "name": "design_check_6d",
         "commit": git_commit(),
         "partial": args.partial,
         "recommended": [
@@ -120,7 +136,7 @@ def main() -> None:
             "n_images": data.n_images,
         }
         print(name, out[name])
-    emit(out)
+    emit(out, headline=headline, store_result=args.store)
 
 
 if __name__ == "__main__":

@@ -33,7 +33,7 @@ import warnings
 from pathlib import Path
 
 import torch
-from _meta import emit, git_commit
+from _meta import add_store_flag, emit, git_commit, span
 
 from diffaccel.hysteresis import (
     HysteresisGP,
@@ -154,16 +154,49 @@ def _transmission(seed: int) -> tuple[torch.Tensor, torch.Tensor]:
     return u, y + 0.01 * torch.randn(y.shape, generator=gen, dtype=F64)
 
 
+def headline(result: dict) -> dict[str, str]:
+    """The docs page's figures: alarm signals of good and bad fits, misses.
+
+    An H-GP case's signal is the larger of its noise and held-out ratios.
+    """
+    from diffaccel.hysteresis.alarms import GP_NOISE_RATIO, LINE_RATIO
+
+    good = [c["ratio"] for c in result["preisach_good"].values()]
+    bad = [c["ratio"] for c in result["preisach_bad"].values()]
+    figures = {
+        "Preisach error over a straight line's: good fits / bad fits": (
+            f"{span(good, '.2f')} / {span(bad, '.2f')} (threshold {LINE_RATIO:g})"
+        )
+    }
+    false = result["preisach_false_alarms"]
+    missed = result["preisach_missed"]
+    if "hgp_good" in result:
+
+        def signal(cases: dict) -> list[float]:
+            return [max(c["noise_ratio"], c["heldout_ratio"]) for c in cases.values()]
+
+        hg, hb = signal(result["hgp_good"]), signal(result["hgp_bad"])
+        figures["H-GP over plain GP (noise or held-out rmse): good / bad"] = (
+            f"{span(hg, '.2f')} / {span(hb, '.2g')} (threshold {GP_NOISE_RATIO:g})"
+        )
+        false += result["hgp_false_alarms"]
+        missed += result["hgp_missed"]
+    figures["false / missed alarms"] = f"{false} / {missed}"
+    return figures
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--skip-hgp", action="store_true")
+    add_store_flag(parser)
     args = parser.parse_args()
     torch.set_num_threads(1)
     warnings.filterwarnings("ignore")
     t0 = time.perf_counter()
     good, bad = good_preisach(), bad_preisach()
     result = {
+        "name": "hysteresis_alarms",
         "benchmark": "hysteresis_alarms",
         "commit": git_commit(),
         "preisach_good": good,
@@ -193,7 +226,7 @@ def main() -> None:
         k: (round(v, 4) if isinstance(v, float) and math.isfinite(v) else v)
         for k, v in result.items()
     }
-    emit(result, args.out)
+    emit(result, args.out, headline=headline, store_result=args.store)
 
 
 if __name__ == "__main__":

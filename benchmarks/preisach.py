@@ -41,7 +41,7 @@ import sys
 import time
 
 import torch
-from _meta import emit, git_commit
+from _meta import add_store_flag, emit, git_commit, span
 
 from diffaccel.hysteresis import PreisachMesh, PreisachModel
 
@@ -103,6 +103,33 @@ def run_case(t: int, n: int, dtype: torch.dtype, repeats: int, seed: int) -> dic
     }
 
 
+def headline(result: dict) -> dict[str, str]:
+    """The docs page's figures: forward+backward times and memory vs the anchor.
+
+    Times span the thread counts and dtypes run.
+    """
+    checks, anchor = result["checks"].values(), result["anchor"]
+    big = [c["T1000_N20100_forward_backward_s"] for c in checks]
+    small = [c["T100_N990_forward_backward_s"] for c in checks]
+    memory = max(
+        r["peak_memory_mb"]
+        for r in result["records"]
+        if r["T"] == 1000 and r["N"] == 20100
+    )
+    ref_big = anchor["T1000_N20000_forward_backward_s"]
+    ref_mem = anchor["T1000_N20000_peak_memory_mb"] / 1000
+    ref_small = anchor["T100_N1000_forward_backward_s"]
+    return {
+        "forward+backward, T = 1000 steps, 20 100 hysterons": (
+            f"{span(big, '.3f')} s (reference code {ref_big:.3g} s)"
+        ),
+        "peak memory, same case": f"{memory:.0f} MB (reference code {ref_mem:.2g} GB)",
+        "forward+backward, T = 100, 990 hysterons": (
+            f"{span(small, '.2g')} s (reference code {ref_small:.2g} s)"
+        ),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=20)
@@ -122,6 +149,7 @@ def main() -> None:
     parser.add_argument(
         "--case", nargs=3, metavar=("T", "CELLS", "DTYPE"), help=argparse.SUPPRESS
     )
+    add_store_flag(parser)
     args = parser.parse_args()
     if args.case is not None:  # child process: one case, one JSON line
         if args.threads is not None:
@@ -167,7 +195,7 @@ def main() -> None:
         "checks": checks,
         "records": records,
     }
-    emit(result)
+    emit(result, headline=headline, store_result=args.store)
 
 
 if __name__ == "__main__":

@@ -34,7 +34,7 @@ import warnings
 from pathlib import Path
 
 import torch
-from _meta import emit, git_commit
+from _meta import add_store_flag, emit, git_commit, span
 
 from diffaccel.data import read_magnet_csv
 from diffaccel.hysteresis import InputRangeWarning, fit_magnet
@@ -134,12 +134,36 @@ def validation(name, current, field, n, initial) -> list[dict]:
     return rows
 
 
+def headline(result: dict) -> dict[str, str]:
+    """The docs page's figures: held-out error over a line's per family, band, time."""
+    records, targets = result["records"], result["targets"]
+    figures = {}
+    for family, label in (
+        ("slac", f"SLAC (target <= {targets['ratio_to_line']:g})"),
+        ("bipolar", "bipolar quadrupoles"),
+        ("bh", "B-H loops"),
+    ):
+        ratios = [
+            r["ratio_to_line"] for r in records if r["case"].split("-")[0] == family
+        ]
+        if ratios:
+            figures[f"held-out rms / straight line, {label}"] = span(ratios, ".2f")
+    inside = f"target >= {100 * targets['inside_2std']:.0f} %"
+    figures[f"held-out rows inside 2 std, over cases ({inside})"] = (
+        f"{100 * result['mean_inside_2std']:.0f} %"
+    )
+    seconds = [r["fit_seconds"] for r in records]
+    figures["fit time per case"] = f"{span(seconds, '.1f')} s"
+    return figures
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=5, help="magnets per family")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--no-validation", action="store_true")
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON")
+    add_store_flag(parser)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     all_cases = cases(args.seeds)
@@ -193,7 +217,7 @@ def main() -> None:
         "validation_mean_ratio_to_line": choice,
         "validation": val,
     }
-    emit(result, args.out)
+    emit(result, args.out, headline=headline, store_result=args.store)
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ import warnings
 from pathlib import Path
 
 import torch
-from _meta import emit, git_commit
+from _meta import add_store_flag, emit, git_commit, span
 
 from diffaccel.data import read_magnet_csv
 from diffaccel.hysteresis import InputRangeWarning, fit_magnet
@@ -105,12 +105,45 @@ def evaluate(name, current, field, n) -> dict:
     }
 
 
+def _short_e(value: float) -> str:
+    """``1e-3``: one significant digit, a short exponent."""
+    mantissa, exponent = f"{value:.0e}".split("e")
+    return f"{mantissa}e{int(exponent)}"
+
+
+def headline(result: dict) -> dict[str, str]:
+    """The docs page's figures: the soft-iron loops' held-out error, band, time."""
+    iron = [r for r in result["records"] if r["case"].startswith("iron-")]
+    if not iron:
+        return {
+            f"{r['case']}, held-out error": f"{r['test_rms_pct']:.2f} % of the range"
+            for r in result["records"]
+        }
+    coercive = ", ".join(
+        _short_e(IRON[r["case"].removeprefix("iron-")]["coercive"]) for r in iron
+    )
+    errors = ", ".join(f"{r['test_rms_pct']:.2f} %" for r in iron)
+    line = span([r["line_test_rms_pct"] for r in iron], ".0f")
+    inside = [f"{100 * r['inside_2std']:.0f} %" for r in iron]
+    seconds = span([r["fit_seconds"] for r in iron], ".0f")
+    return {
+        f"soft-iron loops (coercive field {coercive} of the range), held-out error": (
+            f"{errors} of the B range (straight line {line} %)"
+        ),
+        "inside 2 std": (
+            f"{inside[0]} on each" if len(set(inside)) == 1 else ", ".join(inside)
+        ),
+        "fit time": f"{seconds} s each",
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=3, help="bipolar magnets")
     parser.add_argument("--cases", default="iron,bipolar,slac")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON")
+    add_store_flag(parser)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     warnings.simplefilter("ignore", InputRangeWarning)
@@ -137,7 +170,7 @@ def main() -> None:
         "targets": {"ratio_to_line": 0.5, "inside_2std": 0.8, "fit_seconds": 20.0},
         "records": records,
     }
-    emit(result, args.out)
+    emit(result, args.out, headline=headline, store_result=args.store)
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ Prints one JSON object on the last line.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import platform
 import statistics
@@ -34,7 +35,7 @@ import time
 from pathlib import Path
 
 import torch
-from _meta import emit, git_commit
+from _meta import add_store_flag, emit, git_commit
 
 from diffaccel.data import write_csv_atomic
 from diffaccel.hysteresis import fit_magnet, predict_stream, save_fit
@@ -53,6 +54,25 @@ _PROBE = (
 )
 
 
+def headline(result: dict) -> dict[str, str]:
+    """The docs page's figures: the CLI's wall time, peak RSS and speed-up."""
+    rows, targets, anchor = result["rows"], result["targets"], result["anchor"]
+    power = math.log10(rows) if rows > 0 else 0.5
+    rows_text = f"10^{power:.0f}" if power == int(power) else f"{rows:,}"
+    case = f"{rows_text} rows, {result['n_hysterons']} hysterons"
+    reference = f"{anchor['wall_s']:g} s, {anchor['peak_rss_mb'] / 1000:g} GB"
+    return {
+        f"`hysteresis predict`, {case}, with band: wall (target "
+        f"{targets['wall_s']:g} s)": f"{result['cli_wall_s']:.2f} s",
+        f"peak RSS (target {targets['peak_rss_mb']:g} MB)": (
+            f"{result['cli_peak_rss_mb']:.0f} MB"
+        ),
+        f"speed-up vs the one-pass reference ({reference})": (
+            f"{result['speedup_vs_anchor']:.3g}x"
+        ),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rows", type=int, default=1_000_000)
@@ -62,6 +82,7 @@ def main() -> None:
     )
     parser.add_argument("--cli-repeats", type=int, default=3)
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON")
+    add_store_flag(parser)
     args = parser.parse_args()
     # the library part on one thread, as the CLI's model thread runs
     torch.set_num_threads(1 if args.threads is None else args.threads)
@@ -146,7 +167,7 @@ def main() -> None:
         "meets_memory": peak <= TARGETS["peak_rss_mb"],
         "meets_targets": wall <= TARGETS["wall_s"] and peak <= TARGETS["peak_rss_mb"],
     }
-    emit(result, args.out)
+    emit(result, args.out, headline=headline, store_result=args.store)
 
 
 if __name__ == "__main__":

@@ -44,7 +44,7 @@ import time
 from pathlib import Path
 
 import torch
-from _meta import emit, git_commit
+from _meta import add_store_flag, emit, git_commit
 from _sixd import HELD_OUT_L1, KEYS, LIMITS, TEST, TRAIN, WALL_LIMIT_S
 
 from diffaccel.data import read_scans
@@ -244,6 +244,32 @@ def run_gpsr(train, test, epochs: int, n_particles: int, method: str) -> dict:
     }
 
 
+def headline(result: dict) -> dict[str, str]:
+    """The docs page's figures: diffaccel's moment errors, held-out L1, time."""
+    d, lim = result["diffaccel"], result["limits"]
+    e, held = d["errors"], d["held_out_relative_l1"]
+    rms = max(abs(v) for k, v in e.items() if k.startswith("rms_"))
+    emits = ("emit_x", "emit_y", "emit_z")
+    limits = " / ".join(f"{100 * lim[k]:g}" for k in emits)
+    return {
+        f"rms sizes vs truth (limit {100 * lim['rms_x']:g} %)": (
+            f"within {100 * rms:.2f} %"
+        ),
+        f"emittances x / y / z vs truth (limits {limits} %)": " / ".join(
+            f"{100 * e[k]:+.2f} %" for k in emits
+        ),
+        f"6D emittance vs truth (limit {100 * lim['emit_6d']:g} %)": (
+            f"{100 * e['emit_6d']:+.2f} %"
+        ),
+        "held-out relative L1, dipole off / on": (
+            f"{held['dipole_off']:.3f} / {held['dipole_on']:.3f}"
+        ),
+        f"whole `diffaccel reconstruct --dims 6` (limit {lim['wall_s']:g} s)": (
+            f"{d['wall_s']:.1f} s wall, {d['cpu_s']:.0f} s CPU"
+        ),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--skip-gpsr", action="store_true")
@@ -257,6 +283,7 @@ def main() -> None:
         "--device", default="cpu", choices=["cpu", "cuda"], help="diffaccel's device"
     )
     ap.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+    add_store_flag(ap)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     train, test = read_scans(TRAIN), read_scans(TEST)
@@ -287,7 +314,7 @@ def main() -> None:
             "Quadrupole and TDC use cheetah's linear maps."
         )
     out["load_avg_1min_at_end"] = os.getloadavg()[0]
-    emit(out, args.out)
+    emit(out, args.out, headline=headline, store_result=args.store)
 
 
 if __name__ == "__main__":

@@ -66,7 +66,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _meta import emit, git_commit
+from _meta import add_store_flag, emit, git_commit
 from _sixd import HELD_OUT_L1, KEYS, LIMITS, TRAIN
 
 from diffaccel.data import make_synthetic_awa6d, read_scans
@@ -482,6 +482,54 @@ def _override(text: str) -> tuple[str, object]:
     return field, value
 
 
+def _kinds(result: dict) -> tuple[list[str], list[str]]:
+    """Names of the shared-file-like beams and of the beams of other shapes run."""
+    beams = result["beams"]
+    family = [n for n in beams if n in FAMILY or n.startswith(("draw", "tilted"))]
+    other = [n for n in beams if n in OTHER_KINDS or _rotated(n)]
+    return family, other
+
+
+def headline(result: dict) -> dict[str, str]:
+    """The docs page's figures: beams within every limit, worst held-out L1."""
+    beams = result["beams"]
+    seeds = ("seed " if len(result["seeds"]) == 1 else "seeds ") + ", ".join(
+        str(s) for s in result["seeds"]
+    )
+    family, other = _kinds(result)
+    rest = [n for n in beams if n not in family and n not in other]
+    figures = {}
+    for names, label in (
+        (family, "shared-file-like random beams"),
+        (other, "synthetic beams of other shapes"),
+        (rest, "presets and the shared file's beam"),
+    ):
+        if names:
+            # the first figure names the training seeds
+            label += " within every limit" + ("" if figures else f" ({seeds})")
+            figures[label] = (
+                f"{sum(not beams[n]['fails'] for n in names)} of {len(names)}"
+            )
+    worst = [
+        v
+        for b in beams.values()
+        for v in b["stats"].get("held_out_relative_l1_worst", {}).values()
+    ]
+    if worst:
+        figures["held-out relative L1, worst"] = f"{max(worst):.3f}"
+    return figures
+
+
+def note(result: dict) -> str | None:
+    """The beams outside a limit and the quantities that miss, if any."""
+    fails = result["fails"]
+    if not fails:
+        return None
+    return "outside a limit: " + "; ".join(
+        f"{n} ({', '.join(f)})" for n, f in fails.items()
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument(
@@ -499,6 +547,7 @@ def main() -> None:
         help="override a ReconstructionConfig field (experiments; a number, "
         "true/false or text), e.g. --set penalty_end=1e5",
     )
+    add_store_flag(ap)
     args = ap.parse_args()
     overrides = dict(_override(text) for text in args.set)
     torch.set_num_threads(args.threads)
@@ -528,7 +577,7 @@ def main() -> None:
         n: f for n, f in out["fails"].items() if n not in family and n not in other
     }
     out["load_avg_1min_at_end"] = os.getloadavg()[0]
-    emit(out, args.out)
+    emit(out, args.out, note=note, headline=headline, store_result=args.store)
 
 
 if __name__ == "__main__":

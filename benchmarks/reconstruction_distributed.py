@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 import torch
-from _meta import emit, git_commit
+from _meta import add_store_flag, emit, git_commit
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "phase_space"
 DATASET = DATA / "gpsr_4d_synthetic.h5"
@@ -46,11 +46,30 @@ def _run(cmd: list[str], out: Path) -> dict:
     }
 
 
+def headline(result: dict) -> dict[str, str]:
+    """The docs page's figures: 2 ranks against 1 process."""
+    one, two = result["single"], result["torchrun_2_gloo"]
+    worst = max(abs(v) for v in result["rms_relative_difference"])
+    limit = 100 * result["acceptance_max_abs_rms_difference"]
+    return {
+        f"rms sizes, 2 ranks vs 1 process (limit {limit:g} %)": (
+            f"within {100 * worst:.2f} %"
+        ),
+        "held-out relative L1, 2 ranks vs 1 process": (
+            f"{two['held_out_relative_l1']:.3f} vs {one['held_out_relative_l1']:.3f}"
+        ),
+        f"training time, 1 process vs 2 ranks ({result['particles']} particles)": (
+            f"{one['training_s']:.1f} s vs {two['training_s']:.1f} s"
+        ),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--particles", type=int, default=6144)
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--json", type=Path, default=None)
+    add_store_flag(ap)
     args = ap.parse_args()
     bindir = Path(sys.executable).parent
     common = [
@@ -111,6 +130,8 @@ def main() -> None:
             "git_commit": git_commit(),
         },
         args.json,
+        headline=headline,
+        store_result=args.store,
     )
 
 

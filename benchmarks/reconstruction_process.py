@@ -47,7 +47,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _meta import emit, git_commit
+from _meta import add_store_flag, emit, git_commit
 
 HERE = Path(__file__).resolve().parent
 DATA = HERE.parents[0] / "data" / "phase_space"
@@ -70,6 +70,23 @@ def _timed(cmd: list[str], env: dict) -> dict:
     return {"wall_s": wall, "cpu_s": cpu, "last_line": lines[-1] if lines else ""}
 
 
+def headline(result: dict) -> dict[str, str]:
+    """The docs page's figures: whole-process ratio against gpsr, wall times."""
+    d = result["diffaccel"]
+    figures = {}
+    if "gpsr" in result:
+        target = result["acceptance"]["min_ratio"]
+        figures[
+            f"whole process, gpsr 0.2.0 / diffaccel reconstruct (target >= {target:g}x)"
+        ] = f"{result['ratio']:.3g}x"
+        figures["CPU time ratio"] = f"{result['ratio_cpu']:.3g}x"
+    figures["diffaccel reconstruct, wall"] = f"{d['wall_s']:.2f} s"
+    if "gpsr" in result:
+        g = result["gpsr"]
+        figures[f"gpsr 4D recipe ({g['epochs']} epochs), wall"] = f"{g['wall_s']:.3g} s"
+    return figures
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--threads", type=int, default=2)
@@ -78,6 +95,7 @@ def main() -> None:
     ap.add_argument("--skip-gpsr", action="store_true")
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     ap.add_argument("--json", type=Path, default=None)
+    add_store_flag(ap)
     args = ap.parse_args()
     from diffaccel.data import read_quad_scan, write_quad_scan
 
@@ -147,6 +165,7 @@ def main() -> None:
                 f" --device {args.device}"
             )
             g["in_process_s"] = json.loads(g.pop("last_line"))["in_process_s"]
+            g["epochs"] = args.gpsr_epochs
             out["gpsr"] = g
             d = out["diffaccel"]
             out["ratio"] = g["wall_s"] / d["wall_s"]
@@ -157,7 +176,7 @@ def main() -> None:
     for r in out["diffaccel"]["runs"]:
         r.pop("last_line", None)
     out["load_avg_1min_at_end"] = os.getloadavg()[0]
-    emit(out, args.json)
+    emit(out, args.json, headline=headline, store_result=args.store)
 
 
 if __name__ == "__main__":

@@ -40,7 +40,7 @@ from collections import Counter
 from pathlib import Path
 
 import torch
-from _meta import emit, git_commit
+from _meta import add_store_flag, emit, git_commit
 
 from diffaccel.data import read_quad_scan
 from diffaccel.reconstruction import ReconstructionConfig, reconstruct
@@ -80,6 +80,25 @@ def _top_level(events) -> list:
     return out
 
 
+def headline(result: dict) -> dict[str, str | float]:
+    """The docs page's figures: ATen ops and host syncs per step, step time."""
+    acc = result["acceptance"]
+    threads = result["threads"]
+    where = "CPU" if result["device"] == "cpu" else result["device"]
+    syncs = result["host_syncs_per_step"]
+    return {
+        f"ATen ops per default 4D training step (budget <= {acc['max_aten_ops']})": (
+            round(result["aten_ops_per_step"], 1)
+        ),
+        f"host syncs per step (budget <= {acc['max_host_syncs']})": (
+            int(syncs) if syncs == int(syncs) else round(syncs, 2)
+        ),
+        f"step time, {where}, {threads} thread{'s' if threads != 1 else ''}": (
+            f"{1000 * result['step_time_s']:.1f} ms"
+        ),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--steps", type=int, default=60, help="short run; long = 2x")
@@ -94,6 +113,7 @@ def main() -> None:
         help="no CUDA graph on a GPU (cuda_graph=False): the step launched op by op",
     )
     ap.add_argument("--json", type=Path, default=None)
+    add_store_flag(ap)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     torch.optim.Adam([torch.zeros(1, requires_grad=True)])  # one-off import
@@ -161,7 +181,7 @@ def main() -> None:
         ca = Counter(e.name for e in counts[long]["all"])
         ca.subtract(Counter(e.name for e in counts[short]["all"]))
         result["top_ops_per_step"] = [(k, v / d) for k, v in ca.most_common(args.top)]
-    emit(result, args.json)
+    emit(result, args.json, headline=headline, store_result=args.store)
 
 
 if __name__ == "__main__":

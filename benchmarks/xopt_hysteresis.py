@@ -27,7 +27,7 @@ from pathlib import Path
 
 import pandas as pd
 import torch
-from _meta import emit, git_commit
+from _meta import add_store_flag, emit, git_commit
 from bo_hysteresis import I_MAX, Machine
 from xopt import Evaluator, Xopt
 from xopt.generators.bayesian import UpperConfidenceBoundGenerator
@@ -84,6 +84,24 @@ def run(method: str, seed: int, args: argparse.Namespace) -> list[float]:
     return dist[: args.steps]
 
 
+def headline(result: dict) -> dict[str, str]:
+    """The docs page's figures: median final distances, their ratio, time per run."""
+    h, u, seeds = result["hysteresis"], result["xopt_ucb"], result["seeds"]
+    runs = f"{seeds} seeds x {result['steps']} steps"
+    return {
+        "median final distance to target through Xopt's loop, hysteresis_bayesian "
+        f"vs Xopt's UCB ({runs})": (
+            f"{h['median_final_best']:.3f} mm vs {u['median_final_best']:.3f} mm"
+        ),
+        "Xopt UCB / hysteresis_bayesian (median final distance)": (
+            f"{result['ratio_xopt_ucb_over_hysteresis']:.3g}x"
+        ),
+        "time per run, hysteresis_bayesian vs Xopt's UCB": (
+            f"{h['time_s'] / seeds:.0f} s vs {u['time_s'] / seeds:.0f} s"
+        ),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", type=Path, default=Path("out") / "benchmarks")
@@ -97,6 +115,7 @@ def main() -> None:
     parser.add_argument("--fit-iter", type=int, default=100)
     parser.add_argument("--acq-restarts", type=int, default=2)
     parser.add_argument("--threads", type=int, default=1)
+    add_store_flag(parser)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     warnings.filterwarnings("ignore")
@@ -116,7 +135,12 @@ def main() -> None:
         if seed + 1 < args.seeds:  # the seeds done so far, kept if the run stops
             path = args.out / "xopt_hysteresis.partial.json"
             atomic_write_text(path, json.dumps(result) + "\n")
-    emit(result, args.out / "xopt_hysteresis.json")
+    emit(
+        result,
+        args.out / "xopt_hysteresis.json",
+        headline=headline,
+        store_result=args.store,
+    )
 
 
 def _result(

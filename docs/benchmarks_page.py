@@ -9,9 +9,16 @@ A benchmark without a stored result is listed as such. The page is written to
 script before ``mkdocs build``.
 
 A stored result is ``{"name", "headline": {figure: value}, "provenance":
-{"command", "machine", "date", "git_commit"}, "note"?}``: one current number
-per figure. Rerunning a benchmark prints its full JSON (with ``provenance``,
-``benchmarks/_meta.py``); its headline figures go into the stored result.
+{"command", "machine", "date", "git_commit"}, "note"?, "result"?}``: one current
+number per figure; this script reads ``headline``, ``provenance`` and ``note``
+and ignores other keys. The benchmarks write their stored results themselves:
+``python benchmarks/NAME.py --store`` prints its full JSON as without the flag
+and also writes ``benchmarks/results/NAME.json`` atomically, the figures from
+the script's ``headline(result)``, the provenance of that run (command, machine
+on one line, UTC date, commit) and the full printed result under ``result``
+(``benchmarks/_meta.py``: ``emit``, ``store``). ``make bench STORE=--store``
+runs every CPU benchmark that way. ``gpu_checks.sh`` combines several GPU runs;
+its stored result is written from their JSON by hand.
 """
 
 from __future__ import annotations
@@ -70,8 +77,10 @@ Each benchmark in `benchmarks/` prints one JSON object (last line of stdout) wit
 its figures and a `provenance` entry: the command, the machine, the date and the
 commit. `make bench` installs the anchors (`gpsr`, `cheetah-accelerator`) and runs
 every CPU benchmark. The tables show the current stored result of each
-(`benchmarks/results/NAME.json`), one number per figure; earlier runs are in the
-git history. Timings on a shared 2-core machine vary by tens of percent with its
+(`benchmarks/results/NAME.json`), one number per figure; a benchmark run with
+`--store` writes it from its own JSON (figures, command, machine, date, commit and
+the full result; `make bench STORE=--store` for all); earlier runs are in the git
+history. Timings on a shared 2-core machine vary by tens of percent with its
 load; the ratios against an anchor are taken within one run."""
 
 
