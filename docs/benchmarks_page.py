@@ -47,6 +47,7 @@ GROUPS = (
             "reconstruction_6d_beams",
             "calibration",
             "background_bias",
+            "daq_6d",
             "resolution",
             "alarms",
             "design",
