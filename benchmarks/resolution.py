@@ -91,9 +91,12 @@ def headline(result: dict) -> dict[str, str]:
         "particles"
     )
     std = [100 * c[f"emit_{a}_rel_std"] for c in grid for a in "xy"]
+    given = result["loss_smoothing"]
+    how = "default settings" if given == "auto" else f"--loss-smoothing {given}"
     return {
-        f"largest |emittance error| over {cells}, --loss-smoothing "
-        f"{result['loss_smoothing']}": f"{100 * result['max_abs_emit_rel_err']:.1f} %",
+        f"largest |emittance error| over {cells}, {how}": (
+            f"{100 * result['max_abs_emit_rel_err']:.1f} %"
+        ),
         "reported std": f"{span(std, '.0f')} %",
     }
 
