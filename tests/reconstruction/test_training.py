@@ -275,14 +275,9 @@ def test_sampling_offset_reaches_the_image_penalty(small_scan, monkeypatch) -> N
     r = reconstruct(small_scan, cfg, uncertainty=False)
     # the noise of the images as compared: the file's 1-pixel screens with the
     # scan's loss smoothing on top
-    from diffaccel.reconstruction.training import loss_smoothing_for, smoothed_for_loss
+    from diffaccel.reconstruction.training import compared_for
 
-    measured = [small_scan.mean_images()]
-    [compared], _ = smoothed_for_loss(
-        [r.forward],
-        measured,
-        loss_smoothing_for(cfg, measured, [r.forward.blur_pixels]),
-    )
+    [compared], _ = compared_for(cfg, [r.forward], [small_scan.mean_images()])
     kappa = compared.pixel_kernel_sum_sq()
     assert kappa < r.forward.pixel_kernel_sum_sq()  # smoothing lowers the noise
     assert seen == [pytest.approx(0.5 * kappa / cfg.n_particles, rel=1e-12)]

@@ -34,8 +34,7 @@ from diffaccel.reconstruction.training import (
     ReconstructionConfig,
     StepInfo,
     checkpoint_config,
-    loss_smoothing_for,
-    smoothed_for_loss,
+    compared_for,
     train_generator,
 )
 from diffaccel.reconstruction.uncertainty import analyse_moments
@@ -574,8 +573,7 @@ def polish_placed(
     simulated images alike) and the run's generator size and seed."""
     fwds = [f.to("cpu") for f in forwards]
     meas = [m.detach().to("cpu", torch.float32) for m in measured]
-    smoothing = loss_smoothing_for(config, meas, [f.blur_pixels for f in fwds])
-    fwds, meas = smoothed_for_loss(fwds, meas, smoothing)
+    fwds, meas = compared_for(config, fwds, meas)
     return polish_members(
         snapshots,
         fwds,

@@ -978,6 +978,20 @@ def loss_smoothing_for(
     ]
 
 
+def compared_for(
+    config: ReconstructionConfig,
+    forwards: list[ScreenForwardModel],
+    measured: list[Tensor],
+) -> tuple[list[ScreenForwardModel], list[Tensor]]:
+    """Forward models and measured images as ``config``'s image term compares
+    them: :func:`smoothed_for_loss` by :func:`loss_smoothing_for`, each scan's
+    point spread taken from its forward model (``blur_pixels``)."""
+    spreads = [f.blur_pixels for f in forwards]
+    return smoothed_for_loss(
+        forwards, measured, loss_smoothing_for(config, measured, spreads)
+    )
+
+
 #: Loss-smoothing rms per pixel of the compared images: a scan whose smoothing
 #: is ``sigma`` camera pixels is compared on pixels ``p = floor(sigma /
 #: LOSS_SMOOTHING_PER_PIXEL)`` times larger (sums of ``p x p`` camera pixels),
@@ -1246,11 +1260,7 @@ def train_generator(
     device = torch.device(device) if device is not None else measured_list[0].device
     measured_list = [m.to(device=device, dtype=torch.float32) for m in measured_list]
     settings_list = [s.to(device=device) for s in settings_list]
-    forwards, measured_list = smoothed_for_loss(
-        forwards,
-        measured_list,
-        loss_smoothing_for(config, measured_list, [f.blur_pixels for f in forwards]),
-    )
+    forwards, measured_list = compared_for(config, forwards, measured_list)
     forwards = [f.to(device) for f in forwards]
     gen_rng = torch.Generator(device=device).manual_seed(config.seed)
     init_rng = torch.Generator().manual_seed(config.seed)
