@@ -22,7 +22,10 @@ linearised but the step itself. Directions whose singular value is below
 not see them, and :func:`~diffaccel.reconstruction.unseen.place_members`
 sets them afterwards. Measured and simulated images are compared after the
 training's loss smoothing, so the point spreads agree
-(:func:`~diffaccel.reconstruction.training.smoothed_for_loss`).
+(:func:`~diffaccel.reconstruction.training.smoothed_for_loss`), and each in
+the same box of :data:`POLISH_WINDOW` rms around the simulated image's
+centroid, so a camera's residual background and read noise far from the beam
+do not enter the moments.
 
 Measured with the default settings (``benchmarks/reconstruction_6d_beams.py``
 and ``reconstruction_6d.py``), emit z without / with the polish: the strongly
@@ -42,11 +45,12 @@ from torch import Tensor
 
 from diffaccel.reconstruction.forward import ScreenForwardModel
 from diffaccel.reconstruction.generator import BeamGenerator
-from diffaccel.reconstruction.uncertainty import image_moments
+from diffaccel.reconstruction.uncertainty import image_moments, moment_window
 from diffaccel.reconstruction.unseen import _fold, transport_map
 
 __all__ = [
     "POLISH_TOLERANCE",
+    "POLISH_WINDOW",
     "PolishReport",
     "image_second_moments",
     "polish_members",
@@ -62,6 +66,12 @@ POLISH_TOLERANCE = 0.02
 POLISH_STEP = 0.01
 #: Quasi-random particles per member for the polish.
 POLISH_PARTICLES = 2**14
+#: Moments are taken in a box of this many rms around each simulated image's
+#: centroid (the same box for the measured image), as the moment posterior
+#: takes them: a whole frame's second moment weights each pixel's noise by its
+#: squared distance from the centroid, so a camera's residual background and
+#: read noise, zero on average, would dominate it.
+POLISH_WINDOW = 4.0
 
 _ENTRIES = [(i, j) for i in range(6) for j in range(i, 6)]
 
@@ -94,18 +104,22 @@ class PolishReport:
         }
 
 
-def image_second_moments(images: Tensor, forward: ScreenForwardModel) -> Tensor:
+def image_second_moments(
+    images: Tensor, forward: ScreenForwardModel, window: Tensor | None = None
+) -> Tensor:
     """Second moments about each image's centroid.
 
     Args:
         images: Screen images of one scan (any positive sum).
         forward: Its forward model (pixel centres).
+        window: Optional ``(K, H, W)`` pixel weights (e.g. a
+            :func:`~diffaccel.reconstruction.uncertainty.moment_window`).
 
     Shapes:
         ``(K, H, W) -> (K, 3)`` float64: ``<xx>, <yy>, <xy>`` [m^2].
     """
     xs, ys = forward.screen.pixel_centers(dtype=torch.float64)
-    m = image_moments(images, xs.to(images.device), ys.to(images.device))
+    m = image_moments(images, xs.to(images.device), ys.to(images.device), window)
     return m[:, [2, 4, 3]]  # <x>, <y>, <xx>, <xy>, <yy> -> <xx>, <yy>, <xy>
 
 
@@ -129,6 +143,7 @@ def polish_transport(
     tolerance: float = POLISH_TOLERANCE,
     step: float = POLISH_STEP,
     iterations: int = 1,
+    window_sigma: float = POLISH_WINDOW,
 ) -> tuple[Tensor, PolishReport]:
     """Linear map of a particle set whose images' second moments match ``measured``.
 
@@ -141,6 +156,9 @@ def polish_transport(
         tolerance: See :data:`POLISH_TOLERANCE`.
         step: Finite-difference step [correlation units].
         iterations: Gauss-Newton steps.
+        window_sigma: Half-width of each image's moment box in rms of the
+            image ``particles`` give (fixed through the steps; see
+            :data:`POLISH_WINDOW`).
 
     Returns:
         ``(A, report)``: the particles become ``mu + (x - mu) A^T`` with ``mu``
@@ -150,16 +168,27 @@ def polish_transport(
     if particles.ndim != 2 or particles.shape[-1] != 6:
         raise ValueError(f"particles must be (N, 6); got {tuple(particles.shape)}.")
     x0 = particles.detach()
+    with torch.no_grad():
+        windows = []
+        for f, s in zip(forwards, settings, strict=True):
+            xs, ys = f.screen.pixel_centers(dtype=torch.float64)
+            img = f.images(x0, s)
+            windows.append(
+                moment_window(img, xs.to(img.device), ys.to(img.device), window_sigma)
+            )
     target = torch.cat(
-        [image_second_moments(m, f) for f, m in zip(forwards, measured, strict=True)]
+        [
+            image_second_moments(m, f, w)
+            for f, m, w in zip(forwards, measured, windows, strict=True)
+        ]
     ).cpu()
 
     def moments(x: Tensor) -> Tensor:
         with torch.no_grad():
             return torch.cat(
                 [
-                    image_second_moments(f.images(x, s), f).cpu()
-                    for f, s in zip(forwards, settings, strict=True)
+                    image_second_moments(f.images(x, s), f, w).cpu()
+                    for f, s, w in zip(forwards, settings, windows, strict=True)
                 ]
             )
 
