@@ -17,8 +17,8 @@ and also writes ``benchmarks/results/NAME.json`` atomically, the figures from
 the script's ``headline(result)``, the provenance of that run (command, machine
 on one line, UTC date, commit) and the full printed result under ``result``
 (``benchmarks/_meta.py``: ``emit``, ``store``). ``make bench STORE=--store``
-runs every CPU benchmark that way. ``gpu_checks.sh`` combines several GPU runs;
-its stored result is written from their JSON by hand.
+runs every CPU benchmark that way; ``python benchmarks/gpu_checks.py --store``
+runs the GPU checks and stores their summary the same way.
 """
 
 from __future__ import annotations

@@ -195,6 +195,14 @@ def _beams6d() -> dict:
 #: per benchmark: a small result with the keys its script prints and the
 #: numbers of its stored result
 FAKES: dict[str, dict] = {
+    "gpu_checks": {
+        "steps": {
+            "6144": {"step_time_s": [0.00058, 0.00063], "limit_s": 0.003},
+            "100000": {"step_time_s": [0.00145, 0.00148], "limit_s": 0.005},
+        },
+        "process": {"ratios": [5.26, 6.13], "target": 5.0},
+        "sixd": {"wall_s": 33.0, "fails": []},
+    },
     "alarms": {
         "good_fits": 20,
         "false_alarms": 0,
@@ -421,3 +429,23 @@ def test_a_headline_is_a_stored_result(meta, tmp_path) -> None:
     stored = json.loads(path.read_text())
     assert stored["headline"]["held-out relative L1, worst"] == "0.088"
     assert stored["note"] == "outside a limit: double_horn (emit_z)"
+
+
+def test_gpu_checks_summarise_the_files_of_a_run(tmp_path) -> None:
+    module = _module(BENCH / "gpu_checks.py")
+
+    def write(name: str, d: dict) -> None:
+        (tmp_path / name).write_text("log line\n" + json.dumps(d) + "\n")
+
+    for n, t in ((6144, 6e-4), (100000, 1.5e-3)):
+        write(f"step_{n}.json", {"step_time_s": t, "cuda_graph": True})
+        write(f"step_{n}_eager.json", {"step_time_s": 4.5e-3, "cuda_graph": False})
+    write("process.json", {"ratio": 5.5})
+    write("sixd.json", {"diffaccel": {"wall_s": 40.2, "fails": ["emit_z"]}})
+    result = module.summarise(tmp_path)
+    assert result["missing"] == ["tracking"]
+    assert result["steps"]["100000"]["eager_step_time_s"] == [4.5e-3]
+    figures = module.headline(result)
+    key = "default 4D step, CUDA graph, 6 144 / 100 000 particles (limits 3 / 5 ms)"
+    assert figures[key] == "0.60 ms / 1.50 ms"
+    assert figures["shared 6D benchmark on the GPU"] == "40 s, fails: emit_z"
