@@ -150,13 +150,14 @@ def test_the_refit_keeps_the_placed_covariance(placed) -> None:
     result, forwards, measured, settings, guess, maps = placed
     change = {}
     for w in (0.0, 1e4):
-        cfg = replace(result.config, refit_steps=40, refit_hold=w)
+        # the probe (a separate move along px-pz) off: the hold alone
+        cfg = replace(result.config, refit_steps=40, refit_hold=w, probe_unseen=0.0)
         refit = refit_members(
             result.snapshots, forwards, measured, settings, guess, cfg, maps
         )
         change[w] = _whitened_change(refit[0], result.snapshots[0])
-    # 40 steps: a free refit moves the covariance 0.056 (whitened units) from
-    # the placed one, the held refit 0.0038 (data seeds 3, 4: 0.045 -> 0.0034,
-    # 0.065 -> 0.0025)
+    # 40 steps: a free refit moves the covariance 0.056-0.071 (whitened units,
+    # by CPU) from the placed one, the held refit 0.0037-0.0038 (data seeds 3,
+    # 4: 0.045 -> 0.0034, 0.065 -> 0.0025)
     assert change[0.0] > 0.03, change
     assert change[1e4] < 0.2 * change[0.0], change
