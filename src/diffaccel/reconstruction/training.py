@@ -11,7 +11,6 @@ import pickle
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Literal
@@ -31,24 +30,17 @@ from diffaccel.reconstruction.forward import (
 )
 from diffaccel.reconstruction.generator import BeamGenerator, FlatGenerator
 from diffaccel.reconstruction.graphed_step import (
-    BC2_SQRT,
-    LAM,
-    STEP_SIZE,
-    GraphedStep,
-    graph_capable,
-    join_stream,
-    step_factors,
-    warm_stream,
+    GRAPH_WARMUP_STEPS as GRAPH_WARMUP_STEPS,
 )
+from diffaccel.reconstruction.graphed_step import TrainingSteps
 from diffaccel.reconstruction.hold import CovarianceHold, MomentHold
 from diffaccel.reconstruction.initial import GaussianGuess
 from diffaccel.reconstruction.losses import (
     ImageLoss,
     ImagePenalty,
     RelativeEntropy,
-    cyclic_cosine_lr,
+    StepSchedule,
     off_screen_allowance,
-    penalty_schedule,
 )
 from diffaccel.reconstruction.optimiser import FlatAdam
 from diffaccel.reconstruction.unseen import UNSEEN_PRIORS, UnseenHold
@@ -621,6 +613,18 @@ class ReconstructionConfig:
         """Steps per learning-rate cycle."""
         return self.steps // self.snapshots
 
+    @property
+    def schedule(self) -> StepSchedule:
+        """Learning rate, penalty weight and members of every training step."""
+        return StepSchedule(
+            self.cycle_length,
+            self.lr_max,
+            self.lr_min,
+            self.penalty_start,
+            self.penalty_end,
+            self.burn_in,
+        )
+
     def blur_for(self, scan: object | None = None) -> float:
         """Point-spread rms [pixels] to image ``scan`` with.
 
@@ -1025,62 +1029,6 @@ def _host_reads_cheap(device: torch.device) -> bool:
     return device.type == "cpu"
 
 
-#: Eager steps (on a side stream) before the step is captured as a CUDA graph.
-GRAPH_WARMUP_STEPS = 3
-#: Generator dimensions whose training steps are captured (``cuda_graph``).
-#: 6D steps read nothing back from the device but have not been
-#: captured on a GPU yet (docs/gpu.md; ``test_cuda_graph_6d_steps`` checks it).
-GRAPH_DIMS = (4,)
-
-
-def _capture(
-    body: Callable[[Tensor], tuple[Tensor, ...]],
-    config: ReconstructionConfig,
-    start: int,
-    total: int,
-    opt: FlatAdam,
-    gen_rng: torch.Generator,
-    device: torch.device,
-    side: torch.cuda.Stream | None,
-) -> tuple[GraphedStep | None, torch.Generator]:
-    """Training steps ``start`` to ``total - 1`` as a CUDA graph, and the
-    random generator to go on with: ``gen_rng`` after a capture, a copy of its
-    state before it where the capture fails (with the graph None): a generator
-    registered with a failed capture cannot draw outside it.
-    """
-    join_stream(side, device)
-    cyc = config.cycle_length
-    remaining = range(start, total)
-    table = step_factors(
-        [cyclic_cosine_lr(s, cyc, config.lr_max, config.lr_min) for s in remaining],
-        [
-            penalty_schedule(s, cyc, config.penalty_start, config.penalty_end)
-            for s in remaining
-        ],
-        opt.steps + 1,
-        opt.betas,
-        device,
-    )
-    before = gen_rng.get_state()
-    try:
-        with warnings.catch_warnings():
-            # the generator's parameter vector was first used on the warm-up
-            # stream; autograd notes the other stream of the capture (harmless)
-            warnings.filterwarnings(
-                "ignore", message="The AccumulateGrad node's stream does not match"
-            )
-            return GraphedStep(body, table, gen_rng), gen_rng
-    except RuntimeError as err:  # e.g. an operation CUDA cannot capture
-        logger.warning(
-            "could not capture the training step as a CUDA graph (%s); "
-            "training goes on step by step",
-            str(err).splitlines()[0] if str(err) else type(err).__name__,
-        )
-        fresh = torch.Generator(device=device)
-        fresh.set_state(before)
-        return None, fresh
-
-
 def train_generator(
     forward: ScreenForwardModel | Sequence[ScreenForwardModel],
     measured: Tensor | Sequence[Tensor],
@@ -1319,10 +1267,10 @@ def train_generator(
         )
 
     def forward_backward(
-        lam: float | Tensor,
+        lam: float | Tensor, rng: torch.Generator
     ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None]:
         """One step's gradient (of the loss), image penalty, H - C, moments."""
-        x = net.sample(gen_rng)  # (N, dims)
+        x = net.sample(rng)  # (N, dims)
         dist = None
         with finite_checks(checks_on):  # off on GPUs: no device reads
             try:
@@ -1369,52 +1317,24 @@ def train_generator(
     # are off for the generated beam (a non-finite loss still stops training)
     checks_on = _host_reads_cheap(device)
 
-    def graph_body(factors: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """The step as captured: factors from the table, outputs to read."""
-        grad, dist, rel, moments, _ = forward_backward(factors[LAM])
-        opt.step_factored(grad, factors[STEP_SIZE], factors[BC2_SQRT])
-        return dist, rel, moments
-
-    # CUDA graph: a few eager steps on a side stream (lazy initialisations
-    # happen there), then the step is captured and replayed
-    use_graph = (
-        config.cuda_graph
-        and dims in GRAPH_DIMS
-        and graph_capable(device)
-        and not distributed
-        and hold is None
-        and total - state.step > GRAPH_WARMUP_STEPS
+    schedule = config.schedule
+    steps = TrainingSteps(
+        forward_backward,
+        opt,
+        schedule,
+        gen_rng,
+        state.step,
+        total,
+        dims,
+        device,
+        capture=config.cuda_graph and not distributed and hold is None,
+        all_reduce=tdist.all_reduce if distributed else None,
     )
-    side = warm_stream(device) if use_graph else None
-    graph_start = state.step + GRAPH_WARMUP_STEPS
-    graphed: GraphedStep | None = None
     t0 = time.perf_counter() - state.elapsed_s
     while state.step < total:
         step = state.step
-        lr = cyclic_cosine_lr(step, cyc, config.lr_max, config.lr_min)
-        lam = penalty_schedule(step, cyc, config.penalty_start, config.penalty_end)
-        if use_graph and graphed is None and step == graph_start:
-            graphed, gen_rng = _capture(
-                graph_body, config, step, total, opt, gen_rng, device, side
-            )
-            use_graph, side = graphed is not None, None
-        if graphed is not None:
-            values = graphed(step - graph_start)
-            opt.steps += 1  # the captured Adam step's count
-            with torch.no_grad():
-                for slot, value in zip(slots[len(pending)], values, strict=True):
-                    slot.copy_(value)
-        else:
-            with torch.cuda.stream(side) if side is not None else nullcontext():
-                grad, dist, rel, moments, held = forward_backward(lam)
-                if distributed:  # each process holds its particles' gradient
-                    tdist.all_reduce(grad)
-                opt.step(grad, lr)
-                with torch.no_grad():
-                    values = (dist, rel, moments)
-                    for slot, value in zip(slots[len(pending)], values, strict=True):
-                        slot.copy_(value)
-            join_stream(side, device)
+        lr, lam = schedule.lr(step), schedule.penalty(step)
+        held = steps(step, lr, lam, slots[len(pending)])
         pending.append((step, lr, lam))
         state.step = step + 1
         if hold is not None and hold.refreshes and state.step % HOLD_EVERY == 0:
@@ -1464,7 +1384,7 @@ def train_generator(
         if save:
             state.model = _cpu_state(model.state_dict())
             state.optimizer = opt.state_dict()
-            state.rng = gen_rng.get_state()
+            state.rng = steps.rng.get_state()
             state.elapsed_s = time.perf_counter() - t0
             save_checkpoint(state, config, ckpt)
         if callback is not None:
