@@ -1467,7 +1467,9 @@ def train_generator(
     penalties, entropy = _loss_terms(
         config, forwards, measured_list, scales, distributed
     )
-    hold = _beam_hold(config, hold_covariance, forwards, settings_list, maps, scales[0])
+    hold = _beam_hold(
+        config, hold_covariance, forwards, settings_list, maps, norm=scales[0]
+    )
     loss = _StepLoss(net, images, penalties, entropy, hold, state, device, distributed)
     schedule = config.schedule
     capture = config.cuda_graph and not distributed and hold is None
