@@ -15,16 +15,17 @@ import torch
 
 from diffaccel.dynamics import images
 from diffaccel.dynamics.elements import _kernels
-from diffaccel.reconstruction import ReconstructionConfig, reconstruct
+from diffaccel.reconstruction import ReconstructionConfig, graphed_step, reconstruct
 from diffaccel.reconstruction import training as training_module
 from diffaccel.reconstruction.graphed_step import (
     BC2_SQRT,
+    GRAPH_WARMUP_STEPS,
     LAM,
     STEP_SIZE,
     step_factors,
 )
 from diffaccel.reconstruction.losses import cyclic_cosine_lr, penalty_schedule
-from diffaccel.reconstruction.training import GRAPH_WARMUP_STEPS, FlatAdam
+from diffaccel.reconstruction.optimiser import FlatAdam
 
 FAST = {"n_particles": 1024, "steps": 24, "snapshots": 3, "checkpoint_every": 5}
 
@@ -73,8 +74,8 @@ class _EagerReplay:
 @pytest.fixture
 def eager_graph(monkeypatch):
     _EagerReplay.made = []
-    monkeypatch.setattr(training_module, "graph_capable", lambda device: True)
-    monkeypatch.setattr(training_module, "GraphedStep", _EagerReplay)
+    monkeypatch.setattr(graphed_step, "graph_capable", lambda device: True)
+    monkeypatch.setattr(graphed_step, "GraphedStep", _EagerReplay)
     return _EagerReplay
 
 
@@ -119,7 +120,7 @@ def test_captured_6d_step_body_trains_like_eager_steps(
     # thread: with two, the sums of the staged tracking change order between
     # runs and the two trainings drift apart by up to 1e-3 (chaotically, from
     # 1.6e-5 at step 5 on one CPU), which is not what this test is about
-    monkeypatch.setattr(training_module, "GRAPH_DIMS", (4, 6))
+    monkeypatch.setattr(graphed_step, "GRAPH_DIMS", (4, 6))
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     request.addfinalizer(lambda: torch.set_num_threads(threads))
@@ -190,8 +191,8 @@ def test_failed_capture_goes_on_eagerly(small_scan, monkeypatch, caplog) -> None
     def refuse(body, table, generator):
         raise RuntimeError("operation not permitted when stream is capturing")
 
-    monkeypatch.setattr(training_module, "graph_capable", lambda device: True)
-    monkeypatch.setattr(training_module, "GraphedStep", refuse)
+    monkeypatch.setattr(graphed_step, "graph_capable", lambda device: True)
+    monkeypatch.setattr(graphed_step, "GraphedStep", refuse)
     ref = reconstruct(small_scan, ReconstructionConfig(**FAST, cuda_graph=False))
     with caplog.at_level(logging.WARNING, logger="diffaccel.reconstruction"):
         got = reconstruct(small_scan, ReconstructionConfig(**FAST))
@@ -205,13 +206,13 @@ def test_failed_capture_goes_on_eagerly(small_scan, monkeypatch, caplog) -> None
 def captured(monkeypatch) -> list:
     """The real GraphedSteps that a test's runs make."""
     made = []
-    real = training_module.GraphedStep
+    real = graphed_step.GraphedStep
 
     def spy(*args):
         made.append(real(*args))
         return made[-1]
 
-    monkeypatch.setattr(training_module, "GraphedStep", spy)
+    monkeypatch.setattr(graphed_step, "GraphedStep", spy)
     return made
 
 
@@ -242,7 +243,7 @@ def test_cuda_graph_trains_like_eager_cuda_steps(small_scan, captured) -> None:
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_failed_capture_goes_on_eagerly(small_scan, monkeypatch, caplog) -> None:
-    real = training_module.GraphedStep
+    real = graphed_step.GraphedStep
 
     def with_host_read(body, table, generator):
         def body_reading_host(factors):
@@ -257,7 +258,7 @@ def test_cuda_failed_capture_goes_on_eagerly(small_scan, monkeypatch, caplog) ->
         device="cuda",
         uncertainty=False,
     )
-    monkeypatch.setattr(training_module, "GraphedStep", with_host_read)
+    monkeypatch.setattr(graphed_step, "GraphedStep", with_host_read)
     with caplog.at_level(logging.WARNING, logger="diffaccel.reconstruction"):
         got = reconstruct(
             small_scan, ReconstructionConfig(**FAST), device="cuda", uncertainty=False
@@ -300,7 +301,7 @@ def test_6d_step_reads_nothing_back_on_a_gpu_path(small_awa6d, monkeypatch) -> N
 def test_cuda_graph_6d_steps(small_awa6d, captured, monkeypatch, caplog) -> None:
     # whether 6D steps capture and train like eager ones: the check to pass
     # before GRAPH_DIMS admits 6 (it fails where the capture does)
-    monkeypatch.setattr(training_module, "GRAPH_DIMS", (4, 6))
+    monkeypatch.setattr(graphed_step, "GRAPH_DIMS", (4, 6))
     with caplog.at_level(logging.WARNING, logger="diffaccel.reconstruction"):
         ref, got = _cuda_runs(small_awa6d, {**FAST, "dims": 6, "place_unseen": False})
     assert "could not capture" not in caplog.text

@@ -676,3 +676,84 @@ class SharedUpstream:
             )
             images.append(screens[fwd.screen.name])
         return images
+
+
+def _six_columns(x: Tensor) -> Tensor:
+    """Particles ``(N, D)`` with ``z = pz = 0`` appended up to ``(N, 6)``."""
+    return torch.nn.functional.pad(x, (0, 6 - x.shape[1]))
+
+
+class ScanImages:
+    """Every scan's simulated images of one training sample.
+
+    With ``dims = 4`` (``pz = 0`` exactly) a scan whose affine maps are exact
+    (see :meth:`ScreenForwardModel.linear_maps`: no cavity on, no bend) images
+    through them (:class:`LinearScreenImages`); the other scans, and every
+    scan with ``dims = 6``, track exactly (chromatic quadrupoles, RF curvature
+    of a deflecting cavity, bends), the leading elements that they share (AWA
+    6D layout: quadrupole, drift, cavity, drift) once per call, each element
+    for the distinct settings up to it, and ``z`` only as far as an element
+    reads it (:class:`SharedUpstream`; the same images as tracking each scan).
+
+    Args:
+        forwards: Forward model of each scan.
+        settings: Settings of each scan ``(K_s, P_s)``.
+        maps: Each scan's :meth:`ScreenForwardModel.transfer_maps` of its
+            settings where the caller has computed them (not computed again),
+            or None.
+        dims: Coordinates the particles carry (4: ``z = pz = 0``; 6: all).
+        n: Particles of every call.
+        device: Device of particles and images.
+        total: Particles of the whole beam when each process images its share
+            of ``n`` (every image is then weighted by ``n / total``, so that
+            the shares' images sum to the beam's); None for the whole beam.
+
+    Shapes:
+        ``__call__(particles (n, dims))`` -> scan ``s``: ``(K_s, H_s, W_s)``.
+    """
+
+    def __init__(
+        self,
+        forwards: Sequence[ScreenForwardModel],
+        settings: Sequence[Tensor],
+        maps: Sequence[Tensor | None] | None,
+        dims: int,
+        n: int,
+        device: torch.device,
+        total: int | None = None,
+    ) -> None:
+        imagers: list[Any] = []
+        map_list = [None] * len(forwards) if maps is None else list(maps)
+        for f, s, r in zip(forwards, settings, map_list, strict=True):
+            lin = f.linear_maps(s, monochromatic=True, maps=r) if dims == 4 else None
+            if lin is not None:
+                imagers.append(
+                    LinearScreenImages(f, lin, n, dims, device=device, total=total)
+                )
+            else:
+                imagers.append(None)
+        self.tracked = [i for i, im in enumerate(imagers) if im is None]
+        self.shared = SharedUpstream.build(
+            [forwards[i] for i in self.tracked],
+            [settings[i] for i in self.tracked],
+            device,
+        )
+        if self.shared is None:
+            for i in self.tracked:
+                f, s = forwards[i], settings[i]
+                imagers[i] = lambda x, f=f, s=s: f.images(_six_columns(x), s)
+        self.imagers = imagers
+        self.weight = None if total is None else n / total
+
+    def __call__(self, x: Tensor) -> list[Tensor]:
+        """Every scan's simulated images of the particles ``x``."""
+        out = [None if im is None else im(x) for im in self.imagers]
+        if self.shared is not None:
+            for i, image in zip(
+                self.tracked, self.shared(_six_columns(x)), strict=True
+            ):
+                out[i] = image
+        if self.weight is not None:
+            w, tracked = self.weight, self.tracked
+            out = [o if i not in tracked else o * w for i, o in enumerate(out)]
+        return out  # type: ignore[return-value]

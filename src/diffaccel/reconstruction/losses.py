@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Literal
 
 import torch
@@ -429,6 +430,55 @@ def cyclic_cosine_lr(
     """
     t = (step % cycle_length) / cycle_length
     return lr_min + 0.5 * (lr_max - lr_min) * (1.0 + math.cos(math.pi * t))
+
+
+@dataclass(frozen=True)
+class StepSchedule:
+    """Learning rate and image-penalty weight of every training step, and the
+    steps after which the generator is an ensemble member.
+
+    The learning rate follows :func:`cyclic_cosine_lr` within each cycle of
+    ``cycle`` steps, the penalty weight :func:`penalty_schedule` (a ramp over
+    the first cycle, then flat); the generator at the end of each cycle after
+    the first ``burn_in`` cycles is one member.
+
+    Args:
+        cycle: Steps per learning-rate cycle.
+        lr_max: Learning rate at the start of each cycle.
+        lr_min: Learning rate at the end of each cycle.
+        penalty_start: Penalty weight at step 0 (> 0).
+        penalty_end: Penalty weight from the end of the first cycle on (> 0).
+        burn_in: Cycles at the start whose ends yield no member.
+
+    Example:
+        >>> s = StepSchedule(10, 1e-2, 1e-4, 10.0, 1000.0, burn_in=1)
+        >>> s.lr(0), s.penalty(10), s.member(10), s.member(20)
+        (0.01, 1000.0, False, True)
+    """
+
+    cycle: int
+    lr_max: float
+    lr_min: float
+    penalty_start: float
+    penalty_end: float
+    burn_in: int = 0
+
+    def lr(self, step: int) -> float:
+        """Learning rate of step ``step`` (0-based)."""
+        return cyclic_cosine_lr(step, self.cycle, self.lr_max, self.lr_min)
+
+    def penalty(self, step: int) -> float:
+        """Image-penalty weight of step ``step`` (0-based)."""
+        return penalty_schedule(step, self.cycle, self.penalty_start, self.penalty_end)
+
+    def cycle_end(self, done: int) -> bool:
+        """Whether the first ``done`` steps end with a whole cycle."""
+        return done % self.cycle == 0
+
+    def member(self, done: int) -> bool:
+        """Whether the generator after ``done`` steps is an ensemble member
+        (the end of a cycle after the burn-in)."""
+        return self.cycle_end(done) and done > self.burn_in * self.cycle
 
 
 class RelativeEntropy:

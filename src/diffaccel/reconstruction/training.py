@@ -11,7 +11,6 @@ import pickle
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Literal
@@ -25,31 +24,24 @@ from diffaccel.dynamics import finite_checks, is_integer, is_real
 from diffaccel.dynamics.images import gaussian_blur
 from diffaccel.reconstruction.forward import (
     MAX_BLUR_PIXELS,
-    LinearScreenImages,
+    ScanImages,
     ScreenForwardModel,
-    SharedUpstream,
 )
 from diffaccel.reconstruction.generator import BeamGenerator, FlatGenerator
 from diffaccel.reconstruction.graphed_step import (
-    BC2_SQRT,
-    LAM,
-    STEP_SIZE,
-    GraphedStep,
-    graph_capable,
-    join_stream,
-    step_factors,
-    warm_stream,
+    GRAPH_WARMUP_STEPS as GRAPH_WARMUP_STEPS,
 )
+from diffaccel.reconstruction.graphed_step import TrainingSteps
 from diffaccel.reconstruction.hold import CovarianceHold, MomentHold
 from diffaccel.reconstruction.initial import GaussianGuess
 from diffaccel.reconstruction.losses import (
     ImageLoss,
     ImagePenalty,
     RelativeEntropy,
-    cyclic_cosine_lr,
+    StepSchedule,
     off_screen_allowance,
-    penalty_schedule,
 )
+from diffaccel.reconstruction.optimiser import FlatAdam
 from diffaccel.reconstruction.unseen import UNSEEN_PRIORS, UnseenHold
 
 logger = logging.getLogger(__name__)
@@ -59,88 +51,6 @@ CHECKPOINT_VERSION = 2  # 2: optimiser state of one flat parameter vector
 
 class CheckpointDataError(ValueError):
     """A checkpoint to resume was written for other training data."""
-
-
-class FlatAdam:
-    """Adam on one flat parameter vector, with ``torch.optim.Adam``'s arithmetic.
-
-    The step count and learning rate live on the host, so a step is six
-    whole-vector kernels and never reads the device (``torch.optim.Adam`` reads
-    each parameter's step count back, one host synchronisation per parameter,
-    unless ``capturable``, which CPUs do not support).
-
-    Args:
-        param: The flat parameter vector (updated in place).
-        betas: Decay rates of the first and second moments.
-        eps: Added to the root of the second moment.
-    """
-
-    def __init__(
-        self,
-        param: Tensor,
-        betas: tuple[float, float] = (0.9, 0.999),
-        eps: float = 1e-8,
-    ) -> None:
-        self.param = param
-        self.betas = betas
-        self.eps = eps
-        self.steps = 0
-        self.exp_avg = torch.zeros_like(param, memory_format=torch.preserve_format)
-        self.exp_avg_sq = torch.zeros_like(param, memory_format=torch.preserve_format)
-        # factors as 0-d tensors of the parameter's dtype: a Python float is
-        # wrapped and cast at every call (one more ATen op each; same values,
-        # as the kernels compute in that dtype)
-        kw = {"dtype": param.dtype, "device": param.device}
-        self._beta2 = torch.tensor(betas[1], **kw)
-        self._eps = torch.tensor(eps, **kw)
-        self._bc2_sqrt = torch.zeros((), **kw)
-
-    @torch.no_grad()
-    def step(self, grad: Tensor, lr: float) -> None:
-        """One update with gradient ``grad`` at learning rate ``lr``."""
-        self.steps += 1
-        b1, b2 = self.betas
-        bc1 = 1 - b1**self.steps
-        bc2 = 1 - b2**self.steps
-        self.exp_avg.lerp_(grad, 1 - b1)
-        self.exp_avg_sq.mul_(self._beta2).addcmul_(grad, grad, value=1 - b2)
-        denom = self.exp_avg_sq.sqrt().div_(self._bc2_sqrt.fill_(math.sqrt(bc2)))
-        denom.add_(self._eps)
-        self.param.addcdiv_(self.exp_avg, denom, value=-lr / bc1)
-
-    @torch.no_grad()
-    def step_factored(self, grad: Tensor, step_size: Tensor, bc2_sqrt: Tensor) -> None:
-        """:meth:`step` with the step's factors as device scalars (CUDA graphs).
-
-        ``step_size`` is ``-lr / (1 - beta1**t)``, ``bc2_sqrt`` is
-        ``sqrt(1 - beta2**t)`` (:func:`~diffaccel.reconstruction.graphed_step.
-        step_factors`); the caller counts :attr:`steps`.
-        """
-        b1, b2 = self.betas
-        self.exp_avg.lerp_(grad, 1 - b1)
-        self.exp_avg_sq.mul_(self._beta2).addcmul_(grad, grad, value=1 - b2)
-        denom = self.exp_avg_sq.sqrt().div_(bc2_sqrt).add_(self._eps)
-        self.param.addcmul_(self.exp_avg.div(denom), step_size)
-
-    def state_dict(self) -> dict:
-        """``torch.optim``-shaped state (one parameter), for checkpoints."""
-        return {
-            "state": {
-                0: {
-                    "step": torch.tensor(float(self.steps)),
-                    "exp_avg": self.exp_avg.detach().to("cpu").clone(),
-                    "exp_avg_sq": self.exp_avg_sq.detach().to("cpu").clone(),
-                }
-            },
-            "param_groups": [{"betas": list(self.betas), "eps": self.eps}],
-        }
-
-    def load_state_dict(self, d: dict) -> None:
-        """Inverse of :meth:`state_dict`."""
-        s = d["state"][0]
-        self.steps = int(s["step"])
-        self.exp_avg.copy_(s["exp_avg"])
-        self.exp_avg_sq.copy_(s["exp_avg_sq"])
 
 
 @dataclass(frozen=True)
@@ -702,6 +612,18 @@ class ReconstructionConfig:
         """Steps per learning-rate cycle."""
         return self.steps // self.snapshots
 
+    @property
+    def schedule(self) -> StepSchedule:
+        """Learning rate, penalty weight and members of every training step."""
+        return StepSchedule(
+            self.cycle_length,
+            self.lr_max,
+            self.lr_min,
+            self.penalty_start,
+            self.penalty_end,
+            self.burn_in,
+        )
+
     def blur_for(self, scan: object | None = None) -> float:
         """Point-spread rms [pixels] to image ``scan`` with.
 
@@ -812,11 +734,6 @@ def _new_history() -> dict[str, list]:
         "rms": [],
         "snapshot_steps": [],
     }
-
-
-def _six_columns(x: Tensor) -> Tensor:
-    """Particles ``(N, D)`` with ``z = pz = 0`` appended up to ``(N, 6)``."""
-    return torch.nn.functional.pad(x, (0, 6 - x.shape[1]))
 
 
 class _SumOverProcesses(torch.autograd.Function):
@@ -1106,60 +1023,344 @@ def _host_reads_cheap(device: torch.device) -> bool:
     return device.type == "cpu"
 
 
-#: Eager steps (on a side stream) before the step is captured as a CUDA graph.
-GRAPH_WARMUP_STEPS = 3
-#: Generator dimensions whose training steps are captured (``cuda_graph``).
-#: 6D steps read nothing back from the device but have not been
-#: captured on a GPU yet (docs/gpu.md; ``test_cuda_graph_6d_steps`` checks it).
-GRAPH_DIMS = (4,)
+def _per_scan(
+    forward: ScreenForwardModel | Sequence[ScreenForwardModel],
+    measured: Tensor | Sequence[Tensor],
+    settings: Tensor | Sequence[Tensor],
+) -> tuple[list[ScreenForwardModel], list[Tensor], list[Tensor]]:
+    """Forward models, measured images and settings as one list entry per scan.
 
-
-def _capture(
-    body: Callable[[Tensor], tuple[Tensor, ...]],
-    config: ReconstructionConfig,
-    start: int,
-    total: int,
-    opt: FlatAdam,
-    gen_rng: torch.Generator,
-    device: torch.device,
-    side: torch.cuda.Stream | None,
-) -> tuple[GraphedStep | None, torch.Generator]:
-    """Training steps ``start`` to ``total - 1`` as a CUDA graph, and the
-    random generator to go on with: ``gen_rng`` after a capture, a copy of its
-    state before it where the capture fails (with the graph None): a generator
-    registered with a failed capture cannot draw outside it.
+    Raises:
+        ValueError: if the numbers of forward models, image stacks and settings
+            differ (or are 0).
     """
-    join_stream(side, device)
-    cyc = config.cycle_length
-    remaining = range(start, total)
-    table = step_factors(
-        [cyclic_cosine_lr(s, cyc, config.lr_max, config.lr_min) for s in remaining],
-        [
-            penalty_schedule(s, cyc, config.penalty_start, config.penalty_end)
-            for s in remaining
-        ],
-        opt.steps + 1,
-        opt.betas,
-        device,
-    )
-    before = gen_rng.get_state()
-    try:
-        with warnings.catch_warnings():
-            # the generator's parameter vector was first used on the warm-up
-            # stream; autograd notes the other stream of the capture (harmless)
-            warnings.filterwarnings(
-                "ignore", message="The AccumulateGrad node's stream does not match"
-            )
-            return GraphedStep(body, table, gen_rng), gen_rng
-    except RuntimeError as err:  # e.g. an operation CUDA cannot capture
-        logger.warning(
-            "could not capture the training step as a CUDA graph (%s); "
-            "training goes on step by step",
-            str(err).splitlines()[0] if str(err) else type(err).__name__,
+    forwards, images, sets = _as_list(forward), _as_list(measured), _as_list(settings)
+    if not (len(forwards) == len(images) == len(sets) >= 1):
+        raise ValueError(
+            f"need one forward model, image stack and settings tensor per scan; got "
+            f"{len(forwards)}, {len(images)} and {len(sets)}."
         )
-        fresh = torch.Generator(device=device)
-        fresh.set_state(before)
-        return None, fresh
+    return forwards, images, sets
+
+
+def _new_generator(
+    guess: GaussianGuess,
+    config: ReconstructionConfig,
+    device: torch.device,
+    shard: tuple[int, int],
+) -> tuple[BeamGenerator, FlatGenerator, torch.Generator, tuple[Tensor, ...]]:
+    """The generator at the Gaussian ``guess``, its flat form and the entropy's
+    scales.
+
+    Args:
+        guess: Gaussian fitted to the image moments.
+        config: Training settings (``dims``, network size, ``seed``).
+        device: Device to train on.
+        shard: ``(rank, world)``: this process's share of the particles.
+
+    Returns:
+        The :class:`BeamGenerator` (weights from ``config.seed``), its
+        :class:`FlatGenerator` drawing this process's share of
+        ``n_particles``, the random generator of the base samples (seeded per
+        process where they are i.i.d.) and, float64 on ``device``, the
+        coordinate scales ``(D,)`` [Bmad units], the prior's mean and rms
+        ``(D,)`` [Bmad units].
+    """
+    dims, (rank, world) = config.dims, shard
+    rng = torch.Generator(device=device).manual_seed(config.seed)
+    scale, offset, corr, prior = guess.generator_init(
+        dims, config.longitudinal_scale, config.prior_factor
+    )
+    model = BeamGenerator(
+        dims,
+        width=config.width,
+        depth=config.depth,
+        scale=scale.float(),
+        offset=offset.float(),
+        correlation=corr,
+        generator=torch.Generator().manual_seed(config.seed),
+    ).to(device)
+    if world > 1 and not config.quasi_random:
+        rng.manual_seed(config.seed + 7919 * rank)  # independent i.i.d. shares
+    net = FlatGenerator(model, config.n_particles, config.quasi_random, shard=shard)
+    scales = tuple(
+        t.to(device=device, dtype=torch.float64) for t in (scale, offset, prior)
+    )
+    return model, net, rng, scales
+
+
+def _loss_terms(
+    config: ReconstructionConfig,
+    forwards: Sequence[ScreenForwardModel],
+    measured: Sequence[Tensor],
+    scales: tuple[Tensor, ...],
+    distributed: bool,
+) -> tuple[list[ImagePenalty], RelativeEntropy]:
+    """Each scan's image term and the entropy term of the loss.
+
+    Every image of every scan weighs the same (each scan's
+    :class:`ImagePenalty` is its share of the mean image distance ``D``),
+    each with the KL offset against the sampling noise of ``n_particles``'
+    images (its scan's point spread sets the noise). ``H - C`` is the
+    :class:`RelativeEntropy` of ``n_particles`` with the coordinate scales and
+    the prior of ``scales`` (from :func:`_new_generator`), its moments summed
+    over processes when ``distributed``.
+    """
+    n = config.n_particles
+    n_images = sum(m.shape[0] for m in measured)
+    penalties = [
+        ImagePenalty(
+            m,
+            config.image_loss,
+            off_screen_allowance(m),
+            1.0 / n_images,
+            offset=_kl_offset(config.sampling_offset, f, n),
+        )
+        for f, m in zip(forwards, measured, strict=True)
+    ]
+    norm, prior_mean, prior_std = scales
+    relative_entropy = RelativeEntropy(
+        n,
+        norm,
+        prior_mean,
+        prior_std,
+        radius=config.entropy_radius,
+        reduce=tdist.all_reduce if distributed else None,
+    )
+    return penalties, relative_entropy
+
+
+def _beam_hold(
+    config: ReconstructionConfig,
+    hold_covariance: Tensor | None,
+    forwards: Sequence[ScreenForwardModel],
+    settings: Sequence[Tensor],
+    maps: Sequence[Tensor] | None,
+    norm: Tensor,
+) -> MomentHold | None:
+    """The quadratic hold on the beam's covariance (6D), or None.
+
+    With ``hold_covariance`` (the refit of a placed member) a
+    :class:`CovarianceHold` at it with weight ``config.refit_hold``; else with
+    ``dims = 6``, ``place_unseen`` and ``hold_unseen > 0`` an
+    :class:`~diffaccel.reconstruction.unseen.UnseenHold` on the directions the
+    scans do not see (from each scan's transfer maps, ``maps`` where given).
+
+    Raises:
+        ValueError: for ``hold_covariance`` with ``dims != 6``.
+    """
+    n = config.n_particles
+    if hold_covariance is not None:
+        if config.dims != 6:
+            raise ValueError("hold_covariance needs dims = 6.")
+        return CovarianceHold(hold_covariance, config.refit_hold, norm, n)
+    if not (config.dims == 6 and config.place_unseen and config.hold_unseen > 0):
+        return None
+    map_list = [None] * len(forwards) if maps is None else list(maps)
+    return UnseenHold(
+        [
+            (f.transfer_maps(s) if r is None else r).cpu()
+            for f, s, r in zip(forwards, settings, map_list, strict=True)
+        ],
+        config.hold_unseen,
+        norm,
+        n,
+        prior=config.unseen_prior,
+    )
+
+
+class _StepLoss:
+    """Gradient of one training step's loss with respect to the flat parameters.
+
+    The loss ``lam D - (H - C)`` (less a hold's surrogate) of one fresh sample
+    of the generator: ``D`` the mean image distance over every image of every
+    scan, ``H - C`` the relative entropy of the sample. Called as
+    :data:`~diffaccel.reconstruction.graphed_step.Gradient`.
+
+    Args:
+        net: Flat generator (its share of the particles per sample).
+        images: Every scan's simulated images of a sample.
+        penalties: Each scan's image term (its share of ``D``).
+        relative_entropy: The ``H - C`` term.
+        hold: Quadratic hold on the covariance, or None.
+        state: The run's state: its step (in error messages) and the hold's
+            prior point (``hold_moments``, set at the first step).
+        device: Device of the training; off CPUs the particle checks are off
+            (they read the device; a non-finite loss still stops training).
+        distributed: Sum the simulated images over processes.
+    """
+
+    def __init__(
+        self,
+        net: FlatGenerator,
+        images: ScanImages,
+        penalties: Sequence[ImagePenalty],
+        relative_entropy: RelativeEntropy,
+        hold: MomentHold | None,
+        state: TrainingState,
+        device: torch.device,
+        distributed: bool,
+    ) -> None:
+        self.net, self.images, self.penalties = net, images, penalties
+        self.relative_entropy, self.hold, self.state = relative_entropy, hold, state
+        self.distributed = distributed
+        self.checks_on = _host_reads_cheap(device)
+
+    def __call__(
+        self, lam: float | Tensor, rng: torch.Generator
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None]:
+        """The step's gradient, image penalty, H - C, moments and the hold's
+        moments (None without a hold) at penalty weight ``lam``."""
+        x = self.net.sample(rng)  # (N, dims)
+        dist = None
+        with finite_checks(self.checks_on):  # off on GPUs: no device reads
+            try:
+                sims = self.images(x)
+            except ValueError as err:  # the particle checks: which particles?
+                if bool(torch.isfinite(x).all()):
+                    raise
+                raise FloatingPointError(
+                    f"training diverged at step {self.state.step}: the generator "
+                    "produced non-finite particles. Use more particles "
+                    "(n_particles) or a lower learning rate (lr_max)."
+                ) from err
+        for sim, penalty in zip(sims, self.penalties, strict=True):
+            if self.distributed:
+                sim = _SumOverProcesses.apply(sim)
+            d = penalty(sim)  # this scan's share of the mean image penalty D
+            dist = d if dist is None else dist + d
+        rel, moments = self.relative_entropy(x)  # H - C; plain moments
+        if isinstance(lam, Tensor):  # a captured step's device scalar
+            objective = rel - lam * dist
+        else:
+            objective = torch.sub(rel, dist, alpha=lam)
+        held, hold = None, self.hold
+        if hold is not None:  # the hold's gradient
+            # the moments rounded to float32: threaded float64 sums scatter
+            # in the last bits from run to run, and the hold feeds them back
+            # into the step (without rounding a resume was not bit for bit)
+            held = moments.detach().float().double()
+            if not hold.ready:  # its prior point: the checkpoint's or this
+                if self.state.hold_moments is None:  # sample's, then every
+                    self.state.hold_moments = held.cpu()  # HOLD_EVERY steps
+                hold.update(self.state.hold_moments)  # (refresh_hold)
+            objective = objective - hold.surrogate(x, held)
+        # loss lam D - (H - C): the gradient of (H - C) - lam D, negated. One
+        # scalar with the implicit seed: explicit seed tensors made
+        # torch.autograd import torch.fx.experimental.symbolic_shapes and
+        # sympy, ~0.5 s of a default ``reconstruct`` (of the whole
+        # process); sub(alpha=) costs fewer ATen ops than lam * D - (H - C)
+        (grad,) = torch.autograd.grad(objective, [self.net.flat])
+        grad.neg_()
+        return grad, dist, rel, moments, held
+
+    def refresh_hold(self, done: int, held: Tensor | None) -> None:
+        """Move a refreshing hold's prior point to the moments ``held`` of the
+        latest beam after every :data:`HOLD_EVERY` of the ``done`` steps (a
+        host read; with the default ``report_every`` it coincides with the
+        losses' read)."""
+        hold = self.hold
+        if hold is not None and hold.refreshes and done % HOLD_EVERY == 0:
+            self.state.hold_moments = held.cpu()
+            hold.update(self.state.hold_moments)
+
+
+class _StepRecord:
+    """Per-step values kept on the device until the host reads them.
+
+    Each step copies its image penalty, ``H - C`` and the plain moments of the
+    entropy into one row of a ``(rows, 2 + (dims + 1)^2)`` float64 device
+    buffer (:meth:`slot`); :meth:`read` transfers the rows of the steps not
+    read yet at once (one host transfer) and derives each step's loss,
+    entropy and rms sizes for the history.
+
+    Args:
+        rows: Steps held at most between reads (``report_every``).
+        dims: Generator dimensions.
+        device: Device of the training.
+        relative_entropy: The entropy term (derives ``H`` and the rms sizes).
+    """
+
+    def __init__(
+        self,
+        rows: int,
+        dims: int,
+        device: torch.device,
+        relative_entropy: RelativeEntropy,
+    ) -> None:
+        self.record = torch.zeros(
+            rows, 2 + (dims + 1) ** 2, dtype=torch.float64, device=device
+        )
+        self.slots = [  # views made once (every view is an ATen op of the step)
+            (r[0], r[1], r[2:].view(dims + 1, dims + 1)) for r in self.record.unbind(0)
+        ]
+        self.pending: list[tuple[int, float, float]] = []  # (step, lr, penalty)
+        self.relative_entropy = relative_entropy
+
+    def slot(self) -> tuple[Tensor, Tensor, Tensor]:
+        """Views ``()``, ``()``, ``(dims + 1, dims + 1)`` for the next step."""
+        return self.slots[len(self.pending)]
+
+    def add(self, step: int, lr: float, lam: float) -> None:
+        """Note that step ``step`` (learning rate ``lr``, penalty weight
+        ``lam``) has filled its slot."""
+        self.pending.append((step, lr, lam))
+
+    def read(self, history: dict[str, list], model: BeamGenerator) -> None:
+        """Append the loss, image loss, entropy, learning rate, penalty weight
+        and rms sizes of every step not read yet to ``history``.
+
+        Raises:
+            FloatingPointError: if a step's loss is not finite (with
+                non-finite weights of ``model``: training diverged).
+        """
+        rows = self.record[: len(self.pending)].tolist()  # the host read
+        for (s, lr_s, lam_s), row in zip(self.pending, rows, strict=True):
+            dist_s, rel_s = row[0], row[1]
+            loss_s = (dist_s - rel_s / lam_s) * lam_s  # lam D - (H - C)
+            if not math.isfinite(loss_s):
+                if not all(bool(p.isfinite().all()) for p in model.parameters()):
+                    raise FloatingPointError(
+                        f"training diverged at step {s}: loss {loss_s} and "
+                        "non-finite generator weights. Use more particles "
+                        "(n_particles) or a lower learning rate (lr_max)."
+                    )
+                raise FloatingPointError(
+                    f"loss became {loss_s} at step {s}; the beam may have left "
+                    "the screen entirely. Check the screen calibration and settings."
+                )
+            entropy, rms = self.relative_entropy.entropy_and_rms(rel_s, row[2:])
+            history["loss"].append(loss_s)
+            history["image_loss"].append(dist_s)
+            history["entropy"].append(entropy)
+            history["lr"].append(lr_s)
+            history["penalty"].append(lam_s)
+            history["rms"].append(rms)
+        self.pending.clear()
+
+
+def _take_member(state: TrainingState, model: BeamGenerator) -> None:
+    """Keep the generator's weights (CPU) as the next ensemble member."""
+    state.snapshots.append(_cpu_state(model.state_dict()))
+    state.history["snapshot_steps"].append(state.step)
+
+
+def _step_info(
+    state: TrainingState, total: int, lr: float, lam: float, snapshot: bool
+) -> StepInfo:
+    """The callback's report of the latest step (its learning rate ``lr`` and
+    penalty weight ``lam``) of ``total``."""
+    hist = state.history
+    return StepInfo(
+        step=state.step,
+        total=total,
+        loss=hist["loss"][-1],
+        image_loss=hist["image_loss"][-1],
+        entropy=hist["entropy"][-1],
+        lr=lr,
+        penalty=lam,
+        snapshot_taken=snapshot,
+    )
 
 
 def train_generator(
@@ -1193,16 +1394,9 @@ def train_generator(
     ensemble member.
 
     Every step draws one fresh sample of ``n_particles`` and images it through
-    every scan (a Python loop over the scans, fixed shapes within each). With
-    ``dims = 4`` (``pz = 0`` exactly) a scan whose affine maps are exact (see
-    :meth:`ScreenForwardModel.linear_maps`) uses them
-    (:meth:`ScreenForwardModel.images_linear`); otherwise, and with
-    ``dims = 6``, scans track exactly (chromatic quadrupoles, RF curvature of a
-    deflecting cavity, bends); leading elements that the tracked scans share
-    (AWA 6D layout: quadrupole, drift, cavity, drift) are tracked once per step,
-    each element for the distinct settings up to it, and ``z`` only as far as
-    an element reads it (:class:`~diffaccel.reconstruction.forward.
-    SharedUpstream`; the same images as tracking each scan).
+    every scan (:class:`~diffaccel.reconstruction.forward.ScanImages`: affine
+    maps where they are exact in 4D, exact tracking otherwise, the leading
+    elements that scans share tracked once per step).
 
     Args:
         forward: Screen forward model of each scan (tracking + imaging); a single
@@ -1248,319 +1442,67 @@ def train_generator(
         ValueError: if the numbers of forward models, image stacks and settings
             differ.
     """
-    forwards = _as_list(forward)
-    measured_list = _as_list(measured)
-    settings_list = _as_list(settings)
-    if not (len(forwards) == len(measured_list) == len(settings_list) >= 1):
-        raise ValueError(
-            f"need one forward model, image stack and settings tensor per scan; got "
-            f"{len(forwards)}, {len(measured_list)} and {len(settings_list)}."
-        )
+    forwards, measured_list, settings_list = _per_scan(forward, measured, settings)
     fingerprint = data_fingerprint(forwards, measured_list, settings_list)
     device = torch.device(device) if device is not None else measured_list[0].device
     measured_list = [m.to(device=device, dtype=torch.float32) for m in measured_list]
     settings_list = [s.to(device=device) for s in settings_list]
     forwards, measured_list = compared_for(config, forwards, measured_list)
     forwards = [f.to(device) for f in forwards]
-    gen_rng = torch.Generator(device=device).manual_seed(config.seed)
-    init_rng = torch.Generator().manual_seed(config.seed)
-    dims = config.dims
-    scale, offset, corr, prior = guess.generator_init(
-        dims, config.longitudinal_scale, config.prior_factor
-    )
-    model = BeamGenerator(
-        dims,
-        width=config.width,
-        depth=config.depth,
-        scale=scale.float(),
-        offset=offset.float(),
-        correlation=corr,
-        generator=init_rng,
-    ).to(device)
-    n = config.n_particles
+    n, dims, total = config.n_particles, config.dims, config.steps
     rank, world = (tdist.get_rank(), tdist.get_world_size()) if distributed else (0, 1)
-    if distributed and not config.quasi_random:
-        gen_rng.manual_seed(config.seed + 7919 * rank)  # independent i.i.d. shares
-    net = FlatGenerator(model, n, config.quasi_random, shard=(rank, world))
-    share = net.n / n  # fraction of the beam this process images
+    model, net, gen_rng, scales = _new_generator(guess, config, device, (rank, world))
     opt = FlatAdam(net.flat)
-    norm = scale.to(device=device, dtype=torch.float64)
-    prior_std = prior.to(device=device, dtype=torch.float64)
-    prior_mean = offset.to(device=device, dtype=torch.float64)
     state = TrainingState(history=_new_history(), fingerprint=fingerprint)
     ckpt = Path(checkpoint) if checkpoint is not None else None
     if initial_model is not None:
         model.load_state_dict(initial_model)  # copies into net.flat
     if resume and ckpt is not None and ckpt.exists():
-        state = load_checkpoint(ckpt)
-        if state.fingerprint != fingerprint:
-            raise CheckpointDataError(
-                f"checkpoint {ckpt} was written for other training data (another "
-                "file, other training settings or another screen calibration); "
-                "resume with the same data, or start a new run."
-            )
-        missing = sorted(set(model.state_dict()) - set(state.model))
-        if missing:  # e.g. a 6D run checkpointed before the quadratic term
-            raise ValueError(
-                f"checkpoint {ckpt} was written by an earlier diffaccel: its "
-                f"generator lacks {missing}, so its optimiser state does not fit; "
-                "start a new run."
-            )
-        model.load_state_dict(state.model)  # copies into net.flat
-        opt.load_state_dict(state.optimizer)
-        gen_rng.set_state(state.rng)
-        logger.info("resumed from %s at step %d", ckpt, state.step)
-
-    # dims = 4: pz = 0 exactly, so affine maps reproduce the tracking where the
-    # beamline allows it (no cavity on, no bend); otherwise (and in 6D) track,
-    # the leading elements that several scans share only once per step
-    imagers: list[Callable[[Tensor], Tensor] | None] = []
-    map_list = [None] * len(forwards) if maps is None else list(maps)
-    for f, s, r in zip(forwards, settings_list, map_list, strict=True):
-        lin = f.linear_maps(s, monochromatic=True, maps=r) if dims == 4 else None
-        if lin is not None:
-            imagers.append(
-                LinearScreenImages(f, lin, net.n, dims, device=device, total=n)
-            )
-        else:
-            imagers.append(None)
-    tracked = [i for i, im in enumerate(imagers) if im is None]
-    shared = SharedUpstream.build(
-        [forwards[i] for i in tracked], [settings_list[i] for i in tracked], device
-    )
-    if shared is None:
-        for i in tracked:
-            f, s = forwards[i], settings_list[i]
-            imagers[i] = lambda x, f=f, s=s: f.images(_six_columns(x), s)
-    weight = share if world > 1 else None  # images of a share: its fraction
-
-    def render(x: Tensor) -> list[Tensor]:
-        """Every scan's simulated images of the particles ``x`` (N, dims)."""
-        out: list[Tensor | None] = [None if im is None else im(x) for im in imagers]
-        if shared is not None:
-            for i, image in zip(tracked, shared(_six_columns(x)), strict=True):
-                out[i] = image
-        if weight is not None:
-            out = [o if i not in tracked else o * weight for i, o in enumerate(out)]
-        return out  # type: ignore[return-value]
-
-    # every image of every scan weighs the same: the penalties' mean
-    n_images = sum(m.shape[0] for m in measured_list)
-    # the KL offset against the sampling noise of n particles' images (per
-    # scan: its point spread sets the noise)
-    penalties = [
-        ImagePenalty(
-            m,
-            config.image_loss,
-            off_screen_allowance(m),
-            1.0 / n_images,
-            offset=_kl_offset(config.sampling_offset, f, n),
-        )
-        for f, m in zip(forwards, measured_list, strict=True)
-    ]
-    relative_entropy = RelativeEntropy(
-        n,
-        norm,
-        prior_mean,
-        prior_std,
-        radius=config.entropy_radius,
-        reduce=tdist.all_reduce if distributed else None,
-    )
+        state = _resumed(ckpt, fingerprint, model, opt, gen_rng)
     if distributed and rank != 0:
         ckpt = None  # process 0 writes the checkpoints
-    total = config.steps
-    cyc = config.cycle_length
-    hist = state.history
-    # per-step values stay on the device and are read every report_every
-    # steps (one host transfer), at snapshots, checkpoints and the end: the
-    # image penalty, H - C and the plain moments of the entropy (the host
-    # derives the loss, H and the rms widths from them)
-    record = torch.zeros(
-        config.report_every, 2 + (dims + 1) ** 2, dtype=torch.float64, device=device
+    images = ScanImages(
+        forwards, settings_list, maps, dims, net.n, device, n if world > 1 else None
     )
-    slots = [  # views made once (every view is an ATen op of the step)
-        (r[0], r[1], r[2:].view(dims + 1, dims + 1)) for r in record.unbind(0)
-    ]
-    pending: list[tuple[int, float, float]] = []  # (step, lr, penalty) unread
-    hold: MomentHold | None = None  # a quadratic hold on the covariance (6D)
-    if hold_covariance is not None:  # the refit's: the placed covariance
-        if dims != 6:
-            raise ValueError("hold_covariance needs dims = 6.")
-        hold = CovarianceHold(hold_covariance, config.refit_hold, norm, n)
-    elif dims == 6 and config.place_unseen and config.hold_unseen > 0:
-        hold = UnseenHold(
-            [
-                (f.transfer_maps(s) if r is None else r).cpu()
-                for f, s, r in zip(forwards, settings_list, map_list, strict=True)
-            ],
-            config.hold_unseen,
-            norm,
-            n,
-            prior=config.unseen_prior,
-        )
-
-    def forward_backward(
-        lam: float | Tensor,
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None]:
-        """One step's gradient (of the loss), image penalty, H - C, moments."""
-        x = net.sample(gen_rng)  # (N, dims)
-        dist = None
-        with finite_checks(checks_on):  # off on GPUs: no device reads
-            try:
-                sims = render(x)
-            except ValueError as err:  # the particle checks: which particles?
-                if bool(torch.isfinite(x).all()):
-                    raise
-                raise FloatingPointError(
-                    f"training diverged at step {state.step}: the generator "
-                    "produced non-finite particles. Use more particles "
-                    "(n_particles) or a lower learning rate (lr_max)."
-                ) from err
-        for sim, penalty in zip(sims, penalties, strict=True):
-            if distributed:
-                sim = _SumOverProcesses.apply(sim)
-            d = penalty(sim)  # this scan's share of the mean image penalty D
-            dist = d if dist is None else dist + d
-        rel, moments = relative_entropy(x)  # H - C; plain moments
-        if isinstance(lam, Tensor):  # a captured step's device scalar
-            objective = rel - lam * dist
-        else:
-            objective = torch.sub(rel, dist, alpha=lam)
-        held = None
-        if hold is not None:  # the hold's gradient
-            # the moments rounded to float32: threaded float64 sums scatter
-            # in the last bits from run to run, and the hold feeds them back
-            # into the step (without rounding a resume was not bit for bit)
-            held = moments.detach().float().double()
-            if not hold.ready:  # its prior point: the checkpoint's or this
-                if state.hold_moments is None:  # sample's, then every
-                    state.hold_moments = held.cpu()  # HOLD_EVERY steps
-                hold.update(state.hold_moments)  # (below)
-            objective = objective - hold.surrogate(x, held)
-        # loss lam D - (H - C): the gradient of (H - C) - lam D, negated. One
-        # scalar with the implicit seed: explicit seed tensors made
-        # torch.autograd import torch.fx.experimental.symbolic_shapes and
-        # sympy, ~0.5 s of a default ``reconstruct`` (of the whole
-        # process); sub(alpha=) costs fewer ATen ops than lam * D - (H - C)
-        (grad,) = torch.autograd.grad(objective, [net.flat])
-        grad.neg_()
-        return grad, dist, rel, moments, held
-
-    # the particles' and positions' NaN checks read the device: on GPUs they
-    # are off for the generated beam (a non-finite loss still stops training)
-    checks_on = _host_reads_cheap(device)
-
-    def graph_body(factors: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """The step as captured: factors from the table, outputs to read."""
-        grad, dist, rel, moments, _ = forward_backward(factors[LAM])
-        opt.step_factored(grad, factors[STEP_SIZE], factors[BC2_SQRT])
-        return dist, rel, moments
-
-    # CUDA graph: a few eager steps on a side stream (lazy initialisations
-    # happen there), then the step is captured and replayed
-    use_graph = (
-        config.cuda_graph
-        and dims in GRAPH_DIMS
-        and graph_capable(device)
-        and not distributed
-        and hold is None
-        and total - state.step > GRAPH_WARMUP_STEPS
+    penalties, entropy = _loss_terms(
+        config, forwards, measured_list, scales, distributed
     )
-    side = warm_stream(device) if use_graph else None
-    graph_start = state.step + GRAPH_WARMUP_STEPS
-    graphed: GraphedStep | None = None
+    hold = _beam_hold(
+        config, hold_covariance, forwards, settings_list, maps, norm=scales[0]
+    )
+    loss = _StepLoss(net, images, penalties, entropy, hold, state, device, distributed)
+    schedule = config.schedule
+    capture = config.cuda_graph and not distributed and hold is None
+    reduce = tdist.all_reduce if distributed else None
+    steps = TrainingSteps(
+        loss, opt, schedule, gen_rng, state.step, total, dims, device, capture, reduce
+    )
+    # per-step values stay on the device, read every report_every steps, at
+    # cycle ends, checkpoints and the end
+    record = _StepRecord(config.report_every, dims, device, entropy)
     t0 = time.perf_counter() - state.elapsed_s
     while state.step < total:
         step = state.step
-        lr = cyclic_cosine_lr(step, cyc, config.lr_max, config.lr_min)
-        lam = penalty_schedule(step, cyc, config.penalty_start, config.penalty_end)
-        if use_graph and graphed is None and step == graph_start:
-            graphed, gen_rng = _capture(
-                graph_body, config, step, total, opt, gen_rng, device, side
-            )
-            use_graph, side = graphed is not None, None
-        if graphed is not None:
-            values = graphed(step - graph_start)
-            opt.steps += 1  # the captured Adam step's count
-            with torch.no_grad():
-                for slot, value in zip(slots[len(pending)], values, strict=True):
-                    slot.copy_(value)
-        else:
-            with torch.cuda.stream(side) if side is not None else nullcontext():
-                grad, dist, rel, moments, held = forward_backward(lam)
-                if distributed:  # each process holds its particles' gradient
-                    tdist.all_reduce(grad)
-                opt.step(grad, lr)
-                with torch.no_grad():
-                    values = (dist, rel, moments)
-                    for slot, value in zip(slots[len(pending)], values, strict=True):
-                        slot.copy_(value)
-            join_stream(side, device)
-        pending.append((step, lr, lam))
+        lr, lam = schedule.lr(step), schedule.penalty(step)
+        held = steps(step, lr, lam, record.slot())
+        record.add(step, lr, lam)
         state.step = step + 1
-        if hold is not None and hold.refreshes and state.step % HOLD_EVERY == 0:
-            # the prior point of the latest beam (a host read; with the
-            # default report_every it coincides with the losses' read)
-            state.hold_moments = held.cpu()
-            hold.update(state.hold_moments)
-        cycle_end = state.step % cyc == 0
-        # members: ends of cycles after the burn-in (the first cycle ramps lambda)
-        snap = cycle_end and state.step > config.burn_in * cyc
+        loss.refresh_hold(state.step, held)
+        cycle_end = schedule.cycle_end(state.step)
+        member = schedule.member(state.step)
         save = ckpt is not None and (
             cycle_end or state.step % config.checkpoint_every == 0
         )
-        if not (
-            state.step % config.report_every == 0
-            or cycle_end
-            or save
-            or state.step == total
-        ):
+        report = state.step % config.report_every == 0 or state.step == total
+        if not (report or cycle_end or save):
             continue
-        rows = record[: len(pending)].tolist()  # the host read
-        for (s, lr_s, lam_s), row in zip(pending, rows, strict=True):
-            dist_s, rel_s = row[0], row[1]
-            loss_s = (dist_s - rel_s / lam_s) * lam_s  # lam D - (H - C)
-            if not math.isfinite(loss_s):
-                if not all(bool(p.isfinite().all()) for p in model.parameters()):
-                    raise FloatingPointError(
-                        f"training diverged at step {s}: loss {loss_s} and "
-                        "non-finite generator weights. Use more particles "
-                        "(n_particles) or a lower learning rate (lr_max)."
-                    )
-                raise FloatingPointError(
-                    f"loss became {loss_s} at step {s}; the beam may have left "
-                    "the screen entirely. Check the screen calibration and settings."
-                )
-            entropy, rms = relative_entropy.entropy_and_rms(rel_s, row[2:])
-            hist["loss"].append(loss_s)
-            hist["image_loss"].append(dist_s)
-            hist["entropy"].append(entropy)
-            hist["lr"].append(lr_s)
-            hist["penalty"].append(lam_s)
-            hist["rms"].append(rms)
-        pending.clear()
-        if snap:
-            state.snapshots.append(_cpu_state(model.state_dict()))
-            hist["snapshot_steps"].append(state.step)
+        record.read(state.history, model)
+        if member:
+            _take_member(state, model)
         if save:
-            state.model = _cpu_state(model.state_dict())
-            state.optimizer = opt.state_dict()
-            state.rng = gen_rng.get_state()
-            state.elapsed_s = time.perf_counter() - t0
-            save_checkpoint(state, config, ckpt)
+            _checkpoint(state, config, ckpt, model, opt, steps.rng, t0)
         if callback is not None:
-            callback(
-                StepInfo(
-                    step=state.step,
-                    total=total,
-                    loss=hist["loss"][-1],
-                    image_loss=hist["image_loss"][-1],
-                    entropy=hist["entropy"][-1],
-                    lr=lr,
-                    penalty=lam,
-                    snapshot_taken=snap,
-                )
-            )
+            callback(_step_info(state, total, lr, lam, member))
     state.model = _cpu_state(model.state_dict())
     state.elapsed_s = time.perf_counter() - t0
     return state
@@ -1653,6 +1595,64 @@ def load_checkpoint(path: str | os.PathLike) -> TrainingState:
         raise ValueError(
             f"{path} is a damaged checkpoint ({type(exc).__name__}: {exc})."
         ) from exc
+
+
+def _resumed(
+    path: Path,
+    fingerprint: str,
+    model: BeamGenerator,
+    opt: FlatAdam,
+    rng: torch.Generator,
+) -> TrainingState:
+    """The state of the checkpoint at ``path``, its generator weights,
+    optimiser state and random state loaded into ``model``, ``opt`` and
+    ``rng``.
+
+    Raises:
+        CheckpointDataError: if the checkpoint was written for other training
+            data (its :func:`data_fingerprint` is not ``fingerprint``).
+        ValueError: if it is not a complete checkpoint or its generator lacks
+            parameters of ``model``.
+    """
+    state = load_checkpoint(path)
+    if state.fingerprint != fingerprint:
+        raise CheckpointDataError(
+            f"checkpoint {path} was written for other training data (another "
+            "file, other training settings or another screen calibration); "
+            "resume with the same data, or start a new run."
+        )
+    missing = sorted(set(model.state_dict()) - set(state.model))
+    if missing:  # e.g. a 6D run checkpointed before the quadratic term
+        raise ValueError(
+            f"checkpoint {path} was written by an earlier diffaccel: its "
+            f"generator lacks {missing}, so its optimiser state does not fit; "
+            "start a new run."
+        )
+    model.load_state_dict(state.model)  # copies into the flat parameters
+    opt.load_state_dict(state.optimizer)
+    rng.set_state(state.rng)
+    logger.info("resumed from %s at step %d", path, state.step)
+    return state
+
+
+def _checkpoint(
+    state: TrainingState,
+    config: ReconstructionConfig,
+    path: Path,
+    model: BeamGenerator,
+    opt: FlatAdam,
+    rng: torch.Generator,
+    t0: float,
+) -> None:
+    """Store the generator, optimiser and random state in ``state`` and write
+    it to ``path`` (:func:`save_checkpoint`); ``t0`` is the run's start on
+    :func:`time.perf_counter`'s clock (earlier by the time of the steps
+    before a resume)."""
+    state.model = _cpu_state(model.state_dict())
+    state.optimizer = opt.state_dict()
+    state.rng = rng.get_state()
+    state.elapsed_s = time.perf_counter() - t0
+    save_checkpoint(state, config, path)
 
 
 def checkpoint_config(path: str | os.PathLike) -> ReconstructionConfig:
