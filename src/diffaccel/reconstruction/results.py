@@ -52,17 +52,23 @@ import torch
 import torch.distributed as tdist
 
 from diffaccel.data import (
+    FormatError,
     MultiScanDataset,
     atomic_write_json,
     atomic_write_text,
     partial_folder,
+    read_scans,
 )
 from diffaccel.data.particles_io import write_openpmd_particles
 from diffaccel.reconstruction.background import can_fork, in_child
 from diffaccel.reconstruction.ensemble import Reconstruction
 from diffaccel.reconstruction.evaluation import evaluate, predict_dataset
 from diffaccel.reconstruction.forward import ScreenForwardModel
-from diffaccel.reconstruction.pipeline import reconstruct, training_selection
+from diffaccel.reconstruction.pipeline import (
+    as_scans,
+    reconstruct,
+    training_selection,
+)
 from diffaccel.reconstruction.training import (
     CheckpointDataError,
     ReconstructionConfig,
@@ -80,10 +86,12 @@ __all__ = [
     "PARTICLES_SAMPLE",
     "REPORT",
     "SELECTION",
+    "OptionError",
     "ResultFigures",
     "ResultWriteError",
     "ResumeError",
     "RunError",
+    "RunPlan",
     "bunch_charge",
     "check_finished_run",
     "clean_for_resume",
@@ -91,7 +99,9 @@ __all__ = [
     "discard_selection",
     "finding_lines",
     "headline_lines",
+    "plan_run",
     "prior_dependence_lines",
+    "read_dataset",
     "report_markdown",
     "resume_checkpoint",
     "resume_config",
@@ -150,6 +160,14 @@ class RunError(ValueError):
 
 class ResumeError(RunError):
     """A run cannot be resumed as asked (the message says why, in one line)."""
+
+
+class OptionError(RunError):
+    """A run refused for the value of one option (``option``: its flag)."""
+
+    def __init__(self, message: str, option: str) -> None:
+        super().__init__(message)
+        self.option = option
 
 
 class ResultWriteError(RunError):
@@ -680,6 +698,102 @@ def resume_plan(
     if finished:
         check_finished_run(checkpoint, dataset, config, selection)
     return config, selection, finished
+
+
+@dataclass(frozen=True)
+class RunPlan:
+    """What a run into a result folder trains with (:func:`plan_run`).
+
+    Attributes:
+        dataset: The scans of the quad-scan file.
+        config: The config to train with (a resume's: the checkpoint's).
+        selection: Training settings per scan.
+        checkpoint: The checkpoint a resume continues; None without ``resume``.
+        finished: A resume of a finished result: nothing to run.
+    """
+
+    dataset: MultiScanDataset
+    config: ReconstructionConfig
+    selection: dict[str, list[int]]
+    checkpoint: Path | None
+    finished: bool
+
+
+def read_dataset(path: Path) -> MultiScanDataset:
+    """The scans of the quad-scan file ``path``.
+
+    Raises:
+        RunError: ``cannot read PATH: ...`` naming the problem.
+    """
+    try:
+        return as_scans(read_scans(path))
+    except (FormatError, OSError) as err:
+        text = str(err)  # reader errors already read "PATH: field: problem"
+        if not text.startswith(str(path)):
+            text = f"{path}: {text}"
+        raise RunError(f"cannot read {text}") from err
+
+
+def plan_run(
+    dataset_path: Path,
+    out: Path,
+    options: Mapping[str, Any],
+    *,
+    given: set[str],
+    train_indices: str = "all",
+    indices_given: bool = False,
+    resume: bool = False,
+    charge_C: float | None = None,
+) -> RunPlan:
+    """Check a ``reconstruct`` run into ``out`` and say what it trains with.
+
+    ``options``: :class:`ReconstructionConfig` keywords (None: the default);
+    ``given``: the flags of :data:`CONFIG_OPTIONS` given on the command line
+    (a resume takes the others from its checkpoint, :func:`resume_start`);
+    ``train_indices``: the rule of :func:`training_selection`, given by the
+    user where ``indices_given`` (else the default, whose refusal names the
+    file's settings); ``charge_C``: the bunch charge [C] checked by
+    :func:`bunch_charge`. In this order: the checkpoint (``resume``), the
+    config, the file, the charge, the selection, and what the resume continues
+    (:func:`resume_plan`).
+
+    Raises:
+        OptionError: training settings ``train_indices`` does not select.
+        RunError: the first other refusal, in one line (a
+            :class:`ResumeError` for what a resume cannot continue).
+    """
+    checkpoint = stored = None
+    if resume:  # options not given are the checkpoint's
+        checkpoint, stored, options = resume_start(out, options, given)
+    try:
+        config = ReconstructionConfig(**options)
+    except ValueError as err:
+        raise RunError(str(err)) from err
+    ds = read_dataset(dataset_path)
+    try:
+        bunch_charge(ds, charge_C)  # a bad recorded charge refused before training
+    except ResultWriteError as err:
+        raise RunError(f"{dataset_path}: {err}") from err
+    try:
+        selection = training_selection(ds, train_indices)
+    except ValueError as err:
+        if not indices_given:  # the file's own settings: no option to blame
+            text = str(err).replace("train_indices select", "its settings hold", 1)
+            raise RunError(f"{dataset_path}: {text}") from err
+        raise OptionError(str(err), "--train-indices") from err
+    finished = False
+    if checkpoint is not None and stored is not None:
+        config, selection, finished = resume_plan(
+            checkpoint,
+            stored,
+            config,
+            ds,
+            selection,
+            given=given,
+            indices_given=indices_given,
+            out=out,
+        )
+    return RunPlan(ds, config, selection, checkpoint, finished)
 
 
 # ------------------------------------------------------------------ summary text
