@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from diffaccel.data import FormatError, read_magnet_csv, write_csv_atomic
+from diffaccel.data.magnet_stream import check_magnitude, check_time_column
 
 SLAC = (
     Path(__file__).resolve().parents[2]
@@ -354,3 +355,14 @@ def test_plain_decimals_and_exponents_still_read(tmp_path):
     path.write_text("current_A,field_Tm\n-1.5e2,0.1\n+.5,2E-3\n 7 ,1.\n")
     h = read_magnet_csv(path)
     assert h.input.tolist() == [-150.0, 0.5, 7.0]
+
+
+def test_magnitude_and_time_column_checks_name_file_column_and_row() -> None:
+    check_magnitude("m.csv", "current_A", np.array([1.0, -1e100]))
+    with pytest.raises(FormatError, match=r"m.csv: column 'x', data row 12: -2e\+100"):
+        check_magnitude("m.csv", "x", np.array([0.0, -2e100]), first_row=11)
+    check_time_column("m.csv", ["a", "t"], None)
+    check_time_column("m.csv", ["a", "t"], "t")
+    with pytest.raises(ValueError, match=r"m.csv has no column 's'; columns are") as e:
+        check_time_column("m.csv", ["a", "t"], "s")
+    assert e.value.option == "--time-column"

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-import warnings
 from pathlib import Path
 
 import click
@@ -12,31 +10,28 @@ from tqdm import tqdm
 from diffaccel.cli.hysteresis import (
     check_finite,
     check_input_range,
-    check_magnitude,
-    check_time_column,
+    checked,
     time_column_option,
 )
-from diffaccel.cli.output import output_folder
+from diffaccel.cli.options import echo_lines
+from diffaccel.cli.output import click_errors, output_folder
 from diffaccel.data import (
     DEFAULT_INPUT_COLUMN,
     DEFAULT_OUTPUT_COLUMN,
-    DEFAULT_TIME_COLUMN,
     atomic_write_json,
-    read_magnet_csv,
 )
-from diffaccel.hysteresis import (
-    CONFIG_FILE,
-    MODEL_FILE,
-    STREAM_FILE,
-    BandFallbackWarning,
-    fit_magnet,
-    save_fit,
+from diffaccel.hysteresis import CONFIG_FILE, MODEL_FILE, STREAM_FILE, save_fit
+from diffaccel.hysteresis.fit_report import (
+    fit_history,
+    fit_line,
+    fit_messages,
+    read_fit_history,
 )
-from diffaccel.hysteresis.fit_report import fit_line, score_fit
 from diffaccel.hysteresis.predictive import (
     MAX_MESH_SIZE,
     check_mesh_size,
     min_training_rows,
+    parse_mesh_adapt,
 )
 from diffaccel.plotting.hysteresis import FIT_FIGURES, write_fit_figures
 
@@ -46,32 +41,6 @@ SUMMARY_FILE = "summary.json"
 # beyond it the data term (a normalised mse, ~1 at most) is lost in the float64
 # round-off of the penalty, and far beyond it the loss overflows
 MAX_SMOOTHNESS = 1e12
-
-
-def _check_mesh_size(ctx: click.Context, param: click.Parameter, value: int) -> int:
-    """Click callback: a mesh whose predictive band fits in memory (the size named)."""
-    try:
-        check_mesh_size(value)
-    except ValueError as err:
-        raise click.BadParameter(str(err)) from err
-    return value
-
-
-def _check_mesh_adapt(
-    ctx: click.Context, param: click.Parameter, value: str
-) -> float | str:
-    """Click callback: ``auto`` or a share in [0, 1)."""
-    if value == "auto":
-        return value
-    try:
-        share = float(value)
-    except ValueError:
-        share = math.nan
-    if not 0.0 <= share < 1.0:
-        raise click.BadParameter(
-            f"expected 'auto' or a number in [0, 1); got {value!r}."
-        )
-    return share
 
 
 @click.command("fit")
@@ -100,7 +69,7 @@ def _check_mesh_adapt(
     type=click.IntRange(min=2),
     default=20,
     show_default=True,
-    callback=_check_mesh_size,
+    callback=checked(lambda size: check_mesh_size(size) or size),
     help="Cells per axis of the triangular Preisach mesh (20: 210 hysterons; "
     "chosen on validation rows held out of the training rows, see "
     f"benchmarks/preisach_acceptance.py); at most {MAX_MESH_SIZE}, as the "
@@ -125,7 +94,7 @@ def _check_mesh_adapt(
     "--mesh-adapt",
     default="auto",
     show_default=True,
-    callback=_check_mesh_adapt,
+    callback=checked(parse_mesh_adapt),
     help="Share of the mesh placed where the training output changes (0: a "
     "regular mesh; resolves coercive fields far below the input range); "
     "'auto' chooses among 0, 0.8 and 0.95 on every fourth training row.",
@@ -182,26 +151,8 @@ def fit_command(
     Rows are measurements in the order they were made (checked with a time
     column, see --time-column).
     """
-    try:
-        hist = read_magnet_csv(
-            data, input_col, output_col, time_column=time_column or DEFAULT_TIME_COLUMN
-        )
-    except (OSError, ValueError) as err:
-        raise click.ClickException(str(err)) from err
-    check_time_column(data, hist.header, time_column)
-    if train_rows > len(hist):
-        raise click.BadParameter(
-            f"{train_rows} exceeds the {len(hist)} rows of {data}.",
-            param_hint="--train-rows",
-        )
-    if train_rows < min_training_rows():
-        raise click.BadParameter(
-            f"a fit needs at least {min_training_rows()} training rows; got "
-            f"{train_rows}.",
-            param_hint="--train-rows",
-        )
-    for name, values in ((input_col, hist.input), (output_col, hist.output)):
-        check_magnitude(data, name, values)
+    with click_errors(OSError, ValueError):
+        hist = read_fit_history(data, input_col, output_col, time_column, train_rows)
     with output_folder(
         out_dir,
         "hysteresis fit",
@@ -209,41 +160,26 @@ def fit_command(
         owned=(SUMMARY_FILE, MODEL_FILE, CONFIG_FILE, STREAM_FILE, *FIT_FIGURES),
         inputs=[data],
     ) as folder:
-        u, y = hist.input, hist.output
-        try:
-            with (
-                tqdm(desc="fit", unit="eval", leave=False) as bar,
-                warnings.catch_warnings(record=True) as fit_caught,
-            ):
-                warnings.simplefilter("always", BandFallbackWarning)
+        with tqdm(desc="fit", unit="eval", leave=False) as bar, click_errors():
 
-                def progress(step: int, loss: float) -> None:
-                    bar.update(1)
-                    bar.set_postfix(loss=f"{loss:.3g}", refresh=False)
+            def progress(step: int, loss: float) -> None:
+                bar.update(1)
+                bar.set_postfix(loss=f"{loss:.3g}", refresh=False)
 
-                fit = fit_magnet(
-                    u[:train_rows],
-                    y[:train_rows],
-                    mesh_size=mesh_size,
-                    symmetric=symmetric,
-                    initial_state=initial_state,
-                    input_range=input_range,
-                    steps=steps,
-                    smoothness=smoothness,
-                    callback=progress,
-                    mesh_adapt=mesh_adapt,
-                    odd=odd,
-                )
-            for w in fit_caught:
-                if w.category is not BandFallbackWarning:
-                    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-            score = score_fit(
-                fit, u, y, train_rows, data=str(data), input_column=input_col,
-                output_column=output_col, mesh_size=mesh_size,
-                smoothness=smoothness, initial_state=initial_state,
-            )  # fmt: skip
-        except ValueError as err:
-            raise click.ClickException(str(err)) from err
+            fit, score = fit_history(
+                hist,
+                train_rows,
+                data=str(data),
+                callback=progress,
+                mesh_size=mesh_size,
+                smoothness=smoothness,
+                initial_state=initial_state,
+                symmetric=symmetric,
+                input_range=input_range,
+                steps=steps,
+                mesh_adapt=mesh_adapt,
+                odd=odd,
+            )
         save_fit(
             folder.path,
             fit.model,
@@ -252,14 +188,9 @@ def fit_command(
         )
         if not no_figures:
             write_fit_figures(
-                folder.path, fit.model, u, y, train_rows, score.std, input_col,
-                output_col,
+                folder.path, fit.model, hist.input, hist.output, train_rows,
+                score.std, input_col, output_col,
             )  # fmt: skip
         atomic_write_json(folder.path / SUMMARY_FILE, score.summary)
-    if fit.band_fallback is not None:
-        click.echo(f"warning: {fit.band_fallback}", err=True)
-    for note in score.notes:
-        click.echo(f"note: {note}", err=True)
-    for alarm in score.alarms:
-        click.echo(f"warning: {alarm}", err=True)
+    echo_lines(fit_messages(fit, score), err=True)
     click.echo(f"{fit_line(score.summary)}; wrote {out_dir}")

@@ -1,4 +1,4 @@
-"""Result folders of CLI commands: all-or-nothing, locked, errors as one line."""
+"""Result folders and output files of CLI commands; library errors as one line."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 
 from diffaccel.data import (
+    OptionError,
     ResultFolder,
     ResultFolderError,
     owned_files,
@@ -18,9 +19,27 @@ from diffaccel.data.atomic import os_condition, os_error_text
 
 __all__ = [
     "check_out_file",
+    "click_errors",
     "os_error",
     "output_folder",
 ]
+
+
+@contextmanager
+def click_errors(*errors: type[Exception], prefix: str = "") -> Iterator[None]:
+    """Library refusals inside the block as one-line click errors.
+
+    An :class:`~diffaccel.data.OptionError` becomes a usage error naming its
+    option; the ``errors`` (default: ``ValueError``) a ``ClickException`` with
+    their message after ``prefix``.
+    """
+    caught = errors or (ValueError,)
+    try:
+        yield
+    except OptionError as err:
+        raise click.BadParameter(str(err), param_hint=err.option) from err
+    except caught as err:
+        raise click.ClickException(f"{prefix}{err}") from err
 
 
 @contextmanager

@@ -59,6 +59,7 @@ from diffaccel.data import (
     partial_folder,
     read_scans,
 )
+from diffaccel.data.errors import OptionError
 from diffaccel.data.particles_io import write_openpmd_particles
 from diffaccel.reconstruction.background import can_fork, in_child
 from diffaccel.reconstruction.ensemble import Reconstruction
@@ -160,14 +161,6 @@ class RunError(ValueError):
 
 class ResumeError(RunError):
     """A run cannot be resumed as asked (the message says why, in one line)."""
-
-
-class OptionError(RunError):
-    """A run refused for the value of one option (``option``: its flag)."""
-
-    def __init__(self, message: str, option: str) -> None:
-        super().__init__(message)
-        self.option = option
 
 
 class ResultWriteError(RunError):
