@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 __all__ = [
+    "OutputWriteError",
     "atomic_write",
     "atomic_write_bytes",
     "atomic_write_json",
@@ -151,6 +152,10 @@ def os_condition(err: BaseException) -> str | None:
             break
         seen = seen.__cause__
     return None
+
+
+class OutputWriteError(OSError):
+    """An output that could not be written; the message names the file and why."""
 
 
 def os_error_text(err: BaseException, path: Path, doing: str = "write") -> str:

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from diffaccel.data.atomic import os_error_text
+from diffaccel.data.atomic import OutputWriteError, os_error_text
 from diffaccel.data.owned_files import OutputFileError, check_out_file, save_arrays
 from diffaccel.data.scans import MultiScanDataset, read_scans, write_scans
 from diffaccel.reconstruction.alarms import prediction_alarms
@@ -35,7 +35,6 @@ from diffaccel.reconstruction.evaluation import (
 
 __all__ = [
     "Prediction",
-    "PredictionWriteError",
     "check_prediction_files",
     "parse_settings",
     "predict_files",
@@ -152,10 +151,6 @@ def predict_settings(
     return Prediction({name: images}, spread, {name: fraction}, warnings)
 
 
-class PredictionWriteError(OSError):
-    """A prediction file could not be written (the message names the file and why)."""
-
-
 def parse_settings(text: str, names: list[str]) -> Tensor:
     """``--settings`` text as a ``(K, P)`` float64 tensor for scanned ``names``.
 
@@ -243,7 +238,7 @@ def _save(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
     try:
         save_arrays(path, arrays)
     except OSError as err:  # read-only folder, disk full...
-        raise PredictionWriteError(os_error_text(err, path)) from err
+        raise OutputWriteError(os_error_text(err, path)) from err
 
 
 def predict_files(
@@ -276,8 +271,9 @@ def predict_files(
 
     Raises:
         ValueError: a result or dataset that cannot be read or imaged as asked.
-        OSError: a file that cannot be read; :class:`PredictionWriteError`
-            (its condition in words) one that cannot be written.
+        OSError: a file that cannot be read; one that cannot be written as
+            :class:`~diffaccel.data.atomic.OutputWriteError` (its condition
+            in words).
     """
     want_std = std_out is not None
     result = load(result_dir)
@@ -319,7 +315,7 @@ def predict_files(
                 overwrite=force,
             )
         except OSError as err:  # read-only folder, disk full...
-            raise PredictionWriteError(os_error_text(err, out)) from err
+            raise OutputWriteError(os_error_text(err, out)) from err
         n = sum(v.shape[0] for v in predicted.values())
         echo(
             f"wrote {written}: {n} predicted images in {len(predicted)} scan(s) "
