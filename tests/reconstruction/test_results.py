@@ -30,6 +30,8 @@ from diffaccel.reconstruction.results import (
     OptionError,
     ResumeError,
     RunError,
+    demo_config,
+    demo_dataset,
     demo_report_markdown,
     finding_lines,
     plan_run,
@@ -221,3 +223,12 @@ def test_plan_run_checks_config_file_charge_and_selection(
     assert err.value.option == "--train-indices"
     with pytest.raises(ResumeError, match="resume"):
         plan_run(scan_file, out, options, given=set(), resume=True)
+
+
+def test_demo_inputs_are_a_6d_scan_and_a_short_6d_run() -> None:
+    ds = demo_dataset(seed=3)
+    assert ds.images.shape[0] == 20 and ds.images.shape[-2:] == (64, 64)
+    assert torch.equal(demo_dataset(seed=3).images, ds.images)  # seeded
+    config = demo_config(seed=3)
+    assert (config.dims, config.steps, config.snapshots) == (6, 300, 5)
+    assert (config.burn_in, config.n_particles, config.seed) == (1, 4096, 3)
