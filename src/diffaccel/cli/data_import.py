@@ -8,7 +8,7 @@ import click
 from tqdm import tqdm
 
 from diffaccel.cli.options import echo_lines
-from diffaccel.cli.output import check_out_file
+from diffaccel.cli.output import IN_FILE, OUT_FILE, SHOW_DEFAULTS, check_out_file
 from diffaccel.data import FormatError, write_scans
 from diffaccel.data.experiment import (
     count_frames,
@@ -20,21 +20,18 @@ from diffaccel.data.experiment import (
 __all__ = ["import_command"]
 
 
-@click.command("import")
-@click.argument(
-    "experiment", type=click.Path(exists=True, dir_okay=False, path_type=Path)
-)
+@click.command("import", context_settings=SHOW_DEFAULTS)
+@click.argument("experiment", type=IN_FILE)
 @click.option(
     "--out",
     required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
+    type=OUT_FILE,
     help="Quad-scan file to write (HDF5, format version 2).",
 )
 @click.option("--force", is_flag=True, help="Replace an existing --out file.")
 @click.option(
     "--progress/--no-progress",
     default=True,
-    show_default=True,
     help="Show a progress bar while the frames are read.",
 )
 def import_command(experiment: Path, out: Path, force: bool, progress: bool) -> None:

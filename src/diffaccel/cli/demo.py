@@ -9,7 +9,7 @@ from pathlib import Path
 import click
 
 from diffaccel.cli.options import seed_option
-from diffaccel.cli.output import output_folder
+from diffaccel.cli.output import OUT_DIR, output_folder
 from diffaccel.cli.reconstruct import run_reconstruction
 from diffaccel.data import atomic_write_text, write_quad_scan
 from diffaccel.reconstruction import as_scans, training_selection
@@ -26,7 +26,7 @@ __all__ = ["demo"]
 @click.command("demo")
 @click.option(
     "--out",
-    type=click.Path(file_okay=False, path_type=Path),
+    type=OUT_DIR,
     required=True,
     help="Output directory.",
 )

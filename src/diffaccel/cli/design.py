@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from diffaccel.cli.options import echo_lines
-from diffaccel.cli.output import click_errors
+from diffaccel.cli.output import IN_DIR, IN_FILE, OUT_DIR, SHOW_DEFAULTS, click_errors
 from diffaccel.plotting.design import write_design_figures
 from diffaccel.reconstruction.design_report import (
     design_answers,
@@ -19,8 +19,8 @@ from diffaccel.reconstruction.design_report import (
 __all__ = ["design_command"]
 
 
-@click.command("design")
-@click.argument("data", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.command("design", context_settings=SHOW_DEFAULTS)
+@click.argument("data", type=IN_FILE)
 @click.option(
     "--knob",
     "knobs",
@@ -39,7 +39,7 @@ __all__ = ["design_command"]
 )
 @click.option(
     "--result",
-    type=click.Path(exists=True, file_okay=False, path_type=Path),
+    type=IN_DIR,
     default=None,
     help="Result folder of reconstruct: use its beam and moment posterior "
     "(default: the Gaussian fit of the images, or the spec's beam).",
@@ -55,13 +55,12 @@ __all__ = ["design_command"]
     "--max-images-per-scan",
     type=click.IntRange(min=1),
     default=8,
-    show_default=True,
     help="Most added images per scan.",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
 @click.option(
     "--plots",
-    type=click.Path(file_okay=False, path_type=Path),
+    type=OUT_DIR,
     default=None,
     help="Folder for the singular-value spectrum and the std-vs-images figure.",
 )

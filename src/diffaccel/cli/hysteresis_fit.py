@@ -14,7 +14,13 @@ from diffaccel.cli.hysteresis import (
     time_column_option,
 )
 from diffaccel.cli.options import echo_lines
-from diffaccel.cli.output import click_errors, output_folder
+from diffaccel.cli.output import (
+    IN_FILE,
+    OUT_DIR,
+    SHOW_DEFAULTS,
+    click_errors,
+    output_folder,
+)
 from diffaccel.data import (
     DEFAULT_INPUT_COLUMN,
     DEFAULT_OUTPUT_COLUMN,
@@ -43,8 +49,8 @@ SUMMARY_FILE = "summary.json"
 MAX_SMOOTHNESS = 1e12
 
 
-@click.command("fit")
-@click.argument("data", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.command("fit", context_settings=SHOW_DEFAULTS)
+@click.argument("data", type=IN_FILE)
 @click.option(
     "--train-rows",
     type=click.IntRange(min=1),
@@ -52,15 +58,13 @@ MAX_SMOOTHNESS = 1e12
     help=f"Fit on the first N rows (time order; at least {min_training_rows()}, "
     "some held out for validation); the rest are predicted.",
 )
-@click.option("--input", "input_col", default=DEFAULT_INPUT_COLUMN, show_default=True)
-@click.option(
-    "--output", "output_col", default=DEFAULT_OUTPUT_COLUMN, show_default=True
-)
+@click.option("--input", "input_col", default=DEFAULT_INPUT_COLUMN)
+@click.option("--output", "output_col", default=DEFAULT_OUTPUT_COLUMN)
 @time_column_option
 @click.option(
     "--out",
     "out_dir",
-    type=click.Path(file_okay=False, path_type=Path),
+    type=OUT_DIR,
     required=True,
     help="Folder for summary.json, model.pt, model.json, stream.npz and figures.",
 )
@@ -68,7 +72,6 @@ MAX_SMOOTHNESS = 1e12
     "--mesh-size",
     type=click.IntRange(min=2),
     default=20,
-    show_default=True,
     callback=checked(lambda size: check_mesh_size(size) or size),
     help="Cells per axis of the triangular Preisach mesh (20: 210 hysterons; "
     "chosen on validation rows held out of the training rows, see "
@@ -93,7 +96,6 @@ MAX_SMOOTHNESS = 1e12
 @click.option(
     "--mesh-adapt",
     default="auto",
-    show_default=True,
     callback=checked(parse_mesh_adapt),
     help="Share of the mesh placed where the training output changes (0: a "
     "regular mesh; resolves coercive fields far below the input range); "
@@ -103,16 +105,14 @@ MAX_SMOOTHNESS = 1e12
     "--smoothness",
     type=click.FloatRange(min=0, max=MAX_SMOOTHNESS),
     default=0.0,
-    show_default=True,
     callback=check_finite,
     help="Weight of the density roughness penalty.",
 )
-@click.option("--steps", type=click.IntRange(min=1), default=300, show_default=True)
+@click.option("--steps", type=click.IntRange(min=1), default=300)
 @click.option(
     "--initial-state",
     type=click.Choice(["negative", "positive", "demagnetized", "learned"]),
     default="negative",
-    show_default=True,
     help="Magnet state before the first row (demagnetized: a virgin curve; "
     "its input range is then centred on 0).",
 )

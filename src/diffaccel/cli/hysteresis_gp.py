@@ -9,7 +9,13 @@ from tqdm import tqdm
 
 from diffaccel.cli.hysteresis import check_input_range, time_column_option
 from diffaccel.cli.options import echo_warnings
-from diffaccel.cli.output import click_errors, output_folder
+from diffaccel.cli.output import (
+    IN_FILE,
+    OUT_DIR,
+    SHOW_DEFAULTS,
+    click_errors,
+    output_folder,
+)
 from diffaccel.data import atomic_write_json
 from diffaccel.hysteresis.hgp_compare import (
     HOLDOUT,
@@ -31,8 +37,8 @@ FIGURE_FILE = "gp_fit.png"
 SEED_MAX = 2**64 - 1
 
 
-@click.command("gp-fit")
-@click.argument("data", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.command("gp-fit", context_settings=SHOW_DEFAULTS)
+@click.argument("data", type=IN_FILE)
 @click.option(
     "--x",
     "x_col",
@@ -50,7 +56,7 @@ SEED_MAX = 2**64 - 1
 @click.option(
     "--out",
     "out_dir",
-    type=click.Path(file_okay=False, path_type=Path),
+    type=OUT_DIR,
     required=True,
     help=f"Folder for {SUMMARY_FILE} and {FIGURE_FILE}.",
 )
@@ -58,14 +64,12 @@ SEED_MAX = 2**64 - 1
     "--mesh-size",
     type=click.IntRange(min=2, max=MAX_CLI_MESH_SIZE),
     default=30,
-    show_default=True,
     help="Cells per axis of the triangular Preisach mesh (30: 465 hysterons).",
 )
 @click.option(
     "--restarts",
     type=click.IntRange(min=1),
     default=3,
-    show_default=True,
     help="Optimisations of the H-GP, ranked by marginal likelihood: from the "
     "Preisach fit's density, from a uniform density (always both), the rest "
     "from prior samples.",
@@ -74,7 +78,6 @@ SEED_MAX = 2**64 - 1
     "--max-iter",
     type=click.IntRange(min=1),
     default=200,
-    show_default=True,
     help="L-BFGS-B iterations per restart.",
 )
 @click.option(
@@ -88,14 +91,12 @@ SEED_MAX = 2**64 - 1
     "--initial-state",
     type=click.Choice(["negative", "positive", "demagnetized"]),
     default="negative",
-    show_default=True,
     help="Magnet state before the first row.",
 )
 @click.option(
     "--holdout",
     type=click.FloatRange(min=0.0, max=0.9),
     default=HOLDOUT,
-    show_default=True,
     help="Share of the last rows held out: both GPs are fitted on the rows "
     "before them and predict them (the H-GP continuing the history); 0 fits "
     "every row.",
@@ -104,7 +105,6 @@ SEED_MAX = 2**64 - 1
     "--seed",
     type=click.IntRange(min=0, max=SEED_MAX),
     default=0,
-    show_default=True,
     help="Seed of the random restarts.",
 )
 @click.option(

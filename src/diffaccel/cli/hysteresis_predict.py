@@ -21,7 +21,7 @@ from pathlib import Path
 import click
 
 from diffaccel.cli.hysteresis import time_column_option
-from diffaccel.cli.output import click_errors
+from diffaccel.cli.output import IN_DIR, IN_FILE, OUT_FILE, SHOW_DEFAULTS, click_errors
 from diffaccel.data import DEFAULT_INPUT_COLUMN
 from diffaccel.hysteresis.stream_csv import (
     COLUMNS,
@@ -39,26 +39,21 @@ CHUNK_ROWS = 20_000
 MAX_CHUNK_ROWS = 10**9
 
 
-@click.command("predict")
-@click.argument(
-    "fit_dir", type=click.Path(exists=True, file_okay=False, path_type=Path)
-)
+@click.command("predict", context_settings=SHOW_DEFAULTS)
+@click.argument("fit_dir", type=IN_DIR)
 @click.option(
     "--input",
     "data",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    type=IN_FILE,
     required=True,
     help="CSV with the input column of the fit, rows in time order (any length).",
 )
 @time_column_option
-@click.option(
-    "--out", "out_file", type=click.Path(dir_okay=False, path_type=Path), required=True
-)
+@click.option("--out", "out_file", type=OUT_FILE, required=True)
 @click.option(
     "--chunk-rows",
     type=click.IntRange(min=1, max=MAX_CHUNK_ROWS),
     default=CHUNK_ROWS,
-    show_default=True,
     help="Rows read, predicted and written at a time (memory grows with it).",
 )
 @click.option(

@@ -18,7 +18,7 @@ from diffaccel.cli.hysteresis import (
     time_column_option,
 )
 from diffaccel.cli.options import echo_lines
-from diffaccel.cli.output import click_errors
+from diffaccel.cli.output import IN_DIR, IN_FILE, click_errors
 from diffaccel.data import DEFAULT_INPUT_COLUMN, DEFAULT_TIME_COLUMN, iter_magnet_csv
 from diffaccel.data.magnet_stream import check_time_column
 from diffaccel.hysteresis import field_for_k1
@@ -34,13 +34,11 @@ __all__ = ["set_command"]
 
 
 @click.command("set")
-@click.argument(
-    "fit_dir", type=click.Path(exists=True, file_okay=False, path_type=Path)
-)
+@click.argument("fit_dir", type=IN_DIR)
 @click.option(
     "--history",
     "data",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    type=IN_FILE,
     required=True,
     help="CSV with the input column of the fit: every input applied since the "
     "fit's initial state, in time order.",

@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from diffaccel.cli.options import echo_lines, echo_warnings
-from diffaccel.cli.output import check_out_file
+from diffaccel.cli.output import IN_FILE, OUT_FILE, check_out_file
 from diffaccel.data.atomic import atomic_write_json
 from diffaccel.dynamics import Beamline
 from diffaccel.dynamics.cheetah_interop import LatticeImportError
@@ -18,7 +18,7 @@ __all__ = ["lattice"]
 
 
 @click.command("lattice")
-@click.argument("file", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("file", type=IN_FILE)
 @click.option("--start", default=None, help="First element to keep (by name).")
 @click.option("--end", default=None, help="Last element to keep (by name).")
 @click.option(
@@ -58,7 +58,7 @@ __all__ = ["lattice"]
 )
 @click.option(
     "--out",
-    type=click.Path(dir_okay=False, path_type=Path),
+    type=OUT_FILE,
     default=None,
     help="Write the beamline spec (JSON list of elements) here.",
 )

@@ -1,4 +1,5 @@
-"""Result folders and output files of CLI commands; library errors as one line."""
+"""Result folders, output files and path types of CLI commands; library errors
+as one line."""
 
 from __future__ import annotations
 
@@ -18,11 +19,27 @@ from diffaccel.data import (
 from diffaccel.data.atomic import os_condition, os_error_text
 
 __all__ = [
+    "IN_DIR",
+    "IN_FILE",
+    "OUT_DIR",
+    "OUT_FILE",
+    "SHOW_DEFAULTS",
     "check_out_file",
     "click_errors",
     "os_error",
     "output_folder",
 ]
+
+#: An existing file an argument or option reads.
+IN_FILE = click.Path(exists=True, dir_okay=False, path_type=Path)
+#: An existing folder (a fit, a reconstruction) a command reads.
+IN_DIR = click.Path(exists=True, file_okay=False, path_type=Path)
+#: A file a command writes (not a folder).
+OUT_FILE = click.Path(dir_okay=False, path_type=Path)
+#: A folder a command writes its result into (not a file).
+OUT_DIR = click.Path(file_okay=False, path_type=Path)
+#: ``context_settings`` of the commands: every option's default in ``--help``.
+SHOW_DEFAULTS = {"show_default": True}
 
 
 @contextmanager

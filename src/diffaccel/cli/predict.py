@@ -7,20 +7,19 @@ from pathlib import Path
 import click
 
 from diffaccel.cli.options import echo_warnings, seed_option
+from diffaccel.cli.output import IN_DIR, IN_FILE, OUT_FILE, SHOW_DEFAULTS
 from diffaccel.data import FormatError
 from diffaccel.reconstruction.prediction import check_prediction_files, predict_files
 
 __all__ = ["predict"]
 
 
-@click.command("predict")
-@click.argument(
-    "result_dir", type=click.Path(exists=True, file_okay=False, path_type=Path)
-)
+@click.command("predict", context_settings=SHOW_DEFAULTS)
+@click.argument("result_dir", type=IN_DIR)
 @click.option(
     "--dataset",
     "dataset_path",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    type=IN_FILE,
     default=None,
     help="Predict every scan and setting of this file (version 1 or 2), on its "
     "screen grids.",
@@ -34,7 +33,7 @@ __all__ = ["predict"]
 )
 @click.option(
     "--out",
-    type=click.Path(dir_okay=False, path_type=Path),
+    type=OUT_FILE,
     required=True,
     help="Output file: .h5 writes a quad-scan file of the same format version as "
     "--dataset with the predicted images (one shot, each summing to 1); .npy "
@@ -45,13 +44,12 @@ __all__ = ["predict"]
     "--particles",
     type=click.IntRange(min=100),
     default=50_000,
-    show_default=True,
     help="Particles per ensemble member.",
 )
 @seed_option
 @click.option(
     "--std-out",
-    type=click.Path(dir_okay=False, path_type=Path),
+    type=OUT_FILE,
     default=None,
     help="Also write the per-pixel spread (1-sigma) of the predicted images, on "
     "their unit-sum scale: .npy (K, H, W) float32 for one scan, or .npz with one "

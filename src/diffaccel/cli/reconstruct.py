@@ -23,7 +23,7 @@ from click.core import ParameterSource
 from tqdm import tqdm
 
 from diffaccel.cli.options import echo_lines, echo_warnings, seed_option
-from diffaccel.cli.output import output_folder
+from diffaccel.cli.output import IN_FILE, OUT_DIR, SHOW_DEFAULTS, output_folder
 from diffaccel.data import MultiScanDataset, partial_folder
 from diffaccel.plotting.reconstruction import (
     plot_corner,
@@ -136,12 +136,10 @@ def config_options(
 
 #: The argument and options of ``reconstruct``, in the order of its ``--help``.
 _OPTIONS = [
-    click.argument(
-        "dataset", type=click.Path(exists=True, dir_okay=False, path_type=Path)
-    ),
+    click.argument("dataset", type=IN_FILE),
     click.option(
         "--out",
-        type=click.Path(file_okay=False, path_type=Path),
+        type=OUT_DIR,
         required=True,
         help="Output directory (ensemble, summary.json, figures).",
     ),
@@ -173,13 +171,10 @@ _OPTIONS = [
         f"--dims 4, {_DEFAULTS[6].snapshots} for --dims 6].",
     ),
     seed_option,
-    click.option(
-        "--device", default="cpu", show_default=True, help="cpu, cuda, cuda:1..."
-    ),
+    click.option("--device", default="cpu", help="cpu, cuda, cuda:1..."),
     click.option(
         "--train-indices",
         default="all",
-        show_default=True,
         help="Settings to train on, per scan: all, even, odd or a list like 0,2,4 "
         "(the same rule in every scan), or SCAN:RULE;SCAN:RULE (e.g. "
         "'dipole_off:0,1,4,5;dipole_on:all'; scans not named are held out). The "
@@ -189,7 +184,6 @@ _OPTIONS = [
         "--dims",
         type=click.Choice(["4", "6"]),
         default="4",
-        show_default=True,
         help="4: transverse phase space only; 6: also z, pz (seen with a deflecting "
         "cavity and/or dispersion; otherwise weakly constrained).",
     ),
@@ -197,7 +191,6 @@ _OPTIONS = [
         "--image-loss",
         type=click.Choice(["kl", "l1", "l2"]),
         default=_DEFAULTS[4].image_loss,
-        show_default=True,
     ),
     click.option(
         "--blur",
@@ -249,7 +242,6 @@ _OPTIONS = [
     click.option(
         "--uncertainty/--no-uncertainty",
         default=True,
-        show_default=True,
         help="Calibrated moment std (moment-space posterior, see "
         "docs/methods/uncertainty.md) and the per-pixel spread in the image figures; "
         "--no-uncertainty reports the ensemble scatter only (faster, under-covers).",
@@ -277,7 +269,6 @@ _OPTIONS = [
         "--split",
         type=click.Choice(["particles", "members"]),
         default="particles",
-        show_default=True,
         help="With --distributed: 'particles' splits every step's particles across "
         "the processes (one ensemble, same answer as one process); 'members' trains "
         "one independent ensemble per process (process r: seed + 7919 r) and joins "
@@ -398,7 +389,7 @@ def run_reconstruction(
         raise click.ClickException(str(err)) from err
 
 
-@click.command("reconstruct")
+@click.command("reconstruct", context_settings=SHOW_DEFAULTS)
 @reconstruct_options
 def reconstruct_command(
     dataset: Path,

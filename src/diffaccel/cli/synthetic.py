@@ -7,7 +7,13 @@ from typing import Any
 
 import click
 
-from diffaccel.cli.output import check_out_file, os_error
+from diffaccel.cli.output import (
+    IN_FILE,
+    OUT_FILE,
+    SHOW_DEFAULTS,
+    check_out_file,
+    os_error,
+)
 from diffaccel.data import FormatError
 from diffaccel.data.quad_scan import PARAMETER_LIMITS, check_p0c
 from diffaccel.data.synthetic import PRESETS
@@ -21,13 +27,12 @@ MAX_SHAPE = 4096
 _K1 = PARAMETER_LIMITS["k1"]
 
 
-@click.command("synthetic")
-@click.argument("out", type=click.Path(dir_okay=False, path_type=Path))
+@click.command("synthetic", context_settings=SHOW_DEFAULTS)
+@click.argument("out", type=OUT_FILE)
 @click.option(
     "--layout",
     type=click.Choice(["quad", "awa6d", "rf6d"]),
     default="quad",
-    show_default=True,
     help="quad: Quadrupole 0.1 m + Drift 1 m + Screen (format version 1). awa6d: "
     "the AWA 6D layout (quadrupole 0.11 m, 1.3 GHz TDC off/4 MV, 20 degree "
     "dipole off/on, screens DYG1/DYG2 of 96 x 96 pixels; two scans, format "
@@ -40,12 +45,11 @@ _K1 = PARAMETER_LIMITS["k1"]
     "--preset",
     type=click.Choice(PRESETS),
     default="gaussian",
-    show_default=True,
     help="Ground-truth beam (6D, with energy spread).",
 )
 @click.option(
     "--particle-file",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    type=IN_FILE,
     default=None,
     help="openPMD-beamphysics HDF5 beam to use instead of a preset.",
 )
@@ -54,7 +58,6 @@ _K1 = PARAMETER_LIMITS["k1"]
     "n_particles",
     type=click.IntRange(min=2),
     default=10_000,
-    show_default=True,
     help="Number of preset particles.",
 )
 @click.option(
@@ -107,23 +110,20 @@ _K1 = PARAMETER_LIMITS["k1"]
     "--noise",
     type=click.FloatRange(min=0),
     default=0.0,
-    show_default=True,
     help="Relative noise at the peak pixel (0: none).",
 )
 @click.option(
     "--noise-model",
     type=click.Choice(["poisson", "gaussian"]),
     default="poisson",
-    show_default=True,
 )
 @click.option(
     "--shots",
     type=click.IntRange(min=1),
     default=1,
-    show_default=True,
     help="Shots per setting.",
 )
-@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--seed", type=int, default=0)
 @click.option("--force", is_flag=True, help="Overwrite OUT if it exists.")
 def synthetic(out: Path, force: bool, **options: Any) -> None:
     """Simulate a quadrupole scan of a known beam and write it to OUT (HDF5)."""
