@@ -30,6 +30,7 @@ from diffaccel.reconstruction.results import (
     OptionError,
     ResumeError,
     RunError,
+    config_options,
     demo_config,
     demo_dataset,
     demo_report_markdown,
@@ -232,3 +233,19 @@ def test_demo_inputs_are_a_6d_scan_and_a_short_6d_run() -> None:
     config = demo_config(seed=3)
     assert (config.dims, config.steps, config.snapshots) == (6, 300, 5)
     assert (config.burn_in, config.n_particles, config.seed) == (1, 4096, 3)
+
+
+def test_config_options_are_the_configs_keywords() -> None:
+    given = dict(
+        dims="6", particles=None, steps=60, snapshots=2, seed=1, image_loss="kl",
+        blur=None, loss_smoothing="0.5", uncoupled=True, probe=False,
+    )  # fmt: skip
+    options = config_options(**given)
+    assert options["dims"] == 6 and options["loss_smoothing"] == 0.5
+    assert options["place_coupling"] is True and options["probe_unseen"] == 0.0
+    assert ReconstructionConfig(**options).steps == 60
+    auto = config_options(**{**given, "loss_smoothing": "auto", "probe": None})
+    assert auto["loss_smoothing"] == "auto" and auto["probe_unseen"] is None
+    with pytest.raises(OptionError, match="a number of pixels or 'auto'") as err:
+        config_options(**{**given, "loss_smoothing": "wide"})
+    assert err.value.option == "--loss-smoothing"

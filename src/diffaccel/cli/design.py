@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -65,14 +66,7 @@ __all__ = ["design_command"]
     help="Folder for the singular-value spectrum and the std-vs-images figure.",
 )
 def design_command(
-    data: Path,
-    knobs: tuple[str, ...],
-    targets: tuple[str, ...],
-    result: Path | None,
-    relative_error: float | None,
-    max_images_per_scan: int,
-    as_json: bool,
-    plots: Path | None,
+    data: Path, as_json: bool, plots: Path | None, **answers: Any
 ) -> None:
     """What the scans in DATA determine and which settings to add.
 
@@ -82,15 +76,8 @@ def design_command(
     prior. With --knob: also the added settings, ranked by the reduction of
     the targets' posterior std per image. No training.
     """
-    with click_errors():
-        od, report = design_answers(
-            data,
-            result=result,
-            knobs=knobs,
-            targets=targets,
-            relative_error=relative_error,
-            max_images_per_scan=max_images_per_scan,
-        )
+    with click_errors():  # --knob, --target, --result, ...: design_answers's
+        od, report = design_answers(data, **answers)
     if plots is not None:
         try:
             write_design_figures(plots, od, report)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import click
 from tqdm import tqdm
@@ -135,16 +136,9 @@ def fit_command(
     output_col: str,
     time_column: str | None,
     out_dir: Path,
-    mesh_size: int,
-    symmetric: bool | None,
-    odd: bool | None,
-    mesh_adapt: float | str,
-    smoothness: float,
-    steps: int,
-    initial_state: str,
-    input_range: tuple[float, float] | None,
     no_figures: bool,
     force: bool,
+    **fit_options: Any,
 ) -> None:
     """Fit a Preisach model to the first N rows of DATA (CSV) and test on the rest.
 
@@ -166,19 +160,9 @@ def fit_command(
                 bar.update(1)
                 bar.set_postfix(loss=f"{loss:.3g}", refresh=False)
 
+            # --mesh-size, --symmetric, --odd, --mesh-adapt, --smoothness, ...
             fit, score = fit_history(
-                hist,
-                train_rows,
-                data=str(data),
-                callback=progress,
-                mesh_size=mesh_size,
-                smoothness=smoothness,
-                initial_state=initial_state,
-                symmetric=symmetric,
-                input_range=input_range,
-                steps=steps,
-                mesh_adapt=mesh_adapt,
-                odd=odd,
+                hist, train_rows, data=str(data), callback=progress, **fit_options
             )
         save_fit(
             folder.path,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -18,7 +19,7 @@ __all__ = ["predict"]
 @click.argument("result_dir", type=IN_DIR)
 @click.option(
     "--dataset",
-    "dataset_path",
+    "dataset",
     type=IN_FILE,
     default=None,
     help="Predict every scan and setting of this file (version 1 or 2), on its "
@@ -26,7 +27,7 @@ __all__ = ["predict"]
 )
 @click.option(
     "--settings",
-    "settings_text",
+    "settings",
     default=None,
     help="Instead of --dataset: values of the scanned parameter(s) of the "
     "(first) training scan, e.g. '-3,0,2.5' (one parameter) or '1:2;3:4' (rows ';').",
@@ -42,6 +43,7 @@ __all__ = ["predict"]
 )
 @click.option(
     "--particles",
+    "n_particles",
     type=click.IntRange(min=100),
     default=50_000,
     help="Particles per ensemble member.",
@@ -57,31 +59,15 @@ __all__ = ["predict"]
     "see docs/methods/uncertainty.md).",
 )
 @click.option("--force", is_flag=True, help="Overwrite --out (and --std-out).")
-def predict(
-    result_dir: Path,
-    dataset_path: Path | None,
-    settings_text: str | None,
-    out: Path,
-    particles: int,
-    seed: int,
-    std_out: Path | None,
-    force: bool,
-) -> None:
+def predict(result_dir: Path, out: Path, force: bool, **options: Any) -> None:
     """Ensemble-mean screen images of a reconstruction (RESULT_DIR) for new settings."""
+    dataset, std_out = options["dataset"], options["std_out"]
+    given = options["settings"] is not None
     try:
-        check_prediction_files(
-            out, std_out, dataset_path, settings_text is not None, force
-        )
+        check_prediction_files(out, std_out, dataset, given, force)
+        # --dataset or --settings, --std-out, --particles, --seed
         warnings = predict_files(
-            result_dir,
-            out,
-            dataset=dataset_path,
-            settings=settings_text,
-            std_out=std_out,
-            n_particles=particles,
-            seed=seed,
-            force=force,
-            echo=click.echo,
+            result_dir, out, force=force, echo=click.echo, **options
         )
     except (FormatError, ValueError, FileNotFoundError, OSError) as err:
         raise click.ClickException(str(err)) from err

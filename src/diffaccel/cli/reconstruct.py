@@ -23,7 +23,13 @@ from click.core import ParameterSource
 from tqdm import tqdm
 
 from diffaccel.cli.options import echo_lines, echo_warnings, seed_option
-from diffaccel.cli.output import IN_FILE, OUT_DIR, SHOW_DEFAULTS, output_folder
+from diffaccel.cli.output import (
+    IN_FILE,
+    OUT_DIR,
+    SHOW_DEFAULTS,
+    click_errors,
+    output_folder,
+)
 from diffaccel.data import MultiScanDataset, partial_folder
 from diffaccel.plotting.reconstruction import (
     plot_corner,
@@ -32,15 +38,14 @@ from diffaccel.plotting.reconstruction import (
     write_result_figures,
 )
 from diffaccel.reconstruction import ReconstructionConfig, StepInfo, reconstruct
-from diffaccel.reconstruction.probe import PROBE_STEP
 from diffaccel.reconstruction.results import (
     CHECKPOINT,
     OWNED,
     REPORT,
     SELECTION,
-    OptionError,
     ResultFigures,
     RunError,
+    config_options,
     finding_lines,
     plan_run,
     run_in_folder,
@@ -84,53 +89,12 @@ PARAMETER_FLAGS = {
 }
 
 
-def _loss_smoothing(value: str | None) -> float | str | None:
-    """``--loss-smoothing`` as the config takes it (one-line error otherwise)."""
-    if value is None or value == "auto":
-        return value
-    try:
-        return float(value)
-    except ValueError:
-        raise click.BadParameter(
-            f"expected a number of pixels or 'auto'; got {value!r}.",
-            param_hint="--loss-smoothing",
-        ) from None
-
-
 def given_flags(ctx: click.Context) -> set[str]:
     """The flags of :data:`PARAMETER_FLAGS` given on the command line."""
     return {
         flag
         for name, flag in PARAMETER_FLAGS.items()
         if ctx.get_parameter_source(name) in (ParameterSource.COMMANDLINE,)
-    }
-
-
-def config_options(
-    *,
-    dims: str,
-    particles: int | None,
-    steps: int | None,
-    snapshots: int | None,
-    seed: int,
-    image_loss: str,
-    blur: float | None,
-    loss_smoothing: str | None,
-    uncoupled: bool,
-    probe: bool | None,
-) -> dict[str, Any]:
-    """The options as :class:`ReconstructionConfig` keywords (None: the default)."""
-    return {
-        "dims": int(dims),
-        "n_particles": particles,
-        "steps": steps,
-        "snapshots": snapshots,
-        "seed": seed,
-        "image_loss": image_loss,
-        "blur_pixels": blur,
-        "loss_smoothing": _loss_smoothing(loss_smoothing),
-        "place_coupling": uncoupled,
-        "probe_unseen": None if probe is None else PROBE_STEP if probe else 0.0,
     }
 
 
@@ -367,26 +331,24 @@ def run_reconstruction(
         )
         bar.refresh()
 
-    try:
-        with bar:
-            return run_in_folder(
-                ds,
-                folder,
-                config,
-                selection,
-                dataset_path=dataset_path,
-                device=device,
-                resume=resume,
-                figures=FIGURES if figures else None,
-                distributed=distributed,
-                split=split,
-                uncertainty=uncertainty,
-                charge_C=charge_C,
-                callback=callback,
-                train=reconstruct,  # looked up here: tests wrap it
-            )
-    except RunError as err:  # bad data, options, checkpoint, calibration
-        raise click.ClickException(str(err)) from err
+    # bad data, options, checkpoint, calibration: one line
+    with bar, click_errors(RunError):
+        return run_in_folder(
+            ds,
+            folder,
+            config,
+            selection,
+            dataset_path=dataset_path,
+            device=device,
+            resume=resume,
+            figures=FIGURES if figures else None,
+            distributed=distributed,
+            split=split,
+            uncertainty=uncertainty,
+            charge_C=charge_C,
+            callback=callback,
+            train=reconstruct,  # looked up here: tests wrap it
+        )
 
 
 @click.command("reconstruct", context_settings=SHOW_DEFAULTS)
@@ -394,18 +356,8 @@ def run_reconstruction(
 def reconstruct_command(
     dataset: Path,
     out: Path,
-    particles: int | None,
-    steps: int | None,
-    snapshots: int | None,
-    seed: int,
     device: str,
     train_indices: str,
-    dims: str,
-    image_loss: str,
-    blur: float | None,
-    loss_smoothing: str | None,
-    uncoupled: bool,
-    probe: bool | None,
     no_figures: bool,
     uncertainty: bool,
     force: bool,
@@ -413,6 +365,7 @@ def reconstruct_command(
     distributed: bool,
     split: str,
     charge_pc: float | None,
+    **config_values: Any,
 ) -> None:
     """Reconstruct a beam's phase space from the quad-scan file DATASET.
 
@@ -429,14 +382,11 @@ def reconstruct_command(
     # _init_distributed: a module name, looked up here (tests replace it)
     dev = _init_distributed(device) if distributed else check_device(device)
     writer = not distributed or tdist.get_rank() == 0
-    options = config_options(
-        dims=dims, particles=particles, steps=steps, snapshots=snapshots,
-        seed=seed, image_loss=image_loss, blur=blur, loss_smoothing=loss_smoothing,
-        uncoupled=uncoupled, probe=probe,
-    )  # fmt: skip
+    with click_errors():  # the options of PARAMETER_FLAGS
+        options = config_options(**config_values)
     charge_C = None if charge_pc is None else charge_pc * 1e-12
     source = ctx.get_parameter_source("train_indices")
-    try:
+    with click_errors(RunError):
         plan = plan_run(
             dataset,
             out,
@@ -447,10 +397,6 @@ def reconstruct_command(
             resume=resume,
             charge_C=charge_C,
         )
-    except OptionError as err:
-        raise click.BadParameter(str(err), param_hint=err.option) from err
-    except RunError as err:
-        raise click.ClickException(str(err)) from err
     config, selection = plan.config, plan.selection
     if plan.finished:  # a finished result: nothing to continue
         if distributed:

@@ -72,6 +72,7 @@ from diffaccel.reconstruction.pipeline import (
     reconstruct,
     training_selection,
 )
+from diffaccel.reconstruction.probe import PROBE_STEP
 from diffaccel.reconstruction.training import (
     CheckpointDataError,
     ReconstructionConfig,
@@ -98,6 +99,7 @@ __all__ = [
     "bunch_charge",
     "check_finished_run",
     "clean_for_resume",
+    "config_options",
     "demo_config",
     "demo_dataset",
     "demo_report_markdown",
@@ -695,6 +697,50 @@ def resume_plan(
     if finished:
         check_finished_run(checkpoint, dataset, config, selection)
     return config, selection, finished
+
+
+def config_options(
+    *,
+    dims: str,
+    particles: int | None,
+    steps: int | None,
+    snapshots: int | None,
+    seed: int,
+    image_loss: str,
+    blur: float | None,
+    loss_smoothing: str | None,
+    uncoupled: bool,
+    probe: bool | None,
+) -> dict[str, Any]:
+    """The options of ``reconstruct`` as :class:`ReconstructionConfig` keywords.
+
+    None (an option not given) is the config's default; ``loss_smoothing`` is
+    a number of pixels or ``"auto"``; ``probe`` True probes by
+    :data:`~diffaccel.reconstruction.probe.PROBE_STEP`, False not at all.
+
+    Raises:
+        OptionError: a ``--loss-smoothing`` that is neither a number nor ``auto``.
+    """
+    if loss_smoothing not in (None, "auto"):
+        try:
+            loss_smoothing = float(loss_smoothing)
+        except ValueError:
+            raise OptionError(
+                f"expected a number of pixels or 'auto'; got {loss_smoothing!r}.",
+                "--loss-smoothing",
+            ) from None
+    return {
+        "dims": int(dims),
+        "n_particles": particles,
+        "steps": steps,
+        "snapshots": snapshots,
+        "seed": seed,
+        "image_loss": image_loss,
+        "blur_pixels": blur,
+        "loss_smoothing": loss_smoothing,
+        "place_coupling": uncoupled,
+        "probe_unseen": None if probe is None else PROBE_STEP if probe else 0.0,
+    }
 
 
 @dataclass(frozen=True)
