@@ -9,22 +9,16 @@ Its subcommands live in their own modules (``hysteresis_fit``,
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any, TypeVar
 
 import click
-import numpy as np
 
-from diffaccel.cli.output import click_errors
 from diffaccel.data import DEFAULT_RUN_COLUMN, DEFAULT_TIME_COLUMN, magnet_stream
 
 __all__ = [
     "check_finite",
     "check_input_range",
-    "check_magnitude",
-    "check_time_column",
     "checked",
     "hysteresis",
     "time_column_option",
@@ -56,39 +50,9 @@ def checked(
     return callback
 
 
-def check_finite(
-    ctx: click.Context, param: click.Parameter, value: float | None
-) -> float | None:
-    """Click callback: refuse a NaN or infinite number (the option is named)."""
-    if value is not None and not math.isfinite(value):
-        raise click.BadParameter(f"expected a finite number; got {value}.")
-    return value
-
-
-def check_input_range(
-    ctx: click.Context, param: click.Parameter, value: tuple[float, float] | None
-) -> tuple[float, float] | None:
-    """Click callback: ``--input-range LO HI`` finite, with ``LO < HI``."""
-    if value is None:
-        return None
-    lo, hi = value
-    if not (math.isfinite(lo) and math.isfinite(hi)):
-        raise click.BadParameter(f"expected finite numbers; got {lo} {hi}.")
-    if not lo < hi:
-        raise click.BadParameter(f"expected LO < HI; got {lo} {hi}.")
-    if not math.isfinite(hi - lo):
-        raise click.BadParameter(
-            f"HI - LO overflows (got {lo} {hi}); expected a range of finite width."
-        )
-    return value
-
-
-def check_magnitude(
-    data: Path, column: str, values: np.ndarray, first_row: int = 1
-) -> None:
-    """:func:`diffaccel.data.magnet_stream.check_magnitude` as a click error."""
-    with click_errors():
-        magnet_stream.check_magnitude(data, column, values, first_row)
+#: Click callbacks: a finite number; an input range LO < HI of finite numbers.
+check_finite = checked(magnet_stream.check_finite)
+check_input_range = checked(magnet_stream.check_input_range)
 
 
 def time_column_option(command: F) -> F:
@@ -103,9 +67,3 @@ def time_column_option(command: F) -> F:
         f"Default: {DEFAULT_TIME_COLUMN!r} if the file has it; without a time "
         "column the row order cannot be checked.",
     )(command)
-
-
-def check_time_column(data: Path, header: list[str], name: str | None) -> None:
-    """:func:`diffaccel.data.magnet_stream.check_time_column` as a usage error."""
-    with click_errors():
-        magnet_stream.check_time_column(data, header, name)

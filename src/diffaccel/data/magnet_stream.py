@@ -24,6 +24,7 @@ from __future__ import annotations
 import csv
 import io
 import itertools
+import math
 import operator
 import os
 import re
@@ -42,6 +43,8 @@ __all__ = [
     "MAX_CELL_CHARS",
     "MAX_MAGNITUDE",
     "append_columns",
+    "check_finite",
+    "check_input_range",
     "check_magnitude",
     "check_time_column",
     "iter_magnet_csv",
@@ -83,6 +86,40 @@ def check_magnitude(
             f"{float(v[i]):.6g} is beyond {MAX_MAGNITUDE:.0e} in magnitude, "
             "not a measurement (a unit or parsing error?)."
         )
+
+
+def check_finite(value: float | None) -> float | None:
+    """``value`` unless it is NaN or infinite (None passes).
+
+    Raises:
+        ValueError: ``expected a finite number; got VALUE.``
+    """
+    if value is not None and not math.isfinite(value):
+        raise ValueError(f"expected a finite number; got {value}.")
+    return value
+
+
+def check_input_range(
+    value: tuple[float, float] | None,
+) -> tuple[float, float] | None:
+    """An input range ``(LO, HI)`` of finite numbers with ``LO < HI`` (None passes).
+
+    Raises:
+        ValueError: naming the numbers: not finite, not increasing, or a width
+            that overflows.
+    """
+    if value is None:
+        return None
+    lo, hi = value
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        raise ValueError(f"expected finite numbers; got {lo} {hi}.")
+    if not lo < hi:
+        raise ValueError(f"expected LO < HI; got {lo} {hi}.")
+    if not math.isfinite(hi - lo):
+        raise ValueError(
+            f"HI - LO overflows (got {lo} {hi}); expected a range of finite width."
+        )
+    return value
 
 
 def check_time_column(
