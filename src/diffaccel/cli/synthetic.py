@@ -11,13 +11,17 @@ from diffaccel.cli.output import (
     IN_FILE,
     OUT_FILE,
     SHOW_DEFAULTS,
-    check_out_file,
+    click_errors,
     os_error,
 )
 from diffaccel.data import FormatError
-from diffaccel.data.quad_scan import PARAMETER_LIMITS, check_p0c
+from diffaccel.data.quad_scan import PARAMETER_LIMITS
 from diffaccel.data.synthetic import PRESETS
-from diffaccel.data.synthetic_file import SyntheticRequest, write_synthetic
+from diffaccel.data.synthetic_file import (
+    SyntheticRequest,
+    check_synthetic,
+    write_synthetic,
+)
 
 __all__ = ["synthetic"]
 
@@ -128,24 +132,8 @@ _K1 = PARAMETER_LIMITS["k1"]
 def synthetic(out: Path, force: bool, **options: Any) -> None:
     """Simulate a quadrupole scan of a known beam and write it to OUT (HDF5)."""
     opts = SyntheticRequest(**options)
-    if out.suffix.lower() not in (".h5", ".hdf5"):
-        raise click.BadParameter(
-            f"{out}: expected a .h5 or .hdf5 file name (the quad-scan file is HDF5)",
-            param_hint="OUT",
-        )
-    if opts.p0c is not None and opts.particle_file is None:
-        try:
-            check_p0c(opts.p0c, "electron", "--p0c")
-        except FormatError as err:
-            message = str(err).removeprefix("--p0c: ")
-            raise click.BadParameter(message, param_hint="--p0c") from err
-    check_out_file(out, force, {"--particle-file": opts.particle_file})
-    if opts.layout != "quad" and opts.pixel_size is not None:
-        raise click.BadParameter(
-            f"the {opts.layout} layout uses the DYG1/DYG2 calibration; scale it with "
-            "--shape",
-            param_hint="--pixel-size",
-        )
+    with click_errors():
+        check_synthetic(opts, out, force)
     try:
         click.echo(write_synthetic(opts, out, force))
     except (FormatError, ValueError, FileExistsError) as err:
