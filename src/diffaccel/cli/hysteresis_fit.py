@@ -59,8 +59,18 @@ MAX_SMOOTHNESS = 1e12
     help=f"Fit on the first N rows (time order; at least {min_training_rows()}, "
     "some held out for validation); the rest are predicted.",
 )
-@click.option("--input", "input_col", default=DEFAULT_INPUT_COLUMN)
-@click.option("--output", "output_col", default=DEFAULT_OUTPUT_COLUMN)
+@click.option(
+    "--input",
+    "input_col",
+    default=DEFAULT_INPUT_COLUMN,
+    help="Column of the magnet's input (e.g. the current [A]).",
+)
+@click.option(
+    "--output",
+    "output_col",
+    default=DEFAULT_OUTPUT_COLUMN,
+    help="Column of the measured output (e.g. the integrated field [T m]).",
+)
 @time_column_option
 @click.option(
     "--out",
@@ -109,7 +119,12 @@ MAX_SMOOTHNESS = 1e12
     callback=check_finite,
     help="Weight of the density roughness penalty.",
 )
-@click.option("--steps", type=click.IntRange(min=1), default=300)
+@click.option(
+    "--steps",
+    type=click.IntRange(min=1),
+    default=300,
+    help="L-BFGS iterations per fit.",
+)
 @click.option(
     "--initial-state",
     type=click.Choice(["negative", "positive", "demagnetized", "learned"]),

@@ -49,7 +49,13 @@ MAX_CHUNK_ROWS = 10**9
     help="CSV with the input column of the fit, rows in time order (any length).",
 )
 @time_column_option
-@click.option("--out", "out_file", type=OUT_FILE, required=True)
+@click.option(
+    "--out",
+    "out_file",
+    type=OUT_FILE,
+    required=True,
+    help="CSV file to write: the input's columns plus the predicted ones.",
+)
 @click.option(
     "--chunk-rows",
     type=click.IntRange(min=1, max=MAX_CHUNK_ROWS),

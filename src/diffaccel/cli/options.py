@@ -14,7 +14,13 @@ F = TypeVar("F", bound=Callable)
 
 def seed_option(command: F) -> F:
     """The ``--seed`` option (an integer, default 0)."""
-    return click.option("--seed", type=int, default=0, show_default=True)(command)
+    return click.option(
+        "--seed",
+        type=int,
+        default=0,
+        show_default=True,
+        help="Random seed: the same seed gives the same numbers.",
+    )(command)
 
 
 def echo_lines(lines: Sequence[str], err: bool = False) -> None:

@@ -155,6 +155,8 @@ _OPTIONS = [
         "--image-loss",
         type=click.Choice(["kl", "l1", "l2"]),
         default=_DEFAULTS[4].image_loss,
+        help="Distance of simulated from measured images: kl (the images' Poisson "
+        "log-likelihood), l1 or l2.",
     ),
     click.option(
         "--blur",

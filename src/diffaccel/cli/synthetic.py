@@ -120,6 +120,8 @@ _K1 = PARAMETER_LIMITS["k1"]
     "--noise-model",
     type=click.Choice(["poisson", "gaussian"]),
     default="poisson",
+    help="poisson: counts scaled so that the peak pixel has relative rms --noise; "
+    "gaussian: zero-mean noise of rms --noise times the peak on every pixel.",
 )
 @click.option(
     "--shots",
@@ -127,7 +129,9 @@ _K1 = PARAMETER_LIMITS["k1"]
     default=1,
     help="Shots per setting.",
 )
-@click.option("--seed", type=int, default=0)
+@click.option(
+    "--seed", type=int, default=0, help="Seed of the beam sample and the noise."
+)
 @click.option("--force", is_flag=True, help="Overwrite OUT if it exists.")
 def synthetic(out: Path, force: bool, **options: Any) -> None:
     """Simulate a quadrupole scan of a known beam and write it to OUT (HDF5)."""
