@@ -51,11 +51,11 @@ def demo(out: Path, force: bool, seed: int) -> None:
         scans = as_scans(ds)
         summary = run_reconstruction(
             scans,
-            path,
             folder.path,
             config,
             training_selection(scans, "even"),
-            "cpu",
+            dataset_path=path,
+            device="cpu",
             resume=False,
         )
         seconds = time.perf_counter() - t0

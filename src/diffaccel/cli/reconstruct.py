@@ -291,28 +291,24 @@ FIGURES = ResultFigures(
 
 def run_reconstruction(
     ds: MultiScanDataset,
-    dataset_path: Path,
     folder: Path,
     config: ReconstructionConfig,
     selection: dict[str, list[int]],
-    device: torch.device | str,
-    resume: bool,
     figures: bool = True,
     distributed: bool = False,
-    split: str = "particles",
-    uncertainty: bool = True,
-    charge_C: float | None = None,
+    **run: Any,
 ) -> dict[str, Any]:
     """Reconstruct with a progress bar, then write the result into ``folder``.
 
     ``folder`` is the staging folder of an :func:`~diffaccel.cli.output.output_folder`
     (the checkpoint and :data:`SELECTION` go there too); the files are those of
-    :func:`~diffaccel.reconstruction.results.write_result`. With ``distributed``
-    (an initialised ``torch.distributed`` group) every process trains its share
-    (``split``) and only process 0 writes; the others return an empty dict.
-    ``uncertainty``: attach the moment-space posterior (calibrated ``std``);
-    without it ``std`` is the ensemble scatter only. ``charge_C``: bunch charge
-    of ``particles.h5`` [C] (default: the dataset's, else 1 pC).
+    :func:`~diffaccel.reconstruction.results.write_result`, the figures
+    :data:`FIGURES` unless not ``figures``. With ``distributed`` (an
+    initialised ``torch.distributed`` group) every process trains its share
+    and only process 0 writes; the others return an empty dict. ``run``: the
+    other keywords of :func:`~diffaccel.reconstruction.results.run_in_folder`
+    (``dataset_path``, ``device``, ``resume``, ``split``, ``uncertainty``,
+    ``charge_C``).
     """
     writer = not distributed or tdist.get_rank() == 0
     bar = tqdm(
@@ -340,16 +336,11 @@ def run_reconstruction(
             folder,
             config,
             selection,
-            dataset_path=dataset_path,
-            device=device,
-            resume=resume,
             figures=FIGURES if figures else None,
             distributed=distributed,
-            split=split,
-            uncertainty=uncertainty,
-            charge_C=charge_C,
             callback=callback,
             train=reconstruct,  # looked up here: tests wrap it
+            **run,
         )
 
 
@@ -432,12 +423,12 @@ def reconstruct_command(
             started = True  # the folder is this run's (not refused, not locked)
             summary = run_reconstruction(
                 plan.dataset,
-                dataset,
                 folder.path,
                 config,
                 selection,
-                dev,
-                resume,
+                dataset_path=dataset,
+                device=dev,
+                resume=resume,
                 figures=not no_figures,
                 distributed=distributed,
                 split=split,
