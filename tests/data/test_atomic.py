@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+import errno
 import os
 from pathlib import Path
 
 import pytest
 
-from diffaccel.data.atomic import atomic_write, atomic_write_bytes, atomic_write_text
+from diffaccel.data.atomic import (
+    atomic_write,
+    atomic_write_bytes,
+    atomic_write_text,
+    os_error_text,
+)
 
 
 def test_failed_write_keeps_old_content_and_leaves_no_temp_file(tmp_path: Path) -> None:
@@ -49,3 +55,19 @@ def test_atomic_write_json_is_standard_json(tmp_path) -> None:
     text = dest.read_text(encoding="utf-8")
     assert "NaN" not in text and "Infinity" not in text  # strict parsers accept it
     assert json.loads(text) == {"a": [1.0, None], "b": None}
+
+
+def test_os_error_text_names_the_condition_and_the_folder() -> None:
+    out = Path("results") / "out.h5"
+    text = os_error_text(OSError(errno.EROFS, "Read-only file system"), out)
+    assert text == (
+        "cannot write results/out.h5: read-only file system (results lies on a "
+        "read-only file system); nothing was replaced."
+    )
+    full = os_error_text(OSError(errno.ENOSPC, "No space"), out)
+    assert full.endswith(
+        "no space left on the device (disk full); nothing was replaced."
+    )
+    locked = os_error_text(OSError(errno.EAGAIN, "x"), out, doing="read")
+    assert locked == "cannot read results/out.h5: locked by another program."
+    assert os_error_text(OSError("odd"), out) == "cannot write results/out.h5: odd"

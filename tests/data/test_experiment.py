@@ -14,7 +14,7 @@ from click.testing import CliRunner
 
 from diffaccel.cli.main import main
 from diffaccel.data import make_synthetic_awa6d, read_scans
-from diffaccel.data.experiment import ExperimentError, import_experiment
+from diffaccel.data.experiment import ExperimentError, import_experiment, import_lines
 from diffaccel.data.images_io import read_frame
 from diffaccel.data.synthetic_daq import write_daq_folder
 from diffaccel.reconstruction.uncertainty import image_moments, moment_window
@@ -354,3 +354,12 @@ def test_lattice_key_without_from_lattice_is_a_clear_error(tmp_path) -> None:
     else:
         with pytest.raises(ExperimentError, match=r"needs Beamline\.from_lattice"):
             import_experiment(path)
+
+
+def test_import_lines_name_each_scan_and_the_preprocessing(imported) -> None:
+    lines = import_lines(imported)
+    assert len(lines) == len(imported.names) + 1
+    name = imported.names[0]
+    k, s, h, w = imported[name].shape
+    assert lines[0].startswith(f"  scan {name}: {k} settings x {s} shots, {h} x {w}")
+    assert lines[-1].startswith(f"  preprocessing ({name}): import -> ")

@@ -9,6 +9,12 @@ import pytest
 import torch
 
 from diffaccel.data import FormatError, read_magnet_csv, write_csv_atomic
+from diffaccel.data.magnet_stream import (
+    check_finite,
+    check_input_range,
+    check_magnitude,
+    check_time_column,
+)
 
 SLAC = (
     Path(__file__).resolve().parents[2]
@@ -354,3 +360,29 @@ def test_plain_decimals_and_exponents_still_read(tmp_path):
     path.write_text("current_A,field_Tm\n-1.5e2,0.1\n+.5,2E-3\n 7 ,1.\n")
     h = read_magnet_csv(path)
     assert h.input.tolist() == [-150.0, 0.5, 7.0]
+
+
+def test_magnitude_and_time_column_checks_name_file_column_and_row() -> None:
+    check_magnitude("m.csv", "current_A", np.array([1.0, -1e100]))
+    with pytest.raises(FormatError, match=r"m.csv: column 'x', data row 12: -2e\+100"):
+        check_magnitude("m.csv", "x", np.array([0.0, -2e100]), first_row=11)
+    check_time_column("m.csv", ["a", "t"], None)
+    check_time_column("m.csv", ["a", "t"], "t")
+    with pytest.raises(ValueError, match=r"m.csv has no column 's'; columns are") as e:
+        check_time_column("m.csv", ["a", "t"], "s")
+    assert e.value.option == "--time-column"
+
+
+def test_finite_numbers_and_input_ranges_are_checked() -> None:
+    assert check_finite(None) is None and check_finite(-2.5) == -2.5
+    with pytest.raises(ValueError, match="expected a finite number; got nan"):
+        check_finite(float("nan"))
+    assert check_input_range(None) is None
+    assert check_input_range((-1.0, 2.0)) == (-1.0, 2.0)
+    for bad, msg in (
+        ((0.0, float("inf")), "expected finite numbers"),
+        ((2.0, 2.0), "expected LO < HI; got 2.0 2.0"),
+        ((-1e308, 1e308), "HI - LO overflows"),
+    ):
+        with pytest.raises(ValueError, match=msg):
+            check_input_range(bad)

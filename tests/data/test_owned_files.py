@@ -10,6 +10,8 @@ import pytest
 from diffaccel.data import make_synthetic_quad_scan, write_quad_scan
 from diffaccel.data.atomic import os_condition
 from diffaccel.data.owned_files import (
+    OutputFileError,
+    check_out_file,
     mark_npz,
     save_arrays,
     save_npy,
@@ -94,3 +96,26 @@ def test_save_arrays_writes_marked_npy_or_npz(tmp_path) -> None:
     with pytest.raises(ValueError, match=r"2 arrays; write them to an \.npz"):
         save_arrays(tmp_path / "c.npy", {"a": one, "b": one})
     assert not (tmp_path / "c.npy").exists()
+
+
+def test_check_out_file_refuses_inputs_result_folders_and_foreign_files(
+    tmp_path: Path,
+) -> None:
+    data = tmp_path / "data.csv"
+    data.write_text("a\n1\n")
+    with pytest.raises(OutputFileError, match=r"--out .*data.csv is the --input file"):
+        check_out_file(data, True, {"--input": data, "--other": None})
+    folder = tmp_path / "fit"
+    folder.mkdir()
+    (folder / ".diffaccel-result").write_text("{}")
+    with pytest.raises(OutputFileError, match="inside the result folder"):
+        check_out_file(folder / "p.npy", True, {}, option="--std-out")
+    theirs = tmp_path / "theirs.npy"
+    np.save(theirs, np.zeros(2))
+    with pytest.raises(OutputFileError, match="pass --force to overwrite it"):
+        check_out_file(theirs, False, {})
+    with pytest.raises(OutputFileError, match="not written by diffaccel"):
+        check_out_file(theirs, True, {})
+    ours = save_arrays(tmp_path / "ours.npy", {"x": np.zeros(2)})
+    check_out_file(ours, True, {})  # diffaccel's own: --force replaces it
+    check_out_file(tmp_path / "new.npy", False, {})

@@ -7,8 +7,13 @@ from pathlib import Path
 
 import pytest
 
-from diffaccel.data import read_scans
-from diffaccel.data.synthetic_file import SyntheticRequest, write_synthetic
+from diffaccel.data import OptionError, read_scans
+from diffaccel.data.owned_files import OutputFileError
+from diffaccel.data.synthetic_file import (
+    SyntheticRequest,
+    check_synthetic,
+    write_synthetic,
+)
 
 SMALL = SyntheticRequest(
     layout="quad", preset="gaussian", particle_file=None, n_particles=300,
@@ -42,3 +47,20 @@ def test_6d_layouts_write_two_scans_and_refuse_a_pixel_size(tmp_path: Path) -> N
     with pytest.raises(ValueError, match="DYG1/DYG2 calibration"):
         write_synthetic(replace(awa, pixel_size=1e-3), tmp_path / "b.h5", False)
     assert not (tmp_path / "b.h5").exists()
+
+
+def test_check_synthetic_names_the_option_it_refuses(tmp_path: Path) -> None:
+    out = tmp_path / "s.h5"
+    check_synthetic(SMALL, out, force=False)
+    cases = [
+        (SMALL, tmp_path / "s.npy", "OUT", "expected a .h5 or .hdf5 file name"),
+        (replace(SMALL, p0c=1.0), out, "--p0c", "expected >= "),
+        (replace(SMALL, layout="rf6d", pixel_size=1e-3), out, "--pixel-size", "rf6d"),
+    ]
+    for request, path, option, text in cases:
+        with pytest.raises(OptionError) as err:
+            check_synthetic(request, path, force=False)
+        assert err.value.option == option and text in str(err.value)
+    out.write_text("mine")
+    with pytest.raises(OutputFileError, match="pass --force"):
+        check_synthetic(SMALL, out, force=False)

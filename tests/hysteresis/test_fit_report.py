@@ -3,12 +3,22 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import torch
 
+from diffaccel.data import FormatError, OptionError, write_csv_atomic
 from diffaccel.hysteresis import fit_magnet
-from diffaccel.hysteresis.fit_report import fit_line, score_fit
+from diffaccel.hysteresis.fit_report import (
+    fit_history,
+    fit_line,
+    fit_messages,
+    read_fit_history,
+    score_fit,
+)
+from diffaccel.hysteresis.predictive import min_training_rows
 from diffaccel.hysteresis.synthetic import bipolar_quadrupole_case
 
 NAMES = dict(
@@ -67,3 +77,67 @@ def test_score_fit_notes_rows_beyond_the_input_range(case) -> None:
     far = torch.cat([current, torch.tensor([2.0 * hi], dtype=current.dtype)])
     score = score_fit(fit, far, torch.cat([field, field[-1:]]), n, **NAMES)
     assert score.notes and score.summary["notes"] == score.notes
+
+
+def _history_file(tmp_path: Path, current, field, name: str = "m.csv") -> Path:
+    path = tmp_path / name
+    rows = [[f"{a:.17g}", f"{b:.17g}"] for a, b in zip(current, field, strict=True)]
+    write_csv_atomic(path, ["current_A", "field_Tm"], rows)
+    return path
+
+
+def test_read_fit_history_checks_rows_columns_and_magnitudes(
+    case, tmp_path: Path
+) -> None:
+    current, field, n, _ = case
+    path = _history_file(tmp_path, current.tolist(), field.tolist())
+    hist = read_fit_history(path, "current_A", "field_Tm", None, n)
+    assert len(hist) == len(current) and hist.header == ["current_A", "field_Tm"]
+    with pytest.raises(OptionError, match="exceeds the") as err:
+        read_fit_history(path, "current_A", "field_Tm", None, len(current) + 1)
+    assert err.value.option == "--train-rows"
+    with pytest.raises(OptionError, match="training rows"):
+        read_fit_history(path, "current_A", "field_Tm", None, min_training_rows() - 1)
+    with pytest.raises(OptionError, match="no column 't'") as err:
+        read_fit_history(path, "current_A", "field_Tm", "t", n)
+    assert err.value.option == "--time-column"
+    values = [1.0, 2e100, *range(3, 10)]
+    big = _history_file(tmp_path, values, list(range(9)), "big.csv")
+    with pytest.raises(FormatError, match="column 'current_A', data row 2"):
+        read_fit_history(big, "current_A", "field_Tm", None, min_training_rows())
+
+
+def test_fit_history_fits_the_first_rows_and_scores_all(case, tmp_path) -> None:
+    current, field, n, _ = case
+    path = _history_file(tmp_path, current.tolist(), field.tolist())
+    hist = read_fit_history(path, "current_A", "field_Tm", None, n)
+    steps = []
+    fit, score = fit_history(
+        hist,
+        n,
+        data="m.csv",
+        callback=lambda step, loss: steps.append(step),
+        mesh_size=10,
+        steps=60,
+    )
+    assert steps and fit.model.alpha.numel() == 55
+    assert score.summary["train_rows"] == n and score.summary["data"] == "m.csv"
+    assert score.summary["input_column"] == "current_A"
+    assert (
+        fit_messages(fit, score)
+        == [
+            *(f"note: {x}" for x in score.notes),
+            *(f"warning: {x}" for x in score.alarms),
+        ]
+        or fit.band_fallback is not None
+    )
+
+
+def test_fit_messages_give_fallback_notes_then_alarms() -> None:
+    fit = SimpleNamespace(band_fallback="band: jitter 1e-6")
+    score = SimpleNamespace(notes=["3 rows outside"], alarms=["worse than a line"])
+    assert fit_messages(fit, score) == [
+        "warning: band: jitter 1e-6",
+        "note: 3 rows outside",
+        "warning: worse than a line",
+    ]

@@ -3,16 +3,19 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
 import torch
 
+from diffaccel.data import OptionError, write_csv_atomic
 from diffaccel.hysteresis.hgp_compare import (
     RANGE_MARGIN,
     fit_gps,
     gp_line,
     gp_setup,
     gp_summary,
+    read_gp_data,
 )
 from diffaccel.hysteresis.synthetic import synthetic_measurement
 
@@ -63,3 +66,27 @@ def test_summary_scores_both_models_on_the_held_out_rows(fitted) -> None:
     )
     s["heldout_rmse"] = None
     assert "held-out" not in gp_line(s)
+
+
+def test_read_gp_data_stacks_the_columns_and_holds_out_the_last_rows(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "m.csv"
+    rows = [[i % 5, 10 + i, 2 * i] for i in range(20)]
+    write_csv_atomic(path, ["I", "q", "y"], rows)
+    X, Y, n_tr = read_gp_data(path, "I", "y", ["q"], holdout=0.25)
+    assert X.shape == (20, 2) and Y.shape == (20, 1) and n_tr == 15
+    assert X[3].tolist() == [3.0, 13.0] and float(Y[3, 0]) == 6.0
+    with pytest.raises(OptionError, match="given more than once") as err:
+        read_gp_data(path, "I", "y", ["q", "q"])
+    assert err.value.option == "--plain"
+    with pytest.raises(OptionError, match="'y' is the --y column"):
+        read_gp_data(path, "I", "y", ["y"])
+    with pytest.raises(OptionError, match="no column 't'"):
+        read_gp_data(path, "I", "y", time_column="t")
+    with pytest.raises(ValueError, match="leaves 2 of 20 rows to fit"):
+        read_gp_data(path, "I", "y", holdout=0.9)
+    const = tmp_path / "c.csv"
+    write_csv_atomic(const, ["I", "y"], [[1, i] for i in range(8)])
+    with pytest.raises(ValueError, match="column 'I' is constant"):
+        read_gp_data(const, "I", "y")

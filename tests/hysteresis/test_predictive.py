@@ -18,6 +18,7 @@ from diffaccel.hysteresis import (
     predict_stream,
     symmetric_default,
 )
+from diffaccel.hysteresis.predictive import parse_mesh_adapt
 from diffaccel.hysteresis.synthetic import bh_loop_case, bipolar_quadrupole_case
 
 
@@ -99,3 +100,14 @@ def test_stream_equals_one_pass(chunk: int) -> None:
     # float64 round-off of prefix sums in a different order
     torch.testing.assert_close(got, whole, rtol=0, atol=1e-12)
     torch.testing.assert_close(got_std, whole_std, rtol=1e-5, atol=0)  # float32 sums
+
+
+def test_parse_mesh_adapt_takes_auto_or_a_share() -> None:
+
+    assert parse_mesh_adapt("auto") == "auto"
+    assert parse_mesh_adapt("0.8") == 0.8 and parse_mesh_adapt("0") == 0.0
+    for bad in ("1", "-0.1", "nan", "many"):
+        with pytest.raises(
+            ValueError, match=r"expected 'auto' or a number in \[0, 1\)"
+        ):
+            parse_mesh_adapt(bad)

@@ -4,13 +4,23 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
+import numpy as np
 import pytest
 
-from diffaccel.hysteresis import SetPoint, UnreachableTargetError, field_for_k1
+from diffaccel.data import FormatError, OptionError, iter_magnet_csv
+from diffaccel.hysteresis import (
+    SetPoint,
+    StreamSpec,
+    UnreachableTargetError,
+    field_for_k1,
+)
 from diffaccel.hysteresis.setpoint_report import (
     ACCEPT,
+    check_limits,
     jump_text,
+    plan_history_setpoint,
     setpoint_lines,
     setpoint_summary,
     unreachable_text,
@@ -87,3 +97,46 @@ def test_unreachable_text_names_the_reachable_outputs_or_strengths() -> None:
     per = out / 20.0
     assert text.startswith(f"k1 20 1/m^2 (G {out:.6g}) cannot be reached")
     assert f"k1 {-1.0 / per:.6g} .. {2.0 / per:.6g} 1/m^2 (G -1 .. 2)" in text
+
+
+#: one hysteron (up at 0.5, down at 0.25) plus a linear term, inputs in [0, 1]
+SPEC = StreamSpec(
+    (0.0, 1.0),
+    np.array([0.5]),
+    np.array([0.25]),
+    np.array([1.0]),
+    np.array([-1.0]),
+    0.0,
+    1.0,
+    0.1,
+    0.0,
+    1.0,
+)
+
+
+def _history(tmp_path: Path, inputs: list[float]):
+    path = tmp_path / "h.csv"
+    path.write_text("I\n" + "".join(f"{x}\n" for x in inputs))
+    return path, iter_magnet_csv(path, "I")[1]
+
+
+def test_check_limits_refuses_limits_outside_the_input_range() -> None:
+    check_limits(SPEC, None, "I")
+    check_limits(SPEC, (0.5, 2.0), "I")
+    with pytest.raises(OptionError, match=r"leave no I inside .* \[0, 1\]") as err:
+        check_limits(SPEC, (1.0, 2.0), "I")
+    assert err.value.option == "--limits"
+
+
+def test_plan_history_setpoint_plans_after_the_history(tmp_path: Path) -> None:
+    data, chunks = _history(tmp_path, [0.1, 0.9, 0.3])
+    plan, notes = plan_history_setpoint(
+        SPEC, data, chunks, **NAMES, target=0.5, output=0.5
+    )
+    assert abs(plan.output - 0.5) <= ACCEPT and notes == []
+    data, chunks = _history(tmp_path, [0.1, 1e101])
+    with pytest.raises(FormatError, match=r"^\S*h.csv: column 'I', data row 2"):
+        plan_history_setpoint(SPEC, data, chunks, **NAMES, target=0.5, output=0.5)
+    data, chunks = _history(tmp_path, [0.1])
+    with pytest.raises(ValueError, match="G 9 cannot be reached"):
+        plan_history_setpoint(SPEC, data, chunks, **NAMES, target=9.0, output=9.0)

@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from diffaccel.data import iter_magnet_csv
+from diffaccel.data import OptionError, iter_magnet_csv
+from diffaccel.data.owned_files import OutputFileError
 from diffaccel.hysteresis import (
     InputRangeWarning,
     StreamPredictor,
@@ -20,7 +21,9 @@ from diffaccel.hysteresis.stream_csv import (
     COLUMNS,
     OUTSIDE,
     StreamStats,
+    check_csv_output,
     outside_warning,
+    predict_csv,
     read_ahead,
     stream_fit,
     write_predictions,
@@ -123,3 +126,44 @@ def test_stream_fit_reads_a_saved_fit_with_and_without_its_stream_file(
     b, _ = StreamPredictor(old)(x)
     np.testing.assert_allclose(a, b, rtol=1e-12)
     assert math.isfinite(float(a.sum()))
+
+
+def test_check_csv_output_refuses_the_input_other_names_and_existing_files(
+    tmp_path: Path,
+) -> None:
+    src = _csv(tmp_path / "in.csv", [0.1])
+    check_csv_output(tmp_path / "new" / "out.csv", src, force=False)
+    with pytest.raises(OutputFileError, match="is the --input file"):
+        check_csv_output(src, src, force=True)
+    with pytest.raises(OutputFileError, match=r"expected a \.csv file name"):
+        check_csv_output(tmp_path / "out.txt", src, force=False)
+    other = _csv(tmp_path / "other.csv", [0.2])
+    for force in (False, True):  # not diffaccel's: refused, --force or not
+        with pytest.raises(OutputFileError, match="not written by diffaccel"):
+            check_csv_output(other, src, force=force)
+
+
+def test_predict_csv_writes_every_row_and_refuses_its_own_columns(
+    tmp_path: Path,
+) -> None:
+    config = {"input_column": "current_A"}
+    src = _csv(tmp_path / "in.csv", [0.1, 0.6, 0.4])
+    out = tmp_path / "made" / "out.csv"
+    stats = predict_csv(SPEC, config, src, out, chunk_rows=2)
+    assert stats.rows == 3 and stats.finite
+    with out.open() as f:
+        rows = list(csv.reader(f))
+    assert rows[0] == ["current_A", "note", *COLUMNS] and len(rows) == 4
+    check_csv_output(out, src, force=True)  # its own output: --force replaces it
+    with pytest.raises(OutputFileError, match="pass --force"):
+        check_csv_output(out, src, force=False)
+    clash = _csv(tmp_path / "clash.csv", [0.1], extra=",prediction")
+    with pytest.raises(ValueError, match=r"already has column\(s\) \['prediction'\]"):
+        predict_csv(SPEC, config, clash, tmp_path / "o.csv")
+    assert predict_csv(SPEC, config, clash, tmp_path / "o.csv", force=True).rows == 1
+    with pytest.raises(OptionError, match="no column 't'"):
+        predict_csv(SPEC, config, src, tmp_path / "p.csv", time_column="t")
+    big = _csv(tmp_path / "big.csv", [0.1, 1e101])
+    with pytest.raises(ValueError, match="data row 2: 1e\\+101 is beyond"):
+        predict_csv(SPEC, config, big, tmp_path / "q.csv")
+    assert not (tmp_path / "q.csv").exists()

@@ -2,9 +2,16 @@
 
 from __future__ import annotations
 
-import matplotlib
+from pathlib import Path
 
-from diffaccel.plotting.design import plot_expected_std, plot_spectrum
+import matplotlib
+import pytest
+
+from diffaccel.plotting.design import (
+    plot_expected_std,
+    plot_spectrum,
+    write_design_figures,
+)
 
 matplotlib.use("Agg")
 
@@ -44,3 +51,14 @@ def test_expected_std_has_one_line_per_quantity_from_zero_images() -> None:
     assert [ln.get_label() for ln in lines] == ["emit_z", "rms_pz"]  # emit_x: flat
     assert list(lines[0].get_xdata()) == [0, 3, 5]
     assert list(lines[0].get_ydata()) == [60.0, 5.0, 4.0]
+
+
+def test_write_design_figures_never_replaces_a_file(tmp_path: Path) -> None:
+    obs = {"singular_values": [1.0, 0.3], "unseen": [], "not_seen": []}
+    folder = tmp_path / "plots"
+    (written,) = write_design_figures(folder, obs)
+    assert written == folder / "singular_values.png"
+    assert written.read_bytes().startswith(b"\x89PNG")
+    with pytest.raises(FileExistsError) as err:
+        write_design_figures(folder, obs)
+    assert err.value.filename == str(written)

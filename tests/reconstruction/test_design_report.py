@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 import torch
 
+from diffaccel.data import write_scans
 from diffaccel.plotting.design import design_figures
 from diffaccel.reconstruction import design as dz
 from diffaccel.reconstruction.design_report import (
+    design_answers,
+    design_inputs,
     design_json,
     design_lines,
     posterior_beam,
@@ -79,3 +83,30 @@ def test_posterior_beam_fills_the_longitudinal_block_of_a_4d_result() -> None:
     assert unc.cov[0, 4] != 0  # the result's own covariance is not changed
     unc.diagnostics = {}
     assert posterior_beam(unc)[2] is None
+
+
+def test_design_answers_read_a_scan_file_and_recommend(
+    small_awa6d, tmp_path: Path
+) -> None:
+    path = write_scans(small_awa6d, tmp_path / "scans.h5")
+    layouts, cov, posterior, rel = design_inputs(path)
+    assert len(layouts) == len(small_awa6d.names) and cov.shape == (6, 6)
+    assert posterior is None and rel is None
+    obs, report = design_answers(path)
+    assert report is None and obs == dz.observability(layouts, cov).to_dict()
+    obs, report = design_answers(
+        path, knobs=["SCAN_TDC.voltage=-4e6:4e6"], max_images_per_scan=2
+    )
+    assert report is not None and report["recommended"]
+    with pytest.raises(ValueError, match=r"^--result \S*nothing: "):
+        design_inputs(path, tmp_path / "nothing")
+
+
+def test_design_inputs_name_the_file_and_the_problem(tmp_path: Path) -> None:
+    bad = tmp_path / "spec.json"
+    bad.write_text("[1, 2]")
+    with pytest.raises(ValueError, match=r"spec.json: expected a JSON object"):
+        design_inputs(bad)
+    bad.write_text("{")
+    with pytest.raises(ValueError, match=r"spec\.json: not a readable JSON file"):
+        design_inputs(bad)

@@ -27,9 +27,16 @@ from diffaccel.reconstruction import (
 from diffaccel.reconstruction.results import (
     OWNED,
     SELECTION,
+    OptionError,
     ResumeError,
+    RunError,
+    config_options,
+    demo_config,
+    demo_dataset,
     demo_report_markdown,
     finding_lines,
+    plan_run,
+    read_dataset,
     resume_checkpoint,
     resume_config,
     resume_selection,
@@ -192,3 +199,53 @@ def test_demo_report_lists_the_moments_against_the_truth() -> None:
     assert "| emit_6d [m^3] | 1e-18 +- 1e-20 | -50.0 % |" in text
     assert "Held-out image relative L1: 0.0500; training: 0.0123." in text
     assert "treat them as unknown): z\n" in text
+
+
+def test_plan_run_checks_config_file_charge_and_selection(
+    scan_file: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "run"
+    options = {"n_particles": 256, "steps": 4, "snapshots": 2}
+    plan = plan_run(scan_file, out, options, given=set(), train_indices="even")
+    assert plan.config == ReconstructionConfig(**options)
+    assert plan.selection == {"scan": [0, 2, 4]} and plan.dataset.names == ["scan"]
+    assert plan.checkpoint is None and not plan.finished
+    assert read_dataset(scan_file).names == ["scan"]
+    with pytest.raises(RunError, match=r"cannot read .*nothing.h5"):
+        plan_run(tmp_path / "nothing.h5", out, options, given=set())
+    with pytest.raises(RunError, match="steps"):
+        plan_run(scan_file, out, {**options, "steps": 3}, given=set())
+    with pytest.raises(RunError, match=r"scan.h5: bunch charge \(given\)"):
+        plan_run(scan_file, out, options, given=set(), charge_C=-1.0)
+    with pytest.raises(OptionError) as err:
+        plan_run(
+            scan_file, out, options, given=set(), train_indices="9", indices_given=True
+        )
+    assert err.value.option == "--train-indices"
+    with pytest.raises(ResumeError, match="resume"):
+        plan_run(scan_file, out, options, given=set(), resume=True)
+
+
+def test_demo_inputs_are_a_6d_scan_and_a_short_6d_run() -> None:
+    ds = demo_dataset(seed=3)
+    assert ds.images.shape[0] == 20 and ds.images.shape[-2:] == (64, 64)
+    assert torch.equal(demo_dataset(seed=3).images, ds.images)  # seeded
+    config = demo_config(seed=3)
+    assert (config.dims, config.steps, config.snapshots) == (6, 300, 5)
+    assert (config.burn_in, config.n_particles, config.seed) == (1, 4096, 3)
+
+
+def test_config_options_are_the_configs_keywords() -> None:
+    given = dict(
+        dims="6", particles=None, steps=60, snapshots=2, seed=1, image_loss="kl",
+        blur=None, loss_smoothing="0.5", uncoupled=True, probe=False,
+    )  # fmt: skip
+    options = config_options(**given)
+    assert options["dims"] == 6 and options["loss_smoothing"] == 0.5
+    assert options["place_coupling"] is True and options["probe_unseen"] == 0.0
+    assert ReconstructionConfig(**options).steps == 60
+    auto = config_options(**{**given, "loss_smoothing": "auto", "probe": None})
+    assert auto["loss_smoothing"] == "auto" and auto["probe_unseen"] is None
+    with pytest.raises(OptionError, match="a number of pixels or 'auto'") as err:
+        config_options(**{**given, "loss_smoothing": "wide"})
+    assert err.value.option == "--loss-smoothing"

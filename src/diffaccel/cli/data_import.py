@@ -7,28 +7,31 @@ from pathlib import Path
 import click
 from tqdm import tqdm
 
-from diffaccel.cli.output import check_out_file
+from diffaccel.cli.options import echo_lines
+from diffaccel.cli.output import IN_FILE, OUT_FILE, SHOW_DEFAULTS, check_out_file
 from diffaccel.data import FormatError, write_scans
-from diffaccel.data.experiment import count_frames, import_experiment, load_experiment
+from diffaccel.data.experiment import (
+    count_frames,
+    import_experiment,
+    import_lines,
+    load_experiment,
+)
 
 __all__ = ["import_command"]
 
 
-@click.command("import")
-@click.argument(
-    "experiment", type=click.Path(exists=True, dir_okay=False, path_type=Path)
-)
+@click.command("import", context_settings=SHOW_DEFAULTS)
+@click.argument("experiment", type=IN_FILE)
 @click.option(
     "--out",
     required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
+    type=OUT_FILE,
     help="Quad-scan file to write (HDF5, format version 2).",
 )
 @click.option("--force", is_flag=True, help="Replace an existing --out file.")
 @click.option(
     "--progress/--no-progress",
     default=True,
-    show_default=True,
     help="Show a progress bar while the frames are read.",
 )
 def import_command(experiment: Path, out: Path, force: bool, progress: bool) -> None:
@@ -48,16 +51,4 @@ def import_command(experiment: Path, out: Path, force: bool, progress: bool) -> 
     except (FormatError, FileNotFoundError, ImportError, FileExistsError) as err:
         raise click.ClickException(str(err).strip().splitlines()[0]) from err
     click.echo(f"wrote {path}")
-    for name, scan in dataset:
-        k, s, h, w = scan.shape
-        px, py = scan.pixel_size
-        click.echo(
-            f"  scan {name}: {k} settings x {s} shots, {h} x {w} pixels of "
-            f"{px * 1e6:.4g} x {py * 1e6:.4g} um, knobs {', '.join(scan.setting_names)}"
-        )
-    steps = [
-        s["step"]
-        for s in dataset.metadata.get("preprocessing", [])
-        if s.get("scan") == dataset.names[0]
-    ]
-    click.echo(f"  preprocessing ({dataset.names[0]}): {' -> '.join(steps)}")
+    echo_lines(import_lines(dataset))

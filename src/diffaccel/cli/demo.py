@@ -9,19 +9,16 @@ from pathlib import Path
 import click
 
 from diffaccel.cli.options import seed_option
-from diffaccel.cli.output import output_folder
+from diffaccel.cli.output import OUT_DIR, output_folder
 from diffaccel.cli.reconstruct import run_reconstruction
-from diffaccel.data import (
-    atomic_write_text,
-    make_synthetic_quad_scan,
-    write_quad_scan,
+from diffaccel.data import atomic_write_text, write_quad_scan
+from diffaccel.reconstruction import as_scans, training_selection
+from diffaccel.reconstruction.results import (
+    OWNED,
+    demo_config,
+    demo_dataset,
+    demo_report_markdown,
 )
-from diffaccel.reconstruction import (
-    ReconstructionConfig,
-    as_scans,
-    training_selection,
-)
-from diffaccel.reconstruction.results import OWNED, demo_report_markdown
 
 __all__ = ["demo"]
 
@@ -29,7 +26,7 @@ __all__ = ["demo"]
 @click.command("demo")
 @click.option(
     "--out",
-    type=click.Path(file_okay=False, path_type=Path),
+    type=OUT_DIR,
     required=True,
     help="Output directory.",
 )
@@ -46,35 +43,19 @@ def demo(out: Path, force: bool, seed: int) -> None:
         click.echo(
             "simulating a 6D quad scan (preset 'correlated', chromatic tracking)..."
         )
-        ds = make_synthetic_quad_scan(
-            "correlated",
-            n_particles=20_000,
-            screen_shape=(64, 64),
-            pixel_size=(0.5e-3, 0.5e-3),
-            k1_range=(-20.0, 20.0),
-            noise=0.05,
-            seed=seed,
-        )
+        ds = demo_dataset(seed)
         path = out / "dataset.h5"
         write_quad_scan(ds, folder.path / path.name, overwrite=True)
         click.echo(f"wrote {path.name}; reconstructing (6D, 300 steps)...")
-        # 6D tracking is chromatic (slower than the 4D linear maps): fewer, smaller
-        # steps keep the demo well under a minute on two quiet CPU cores.
-        # the file records its screen resolution (KDE of one-pixel bandwidth),
-        # which the reconstruction models by default; 5 cycles, the first
-        # dropped (the 6D defaults are sized for the quadrupole x TDC x dipole
-        # scans, see ReconstructionConfig)
-        config = ReconstructionConfig(
-            dims=6, seed=seed, steps=300, snapshots=5, burn_in=1, n_particles=4096
-        )
+        config = demo_config(seed)
         scans = as_scans(ds)
         summary = run_reconstruction(
             scans,
-            path,
             folder.path,
             config,
             training_selection(scans, "even"),
-            "cpu",
+            dataset_path=path,
+            device="cpu",
             resume=False,
         )
         seconds = time.perf_counter() - t0

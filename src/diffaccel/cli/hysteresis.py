@@ -9,21 +9,17 @@ Its subcommands live in their own modules (``hysteresis_fit``,
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
-from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import click
-import numpy as np
 
-from diffaccel.data import DEFAULT_RUN_COLUMN, DEFAULT_TIME_COLUMN
+from diffaccel.data import DEFAULT_RUN_COLUMN, DEFAULT_TIME_COLUMN, magnet_stream
 
 __all__ = [
     "check_finite",
     "check_input_range",
-    "check_magnitude",
-    "check_time_column",
+    "checked",
     "hysteresis",
     "time_column_option",
 ]
@@ -31,9 +27,8 @@ __all__ = [
 F = TypeVar("F", bound=Callable)
 
 
-#: The library's limit (``diffaccel.hysteresis.fit.MAX_MAGNITUDE``), kept here so
-#: that ``hysteresis predict`` streams without importing torch.
-MAX_MAGNITUDE = 1e100
+#: Largest |value| of a measured series, as the library's fits take them.
+MAX_MAGNITUDE = magnet_stream.MAX_MAGNITUDE
 
 
 @click.group("hysteresis")
@@ -41,56 +36,23 @@ def hysteresis() -> None:
     """Preisach hysteresis models of magnets: fit and predict."""
 
 
-def check_finite(
-    ctx: click.Context, param: click.Parameter, value: float | None
-) -> float | None:
-    """Click callback: refuse a NaN or infinite number (the option is named)."""
-    if value is not None and not math.isfinite(value):
-        raise click.BadParameter(f"expected a finite number; got {value}.")
-    return value
+def checked(
+    check: Callable[[Any], Any],
+) -> Callable[[click.Context, click.Parameter, Any], Any]:
+    """A click callback: ``check(value)``, its ``ValueError`` as the option's error."""
+
+    def callback(ctx: click.Context, param: click.Parameter, value: Any) -> Any:
+        try:
+            return check(value)
+        except ValueError as err:
+            raise click.BadParameter(str(err)) from err
+
+    return callback
 
 
-def check_input_range(
-    ctx: click.Context, param: click.Parameter, value: tuple[float, float] | None
-) -> tuple[float, float] | None:
-    """Click callback: ``--input-range LO HI`` finite, with ``LO < HI``."""
-    if value is None:
-        return None
-    lo, hi = value
-    if not (math.isfinite(lo) and math.isfinite(hi)):
-        raise click.BadParameter(f"expected finite numbers; got {lo} {hi}.")
-    if not lo < hi:
-        raise click.BadParameter(f"expected LO < HI; got {lo} {hi}.")
-    if not math.isfinite(hi - lo):
-        raise click.BadParameter(
-            f"HI - LO overflows (got {lo} {hi}); expected a range of finite width."
-        )
-    return value
-
-
-def check_magnitude(
-    data: Path, column: str, values: np.ndarray, first_row: int = 1
-) -> None:
-    """Refuse a value beyond ``MAX_MAGNITUDE``, naming the file, column and data row.
-
-    Args:
-        data: The CSV file the values come from.
-        column: Their column name.
-        values: The column's values (a numpy array or a CPU tensor), shape ``(T,)``.
-        first_row: Data row (1 = the first row below the header) of ``values[0]``.
-
-    Raises:
-        click.ClickException: at the first value beyond ``MAX_MAGNITUDE``.
-    """
-    v = np.asarray(values, dtype=np.float64)
-    big = np.flatnonzero(np.abs(v) > MAX_MAGNITUDE)
-    if big.size:
-        i = int(big[0])
-        raise click.ClickException(
-            f"{data}: column {column!r}, data row {first_row + i}: "
-            f"{float(v[i]):.6g} is beyond {MAX_MAGNITUDE:.0e} in magnitude, "
-            "not a measurement (a unit or parsing error?)."
-        )
+#: Click callbacks: a finite number; an input range LO < HI of finite numbers.
+check_finite = checked(magnet_stream.check_finite)
+check_input_range = checked(magnet_stream.check_input_range)
 
 
 def time_column_option(command: F) -> F:
@@ -105,16 +67,3 @@ def time_column_option(command: F) -> F:
         f"Default: {DEFAULT_TIME_COLUMN!r} if the file has it; without a time "
         "column the row order cannot be checked.",
     )(command)
-
-
-def check_time_column(data: Path, header: list[str], name: str | None) -> None:
-    """Refuse a ``--time-column`` that DATA does not have (the default may be absent).
-
-    Raises:
-        click.BadParameter: naming the file, the column and the file's columns.
-    """
-    if name is not None and name not in header:
-        raise click.BadParameter(
-            f"{data} has no column {name!r}; columns are {header}.",
-            param_hint="--time-column",
-        )

@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import math
-import warnings
 from pathlib import Path
+from typing import Any
 
 import click
 from tqdm import tqdm
@@ -12,31 +11,34 @@ from tqdm import tqdm
 from diffaccel.cli.hysteresis import (
     check_finite,
     check_input_range,
-    check_magnitude,
-    check_time_column,
+    checked,
     time_column_option,
 )
-from diffaccel.cli.output import output_folder
+from diffaccel.cli.options import echo_lines
+from diffaccel.cli.output import (
+    IN_FILE,
+    OUT_DIR,
+    SHOW_DEFAULTS,
+    click_errors,
+    output_folder,
+)
 from diffaccel.data import (
     DEFAULT_INPUT_COLUMN,
     DEFAULT_OUTPUT_COLUMN,
-    DEFAULT_TIME_COLUMN,
     atomic_write_json,
-    read_magnet_csv,
 )
-from diffaccel.hysteresis import (
-    CONFIG_FILE,
-    MODEL_FILE,
-    STREAM_FILE,
-    BandFallbackWarning,
-    fit_magnet,
-    save_fit,
+from diffaccel.hysteresis import CONFIG_FILE, MODEL_FILE, STREAM_FILE, save_fit
+from diffaccel.hysteresis.fit_report import (
+    fit_history,
+    fit_line,
+    fit_messages,
+    read_fit_history,
 )
-from diffaccel.hysteresis.fit_report import fit_line, score_fit
 from diffaccel.hysteresis.predictive import (
     MAX_MESH_SIZE,
     check_mesh_size,
     min_training_rows,
+    parse_mesh_adapt,
 )
 from diffaccel.plotting.hysteresis import FIT_FIGURES, write_fit_figures
 
@@ -48,34 +50,8 @@ SUMMARY_FILE = "summary.json"
 MAX_SMOOTHNESS = 1e12
 
 
-def _check_mesh_size(ctx: click.Context, param: click.Parameter, value: int) -> int:
-    """Click callback: a mesh whose predictive band fits in memory (the size named)."""
-    try:
-        check_mesh_size(value)
-    except ValueError as err:
-        raise click.BadParameter(str(err)) from err
-    return value
-
-
-def _check_mesh_adapt(
-    ctx: click.Context, param: click.Parameter, value: str
-) -> float | str:
-    """Click callback: ``auto`` or a share in [0, 1)."""
-    if value == "auto":
-        return value
-    try:
-        share = float(value)
-    except ValueError:
-        share = math.nan
-    if not 0.0 <= share < 1.0:
-        raise click.BadParameter(
-            f"expected 'auto' or a number in [0, 1); got {value!r}."
-        )
-    return share
-
-
-@click.command("fit")
-@click.argument("data", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.command("fit", context_settings=SHOW_DEFAULTS)
+@click.argument("data", type=IN_FILE)
 @click.option(
     "--train-rows",
     type=click.IntRange(min=1),
@@ -83,15 +59,23 @@ def _check_mesh_adapt(
     help=f"Fit on the first N rows (time order; at least {min_training_rows()}, "
     "some held out for validation); the rest are predicted.",
 )
-@click.option("--input", "input_col", default=DEFAULT_INPUT_COLUMN, show_default=True)
 @click.option(
-    "--output", "output_col", default=DEFAULT_OUTPUT_COLUMN, show_default=True
+    "--input",
+    "input_col",
+    default=DEFAULT_INPUT_COLUMN,
+    help="Column of the magnet's input (e.g. the current [A]).",
+)
+@click.option(
+    "--output",
+    "output_col",
+    default=DEFAULT_OUTPUT_COLUMN,
+    help="Column of the measured output (e.g. the integrated field [T m]).",
 )
 @time_column_option
 @click.option(
     "--out",
     "out_dir",
-    type=click.Path(file_okay=False, path_type=Path),
+    type=OUT_DIR,
     required=True,
     help="Folder for summary.json, model.pt, model.json, stream.npz and figures.",
 )
@@ -99,8 +83,7 @@ def _check_mesh_adapt(
     "--mesh-size",
     type=click.IntRange(min=2),
     default=20,
-    show_default=True,
-    callback=_check_mesh_size,
+    callback=checked(lambda size: check_mesh_size(size) or size),
     help="Cells per axis of the triangular Preisach mesh (20: 210 hysterons; "
     "chosen on validation rows held out of the training rows, see "
     f"benchmarks/preisach_acceptance.py); at most {MAX_MESH_SIZE}, as the "
@@ -124,8 +107,7 @@ def _check_mesh_adapt(
 @click.option(
     "--mesh-adapt",
     default="auto",
-    show_default=True,
-    callback=_check_mesh_adapt,
+    callback=checked(parse_mesh_adapt),
     help="Share of the mesh placed where the training output changes (0: a "
     "regular mesh; resolves coercive fields far below the input range); "
     "'auto' chooses among 0, 0.8 and 0.95 on every fourth training row.",
@@ -134,16 +116,19 @@ def _check_mesh_adapt(
     "--smoothness",
     type=click.FloatRange(min=0, max=MAX_SMOOTHNESS),
     default=0.0,
-    show_default=True,
     callback=check_finite,
     help="Weight of the density roughness penalty.",
 )
-@click.option("--steps", type=click.IntRange(min=1), default=300, show_default=True)
+@click.option(
+    "--steps",
+    type=click.IntRange(min=1),
+    default=300,
+    help="L-BFGS iterations per fit.",
+)
 @click.option(
     "--initial-state",
     type=click.Choice(["negative", "positive", "demagnetized", "learned"]),
     default="negative",
-    show_default=True,
     help="Magnet state before the first row (demagnetized: a virgin curve; "
     "its input range is then centred on 0).",
 )
@@ -166,42 +151,17 @@ def fit_command(
     output_col: str,
     time_column: str | None,
     out_dir: Path,
-    mesh_size: int,
-    symmetric: bool | None,
-    odd: bool | None,
-    mesh_adapt: float | str,
-    smoothness: float,
-    steps: int,
-    initial_state: str,
-    input_range: tuple[float, float] | None,
     no_figures: bool,
     force: bool,
+    **fit_options: Any,
 ) -> None:
     """Fit a Preisach model to the first N rows of DATA (CSV) and test on the rest.
 
     Rows are measurements in the order they were made (checked with a time
     column, see --time-column).
     """
-    try:
-        hist = read_magnet_csv(
-            data, input_col, output_col, time_column=time_column or DEFAULT_TIME_COLUMN
-        )
-    except (OSError, ValueError) as err:
-        raise click.ClickException(str(err)) from err
-    check_time_column(data, hist.header, time_column)
-    if train_rows > len(hist):
-        raise click.BadParameter(
-            f"{train_rows} exceeds the {len(hist)} rows of {data}.",
-            param_hint="--train-rows",
-        )
-    if train_rows < min_training_rows():
-        raise click.BadParameter(
-            f"a fit needs at least {min_training_rows()} training rows; got "
-            f"{train_rows}.",
-            param_hint="--train-rows",
-        )
-    for name, values in ((input_col, hist.input), (output_col, hist.output)):
-        check_magnitude(data, name, values)
+    with click_errors(OSError, ValueError):
+        hist = read_fit_history(data, input_col, output_col, time_column, train_rows)
     with output_folder(
         out_dir,
         "hysteresis fit",
@@ -209,41 +169,16 @@ def fit_command(
         owned=(SUMMARY_FILE, MODEL_FILE, CONFIG_FILE, STREAM_FILE, *FIT_FIGURES),
         inputs=[data],
     ) as folder:
-        u, y = hist.input, hist.output
-        try:
-            with (
-                tqdm(desc="fit", unit="eval", leave=False) as bar,
-                warnings.catch_warnings(record=True) as fit_caught,
-            ):
-                warnings.simplefilter("always", BandFallbackWarning)
+        with tqdm(desc="fit", unit="eval", leave=False) as bar, click_errors():
 
-                def progress(step: int, loss: float) -> None:
-                    bar.update(1)
-                    bar.set_postfix(loss=f"{loss:.3g}", refresh=False)
+            def progress(step: int, loss: float) -> None:
+                bar.update(1)
+                bar.set_postfix(loss=f"{loss:.3g}", refresh=False)
 
-                fit = fit_magnet(
-                    u[:train_rows],
-                    y[:train_rows],
-                    mesh_size=mesh_size,
-                    symmetric=symmetric,
-                    initial_state=initial_state,
-                    input_range=input_range,
-                    steps=steps,
-                    smoothness=smoothness,
-                    callback=progress,
-                    mesh_adapt=mesh_adapt,
-                    odd=odd,
-                )
-            for w in fit_caught:
-                if w.category is not BandFallbackWarning:
-                    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-            score = score_fit(
-                fit, u, y, train_rows, data=str(data), input_column=input_col,
-                output_column=output_col, mesh_size=mesh_size,
-                smoothness=smoothness, initial_state=initial_state,
-            )  # fmt: skip
-        except ValueError as err:
-            raise click.ClickException(str(err)) from err
+            # --mesh-size, --symmetric, --odd, --mesh-adapt, --smoothness, ...
+            fit, score = fit_history(
+                hist, train_rows, data=str(data), callback=progress, **fit_options
+            )
         save_fit(
             folder.path,
             fit.model,
@@ -252,14 +187,9 @@ def fit_command(
         )
         if not no_figures:
             write_fit_figures(
-                folder.path, fit.model, u, y, train_rows, score.std, input_col,
-                output_col,
+                folder.path, fit.model, hist.input, hist.output, train_rows,
+                score.std, input_col, output_col,
             )  # fmt: skip
         atomic_write_json(folder.path / SUMMARY_FILE, score.summary)
-    if fit.band_fallback is not None:
-        click.echo(f"warning: {fit.band_fallback}", err=True)
-    for note in score.notes:
-        click.echo(f"note: {note}", err=True)
-    for alarm in score.alarms:
-        click.echo(f"warning: {alarm}", err=True)
+    echo_lines(fit_messages(fit, score), err=True)
     click.echo(f"{fit_line(score.summary)}; wrote {out_dir}")

@@ -2,41 +2,43 @@
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 
 import click
-import torch
 from tqdm import tqdm
 
-from diffaccel.cli.hysteresis import (
-    check_input_range,
-    check_magnitude,
-    check_time_column,
-    time_column_option,
+from diffaccel.cli.hysteresis import check_input_range, time_column_option
+from diffaccel.cli.options import echo_warnings
+from diffaccel.cli.output import (
+    IN_FILE,
+    OUT_DIR,
+    SHOW_DEFAULTS,
+    click_errors,
+    output_folder,
 )
-from diffaccel.cli.output import output_folder
-from diffaccel.data import DEFAULT_TIME_COLUMN, atomic_write_json, read_magnet_csv
-from diffaccel.hysteresis.fit import MIN_FIT_POINTS
-from diffaccel.hysteresis.hgp_compare import fit_gps, gp_line, gp_setup, gp_summary
+from diffaccel.data import atomic_write_json
+from diffaccel.hysteresis.hgp_compare import (
+    HOLDOUT,
+    fit_gps,
+    gp_line,
+    gp_setup,
+    gp_summary,
+    read_gp_data,
+)
 from diffaccel.hysteresis.mesh import MAX_CLI_MESH_SIZE
 from diffaccel.plotting.files import save_png
 from diffaccel.plotting.hgp import plot_hgp_history
 
 __all__ = ["gp_fit"]
 
-logger = logging.getLogger(__name__)
-
 SUMMARY_FILE = "gp_summary.json"
 FIGURE_FILE = "gp_fit.png"
 # largest seed torch takes
 SEED_MAX = 2**64 - 1
-# share of the last rows held out by default
-HOLDOUT = 0.25
 
 
-@click.command("gp-fit")
-@click.argument("data", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.command("gp-fit", context_settings=SHOW_DEFAULTS)
+@click.argument("data", type=IN_FILE)
 @click.option(
     "--x",
     "x_col",
@@ -54,7 +56,7 @@ HOLDOUT = 0.25
 @click.option(
     "--out",
     "out_dir",
-    type=click.Path(file_okay=False, path_type=Path),
+    type=OUT_DIR,
     required=True,
     help=f"Folder for {SUMMARY_FILE} and {FIGURE_FILE}.",
 )
@@ -62,14 +64,12 @@ HOLDOUT = 0.25
     "--mesh-size",
     type=click.IntRange(min=2, max=MAX_CLI_MESH_SIZE),
     default=30,
-    show_default=True,
     help="Cells per axis of the triangular Preisach mesh (30: 465 hysterons).",
 )
 @click.option(
     "--restarts",
     type=click.IntRange(min=1),
     default=3,
-    show_default=True,
     help="Optimisations of the H-GP, ranked by marginal likelihood: from the "
     "Preisach fit's density, from a uniform density (always both), the rest "
     "from prior samples.",
@@ -78,7 +78,6 @@ HOLDOUT = 0.25
     "--max-iter",
     type=click.IntRange(min=1),
     default=200,
-    show_default=True,
     help="L-BFGS-B iterations per restart.",
 )
 @click.option(
@@ -92,14 +91,12 @@ HOLDOUT = 0.25
     "--initial-state",
     type=click.Choice(["negative", "positive", "demagnetized"]),
     default="negative",
-    show_default=True,
     help="Magnet state before the first row.",
 )
 @click.option(
     "--holdout",
     type=click.FloatRange(min=0.0, max=0.9),
     default=HOLDOUT,
-    show_default=True,
     help="Share of the last rows held out: both GPs are fitted on the rows "
     "before them and predict them (the H-GP continuing the history); 0 fits "
     "every row.",
@@ -108,7 +105,6 @@ HOLDOUT = 0.25
     "--seed",
     type=click.IntRange(min=0, max=SEED_MAX),
     default=0,
-    show_default=True,
     help="Seed of the random restarts.",
 )
 @click.option(
@@ -142,49 +138,16 @@ def gp_fit(
     into OUT; a warning line is printed where the H-GP is worse than the
     plain GP.
     """
-    repeated = sorted({c for c in plain_cols if plain_cols.count(c) > 1})
-    if repeated:
-        raise click.BadParameter(
-            f"column(s) {repeated} given more than once", param_hint="--plain"
-        )
-    for col, option in ((x_col, "--x"), (y_col, "--y")):
-        if col in plain_cols:
-            raise click.BadParameter(
-                f"column {col!r} is the {option} column; --plain names extra, "
-                "non-hysteretic input columns.",
-                param_hint="--plain",
-            )
-    time_col = time_column or DEFAULT_TIME_COLUMN
-    try:
-        hist = read_magnet_csv(data, x_col, y_col, time_column=time_col)
-        check_time_column(data, hist.header, time_column)
-        check_magnitude(data, x_col, hist.input)
-        check_magnitude(data, y_col, hist.output)
-        if float(hist.input.max() - hist.input.min()) <= 0:
-            raise ValueError(
-                f"{data}: column {x_col!r} is constant ({float(hist.input[0]):g}); "
-                "a hysteresis GP needs the magnet input to vary."
-            )
-        cols = [hist.input]
-        for col in plain_cols:
-            cols.append(read_magnet_csv(data, col, y_col, time_column=time_col).input)
-            check_magnitude(data, col, cols[-1])
-        X = torch.stack(cols, dim=-1)
-        Y = hist.output.unsqueeze(-1)
-        n_te = round(holdout * X.shape[0])
-        n_tr = X.shape[0] - n_te
-        if n_tr < MIN_FIT_POINTS:
-            raise ValueError(
-                f"{data}: --holdout {holdout:g} leaves {n_tr} of {X.shape[0]} rows "
-                f"to fit; need at least {MIN_FIT_POINTS}."
-            )
+    with click_errors():
+        X, Y, n_tr = read_gp_data(data, x_col, y_col, plain_cols, time_column, holdout)
         setup = gp_setup(
-            X, Y, n_tr, mesh_size=mesh_size, initial_state=initial_state,
+            X,
+            Y,
+            n_tr,
+            mesh_size=mesh_size,
+            initial_state=initial_state,
             input_range=input_range,
-        )  # fmt: skip
-    except ValueError as err:  # FormatError is a ValueError
-        raise click.ClickException(str(err)) from err
-
+        )
     with output_folder(
         out_dir,
         "hysteresis gp-fit",
@@ -211,8 +174,7 @@ def gp_fit(
         fig = plot_hgp_history(setup.model, column=0, xlabel=x_col, ylabel=y_col)
         save_png(fig, folder.path / FIGURE_FILE)
         atomic_write_json(folder.path / SUMMARY_FILE, summary)
-    for alarm in summary["warnings"]:
-        click.echo(f"warning: {alarm}", err=True)
+    echo_warnings(summary["warnings"])
     click.echo(
         f"{gp_line(summary)}; wrote {out_dir / SUMMARY_FILE}, {out_dir / FIGURE_FILE}"
     )

@@ -20,25 +20,15 @@ from pathlib import Path
 
 import click
 
-from diffaccel.cli.hysteresis import (
-    check_magnitude,
-    check_time_column,
-    time_column_option,
-)
-from diffaccel.cli.output import check_out_file, os_error
-from diffaccel.data import (
-    DEFAULT_INPUT_COLUMN,
-    DEFAULT_TIME_COLUMN,
-    atomic_write,
-    iter_magnet_csv,
-)
-from diffaccel.data.atomic import os_condition
+from diffaccel.cli.hysteresis import time_column_option
+from diffaccel.cli.output import IN_DIR, IN_FILE, OUT_FILE, SHOW_DEFAULTS, click_errors
+from diffaccel.data import DEFAULT_INPUT_COLUMN
 from diffaccel.hysteresis.stream_csv import (
     COLUMNS,
-    StreamStats,
+    check_csv_output,
     outside_warning,
+    predict_csv,
     read_ahead,
-    write_predictions,
 )
 from diffaccel.hysteresis.stream_csv import stream_fit as _load  # tests replace it
 
@@ -49,26 +39,27 @@ CHUNK_ROWS = 20_000
 MAX_CHUNK_ROWS = 10**9
 
 
-@click.command("predict")
-@click.argument(
-    "fit_dir", type=click.Path(exists=True, file_okay=False, path_type=Path)
-)
+@click.command("predict", context_settings=SHOW_DEFAULTS)
+@click.argument("fit_dir", type=IN_DIR)
 @click.option(
     "--input",
     "data",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    type=IN_FILE,
     required=True,
     help="CSV with the input column of the fit, rows in time order (any length).",
 )
 @time_column_option
 @click.option(
-    "--out", "out_file", type=click.Path(dir_okay=False, path_type=Path), required=True
+    "--out",
+    "out_file",
+    type=OUT_FILE,
+    required=True,
+    help="CSV file to write: the input's columns plus the predicted ones.",
 )
 @click.option(
     "--chunk-rows",
     type=click.IntRange(min=1, max=MAX_CHUNK_ROWS),
     default=CHUNK_ROWS,
-    show_default=True,
     help="Rows read, predicted and written at a time (memory grows with it).",
 )
 @click.option(
@@ -97,62 +88,23 @@ def predict_command(
     with the linear term's uncertainty only, not with any doubt about the
     saturation. A missing folder of OUT is created.
     """
-    # the refusals --force does not lift come first, so that the first is true
-    check_out_file(out_file, True, {"--input": data}, csv_columns=COLUMNS)
-    if out_file.suffix.lower() != ".csv":
-        raise click.ClickException(
-            f"--out {out_file}: expected a .csv file name (the output is CSV text)."
-        )
-    check_out_file(out_file, force, {"--input": data}, csv_columns=COLUMNS)
+    with click_errors():
+        check_csv_output(out_file, data, force)
     try:
         spec, config = _load(fit_dir)
     except ValueError as err:
         raise click.ClickException(f"cannot load a fit from {fit_dir}: {err}") from err
-    in_col = config.get("input_column", DEFAULT_INPUT_COLUMN)
-    try:
-        header, chunks = iter_magnet_csv(
-            data,
-            in_col,
-            chunk_rows=chunk_rows,
-            drop=COLUMNS,
-            time_column=time_column or DEFAULT_TIME_COLUMN,
-        )
-    except (OSError, ValueError) as err:
-        raise click.ClickException(str(err)) from err
-    check_time_column(data, header, time_column)
-    clash = [c for c in COLUMNS if c in header]
-    if clash and not force:
-        raise click.ClickException(
-            f"{data} already has column(s) {clash}; pass --force to replace them "
-            "in the output (the input file is never changed)."
-        )
-    stats = StreamStats()
-
-    def write(path: Path) -> None:
-        write_predictions(
-            path,
+    with click_errors(OSError, ValueError):
+        stats = predict_csv(
             spec,
-            header,
-            chunks,
-            check=lambda x, first_row: check_magnitude(data, in_col, x, first_row),
-            stats=stats,
+            config,
+            data,
+            out_file,
+            chunk_rows=chunk_rows,
+            time_column=time_column,
+            force=force,
         )
-
-    try:
-        # as fit and gp-fit create their --out folder
-        out_file.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        if os_condition(err) is not None:  # read-only, no space...
-            raise os_error(err, out_file) from err
-        raise click.ClickException(
-            f"--out {out_file}: cannot create its folder {out_file.parent}: {err}"
-        ) from err
-    try:
-        atomic_write(out_file, write)
-    except ValueError as err:
-        raise click.ClickException(str(err)) from err
-    except OSError as err:  # a read-only folder, a full disk
-        raise os_error(err, out_file) from err
+    in_col = config.get("input_column", DEFAULT_INPUT_COLUMN)
     warning = outside_warning(stats, spec.input_range, in_col)
     if warning:
         click.echo(f"warning: {warning}", err=True)

@@ -8,7 +8,6 @@ prediction ``predict`` makes after the same history and the returned inputs.
 from __future__ import annotations
 
 import json
-import warnings
 from pathlib import Path
 
 import click
@@ -16,22 +15,18 @@ import click
 from diffaccel.cli.hysteresis import (
     check_finite,
     check_input_range,
-    check_magnitude,
-    check_time_column,
     time_column_option,
 )
+from diffaccel.cli.options import echo_lines
+from diffaccel.cli.output import IN_DIR, IN_FILE, click_errors
 from diffaccel.data import DEFAULT_INPUT_COLUMN, DEFAULT_TIME_COLUMN, iter_magnet_csv
-from diffaccel.hysteresis import (
-    InputRangeWarning,
-    UnreachableTargetError,
-    field_for_k1,
-    plan_setpoint,
-)
+from diffaccel.data.magnet_stream import check_time_column
+from diffaccel.hysteresis import field_for_k1
 from diffaccel.hysteresis.setpoint_report import (
-    jump_text,
+    check_limits,
+    plan_history_setpoint,
     setpoint_lines,
     setpoint_summary,
-    unreachable_text,
 )
 from diffaccel.hysteresis.stream_csv import stream_fit
 
@@ -39,13 +34,11 @@ __all__ = ["set_command"]
 
 
 @click.command("set")
-@click.argument(
-    "fit_dir", type=click.Path(exists=True, file_okay=False, path_type=Path)
-)
+@click.argument("fit_dir", type=IN_DIR)
 @click.option(
     "--history",
     "data",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    type=IN_FILE,
     required=True,
     help="CSV with the input column of the fit: every input applied since the "
     "fit's initial state, in time order.",
@@ -128,46 +121,26 @@ def set_command(
         raise click.ClickException(f"cannot load a fit from {fit_dir}: {err}") from err
     in_col = config.get("input_column", DEFAULT_INPUT_COLUMN)
     out_col = config.get("output_column", "output")
-    r_lo, r_hi = spec.input_range
-    if limits is not None and not (limits[0] < r_hi and limits[1] > r_lo):
-        raise click.BadParameter(
-            f"{limits[0]:g} {limits[1]:g} leave no {in_col} inside the fit's input "
-            f"range [{r_lo:.6g}, {r_hi:.6g}].",
-            param_hint="--limits",
-        )
-    try:
+    with click_errors(OSError, ValueError):
+        check_limits(spec, limits, in_col)
         header, chunks = iter_magnet_csv(
             data, in_col, time_column=time_column or DEFAULT_TIME_COLUMN
         )
-    except (OSError, ValueError) as err:
-        raise click.ClickException(str(err)) from err
-    check_time_column(data, header, time_column)
-
-    def inputs():
-        first_row = 1
-        for rows, x in chunks:
-            check_magnitude(data, in_col, x, first_row)
-            first_row += len(rows)
-            yield x
-
+        check_time_column(data, header, time_column)
     # a k1 target: its calibration; an output target: none
     k1 = {"length": length, "p0c": p0c} if is_k1 else {}
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", InputRangeWarning)
-        try:
-            plan = plan_setpoint(spec, inputs(), field, limits)
-        except UnreachableTargetError as err:
-            text = unreachable_text(
-                err, target=target, output=field, input_column=in_col,
-                output_column=out_col, **k1,
-            )  # fmt: skip
-            raise click.ClickException(text) from err
-        except ValueError as err:
-            raise click.ClickException(f"{data}: {err}") from err
-    notes = sorted({str(w.message) for w in caught if w.category is InputRangeWarning})
-    jump = jump_text(plan, field, spec.output_scale, in_col, out_col)
-    if jump:
-        raise click.ClickException(jump)
+    with click_errors():
+        plan, notes = plan_history_setpoint(
+            spec,
+            data,
+            chunks,
+            input_column=in_col,
+            output_column=out_col,
+            target=target,
+            output=field,
+            limits=limits,
+            **k1,
+        )
     if as_json:
         summary = setpoint_summary(
             plan, fit=str(fit_dir), history=str(data), input_column=in_col,
@@ -176,11 +149,9 @@ def set_command(
         )  # fmt: skip
         click.echo(json.dumps(summary, allow_nan=False))
         return
-    for note in notes:
-        click.echo(f"note: {note}", err=True)
+    echo_lines([f"note: {note}" for note in notes], err=True)
     lines = setpoint_lines(
         plan, input_column=in_col, output_column=out_col,
         k1=target if is_k1 else None,
     )  # fmt: skip
-    for line in lines:
-        click.echo(line)
+    echo_lines(lines)

@@ -7,7 +7,8 @@ from pathlib import Path
 
 import click
 
-from diffaccel.cli.output import check_out_file
+from diffaccel.cli.options import echo_lines, echo_warnings
+from diffaccel.cli.output import IN_FILE, OUT_FILE, check_out_file
 from diffaccel.data.atomic import atomic_write_json
 from diffaccel.dynamics import Beamline
 from diffaccel.dynamics.cheetah_interop import LatticeImportError
@@ -17,7 +18,7 @@ __all__ = ["lattice"]
 
 
 @click.command("lattice")
-@click.argument("file", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("file", type=IN_FILE)
 @click.option("--start", default=None, help="First element to keep (by name).")
 @click.option("--end", default=None, help="Last element to keep (by name).")
 @click.option(
@@ -57,7 +58,7 @@ __all__ = ["lattice"]
 )
 @click.option(
     "--out",
-    type=click.Path(dir_okay=False, path_type=Path),
+    type=OUT_FILE,
     default=None,
     help="Write the beamline spec (JSON list of elements) here.",
 )
@@ -77,10 +78,6 @@ def lattice(
     """List a lattice FILE (Bmad, elegant, LatticeJSON) read through cheetah."""
     if out is not None:
         check_out_file(out, force, {"FILE": file})
-        if out.exists() and not force:
-            raise click.ClickException(
-                f"--out {out} exists; pass --force to overwrite it."
-            )
     if p0c is not None and not p0c > 0:
         raise click.ClickException(f"--p0c must be > 0 eV; got {p0c}.")
     with warnings.catch_warnings(record=True) as caught:
@@ -96,16 +93,12 @@ def lattice(
                 p0c=p0c,
                 screens=screens,
             )
-        except ImportError as err:
+        except (ImportError, LatticeImportError) as err:
             raise click.ClickException(str(err)) from None
-        except LatticeImportError as err:
-            raise click.ClickException(str(err)) from None
-    for w in caught:
-        click.echo(f"warning: {w.message}", err=True)
+    echo_warnings([str(w.message) for w in caught])
     spec = beamline.to_spec()
     click.echo(f"{file}: {len(spec)} elements, {float(beamline.length):.6g} m")
-    for row in spec_table(spec):
-        click.echo(row)
+    echo_lines(spec_table(spec))
     if out is not None:
         atomic_write_json(out, spec, overwrite=True)
         click.echo(f"wrote {out}")

@@ -1,4 +1,5 @@
-"""Result folders of CLI commands: all-or-nothing, locked, errors as one line."""
+"""Result folders, output files and path types of CLI commands; library errors
+as one line."""
 
 from __future__ import annotations
 
@@ -9,19 +10,53 @@ from pathlib import Path
 import click
 
 from diffaccel.data import (
+    OptionError,
     ResultFolder,
     ResultFolderError,
+    owned_files,
     result_folder,
 )
-from diffaccel.data.atomic import os_condition
-from diffaccel.data.owned_files import written_by_diffaccel
-from diffaccel.data.result_folder import MARKER
+from diffaccel.data.atomic import os_condition, os_error_text
 
 __all__ = [
+    "IN_DIR",
+    "IN_FILE",
+    "OUT_DIR",
+    "OUT_FILE",
+    "SHOW_DEFAULTS",
     "check_out_file",
+    "click_errors",
     "os_error",
     "output_folder",
 ]
+
+#: An existing file an argument or option reads.
+IN_FILE = click.Path(exists=True, dir_okay=False, path_type=Path)
+#: An existing folder (a fit, a reconstruction) a command reads.
+IN_DIR = click.Path(exists=True, file_okay=False, path_type=Path)
+#: A file a command writes (not a folder).
+OUT_FILE = click.Path(dir_okay=False, path_type=Path)
+#: A folder a command writes its result into (not a file).
+OUT_DIR = click.Path(file_okay=False, path_type=Path)
+#: ``context_settings`` of the commands: every option's default in ``--help``.
+SHOW_DEFAULTS = {"show_default": True}
+
+
+@contextmanager
+def click_errors(*errors: type[Exception], prefix: str = "") -> Iterator[None]:
+    """Library refusals inside the block as one-line click errors.
+
+    An :class:`~diffaccel.data.OptionError` becomes a usage error naming its
+    option; the ``errors`` (default: ``ValueError``) a ``ClickException`` with
+    their message after ``prefix``.
+    """
+    caught = errors or (ValueError,)
+    try:
+        yield
+    except OptionError as err:
+        raise click.BadParameter(str(err), param_hint=err.option) from err
+    except caught as err:
+        raise click.ClickException(f"{prefix}{err}") from err
 
 
 @contextmanager
@@ -67,65 +102,15 @@ def check_out_file(
     option: str = "--out",
     csv_columns: Sequence[str] = (),
 ) -> None:
-    """Refuse an output file that would replace something the user gave.
-
-    ``out`` may replace an existing file only with ``force`` and only if
-    diffaccel wrote it (:func:`~diffaccel.data.owned_files.written_by_diffaccel`;
-    ``csv_columns``: the columns a CSV output ends with), never one of the
-    ``inputs`` (``{"--dataset": path}``; None entries are skipped), and is never
-    written into a diffaccel result folder (a fit, a reconstruction), ``force``
-    or not: the command could destroy the result it reads, and a foreign file
-    there makes the folder refuse a later ``--force``. ``option`` names ``out``
-    in the messages.
-
-    Raises:
-        click.ClickException: naming the option and the file.
-    """
-    for name, path in inputs.items():
-        if path is not None and out.resolve() == path.resolve():
-            raise click.ClickException(
-                f"{option} {out} is the {name} file; write the output elsewhere."
-            )
-    if (out.resolve().parent / MARKER).exists():
-        # a result folder holds what its command wrote, nothing else: a new
-        # file there would make a later --force refuse the folder as foreign
-        raise click.ClickException(
-            f"{option} {out} is inside the result folder {out.parent}; write the "
-            "output elsewhere."
-        )
-    if out.exists() and not force:
-        raise click.ClickException(f"{out} exists; pass --force to overwrite it")
+    """:func:`diffaccel.data.owned_files.check_out_file`, its refusal as one line."""
     try:
-        ours = not out.exists() or written_by_diffaccel(out, csv_columns=csv_columns)
-    except OSError as err:  # locked, no permission
-        raise os_error(err, out, doing="read") from err
-    if not ours:
-        raise click.ClickException(
-            f"{out} exists and was not written by diffaccel; --force "
-            "replaces only diffaccel's own output files: move it or choose "
-            "another name."
-        )
+        owned_files.check_out_file(out, force, inputs, option, csv_columns)
+    except owned_files.OutputFileError as err:
+        raise click.ClickException(str(err)) from err
 
 
 def os_error(
     err: BaseException, path: Path, doing: str = "write"
 ) -> click.ClickException:
-    """A one-line error for an OS condition while reading or writing ``path``.
-
-    Names the condition (:func:`os_condition`) and what to do, e.g. ``cannot
-    write out.h5: read-only file system (the folder out/ cannot be written
-    here); choose another --out``; other errors keep their own text.
-    """
-    condition = os_condition(err)
-    if condition is None:
-        return click.ClickException(f"cannot {doing} {path}: {err}")
-    if doing == "write":
-        hint = {
-            "permission denied": f"the folder {path.parent} is not writable by you",
-            "read-only file system": f"{path.parent} lies on a read-only file system",
-        }.get(condition, "")
-        where = f" ({hint})" if hint else ""
-        return click.ClickException(
-            f"cannot write {path}: {condition}{where}; nothing was replaced."
-        )
-    return click.ClickException(f"cannot {doing} {path}: {condition}.")
+    """:func:`diffaccel.data.atomic.os_error_text` as a click error."""
+    return click.ClickException(os_error_text(err, path, doing))

@@ -1,18 +1,20 @@
 """``diffaccel reconstruct``: phase-space reconstruction into a result folder.
 
-The command parses its options (:mod:`diffaccel.cli.reconstruct_options`),
-trains with :func:`diffaccel.reconstruction.reconstruct` and writes the folder
-with :func:`diffaccel.reconstruction.results.run_in_folder` (figures drawn by
+The command parses its options, checks the run with
+:func:`diffaccel.reconstruction.results.plan_run`, trains with
+:func:`diffaccel.reconstruction.reconstruct` and writes the folder with
+:func:`diffaccel.reconstruction.results.run_in_folder` (figures drawn by
 :mod:`diffaccel.plotting.reconstruction`); the resume policy is that of
 :mod:`diffaccel.reconstruction.results`.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from contextlib import nullcontext
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any
+from typing import Any, TypeVar
 
 import click
 import torch
@@ -20,20 +22,13 @@ import torch.distributed as tdist
 from click.core import ParameterSource
 from tqdm import tqdm
 
-from diffaccel.cli.options import (
-    check_device,
-    check_memory,
-    echo_lines,
-    echo_warnings,
-    read_dataset,
-    shared_refusal,
-)
-from diffaccel.cli.options import join_distributed as _init_distributed
-from diffaccel.cli.output import output_folder
-from diffaccel.cli.reconstruct_options import (
-    config_options,
-    given_flags,
-    reconstruct_options,
+from diffaccel.cli.options import echo_lines, echo_warnings, seed_option
+from diffaccel.cli.output import (
+    IN_FILE,
+    OUT_DIR,
+    SHOW_DEFAULTS,
+    click_errors,
+    output_folder,
 )
 from diffaccel.data import MultiScanDataset, partial_folder
 from diffaccel.plotting.reconstruction import (
@@ -42,38 +37,249 @@ from diffaccel.plotting.reconstruction import (
     write_image_figures,
     write_result_figures,
 )
-from diffaccel.reconstruction import (
-    ReconstructionConfig,
-    StepInfo,
-    reconstruct,
-    training_selection,
-)
+from diffaccel.reconstruction import ReconstructionConfig, StepInfo, reconstruct
 from diffaccel.reconstruction.results import (
     CHECKPOINT,
     OWNED,
     REPORT,
     SELECTION,
     ResultFigures,
-    ResultWriteError,
-    ResumeError,
     RunError,
-    bunch_charge,
+    config_options,
     finding_lines,
-    resume_plan,
-    resume_start,
+    plan_run,
     run_in_folder,
     score_lines,
     stopped_note,
+)
+from diffaccel.reconstruction.runtime import (
+    init_distributed,
+    memory_shortfall,
+    resolve_device,
+    shared_refusal,
 )
 
 __all__ = [
     "CHECKPOINT",
     "OWNED",
+    "PARAMETER_FLAGS",
     "SELECTION",
-    "echo_warnings",
+    "check_device",
     "reconstruct_command",
     "run_reconstruction",
 ]
+
+F = TypeVar("F", bound=Callable)
+
+_DEFAULTS = {d: ReconstructionConfig(dims=d) for d in (4, 6)}
+
+
+#: Parameters of ``reconstruct`` that set the config, by their flags.
+PARAMETER_FLAGS = {
+    "dims": "--dims",
+    "particles": "--particles",
+    "steps": "--steps",
+    "snapshots": "--snapshots",
+    "seed": "--seed",
+    "image_loss": "--image-loss",
+    "blur": "--blur",
+    "loss_smoothing": "--loss-smoothing",
+    "uncoupled": "--uncoupled",
+    "probe": "--probe",
+}
+
+
+def given_flags(ctx: click.Context) -> set[str]:
+    """The flags of :data:`PARAMETER_FLAGS` given on the command line."""
+    return {
+        flag
+        for name, flag in PARAMETER_FLAGS.items()
+        if ctx.get_parameter_source(name) in (ParameterSource.COMMANDLINE,)
+    }
+
+
+#: The argument and options of ``reconstruct``, in the order of its ``--help``.
+_OPTIONS = [
+    click.argument("dataset", type=IN_FILE),
+    click.option(
+        "--out",
+        type=OUT_DIR,
+        required=True,
+        help="Output directory (ensemble, summary.json, figures).",
+    ),
+    click.option(
+        "--particles",
+        type=click.IntRange(min=16),
+        default=None,
+        help="Fresh particles per training step [default: "
+        f"{_DEFAULTS[4].n_particles} for --dims 4, {_DEFAULTS[6].n_particles} for "
+        "--dims 6].",
+    ),
+    click.option(
+        "--steps",
+        "--epochs",
+        "steps",
+        type=click.IntRange(min=1),
+        default=None,
+        help="Optimisation steps (multiple of --snapshots); --epochs is an alias "
+        f"[default: {_DEFAULTS[4].steps} for --dims 4, {_DEFAULTS[6].steps} for "
+        "--dims 6].",
+    ),
+    click.option(
+        "--snapshots",
+        type=click.IntRange(min=1),
+        default=None,
+        help="Cosine learning-rate cycles; the ensemble keeps the last snapshots - "
+        f"burn-in (burn-in {_DEFAULTS[4].burn_in} for --dims 4, "
+        f"{_DEFAULTS[6].burn_in} for --dims 6) [default: {_DEFAULTS[4].snapshots} for "
+        f"--dims 4, {_DEFAULTS[6].snapshots} for --dims 6].",
+    ),
+    seed_option,
+    click.option("--device", default="cpu", help="cpu, cuda, cuda:1..."),
+    click.option(
+        "--train-indices",
+        default="all",
+        help="Settings to train on, per scan: all, even, odd or a list like 0,2,4 "
+        "(the same rule in every scan), or SCAN:RULE;SCAN:RULE (e.g. "
+        "'dipole_off:0,1,4,5;dipole_on:all'; scans not named are held out). The "
+        "others are held out and scored.",
+    ),
+    click.option(
+        "--dims",
+        type=click.Choice(["4", "6"]),
+        default="4",
+        help="4: transverse phase space only; 6: also z, pz (seen with a deflecting "
+        "cavity and/or dispersion; otherwise weakly constrained).",
+    ),
+    click.option(
+        "--image-loss",
+        type=click.Choice(["kl", "l1", "l2"]),
+        default=_DEFAULTS[4].image_loss,
+        help="Distance of simulated from measured images: kl (the images' Poisson "
+        "log-likelihood), l1 or l2.",
+    ),
+    click.option(
+        "--blur",
+        type=click.FloatRange(min=0),
+        default=None,
+        help="Point-spread rms of simulated images [pixels] [default: the file's "
+        "screen resolution_pixels where recorded, else 1.0 for --dims 4, sqrt(1/12) "
+        "for --dims 6].",
+    ),
+    click.option(
+        "--loss-smoothing",
+        default=None,
+        metavar="PIXELS|auto",
+        help="Rms of the Gaussian applied to measured and simulated images before "
+        "they are compared [camera pixels], or 'auto': sized per scan by the data "
+        "(the widest image's rms times N^(-1/6) for N particles per step, at most "
+        "the beam's smallest spot), so that the fit does not depend on the "
+        "camera's pixel size; 0 compares pixel by pixel [default: auto for --dims "
+        "4, 1 for --dims 6].",
+    ),
+    click.option(
+        "--uncoupled",
+        is_flag=True,
+        help="--dims 6: put the x-y coupling that the screens barely see (x-py, "
+        "px-y against px-py) at the largest entropy instead of where training "
+        "settled: the 4D and 6D emittances then do not depend on training there. "
+        "Right for beams not turned in x-y; wrong for beams turned in x-y (e.g. "
+        "by a solenoid).",
+    ),
+    click.option(
+        "--probe/--no-probe",
+        default=None,
+        help="--dims 6: let the training images move the beam off the stated prior "
+        "point along the px-pz direction the screens cannot see (zero px-pz partial "
+        "correlation) where members refitted there fit clearly better: a "
+        "likelihood-ratio probe on the side away from where training left the "
+        "members, one or more extra refits per member (about 20 s on two CPU cores) "
+        "[default: on for --dims 6].",
+    ),
+    click.option("--no-figures", is_flag=True, help="Skip the PNG figures."),
+    click.option(
+        "--charge",
+        "charge_pc",
+        type=click.FloatRange(min=0, min_open=True),
+        default=None,
+        help="Bunch charge [pC] of the particles in particles.h5 [default: the "
+        "dataset's metadata charge_C where recorded, else 1 pC].",
+    ),
+    click.option(
+        "--uncertainty/--no-uncertainty",
+        default=True,
+        help="Calibrated moment std (moment-space posterior, see "
+        "docs/methods/uncertainty.md) and the per-pixel spread in the image figures; "
+        "--no-uncertainty reports the ensemble scatter only (faster, under-covers).",
+    ),
+    click.option(
+        "--force",
+        is_flag=True,
+        help="Replace an earlier reconstruction in --out (at the end); discard an "
+        "interrupted run's checkpoint in .OUT.partial.",
+    ),
+    click.option(
+        "--resume",
+        is_flag=True,
+        help="Continue the interrupted run into --out from its checkpoint (same data; "
+        "options not given are the checkpoint's).",
+    ),
+    click.option(
+        "--distributed",
+        is_flag=True,
+        help="Run on the processes started by torchrun (gloo on CPUs, NCCL with "
+        "--device cuda: one GPU per process), sharing the work as --split says; "
+        "process 0 writes --out. See docs/distributed.md.",
+    ),
+    click.option(
+        "--split",
+        type=click.Choice(["particles", "members"]),
+        default="particles",
+        help="With --distributed: 'particles' splits every step's particles across "
+        "the processes (one ensemble, same answer as one process); 'members' trains "
+        "one independent ensemble per process (process r: seed + 7919 r) and joins "
+        "all members into one ensemble (P processes: P times the members).",
+    ),
+]
+
+
+def reconstruct_options(command: F) -> F:
+    """Apply the argument and options of ``reconstruct`` to ``command``."""
+    for option in reversed(_OPTIONS):
+        command = option(command)
+    return command
+
+
+def check_device(device: str) -> torch.device:
+    """``--device`` as a torch device that exists here (one-line error otherwise)."""
+    try:
+        return resolve_device(device)
+    except ValueError as err:
+        raise click.BadParameter(str(err), param_hint="--device") from err
+
+
+def _init_distributed(device: str) -> str:
+    """Join the process group that torchrun describes; this process's device."""
+    try:
+        return init_distributed(device)
+    except ValueError as err:
+        raise click.ClickException(str(err)) from err
+
+
+def _shared_refusal(target: Any, distributed: bool) -> Any:
+    """Enter ``target`` (process 0's result folder); every process learns a refusal.
+
+    See :func:`~diffaccel.reconstruction.runtime.shared_refusal`; the others
+    raise ``process 0 stopped: <its one-line error>``.
+    """
+    return shared_refusal(
+        target,
+        distributed,
+        refusal=click.ClickException,
+        text=lambda err: err.format_message(),
+        stopped=lambda text: click.ClickException(f"process 0 stopped: {text}"),
+    )
+
 
 #: The figures of a result folder, drawn with :mod:`diffaccel.plotting`.
 FIGURES = ResultFigures(
@@ -85,28 +291,24 @@ FIGURES = ResultFigures(
 
 def run_reconstruction(
     ds: MultiScanDataset,
-    dataset_path: Path,
     folder: Path,
     config: ReconstructionConfig,
     selection: dict[str, list[int]],
-    device: torch.device | str,
-    resume: bool,
     figures: bool = True,
     distributed: bool = False,
-    split: str = "particles",
-    uncertainty: bool = True,
-    charge_C: float | None = None,
+    **run: Any,
 ) -> dict[str, Any]:
     """Reconstruct with a progress bar, then write the result into ``folder``.
 
     ``folder`` is the staging folder of an :func:`~diffaccel.cli.output.output_folder`
     (the checkpoint and :data:`SELECTION` go there too); the files are those of
-    :func:`~diffaccel.reconstruction.results.write_result`. With ``distributed``
-    (an initialised ``torch.distributed`` group) every process trains its share
-    (``split``) and only process 0 writes; the others return an empty dict.
-    ``uncertainty``: attach the moment-space posterior (calibrated ``std``);
-    without it ``std`` is the ensemble scatter only. ``charge_C``: bunch charge
-    of ``particles.h5`` [C] (default: the dataset's, else 1 pC).
+    :func:`~diffaccel.reconstruction.results.write_result`, the figures
+    :data:`FIGURES` unless not ``figures``. With ``distributed`` (an
+    initialised ``torch.distributed`` group) every process trains its share
+    and only process 0 writes; the others return an empty dict. ``run``: the
+    other keywords of :func:`~diffaccel.reconstruction.results.run_in_folder`
+    (``dataset_path``, ``device``, ``resume``, ``split``, ``uncertainty``,
+    ``charge_C``).
     """
     writer = not distributed or tdist.get_rank() == 0
     bar = tqdm(
@@ -127,45 +329,28 @@ def run_reconstruction(
         )
         bar.refresh()
 
-    try:
-        with bar:
-            return run_in_folder(
-                ds,
-                folder,
-                config,
-                selection,
-                dataset_path=dataset_path,
-                device=device,
-                resume=resume,
-                figures=FIGURES if figures else None,
-                distributed=distributed,
-                split=split,
-                uncertainty=uncertainty,
-                charge_C=charge_C,
-                callback=callback,
-                train=reconstruct,  # looked up here: tests wrap it
-            )
-    except RunError as err:  # bad data, options, checkpoint, calibration
-        raise click.ClickException(str(err)) from err
+    # bad data, options, checkpoint, calibration: one line
+    with bar, click_errors(RunError):
+        return run_in_folder(
+            ds,
+            folder,
+            config,
+            selection,
+            figures=FIGURES if figures else None,
+            distributed=distributed,
+            callback=callback,
+            train=reconstruct,  # looked up here: tests wrap it
+            **run,
+        )
 
 
-@click.command("reconstruct")
+@click.command("reconstruct", context_settings=SHOW_DEFAULTS)
 @reconstruct_options
 def reconstruct_command(
     dataset: Path,
     out: Path,
-    particles: int | None,
-    steps: int | None,
-    snapshots: int | None,
-    seed: int,
     device: str,
     train_indices: str,
-    dims: str,
-    image_loss: str,
-    blur: float | None,
-    loss_smoothing: str | None,
-    uncoupled: bool,
-    probe: bool | None,
     no_figures: bool,
     uncertainty: bool,
     force: bool,
@@ -173,6 +358,7 @@ def reconstruct_command(
     distributed: bool,
     split: str,
     charge_pc: float | None,
+    **config_values: Any,
 ) -> None:
     """Reconstruct a beam's phase space from the quad-scan file DATASET.
 
@@ -181,7 +367,6 @@ def reconstruct_command(
     its checkpoint there and ``--resume`` continues it (``--force`` discards it).
     """
     ctx = click.get_current_context()
-    given = given_flags(ctx)
     if split != "particles" and not distributed:
         raise click.BadParameter(
             "--split members needs --distributed (processes started by torchrun).",
@@ -190,62 +375,36 @@ def reconstruct_command(
     # _init_distributed: a module name, looked up here (tests replace it)
     dev = _init_distributed(device) if distributed else check_device(device)
     writer = not distributed or tdist.get_rank() == 0
-    options = config_options(
-        dims=dims, particles=particles, steps=steps, snapshots=snapshots,
-        seed=seed, image_loss=image_loss, blur=blur, loss_smoothing=loss_smoothing,
-        uncoupled=uncoupled, probe=probe,
-    )  # fmt: skip
-    checkpoint = stored = None
-    if resume:  # options not given are the checkpoint's
-        try:
-            checkpoint, stored, options = resume_start(out, options, given)
-        except ResumeError as err:
-            raise click.ClickException(str(err)) from err
-    try:
-        config = ReconstructionConfig(**options)
-    except ValueError as err:
-        raise click.ClickException(str(err)) from err
-    ds = read_dataset(dataset)
+    with click_errors():  # the options of PARAMETER_FLAGS
+        options = config_options(**config_values)
     charge_C = None if charge_pc is None else charge_pc * 1e-12
-    try:
-        bunch_charge(ds, charge_C)  # a bad recorded charge refused before training
-    except ResultWriteError as err:
-        raise click.ClickException(f"{dataset}: {err}") from err
-    indices_given = (
-        ctx.get_parameter_source("train_indices") == ParameterSource.COMMANDLINE
-    )
-    try:
-        selection = training_selection(ds, train_indices)
-    except ValueError as err:
-        if not indices_given:  # the file's own settings: no option to blame
-            text = str(err).replace("train_indices select", "its settings hold", 1)
-            raise click.ClickException(f"{dataset}: {text}") from err
-        raise click.BadParameter(str(err), param_hint="--train-indices") from err
-    if checkpoint is not None and stored is not None:
-        try:
-            config, selection, finished = resume_plan(
-                checkpoint,
-                stored,
-                config,
-                ds,
-                selection,
-                given=given,
-                indices_given=indices_given,
-                out=out,
-            )
-        except ResumeError as err:
-            raise click.ClickException(str(err)) from err
-        if finished:  # a finished result: nothing to continue
-            if distributed:
-                tdist.destroy_process_group()
-            click.echo(
-                f"nothing to resume: {out} holds the finished run of {checkpoint}; "
-                "it is unchanged (use --force without --resume to run it again)."
-            )
-            return
-        click.echo(f"resuming from {checkpoint} ({config})", err=True)
+    source = ctx.get_parameter_source("train_indices")
+    with click_errors(RunError):
+        plan = plan_run(
+            dataset,
+            out,
+            options,
+            given=given_flags(ctx),
+            train_indices=train_indices,
+            indices_given=source == ParameterSource.COMMANDLINE,
+            resume=resume,
+            charge_C=charge_C,
+        )
+    config, selection = plan.config, plan.selection
+    if plan.finished:  # a finished result: nothing to continue
+        if distributed:
+            tdist.destroy_process_group()
+        click.echo(
+            f"nothing to resume: {out} holds the finished run of {plan.checkpoint}; "
+            "it is unchanged (use --force without --resume to run it again)."
+        )
+        return
+    if plan.checkpoint is not None:
+        click.echo(f"resuming from {plan.checkpoint} ({config})", err=True)
     if torch.device(dev).type == "cpu":
-        check_memory(config, sum(len(v) for v in selection.values()))
+        problem = memory_shortfall(config, sum(len(v) for v in selection.values()))
+        if problem is not None:
+            raise click.BadParameter(problem, param_hint="--particles")
     started = False
     try:
         if writer:
@@ -260,16 +419,16 @@ def reconstruct_command(
             )
         else:  # process 0 owns the folder; the others read its checkpoint
             target = nullcontext(SimpleNamespace(path=partial_folder(out)))
-        with shared_refusal(target, distributed) as folder:
+        with _shared_refusal(target, distributed) as folder:
             started = True  # the folder is this run's (not refused, not locked)
             summary = run_reconstruction(
-                ds,
-                dataset,
+                plan.dataset,
                 folder.path,
                 config,
                 selection,
-                dev,
-                resume,
+                dataset_path=dataset,
+                device=dev,
+                resume=resume,
                 figures=not no_figures,
                 distributed=distributed,
                 split=split,

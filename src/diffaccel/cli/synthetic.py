@@ -7,11 +7,21 @@ from typing import Any
 
 import click
 
-from diffaccel.cli.output import check_out_file, os_error
+from diffaccel.cli.output import (
+    IN_FILE,
+    OUT_FILE,
+    SHOW_DEFAULTS,
+    click_errors,
+    os_error,
+)
 from diffaccel.data import FormatError
-from diffaccel.data.quad_scan import PARAMETER_LIMITS, check_p0c
+from diffaccel.data.quad_scan import PARAMETER_LIMITS
 from diffaccel.data.synthetic import PRESETS
-from diffaccel.data.synthetic_file import SyntheticRequest, write_synthetic
+from diffaccel.data.synthetic_file import (
+    SyntheticRequest,
+    check_synthetic,
+    write_synthetic,
+)
 
 __all__ = ["synthetic"]
 
@@ -21,13 +31,12 @@ MAX_SHAPE = 4096
 _K1 = PARAMETER_LIMITS["k1"]
 
 
-@click.command("synthetic")
-@click.argument("out", type=click.Path(dir_okay=False, path_type=Path))
+@click.command("synthetic", context_settings=SHOW_DEFAULTS)
+@click.argument("out", type=OUT_FILE)
 @click.option(
     "--layout",
     type=click.Choice(["quad", "awa6d", "rf6d"]),
     default="quad",
-    show_default=True,
     help="quad: Quadrupole 0.1 m + Drift 1 m + Screen (format version 1). awa6d: "
     "the AWA 6D layout (quadrupole 0.11 m, 1.3 GHz TDC off/4 MV, 20 degree "
     "dipole off/on, screens DYG1/DYG2 of 96 x 96 pixels; two scans, format "
@@ -40,12 +49,11 @@ _K1 = PARAMETER_LIMITS["k1"]
     "--preset",
     type=click.Choice(PRESETS),
     default="gaussian",
-    show_default=True,
     help="Ground-truth beam (6D, with energy spread).",
 )
 @click.option(
     "--particle-file",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    type=IN_FILE,
     default=None,
     help="openPMD-beamphysics HDF5 beam to use instead of a preset.",
 )
@@ -54,7 +62,6 @@ _K1 = PARAMETER_LIMITS["k1"]
     "n_particles",
     type=click.IntRange(min=2),
     default=10_000,
-    show_default=True,
     help="Number of preset particles.",
 )
 @click.option(
@@ -107,45 +114,30 @@ _K1 = PARAMETER_LIMITS["k1"]
     "--noise",
     type=click.FloatRange(min=0),
     default=0.0,
-    show_default=True,
     help="Relative noise at the peak pixel (0: none).",
 )
 @click.option(
     "--noise-model",
     type=click.Choice(["poisson", "gaussian"]),
     default="poisson",
-    show_default=True,
+    help="poisson: counts scaled so that the peak pixel has relative rms --noise; "
+    "gaussian: zero-mean noise of rms --noise times the peak on every pixel.",
 )
 @click.option(
     "--shots",
     type=click.IntRange(min=1),
     default=1,
-    show_default=True,
     help="Shots per setting.",
 )
-@click.option("--seed", type=int, default=0, show_default=True)
+@click.option(
+    "--seed", type=int, default=0, help="Seed of the beam sample and the noise."
+)
 @click.option("--force", is_flag=True, help="Overwrite OUT if it exists.")
 def synthetic(out: Path, force: bool, **options: Any) -> None:
     """Simulate a quadrupole scan of a known beam and write it to OUT (HDF5)."""
     opts = SyntheticRequest(**options)
-    if out.suffix.lower() not in (".h5", ".hdf5"):
-        raise click.BadParameter(
-            f"{out}: expected a .h5 or .hdf5 file name (the quad-scan file is HDF5)",
-            param_hint="OUT",
-        )
-    if opts.p0c is not None and opts.particle_file is None:
-        try:
-            check_p0c(opts.p0c, "electron", "--p0c")
-        except FormatError as err:
-            message = str(err).removeprefix("--p0c: ")
-            raise click.BadParameter(message, param_hint="--p0c") from err
-    check_out_file(out, force, {"--particle-file": opts.particle_file})
-    if opts.layout != "quad" and opts.pixel_size is not None:
-        raise click.BadParameter(
-            f"the {opts.layout} layout uses the DYG1/DYG2 calibration; scale it with "
-            "--shape",
-            param_hint="--pixel-size",
-        )
+    with click_errors():
+        check_synthetic(opts, out, force)
     try:
         click.echo(write_synthetic(opts, out, force))
     except (FormatError, ValueError, FileExistsError) as err:

@@ -14,7 +14,7 @@ from diffaccel.data.atomic import (
     atomic_write_text,
     clean_json,
 )
-from diffaccel.data.errors import FormatError
+from diffaccel.data.errors import FormatError, OptionError
 from diffaccel.data.magnet_stream import (
     DEFAULT_INPUT_COLUMN,
     DEFAULT_OUTPUT_COLUMN,
@@ -112,6 +112,7 @@ __all__ = [
     "FormatError",
     "MagnetHistory",
     "MultiScanDataset",
+    "OptionError",
     "QuadScanDataset",
     "ResultFolder",
     "ResultFolderError",

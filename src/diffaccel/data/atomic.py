@@ -18,12 +18,14 @@ from pathlib import Path
 from typing import Any
 
 __all__ = [
+    "OutputWriteError",
     "atomic_write",
     "atomic_write_bytes",
     "atomic_write_json",
     "atomic_write_text",
     "clean_json",
     "os_condition",
+    "os_error_text",
 ]
 
 
@@ -150,3 +152,31 @@ def os_condition(err: BaseException) -> str | None:
             break
         seen = seen.__cause__
     return None
+
+
+class OutputWriteError(OSError):
+    """An output that could not be written; the message names the file and why."""
+
+
+def os_error_text(err: BaseException, path: Path, doing: str = "write") -> str:
+    """A one-line message for an OS condition while reading or writing ``path``.
+
+    Names the condition (:func:`os_condition`) and what became of ``path``,
+    e.g. ``cannot write out.h5: read-only file system (out lies on a read-only
+    file system); nothing was replaced.``; other errors keep their own text.
+
+    Example:
+        >>> os_error_text(OSError(errno.EACCES, "x"), Path("b.h5"), doing="read")
+        'cannot read b.h5: permission denied.'
+    """
+    condition = os_condition(err)
+    if condition is None:
+        return f"cannot {doing} {path}: {err}"
+    if doing != "write":
+        return f"cannot {doing} {path}: {condition}."
+    hint = {
+        "permission denied": f"the folder {path.parent} is not writable by you",
+        "read-only file system": f"{path.parent} lies on a read-only file system",
+    }.get(condition, "")
+    where = f" ({hint})" if hint else ""
+    return f"cannot write {path}: {condition}{where}; nothing was replaced."

@@ -51,6 +51,7 @@ __all__ = [
     "DEFAULT_PREPROCESSING",
     "ExperimentError",
     "import_experiment",
+    "import_lines",
     "load_experiment",
 ]
 
@@ -806,3 +807,26 @@ def import_experiment(
         return MultiScanDataset(scans, metadata=metadata)
     except FormatError as err:
         raise ExperimentError(f"{path}: {err}") from err
+
+
+def import_lines(dataset: MultiScanDataset) -> list[str]:
+    """What an imported dataset holds, indented lines for ``data import`` to print.
+
+    One line per scan (settings x shots, image size and pixel size [um], the
+    knobs) and the preprocessing steps of the first scan.
+    """
+    lines = []
+    for name, scan in dataset:
+        k, s, h, w = scan.shape
+        px, py = scan.pixel_size
+        lines.append(
+            f"  scan {name}: {k} settings x {s} shots, {h} x {w} pixels of "
+            f"{px * 1e6:.4g} x {py * 1e6:.4g} um, knobs {', '.join(scan.setting_names)}"
+        )
+    steps = [
+        step["step"]
+        for step in dataset.metadata.get("preprocessing", [])
+        if step.get("scan") == dataset.names[0]
+    ]
+    lines.append(f"  preprocessing ({dataset.names[0]}): {' -> '.join(steps)}")
+    return lines

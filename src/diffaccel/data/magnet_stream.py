@@ -24,6 +24,7 @@ from __future__ import annotations
 import csv
 import io
 import itertools
+import math
 import operator
 import os
 import re
@@ -32,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from diffaccel.data.errors import FormatError
+from diffaccel.data.errors import FormatError, OptionError
 
 __all__ = [
     "DEFAULT_INPUT_COLUMN",
@@ -40,7 +41,12 @@ __all__ = [
     "DEFAULT_RUN_COLUMN",
     "DEFAULT_TIME_COLUMN",
     "MAX_CELL_CHARS",
+    "MAX_MAGNITUDE",
     "append_columns",
+    "check_finite",
+    "check_input_range",
+    "check_magnitude",
+    "check_time_column",
     "iter_magnet_csv",
 ]
 
@@ -52,6 +58,85 @@ DEFAULT_TIME_COLUMN = "time_s"
 DEFAULT_RUN_COLUMN = "run"
 # longest accepted cell (a number, a label); longer ones are not magnet data
 MAX_CELL_CHARS = 1000
+#: Largest |value| of a measured series (fit, H-GP and the CLI readers): larger
+#: magnitudes overflow squares and ranges in float64; no measurement has them.
+MAX_MAGNITUDE = 1e100
+
+
+def check_magnitude(
+    data: str | os.PathLike, column: str, values: np.ndarray, first_row: int = 1
+) -> None:
+    """Refuse a value beyond :data:`MAX_MAGNITUDE`, naming the file, column and row.
+
+    Args:
+        data: The CSV file the values come from.
+        column: Their column name.
+        values: The column's values (a numpy array or a CPU tensor), shape ``(T,)``.
+        first_row: Data row (1 = the first row below the header) of ``values[0]``.
+
+    Raises:
+        FormatError: at the first value beyond :data:`MAX_MAGNITUDE`.
+    """
+    v = np.asarray(values, dtype=np.float64)
+    big = np.flatnonzero(np.abs(v) > MAX_MAGNITUDE)
+    if big.size:
+        i = int(big[0])
+        raise FormatError(
+            f"{data}: column {column!r}, data row {first_row + i}: "
+            f"{float(v[i]):.6g} is beyond {MAX_MAGNITUDE:.0e} in magnitude, "
+            "not a measurement (a unit or parsing error?)."
+        )
+
+
+def check_finite(value: float | None) -> float | None:
+    """``value`` unless it is NaN or infinite (None passes).
+
+    Raises:
+        ValueError: ``expected a finite number; got VALUE.``
+    """
+    if value is not None and not math.isfinite(value):
+        raise ValueError(f"expected a finite number; got {value}.")
+    return value
+
+
+def check_input_range(
+    value: tuple[float, float] | None,
+) -> tuple[float, float] | None:
+    """An input range ``(LO, HI)`` of finite numbers with ``LO < HI`` (None passes).
+
+    Raises:
+        ValueError: naming the numbers: not finite, not increasing, or a width
+            that overflows.
+    """
+    if value is None:
+        return None
+    lo, hi = value
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        raise ValueError(f"expected finite numbers; got {lo} {hi}.")
+    if not lo < hi:
+        raise ValueError(f"expected LO < HI; got {lo} {hi}.")
+    if not math.isfinite(hi - lo):
+        raise ValueError(
+            f"HI - LO overflows (got {lo} {hi}); expected a range of finite width."
+        )
+    return value
+
+
+def check_time_column(
+    data: str | os.PathLike, header: Sequence[str], name: str | None
+) -> None:
+    """Refuse a time column ``name`` that the header of ``data`` lacks.
+
+    None (the default column, which may be absent) passes.
+
+    Raises:
+        OptionError: for ``--time-column``, naming the file and its columns.
+    """
+    if name is not None and name not in header:
+        raise OptionError(
+            f"{data} has no column {name!r}; columns are {list(header)}.",
+            "--time-column",
+        )
 
 
 def _parse_column(

@@ -29,11 +29,14 @@ from typing import BinaryIO
 import numpy as np
 
 from diffaccel import __version__
-from diffaccel.data.atomic import atomic_write, os_condition
+from diffaccel.data.atomic import atomic_write, os_condition, os_error_text
+from diffaccel.data.result_folder import MARKER
 
 __all__ = [
     "H5_ATTRIBUTE",
     "MARK",
+    "OutputFileError",
+    "check_out_file",
     "h5_mark",
     "mark_npz",
     "save_arrays",
@@ -196,3 +199,54 @@ def written_by_diffaccel(
     except (ValueError, zipfile.BadZipFile, struct.error):
         return False
     return False
+
+
+class OutputFileError(ValueError):
+    """An output file that must not be written (the message names it, one line)."""
+
+
+def check_out_file(
+    out: Path,
+    force: bool,
+    inputs: Mapping[str, Path | None],
+    option: str = "--out",
+    csv_columns: Sequence[str] = (),
+) -> None:
+    """Refuse an output file that would replace something the user gave.
+
+    ``out`` may replace an existing file only with ``force`` and only if
+    diffaccel wrote it (:func:`written_by_diffaccel`; ``csv_columns``: the
+    columns a CSV output ends with), never one of the ``inputs``
+    (``{"--dataset": path}``; None entries are skipped), and is never written
+    into a diffaccel result folder (a fit, a reconstruction), ``force`` or
+    not: the command could destroy the result it reads, and a foreign file
+    there makes the folder refuse a later ``--force``. ``option`` names ``out``
+    in the messages.
+
+    Raises:
+        OutputFileError: naming the option and the file.
+    """
+    for name, path in inputs.items():
+        if path is not None and out.resolve() == path.resolve():
+            raise OutputFileError(
+                f"{option} {out} is the {name} file; write the output elsewhere."
+            )
+    if (out.resolve().parent / MARKER).exists():
+        # a result folder holds what its command wrote, nothing else: a new
+        # file there would make a later --force refuse the folder as foreign
+        raise OutputFileError(
+            f"{option} {out} is inside the result folder {out.parent}; write the "
+            "output elsewhere."
+        )
+    if out.exists() and not force:
+        raise OutputFileError(f"{out} exists; pass --force to overwrite it")
+    try:
+        ours = not out.exists() or written_by_diffaccel(out, csv_columns=csv_columns)
+    except OSError as err:  # locked, no permission
+        raise OutputFileError(os_error_text(err, out, doing="read")) from err
+    if not ours:
+        raise OutputFileError(
+            f"{out} exists and was not written by diffaccel; --force "
+            "replaces only diffaccel's own output files: move it or choose "
+            "another name."
+        )

@@ -4,7 +4,8 @@
 asks for (:func:`~diffaccel.data.make_synthetic_quad_scan`,
 :func:`~diffaccel.data.make_synthetic_awa6d`,
 :func:`~diffaccel.data.make_synthetic_rf6d`), writes them with their ground
-truth and returns a one-line account of the file.
+truth and returns a one-line account of the file; :func:`check_synthetic`
+refuses a request and output file before any simulation.
 """
 
 from __future__ import annotations
@@ -14,8 +15,10 @@ from pathlib import Path
 
 import torch
 
+from diffaccel.data.errors import FormatError, OptionError
+from diffaccel.data.owned_files import check_out_file
 from diffaccel.data.particles_io import read_openpmd_particles
-from diffaccel.data.quad_scan import write_quad_scan
+from diffaccel.data.quad_scan import check_p0c, write_quad_scan
 from diffaccel.data.scans import write_scans
 from diffaccel.data.synthetic import (
     make_synthetic_awa6d,
@@ -23,7 +26,7 @@ from diffaccel.data.synthetic import (
     make_synthetic_rf6d,
 )
 
-__all__ = ["SyntheticRequest", "write_synthetic"]
+__all__ = ["SyntheticRequest", "check_synthetic", "write_synthetic"]
 
 
 @dataclass(frozen=True)
@@ -145,6 +148,38 @@ def _awa6d(opts: SyntheticRequest, out: Path, force: bool, beam: str) -> str:
         f"{ms.ground_truth.shape[0]} particles, {image_method} images, noise "
         f"{opts.noise:g}, seed {opts.seed}"
     )
+
+
+def check_synthetic(request: SyntheticRequest, out: Path, force: bool) -> None:
+    """Refuse a request or output file of ``diffaccel synthetic`` before any work.
+
+    In this order: ``out`` not named ``.h5``/``.hdf5`` (``OUT``); a ``p0c``
+    of a preset beam below the electron's limit (``--p0c``, see
+    :func:`~diffaccel.data.quad_scan.check_p0c`); an ``out`` that ``force``
+    may not replace (:func:`~diffaccel.data.owned_files.check_out_file`); a
+    ``pixel_size`` for a 6D layout, whose screens are calibrated
+    (``--pixel-size``).
+
+    Raises:
+        OptionError: naming the option; ``OutputFileError`` for ``out``.
+    """
+    if out.suffix.lower() not in (".h5", ".hdf5"):
+        raise OptionError(
+            f"{out}: expected a .h5 or .hdf5 file name (the quad-scan file is HDF5)",
+            "OUT",
+        )
+    if request.p0c is not None and request.particle_file is None:
+        try:
+            check_p0c(request.p0c, "electron", "--p0c")
+        except FormatError as err:
+            raise OptionError(str(err).removeprefix("--p0c: "), "--p0c") from err
+    check_out_file(out, force, {"--particle-file": request.particle_file})
+    if request.layout != "quad" and request.pixel_size is not None:
+        raise OptionError(
+            f"the {request.layout} layout uses the DYG1/DYG2 calibration; scale it "
+            "with --shape",
+            "--pixel-size",
+        )
 
 
 def write_synthetic(request: SyntheticRequest, out: Path, overwrite: bool) -> str:

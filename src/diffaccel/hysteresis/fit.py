@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from diffaccel.data.magnet_stream import MAX_MAGNITUDE
 from diffaccel.dynamics import as_real_tensor
 from diffaccel.dynamics.linalg import lstsq
 from diffaccel.hysteresis.preisach import PreisachModel
@@ -28,9 +29,6 @@ logger = logging.getLogger(__name__)
 
 # offset, slope and scale need at least three points; two more to see a loop
 MIN_FIT_POINTS = 5
-#: Largest |value| of a measured series (fit, H-GP and the CLI readers): larger
-#: magnitudes overflow squares and ranges in float64; no measurement has them.
-MAX_MAGNITUDE = 1e100
 
 
 @dataclass

@@ -6,25 +6,48 @@ numbers of a fit folder's ``summary.json``: rms errors on the training and the
 held-out rows, the same for a straight line fitted to the training rows, the
 share of held-out rows inside the 2-std band, and the alarms of
 :mod:`diffaccel.hysteresis.alarms`. :func:`fit_line` is the one-line
-account of such a summary.
+account of such a summary, :func:`fit_messages` the warnings and notes of a
+fit. :func:`read_fit_history` reads and checks the CSV history of
+``hysteresis fit``; :func:`fit_history` fits its first rows and scores it.
 """
 
 from __future__ import annotations
 
 import warnings
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor
 
+from diffaccel.data import OptionError
+from diffaccel.data.magnet_csv import MagnetHistory, read_magnet_csv
+from diffaccel.data.magnet_stream import (
+    DEFAULT_TIME_COLUMN,
+    check_magnitude,
+    check_time_column,
+)
 from diffaccel.dynamics.linalg import lstsq
 from diffaccel.hysteresis.alarms import input_outlier_alarms, preisach_alarms
-from diffaccel.hysteresis.predictive import MagnetFit, rms
+from diffaccel.hysteresis.band import BandFallbackWarning
+from diffaccel.hysteresis.predictive import (
+    MagnetFit,
+    fit_magnet,
+    min_training_rows,
+    rms,
+)
 from diffaccel.hysteresis.stream import InputRangeWarning
 
-__all__ = ["FitScore", "fit_line", "score_fit"]
+__all__ = [
+    "FitScore",
+    "fit_history",
+    "fit_line",
+    "fit_messages",
+    "read_fit_history",
+    "score_fit",
+]
 
 
 @dataclass(frozen=True)
@@ -175,3 +198,109 @@ def fit_line(summary: Mapping[str, Any]) -> str:
         f"({100.0 * train_rmse / span:.3f} %), held-out rmse {test_txt}; "
         f"percentages of the training output range {span:.4g}"
     )
+
+
+def read_fit_history(
+    data: Path,
+    input_column: str,
+    output_column: str,
+    time_column: str | None,
+    train_rows: int,
+) -> MagnetHistory:
+    """The magnet history in the CSV file ``data``, checked for a fit of its first rows.
+
+    ``time_column``: None reads the default time column where the file has it
+    (:func:`~diffaccel.data.read_magnet_csv`); a named one must exist.
+
+    Raises:
+        OSError, ValueError: a file that cannot be read as a magnet history
+            (:class:`~diffaccel.data.FormatError`), or a value beyond
+            :data:`~diffaccel.data.magnet_stream.MAX_MAGNITUDE`.
+        OptionError: a missing ``--time-column``; ``--train-rows`` beyond the
+            rows of the file or below :func:`min_training_rows`.
+    """
+    hist = read_magnet_csv(
+        data,
+        input_column,
+        output_column,
+        time_column=time_column or DEFAULT_TIME_COLUMN,
+    )
+    check_time_column(data, hist.header, time_column)
+    if train_rows > len(hist):
+        raise OptionError(
+            f"{train_rows} exceeds the {len(hist)} rows of {data}.", "--train-rows"
+        )
+    if train_rows < min_training_rows():
+        raise OptionError(
+            f"a fit needs at least {min_training_rows()} training rows; got "
+            f"{train_rows}.",
+            "--train-rows",
+        )
+    for name, values in ((input_column, hist.input), (output_column, hist.output)):
+        check_magnitude(data, name, values)
+    return hist
+
+
+def fit_history(
+    hist: MagnetHistory,
+    train_rows: int,
+    *,
+    data: str,
+    callback: Callable[[int, float], None] | None = None,
+    mesh_size: int = 20,
+    smoothness: float = 0.0,
+    initial_state: str = "negative",
+    **options: Any,
+) -> tuple[MagnetFit, FitScore]:
+    """Fit the first ``train_rows`` rows of ``hist`` and score every row.
+
+    :func:`~diffaccel.hysteresis.fit_magnet` with ``mesh_size``,
+    ``smoothness``, ``initial_state``, ``callback`` and its other ``options``,
+    then :func:`score_fit` (``data``: the file's name in the summary). A
+    fallback of the predictive band is reported once, as the fit's
+    ``band_fallback``, not also as a warning; other warnings pass on.
+
+    Raises:
+        ValueError: training rows the model cannot fit or predict.
+    """
+    u, y = hist.input, hist.output
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", BandFallbackWarning)
+        fit = fit_magnet(
+            u[:train_rows],
+            y[:train_rows],
+            mesh_size=mesh_size,
+            initial_state=initial_state,
+            smoothness=smoothness,
+            callback=callback,
+            **options,
+        )
+    for w in caught:
+        if w.category is not BandFallbackWarning:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    score = score_fit(
+        fit,
+        u,
+        y,
+        train_rows,
+        data=data,
+        input_column=hist.input_column,
+        output_column=hist.output_column,
+        mesh_size=mesh_size,
+        smoothness=smoothness,
+        initial_state=initial_state,
+    )
+    return fit, score
+
+
+def fit_messages(fit: MagnetFit, score: FitScore) -> Sequence[str]:
+    """The lines a fit reports besides its summary: band fallback, notes, alarms.
+
+    Each prefixed ``warning:`` or ``note:``, in that order.
+    """
+    fallback = [] if fit.band_fallback is None else [fit.band_fallback]
+    return [
+        *(f"warning: {text}" for text in fallback),
+        *(f"note: {note}" for note in score.notes),
+        *(f"warning: {alarm}" for alarm in score.alarms),
+    ]

@@ -1,7 +1,8 @@
 """A joint hysteresis GP of one magnet history, against a plain GP of the same rows.
 
-:func:`gp_setup` builds both models on the first rows of a history (the
-H-GP started from a Preisach fit of the response,
+:func:`read_gp_data` reads the history's columns from CSV, :func:`gp_setup`
+builds both models on the first rows of a history (the H-GP started from a
+Preisach fit of the response,
 :func:`~diffaccel.hysteresis.hgp.joint_gp_from_preisach`), :func:`fit_gps`
 fits them and :func:`gp_summary` scores them on the held-out last rows (the
 H-GP continuing the history), with the alarms of
@@ -13,12 +14,21 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor
 
+from diffaccel.data import OptionError
+from diffaccel.data.magnet_csv import read_magnet_csv
+from diffaccel.data.magnet_stream import (
+    DEFAULT_TIME_COLUMN,
+    check_magnitude,
+    check_time_column,
+)
 from diffaccel.hysteresis.alarms import hgp_alarms
+from diffaccel.hysteresis.fit import MIN_FIT_POINTS
 from diffaccel.hysteresis.hgp import (
     HGPFitResult,
     HysteresisGP,
@@ -29,12 +39,87 @@ from diffaccel.hysteresis.hgp import (
 from diffaccel.hysteresis.mesh import PreisachMesh
 from diffaccel.hysteresis.preisach import PreisachModel
 
-__all__ = ["GPSetup", "fit_gps", "gp_line", "gp_setup", "gp_summary"]
+__all__ = [
+    "GPSetup",
+    "fit_gps",
+    "gp_line",
+    "gp_setup",
+    "gp_summary",
+    "read_gp_data",
+]
 
 #: Margin added to the data range of the hysteretic input (share of the range).
 RANGE_MARGIN = 0.01
 #: L-BFGS iterations of the Preisach fit that starts the H-GP's density.
 PREISACH_STEPS = 300
+#: Share of the last rows held out by default.
+HOLDOUT = 0.25
+
+
+def read_gp_data(
+    data: Path,
+    x_column: str,
+    y_column: str,
+    plain_columns: Sequence[str] = (),
+    time_column: str | None = None,
+    holdout: float = HOLDOUT,
+) -> tuple[Tensor, Tensor, int]:
+    """The settings and responses of a magnet history in CSV, and the rows to fit.
+
+    Args:
+        data: The CSV file, rows in the order the settings were applied.
+        x_column: Column of the hysteretic input (magnet current).
+        y_column: Column of the beam response.
+        plain_columns: Extra non-hysteretic input columns.
+        time_column: Column of measurement times (None: the default where the
+            file has it; see :func:`~diffaccel.data.read_magnet_csv`).
+        holdout: Share of the last rows held out.
+
+    Returns:
+        ``X`` ``(T, 1 + len(plain_columns))`` (the hysteretic input first),
+        ``Y`` ``(T, 1)`` and the number of rows to fit (the first ones).
+
+    Raises:
+        OptionError: a plain column given twice or also as ``x_column`` or
+            ``y_column`` (``--plain``); a missing ``time_column``
+            (``--time-column``).
+        ValueError: a file that cannot be read as a magnet history, values
+            beyond :data:`~diffaccel.data.magnet_stream.MAX_MAGNITUDE`, a
+            constant input, or fewer than ``MIN_FIT_POINTS`` rows to fit.
+    """
+    repeated = sorted({c for c in plain_columns if plain_columns.count(c) > 1})
+    if repeated:
+        raise OptionError(f"column(s) {repeated} given more than once", "--plain")
+    for col, option in ((x_column, "--x"), (y_column, "--y")):
+        if col in plain_columns:
+            raise OptionError(
+                f"column {col!r} is the {option} column; --plain names extra, "
+                "non-hysteretic input columns.",
+                "--plain",
+            )
+    time_col = time_column or DEFAULT_TIME_COLUMN
+    hist = read_magnet_csv(data, x_column, y_column, time_column=time_col)
+    check_time_column(data, hist.header, time_column)
+    check_magnitude(data, x_column, hist.input)
+    check_magnitude(data, y_column, hist.output)
+    if float(hist.input.max() - hist.input.min()) <= 0:
+        raise ValueError(
+            f"{data}: column {x_column!r} is constant ({float(hist.input[0]):g}); "
+            "a hysteresis GP needs the magnet input to vary."
+        )
+    cols = [hist.input]
+    for col in plain_columns:
+        cols.append(read_magnet_csv(data, col, y_column, time_column=time_col).input)
+        check_magnitude(data, col, cols[-1])
+    X = torch.stack(cols, dim=-1)
+    n_te = round(holdout * X.shape[0])
+    n_tr = X.shape[0] - n_te
+    if n_tr < MIN_FIT_POINTS:
+        raise ValueError(
+            f"{data}: --holdout {holdout:g} leaves {n_tr} of {X.shape[0]} rows "
+            f"to fit; need at least {MIN_FIT_POINTS}."
+        )
+    return X, hist.output.unsqueeze(-1), n_tr
 
 
 @dataclass(frozen=True)

@@ -52,6 +52,7 @@ __all__ = [
     "default_input_range",
     "fit_magnet",
     "min_training_rows",
+    "parse_mesh_adapt",
     "predict_stream",
     "symmetric_default",
 ]
@@ -115,6 +116,23 @@ def check_mesh_size(mesh_size: int) -> None:
             f"band (dense hysteron x hysteron matrices); use at most "
             f"{MAX_MESH_SIZE} (default 20)."
         )
+
+
+def parse_mesh_adapt(text: str) -> float | str:
+    """The ``mesh_adapt`` of :func:`fit_magnet` from text: ``"auto"`` or a share.
+
+    Raises:
+        ValueError: unless ``"auto"`` or a number in ``[0, 1)``.
+    """
+    if text == "auto":
+        return text
+    try:
+        share = float(text)
+    except ValueError:
+        share = math.nan
+    if not 0.0 <= share < 1.0:
+        raise ValueError(f"expected 'auto' or a number in [0, 1); got {text!r}.")
+    return share
 
 
 def _held_out(n: int, validation_fraction: float) -> int:

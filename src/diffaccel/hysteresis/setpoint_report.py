@@ -3,24 +3,36 @@
 numpy only, as :mod:`diffaccel.hysteresis.setpoint`. A target is an output
 [output units] or, with a magnetic ``length`` [m] and ``p0c`` [eV], a
 quadrupole strength k1 [1/m^2] whose output is the integrated gradient
-(:func:`~diffaccel.hysteresis.field_for_k1`).
+(:func:`~diffaccel.hysteresis.field_for_k1`). :func:`plan_history_setpoint`
+plans the set point after a history read from CSV chunk by chunk, its
+refusals in words.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import warnings
+from collections.abc import Iterable, Iterator, Sequence
+from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from diffaccel.data import FormatError, OptionError
+from diffaccel.data.magnet_stream import check_magnitude
 from diffaccel.hysteresis.setpoint import (
     SetPoint,
     UnreachableTargetError,
     field_for_k1,
+    plan_setpoint,
 )
+from diffaccel.hysteresis.stream import InputRangeWarning, StreamSpec
 
 __all__ = [
     "ACCEPT",
+    "check_limits",
     "jump_text",
+    "plan_history_setpoint",
     "setpoint_lines",
     "setpoint_summary",
     "unreachable_text",
@@ -171,3 +183,96 @@ def setpoint_lines(
         f"{plan.limits[0]:.6g} .. {plan.limits[1]:.6g}; inputs to apply: "
         f"{', '.join(_g(v) for v in plan.sequence)}",
     ]
+
+
+def check_limits(
+    spec: StreamSpec, limits: Sequence[float] | None, input_column: str
+) -> None:
+    """Refuse input ``limits`` that leave no input inside the fit's input range.
+
+    Raises:
+        OptionError: for ``--limits``, naming the fit's input range.
+    """
+    r_lo, r_hi = spec.input_range
+    if limits is not None and not (limits[0] < r_hi and limits[1] > r_lo):
+        raise OptionError(
+            f"{limits[0]:g} {limits[1]:g} leave no {input_column} inside the fit's "
+            f"input range [{r_lo:.6g}, {r_hi:.6g}].",
+            "--limits",
+        )
+
+
+def plan_history_setpoint(
+    spec: StreamSpec,
+    data: Path,
+    chunks: Iterable[tuple[list[str], np.ndarray]],
+    *,
+    input_column: str,
+    output_column: str,
+    target: float,
+    output: float,
+    limits: Sequence[float] | None = None,
+    length: float | None = None,
+    p0c: float | None = None,
+) -> tuple[SetPoint, list[str]]:
+    """:func:`~diffaccel.hysteresis.plan_setpoint` after the history in ``chunks``.
+
+    Args:
+        spec: The fit.
+        data: The history's CSV file (named in the messages).
+        chunks: ``(row texts, inputs)`` of the history in time order
+            (:func:`~diffaccel.data.iter_magnet_csv`); each input checked
+            against :data:`~diffaccel.data.magnet_stream.MAX_MAGNITUDE`.
+        input_column: Name of the input.
+        output_column: Name of the output.
+        target: The target as given (an output, or k1 with ``length``).
+        output: Its output [output units].
+        limits: Allowed inputs (default: the fit's input range).
+        length: Magnetic length [m] of a k1 target (None: an output target).
+        p0c: Reference momentum times c [eV] of a k1 target.
+
+    Returns:
+        The plan and the notes on inputs beyond the fit's input range.
+
+    Raises:
+        ValueError: an unreachable target (:func:`unreachable_text`), one in a
+            jump of the model (:func:`jump_text`), a value beyond the largest
+            magnitude, or a history the plan refuses (prefixed ``DATA:``).
+    """
+    refused: list[FormatError] = []
+
+    def inputs() -> Iterator[np.ndarray]:
+        first_row = 1
+        for rows, x in chunks:
+            try:
+                check_magnitude(data, input_column, x, first_row)
+            except FormatError as err:  # named already: not prefixed below
+                refused.append(err)
+                raise
+            first_row += len(rows)
+            yield x
+
+    k1 = {"length": length, "p0c": p0c} if length is not None else {}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", InputRangeWarning)
+        try:
+            plan = plan_setpoint(spec, inputs(), output, limits)
+        except UnreachableTargetError as err:
+            text = unreachable_text(
+                err,
+                target=target,
+                output=output,
+                input_column=input_column,
+                output_column=output_column,
+                **k1,
+            )
+            raise ValueError(text) from err
+        except ValueError as err:
+            if refused and err is refused[0]:
+                raise
+            raise ValueError(f"{data}: {err}") from err
+    notes = sorted({str(w.message) for w in caught if w.category is InputRangeWarning})
+    jump = jump_text(plan, output, spec.output_scale, input_column, output_column)
+    if jump:
+        raise ValueError(jump)
+    return plan, notes

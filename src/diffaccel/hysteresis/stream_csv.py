@@ -8,6 +8,8 @@ units] and the flag :data:`OUTSIDE` (1 where the input lies beyond the fit's
 input range). CSV parsing, the model and the formatting overlap in threads
 (:func:`read_ahead`); numpy releases the GIL. No torch is imported, except by
 :func:`stream_fit` for a fit folder saved without ``stream.npz``.
+:func:`predict_csv` is ``hysteresis predict``: it checks the output file, reads
+the input CSV and writes the predictions atomically.
 """
 
 from __future__ import annotations
@@ -25,7 +27,21 @@ from typing import Any, TypeVar
 import numpy as np
 
 import diffaccel.hysteresis as hysteresis
-from diffaccel.data.magnet_stream import append_columns
+from diffaccel.data.atomic import (
+    OutputWriteError,
+    atomic_write,
+    os_condition,
+    os_error_text,
+)
+from diffaccel.data.magnet_stream import (
+    DEFAULT_INPUT_COLUMN,
+    DEFAULT_TIME_COLUMN,
+    append_columns,
+    check_magnitude,
+    check_time_column,
+    iter_magnet_csv,
+)
+from diffaccel.data.owned_files import OutputFileError, check_out_file
 from diffaccel.hysteresis.fit_folder import load_stream_fit
 from diffaccel.hysteresis.stream import (
     InputRangeWarning,
@@ -40,7 +56,9 @@ __all__ = [
     "PREDICTION",
     "PREDICTION_STD",
     "StreamStats",
+    "check_csv_output",
     "outside_warning",
+    "predict_csv",
     "read_ahead",
     "stream_fit",
     "write_predictions",
@@ -229,3 +247,89 @@ def outside_warning(
         f"plus the linear term; their {PREDICTION_STD} widens with the linear "
         "term's uncertainty only, not with any doubt about the saturation."
     )
+
+
+def check_csv_output(out: Path, data: Path, force: bool) -> None:
+    """Refuse the output file ``out`` of :func:`predict_csv` before any work.
+
+    The refusals ``force`` does not lift come first (the input itself, a file
+    inside a result folder), then a name that is not ``.csv``, then what
+    ``force`` allows (:func:`~diffaccel.data.owned_files.check_out_file`).
+
+    Raises:
+        OutputFileError: naming ``--out`` and the file.
+    """
+    check_out_file(out, True, {"--input": data}, csv_columns=COLUMNS)
+    if out.suffix.lower() != ".csv":
+        raise OutputFileError(
+            f"--out {out}: expected a .csv file name (the output is CSV text)."
+        )
+    check_out_file(out, force, {"--input": data}, csv_columns=COLUMNS)
+
+
+def predict_csv(
+    spec: StreamSpec,
+    config: dict[str, Any],
+    data: Path,
+    out: Path,
+    *,
+    chunk_rows: int = 20_000,
+    time_column: str | None = None,
+    force: bool = False,
+) -> StreamStats:
+    """Predict every row of the CSV ``data`` into ``out`` (:func:`write_predictions`).
+
+    The input column is the fit's (``config``, its ``model.json``);
+    ``time_column`` None checks the default time column where the file has
+    it. The input's columns named in :data:`COLUMNS` are replaced only with
+    ``force``. ``out`` is written atomically, its folder made where missing.
+
+    Raises:
+        OptionError: a missing ``time_column`` (``--time-column``).
+        ValueError: an input that cannot be read, a value beyond
+            :data:`~diffaccel.data.magnet_stream.MAX_MAGNITUDE`, columns of
+            :data:`COLUMNS` without ``force``.
+        OSError: a file that cannot be read; an
+            :class:`~diffaccel.data.atomic.OutputWriteError` (the condition in
+            words) where ``out`` cannot be written.
+    """
+    in_col = config.get("input_column", DEFAULT_INPUT_COLUMN)
+    header, chunks = iter_magnet_csv(
+        data,
+        in_col,
+        chunk_rows=chunk_rows,
+        drop=COLUMNS,
+        time_column=time_column or DEFAULT_TIME_COLUMN,
+    )
+    check_time_column(data, header, time_column)
+    clash = [c for c in COLUMNS if c in header]
+    if clash and not force:
+        raise ValueError(
+            f"{data} already has column(s) {clash}; pass --force to replace them "
+            "in the output (the input file is never changed)."
+        )
+    stats = StreamStats()
+
+    def write(path: Path) -> None:
+        write_predictions(
+            path,
+            spec,
+            header,
+            chunks,
+            check=lambda x, first_row: check_magnitude(data, in_col, x, first_row),
+            stats=stats,
+        )
+
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        if os_condition(err) is not None:  # read-only, no space...
+            raise OutputWriteError(os_error_text(err, out)) from err
+        raise OutputWriteError(
+            f"--out {out}: cannot create its folder {out.parent}: {err}"
+        ) from err
+    try:
+        atomic_write(out, write)
+    except OSError as err:  # a read-only folder, a full disk
+        raise OutputWriteError(os_error_text(err, out)) from err
+    return stats

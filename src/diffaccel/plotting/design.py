@@ -2,13 +2,22 @@
 
 from __future__ import annotations
 
+import errno
 from collections.abc import Iterator, Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
 
-__all__ = ["design_figures", "plot_expected_std", "plot_spectrum"]
+from diffaccel.data.atomic import atomic_write
+
+__all__ = [
+    "design_figures",
+    "plot_expected_std",
+    "plot_spectrum",
+    "write_design_figures",
+]
 
 
 def plot_spectrum(observability: Mapping[str, Any]) -> Figure:
@@ -121,3 +130,31 @@ def design_figures(
     yield "singular_values.png", plot_spectrum(observability)
     if report is not None and report["recommended"]:
         yield "expected_std.png", plot_expected_std(report)
+
+
+def write_design_figures(
+    folder: Path,
+    observability: Mapping[str, Any],
+    report: Mapping[str, Any] | None = None,
+) -> list[Path]:
+    """Write the :func:`design_figures` into ``folder`` (made if missing) as PNG.
+
+    Never replaces a file: the figures before one that exists stay written.
+
+    Raises:
+        FileExistsError: a figure's file exists (its ``filename``).
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name, fig in design_figures(observability, report):
+        path = folder / name
+        try:
+            atomic_write(
+                path,
+                lambda p, f=fig: f.savefig(p, format="png", dpi=120),
+                overwrite=False,
+            )
+        except FileExistsError as err:
+            raise FileExistsError(errno.EEXIST, "exists", str(path)) from err
+        written.append(path)
+    return written

@@ -4,21 +4,35 @@
 beam and prior that :func:`~diffaccel.reconstruction.design.observability`
 and :func:`~diffaccel.reconstruction.design.recommend` take;
 :func:`design_lines` and :func:`design_json` present their answers.
+:func:`design_answers` is ``diffaccel design``: the inputs read from a scan
+file or JSON spec (and a result folder), the answers computed.
 """
 
 from __future__ import annotations
 
+import json
 import statistics
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor
 
+from diffaccel.data import FormatError
+from diffaccel.data.scans import read_scans
+from diffaccel.reconstruction import design as dz
 from diffaccel.reconstruction.design import LONGITUDINAL_RMS
+from diffaccel.reconstruction.ensemble import load
 from diffaccel.reconstruction.uncertainty import MomentUncertainty
 
-__all__ = ["design_json", "design_lines", "posterior_beam"]
+__all__ = [
+    "design_answers",
+    "design_inputs",
+    "design_json",
+    "design_lines",
+    "posterior_beam",
+]
 
 
 def posterior_beam(
@@ -130,3 +144,97 @@ def design_json(
         out["baseline_std"] = report["baseline_std"]
         out["excluded"] = report["excluded"]
     return out
+
+
+def design_inputs(
+    data: Path, result: Path | None = None
+) -> tuple[list[dz.ScanLayout], Tensor, Tensor | None, float | None]:
+    """The scans, beam, moment posterior and error scale of a design's inputs.
+
+    ``data``: a quad-scan file or a JSON spec of planned scans
+    (:func:`~diffaccel.reconstruction.design.layouts_from_spec`). The beam is
+    the spec's, else the Gaussian fit of the file's images; with a
+    reconstruction's folder ``result``, its beam, moment posterior and
+    fitted error scale (:func:`posterior_beam`); posterior and error scale
+    are None otherwise.
+
+    Raises:
+        ValueError: naming ``data`` (or ``--result RESULT``) and the problem.
+    """
+    posterior = rel = None
+    if data.suffix.lower() == ".json":
+        try:
+            spec = json.loads(data.read_text())
+        except (OSError, json.JSONDecodeError) as err:
+            raise ValueError(f"{data}: not a readable JSON file ({err})") from None
+        if not isinstance(spec, dict):
+            raise ValueError(f"{data}: expected a JSON object")
+        try:
+            layouts, cov = dz.layouts_from_spec(spec)
+        except ValueError as err:
+            raise ValueError(f"{data}: {err}") from None
+    else:
+        try:
+            ds = read_scans(data)
+        except (FormatError, OSError, ValueError) as err:
+            raise ValueError(f"{data}: {err}") from None
+        layouts = dz.layouts_from_dataset(ds)
+        cov = None
+        if result is None:
+            try:
+                cov = dz.beam_from_images(ds)
+            except ValueError as err:
+                raise ValueError(f"{data}: {err}") from None
+    if result is not None:
+        try:
+            rec = load(result)
+        except (FileNotFoundError, ValueError, OSError) as err:
+            raise ValueError(f"--result {result}: {err}") from None
+        if rec.uncertainty is None:
+            raise ValueError(
+                f"--result {result}: the reconstruction has no moment posterior "
+                "(run reconstruct without --no-uncertainty)"
+            )
+        cov, posterior, rel = posterior_beam(rec.uncertainty)
+    return layouts, cov, posterior, rel
+
+
+def design_answers(
+    data: Path,
+    *,
+    result: Path | None = None,
+    knobs: Sequence[str] = (),
+    targets: Sequence[str] = (),
+    relative_error: float | None = None,
+    max_images_per_scan: int = 8,
+) -> tuple[dict[str, Any], dict[str, Any] | None]:
+    """What the scans of ``data`` determine, and which settings of ``knobs`` to add.
+
+    Reads the inputs (:func:`design_inputs`), parses the knob ranges
+    (:func:`~diffaccel.reconstruction.design.parse_knob`) and returns the
+    observability as a dict and, with knobs, the recommendation of
+    :func:`~diffaccel.reconstruction.design.recommend` for ``targets``
+    (default :data:`~diffaccel.reconstruction.design.DEFAULT_TARGETS`); None
+    without. ``relative_error``: of each screen second moment (default: the
+    result's fitted error scale, else
+    :data:`~diffaccel.reconstruction.design.RELATIVE_ERROR`).
+
+    Raises:
+        ValueError: unreadable inputs, a bad knob or target.
+    """
+    layouts, cov, posterior, rel = design_inputs(data, result)
+    r = relative_error or rel or dz.RELATIVE_ERROR
+    parsed = [dz.parse_knob(k) for k in knobs]
+    obs = dz.observability(layouts, cov, relative_error=r, posterior=posterior)
+    report = None
+    if parsed:
+        report = dz.recommend(
+            layouts,
+            cov,
+            parsed,
+            targets=targets or dz.DEFAULT_TARGETS,
+            relative_error=r,
+            posterior=posterior,
+            max_images_per_scan=max_images_per_scan,
+        )
+    return obs.to_dict(), report

@@ -6,25 +6,41 @@ result's own (first) training beamline. Both return a :class:`Prediction`:
 the ensemble-mean images (each summing to 1), optionally their per-pixel
 spread, the fraction of the beam on the screen at each setting, and the
 warnings (settings where less than half of the beam lands on the screen, a
-4D result imaged through z or pz readers).
+4D result imaged through z or pz readers). :func:`predict_files` writes them
+as ``diffaccel predict`` does (a quad-scan file or ``.npy`` images, the spread
+as ``.npy``/``.npz``); :func:`parse_settings` reads its ``--settings`` text.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 
+import numpy as np
+import torch
 from torch import Tensor
 
-from diffaccel.data.scans import MultiScanDataset
+from diffaccel.data.atomic import OutputWriteError, os_error_text
+from diffaccel.data.owned_files import OutputFileError, check_out_file, save_arrays
+from diffaccel.data.scans import MultiScanDataset, read_scans, write_scans
 from diffaccel.reconstruction.alarms import prediction_alarms
-from diffaccel.reconstruction.ensemble import Reconstruction
+from diffaccel.reconstruction.ensemble import Reconstruction, load
 from diffaccel.reconstruction.evaluation import (
     check_on_screen,
     off_screen_warnings,
     predict_dataset,
+    predicted_dataset,
 )
 
-__all__ = ["Prediction", "predict_scans", "predict_settings"]
+__all__ = [
+    "Prediction",
+    "check_prediction_files",
+    "parse_settings",
+    "predict_files",
+    "predict_scans",
+    "predict_settings",
+]
 
 #: Posterior beams per ensemble member for the per-pixel spread.
 N_DRAWS = 4
@@ -133,3 +149,182 @@ def predict_settings(
     warnings = off_screen_warnings(fraction, settings, fwd.names, scan=name)
     warnings += [a.text() for a in prediction_alarms(result, None, settings)]
     return Prediction({name: images}, spread, {name: fraction}, warnings)
+
+
+def parse_settings(text: str, names: list[str]) -> Tensor:
+    """``--settings`` text as a ``(K, P)`` float64 tensor for scanned ``names``.
+
+    One parameter: ``"-3,0,2.5"`` (or one row per ``;``); several: rows
+    separated by ``;``, the values of a row by ``:`` (``"1:2;3:4"``).
+
+    Raises:
+        ValueError: naming the value that is not a number, a row of the wrong
+            length, an empty row or value (a stray ``;`` or ``,``), or an empty
+            list.
+    """
+    if not text.replace(" ", "").strip(";,"):
+        raise ValueError(f"--settings {text!r} holds no value; e.g. '-3,0,2.5'.")
+    rows = text.replace(" ", "").split(";")
+    if len(names) == 1 and len(rows) == 1:
+        rows = rows[0].split(",")
+        what, sep = "value", ","
+    else:
+        what, sep = "row", ";"
+    for i, row in enumerate(rows):
+        if not row:  # a stray separator would silently drop a setting
+            raise ValueError(
+                f"--settings {text!r}: {what} {i + 1} is empty (a stray {sep!r}?)."
+            )
+    out = []
+    for i, row in enumerate(rows):
+        cells = row.split(":")
+        if len(cells) != len(names):
+            raise ValueError(
+                f"--settings row {i + 1} {row!r} has {len(cells)} value(s); "
+                f"expected {len(names)} ({':'.join(names)}), rows separated by ';'."
+            )
+        try:
+            out.append([float(c) for c in cells])
+        except ValueError:
+            raise ValueError(
+                f"--settings row {i + 1} {row!r}: not a number; expected e.g. "
+                f"'-3,0,2.5' or '1:2;3:4'."
+            ) from None
+    return torch.tensor(out, dtype=torch.float64)
+
+
+def check_prediction_files(
+    out: Path,
+    std_out: Path | None,
+    dataset: Path | None,
+    settings_given: bool,
+    force: bool,
+) -> None:
+    """Refuse output files and inputs of :func:`predict_files` before any work.
+
+    ``out`` and ``std_out`` as :func:`~diffaccel.data.owned_files.check_out_file`
+    allows them (never the ``dataset`` file); ``std_out`` a ``.npy`` or
+    ``.npz`` name; exactly one of ``dataset`` and ``settings_given``; ``out``
+    a ``.h5``/``.hdf5`` (which needs ``dataset``) or ``.npy`` name.
+
+    Raises:
+        ValueError: the first of these refusals, naming the option
+            (:class:`~diffaccel.data.owned_files.OutputFileError` for a file).
+    """
+    check_out_file(out, force, {"--dataset": dataset})
+    if std_out is not None:
+        inputs = {"--dataset": dataset, "--out": out}
+        check_out_file(std_out, force, inputs, "--std-out")
+        if std_out.suffix.lower() not in (".npy", ".npz"):
+            raise OutputFileError(
+                f"--std-out {std_out}: expected a .npy (one scan) or .npz file name"
+            )
+    if (dataset is None) == (not settings_given):
+        raise ValueError("give exactly one of --dataset or --settings")
+    suffix = out.suffix.lower()
+    if suffix not in (".h5", ".hdf5", ".npy"):
+        raise OutputFileError(
+            f"--out {out}: expected a .h5 (quad-scan file) or .npy file name"
+        )
+    if suffix != ".npy" and dataset is None:
+        raise ValueError(
+            "--out .h5 needs --dataset (the file whose settings and screens to "
+            "predict); with --settings write .npy"
+        )
+
+
+def _save(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
+    """:func:`~diffaccel.data.owned_files.save_arrays`; OS conditions as one line."""
+    try:
+        save_arrays(path, arrays)
+    except OSError as err:  # read-only folder, disk full...
+        raise OutputWriteError(os_error_text(err, path)) from err
+
+
+def predict_files(
+    result_dir: Path,
+    out: Path,
+    *,
+    dataset: Path | None = None,
+    settings: str | None = None,
+    std_out: Path | None = None,
+    n_particles: int = 50_000,
+    seed: int = 0,
+    force: bool = False,
+    echo: Callable[[str], object] = print,
+) -> list[str]:
+    """Predict the images of the reconstruction in ``result_dir`` into ``out``.
+
+    Images every scan and setting of the quad-scan file ``dataset``
+    (:func:`predict_scans`), or the ``settings`` text (:func:`parse_settings`)
+    on the result's first training beamline (:func:`predict_settings`).
+    ``out``: ``.h5`` writes a quad-scan file of ``dataset``'s format version
+    with the predicted images; ``.npy`` the ``(K, H, W)`` float32 images of
+    one scan. ``std_out``: also the per-pixel spread (``.npy`` for one scan,
+    ``.npz`` one array per scan). Each file written is reported through
+    ``echo`` (``wrote PATH: ...``) as soon as it is; call
+    :func:`check_prediction_files` first. Every refusal comes before the
+    first file is made.
+
+    Returns:
+        The warnings (settings off the screen, alarms), one line each.
+
+    Raises:
+        ValueError: a result or dataset that cannot be read or imaged as asked.
+        OSError: a file that cannot be read; one that cannot be written as
+            :class:`~diffaccel.data.atomic.OutputWriteError` (its condition
+            in words).
+    """
+    want_std = std_out is not None
+    result = load(result_dir)
+    if dataset is not None:
+        other = read_scans(dataset)
+        pred = predict_scans(
+            result, other, n_particles=n_particles, seed=seed, return_std=want_std
+        )
+    else:
+        values = parse_settings(settings or "", result.forward.names)
+        pred = predict_settings(
+            result, values, n_particles=n_particles, seed=seed, return_std=want_std
+        )
+    predicted, spread = pred.images, pred.spread
+    if std_out is not None and std_out.suffix.lower() == ".npy" and len(spread) != 1:
+        raise ValueError(
+            f"--std-out {std_out}: {len(spread)} scans; write them to an .npz file"
+        )
+    if out.suffix.lower() == ".npy":
+        images = next(iter(predicted.values()))
+        if dataset is not None:
+            if len(predicted) != 1:
+                raise ValueError(
+                    f"{dataset} holds {len(predicted)} scans; write them to an "
+                    ".h5 file (--out PRED.h5)"
+                )
+            check_on_screen(images, other[other.names[0]].settings)
+        _save(out, {"images": images.numpy().astype(np.float32)})
+        k, h, w = images.shape
+        echo(f"wrote {out}: {k} images of {h} x {w} pixels")
+    else:
+        try:
+            out.parent.mkdir(parents=True, exist_ok=True)
+            written = write_scans(
+                predicted_dataset(
+                    other, predicted, source=str(result_dir), on_screen=pred.on_screen
+                ),
+                out,
+                overwrite=force,
+            )
+        except OSError as err:  # read-only folder, disk full...
+            raise OutputWriteError(os_error_text(err, out)) from err
+        n = sum(v.shape[0] for v in predicted.values())
+        echo(
+            f"wrote {written}: {n} predicted images in {len(predicted)} scan(s) "
+            f"(format version {other.format_version})"
+        )
+    if std_out is not None:
+        arrays = {
+            k: v.detach().cpu().numpy().astype(np.float32) for k, v in spread.items()
+        }
+        _save(std_out, arrays)
+        echo(f"wrote {std_out}: per-pixel spread of {len(arrays)} scan(s)")
+    return pred.warnings

@@ -52,17 +52,27 @@ import torch
 import torch.distributed as tdist
 
 from diffaccel.data import (
+    FormatError,
     MultiScanDataset,
+    QuadScanDataset,
     atomic_write_json,
     atomic_write_text,
+    make_synthetic_quad_scan,
     partial_folder,
+    read_scans,
 )
+from diffaccel.data.errors import OptionError
 from diffaccel.data.particles_io import write_openpmd_particles
 from diffaccel.reconstruction.background import can_fork, in_child
 from diffaccel.reconstruction.ensemble import Reconstruction
 from diffaccel.reconstruction.evaluation import evaluate, predict_dataset
 from diffaccel.reconstruction.forward import ScreenForwardModel
-from diffaccel.reconstruction.pipeline import reconstruct, training_selection
+from diffaccel.reconstruction.pipeline import (
+    as_scans,
+    reconstruct,
+    training_selection,
+)
+from diffaccel.reconstruction.probe import PROBE_STEP
 from diffaccel.reconstruction.training import (
     CheckpointDataError,
     ReconstructionConfig,
@@ -80,18 +90,25 @@ __all__ = [
     "PARTICLES_SAMPLE",
     "REPORT",
     "SELECTION",
+    "OptionError",
     "ResultFigures",
     "ResultWriteError",
     "ResumeError",
     "RunError",
+    "RunPlan",
     "bunch_charge",
     "check_finished_run",
     "clean_for_resume",
+    "config_options",
+    "demo_config",
+    "demo_dataset",
     "demo_report_markdown",
     "discard_selection",
     "finding_lines",
     "headline_lines",
+    "plan_run",
     "prior_dependence_lines",
+    "read_dataset",
     "report_markdown",
     "resume_checkpoint",
     "resume_config",
@@ -682,6 +699,146 @@ def resume_plan(
     return config, selection, finished
 
 
+def config_options(
+    *,
+    dims: str,
+    particles: int | None,
+    steps: int | None,
+    snapshots: int | None,
+    seed: int,
+    image_loss: str,
+    blur: float | None,
+    loss_smoothing: str | None,
+    uncoupled: bool,
+    probe: bool | None,
+) -> dict[str, Any]:
+    """The options of ``reconstruct`` as :class:`ReconstructionConfig` keywords.
+
+    None (an option not given) is the config's default; ``loss_smoothing`` is
+    a number of pixels or ``"auto"``; ``probe`` True probes by
+    :data:`~diffaccel.reconstruction.probe.PROBE_STEP`, False not at all.
+
+    Raises:
+        OptionError: a ``--loss-smoothing`` that is neither a number nor ``auto``.
+    """
+    if loss_smoothing not in (None, "auto"):
+        try:
+            loss_smoothing = float(loss_smoothing)
+        except ValueError:
+            raise OptionError(
+                f"expected a number of pixels or 'auto'; got {loss_smoothing!r}.",
+                "--loss-smoothing",
+            ) from None
+    return {
+        "dims": int(dims),
+        "n_particles": particles,
+        "steps": steps,
+        "snapshots": snapshots,
+        "seed": seed,
+        "image_loss": image_loss,
+        "blur_pixels": blur,
+        "loss_smoothing": loss_smoothing,
+        "place_coupling": uncoupled,
+        "probe_unseen": None if probe is None else PROBE_STEP if probe else 0.0,
+    }
+
+
+@dataclass(frozen=True)
+class RunPlan:
+    """What a run into a result folder trains with (:func:`plan_run`).
+
+    Attributes:
+        dataset: The scans of the quad-scan file.
+        config: The config to train with (a resume's: the checkpoint's).
+        selection: Training settings per scan.
+        checkpoint: The checkpoint a resume continues; None without ``resume``.
+        finished: A resume of a finished result: nothing to run.
+    """
+
+    dataset: MultiScanDataset
+    config: ReconstructionConfig
+    selection: dict[str, list[int]]
+    checkpoint: Path | None
+    finished: bool
+
+
+def read_dataset(path: Path) -> MultiScanDataset:
+    """The scans of the quad-scan file ``path``.
+
+    Raises:
+        RunError: ``cannot read PATH: ...`` naming the problem.
+    """
+    try:
+        return as_scans(read_scans(path))
+    except (FormatError, OSError) as err:
+        text = str(err)  # reader errors already read "PATH: field: problem"
+        if not text.startswith(str(path)):
+            text = f"{path}: {text}"
+        raise RunError(f"cannot read {text}") from err
+
+
+def plan_run(
+    dataset_path: Path,
+    out: Path,
+    options: Mapping[str, Any],
+    *,
+    given: set[str],
+    train_indices: str = "all",
+    indices_given: bool = False,
+    resume: bool = False,
+    charge_C: float | None = None,
+) -> RunPlan:
+    """Check a ``reconstruct`` run into ``out`` and say what it trains with.
+
+    ``options``: :class:`ReconstructionConfig` keywords (None: the default);
+    ``given``: the flags of :data:`CONFIG_OPTIONS` given on the command line
+    (a resume takes the others from its checkpoint, :func:`resume_start`);
+    ``train_indices``: the rule of :func:`training_selection`, given by the
+    user where ``indices_given`` (else the default, whose refusal names the
+    file's settings); ``charge_C``: the bunch charge [C] checked by
+    :func:`bunch_charge`. In this order: the checkpoint (``resume``), the
+    config, the file, the charge, the selection, and what the resume continues
+    (:func:`resume_plan`).
+
+    Raises:
+        OptionError: training settings ``train_indices`` does not select.
+        RunError: the first other refusal, in one line (a
+            :class:`ResumeError` for what a resume cannot continue).
+    """
+    checkpoint = stored = None
+    if resume:  # options not given are the checkpoint's
+        checkpoint, stored, options = resume_start(out, options, given)
+    try:
+        config = ReconstructionConfig(**options)
+    except ValueError as err:
+        raise RunError(str(err)) from err
+    ds = read_dataset(dataset_path)
+    try:
+        bunch_charge(ds, charge_C)  # a bad recorded charge refused before training
+    except ResultWriteError as err:
+        raise RunError(f"{dataset_path}: {err}") from err
+    try:
+        selection = training_selection(ds, train_indices)
+    except ValueError as err:
+        if not indices_given:  # the file's own settings: no option to blame
+            text = str(err).replace("train_indices select", "its settings hold", 1)
+            raise RunError(f"{dataset_path}: {text}") from err
+        raise OptionError(str(err), "--train-indices") from err
+    finished = False
+    if checkpoint is not None and stored is not None:
+        config, selection, finished = resume_plan(
+            checkpoint,
+            stored,
+            config,
+            ds,
+            selection,
+            given=given,
+            indices_given=indices_given,
+            out=out,
+        )
+    return RunPlan(ds, config, selection, checkpoint, finished)
+
+
 # ------------------------------------------------------------------ summary text
 def _percent(change: dict | None, key: str) -> str:
     return "n/a" if change is None else f"{100 * change[key]:+.0f} %"
@@ -927,6 +1084,38 @@ def report_markdown(summary: Mapping[str, Any]) -> str:
         f"{summary.get('particles_charge_C', DEFAULT_CHARGE_C):.4g} C)."
     )
     return "\n".join(lines) + "\n"
+
+
+def demo_dataset(seed: int = 0) -> QuadScanDataset:
+    """The scan of ``diffaccel demo``: a correlated 6D beam, chromatic tracking.
+
+    20 quadrupole settings (k1 -20 ... 20 1/m^2) of 20 000 particles of the
+    preset ``correlated`` on a 64 x 64 screen of 0.5 mm pixels, 5 % noise.
+    """
+    return make_synthetic_quad_scan(
+        "correlated",
+        n_particles=20_000,
+        screen_shape=(64, 64),
+        pixel_size=(0.5e-3, 0.5e-3),
+        k1_range=(-20.0, 20.0),
+        noise=0.05,
+        seed=seed,
+    )
+
+
+def demo_config(seed: int = 0) -> ReconstructionConfig:
+    """The reconstruction of ``diffaccel demo``: 6D, 300 steps of 4096 particles.
+
+    6D tracking is chromatic (slower than the 4D linear maps): fewer, smaller
+    steps keep the demo well under a minute on two quiet CPU cores. The file
+    records its screen resolution (KDE of one-pixel bandwidth), which the
+    reconstruction models by default; 5 cycles, the first dropped (the 6D
+    defaults are sized for the quadrupole x TDC x dipole scans, see
+    :class:`ReconstructionConfig`).
+    """
+    return ReconstructionConfig(
+        dims=6, seed=seed, steps=300, snapshots=5, burn_in=1, n_particles=4096
+    )
 
 
 def demo_report_markdown(
