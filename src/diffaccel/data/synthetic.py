@@ -463,6 +463,7 @@ def make_synthetic_rf6d(
     p0c: float = 43.36e6,
     k1_values: Sequence[float] | Tensor | None = None,
     rf_states: Sequence[tuple[float, float]] = RF6D_STATES,
+    dipole_scales: Sequence[float] = (),
     screen_shape: tuple[int, int] = (96, 96),
     image_method: Literal["kde", "cic", "histogram"] = "histogram",
     noise: float = 0.0,
@@ -471,6 +472,18 @@ def make_synthetic_rf6d(
     seed: int = 0,
 ) -> MultiScanDataset:
     """Simulate a 6D measurement by RF phase plus dipole (no deflecting cavity).
+
+    With the two scans alone the energy spread is not measured: the
+    quadrupole is the first element, so the dipole screen's ``R12`` and
+    ``R16`` do not change over the scan and ``<pz pz>`` enters its images only
+    in the fixed combination ``2 R12 <px pz> + R16 <pz pz>`` with the px-pz
+    covariance (``diffaccel design`` reports it left to the prior). A second
+    dipole current changes ``R16 / R12`` and separates the two:
+    ``dipole_scales`` adds, per scale ``f``, a scan ``dipole_on_<f>`` of the
+    quadrupole strengths with the cavity off and the dipole at ``f`` times its
+    angle (pole faces unchanged; the screen on the orbit the weaker bend
+    defines, i.e. a screen wide enough for both orbits, its image cropped
+    around the beam).
 
     The layout is :data:`RF6D_BEAMLINES`. Scan ``"dipole_off"`` records the
     quadrupole strengths with the cavity off (the straight screen does not see
@@ -488,6 +501,8 @@ def make_synthetic_rf6d(
         p0c: Reference momentum times c [eV].
         k1_values: Quadrupole strengths [1/m^2]; default -12 ... 12 in 9 steps.
         rf_states: ``(voltage [V], phase [rad])`` of the dipole-on scan.
+        dipole_scales: Dipole angle fractions of the added scans (e.g.
+            ``(0.8,)``; none by default).
         screen_shape: (H, W) of both screens [pixels].
         image_method: ``"histogram"``, ``"cic"`` or ``"kde"``.
         noise: Relative noise at the peak pixel (0: none).
@@ -496,8 +511,9 @@ def make_synthetic_rf6d(
         seed: Seed of the beam sample and the noise.
 
     Returns:
-        A :class:`MultiScanDataset` with the scans ``dipole_off`` and
-        ``dipole_on`` and the beam as ground truth.
+        A :class:`MultiScanDataset` with the scans ``dipole_off``,
+        ``dipole_on`` and one per ``dipole_scales``, and the beam as ground
+        truth.
 
     Example:
         >>> ms = make_synthetic_rf6d(n_particles=2000, k1_values=[-6.0, 6.0],
@@ -527,9 +543,21 @@ def make_synthetic_rf6d(
             dim=-1,
         ),
     }
+    specs = dict(RF6D_BEAMLINES)
+    pixel = dict(AWA6D_PIXEL_SIZE)
+    for f in dipole_scales:
+        if not (math.isfinite(f) and 0.0 < f):
+            raise ValueError(f"dipole_scales must be positive; got {f}.")
+        name = f"dipole_on_{f:g}"
+        specs[name] = [
+            {**e, "angle": f * e["angle"]} if e["name"] == "SCAN_DIPOLE" else dict(e)
+            for e in RF6D_BEAMLINES["dipole_on"]
+        ]
+        settings[name] = settings["dipole_on"]
+        pixel[name] = AWA6D_PIXEL_SIZE["dipole_on"]
     scans = {}
-    for name, spec in RF6D_BEAMLINES.items():
-        ps = AWA6D_PIXEL_SIZE[name] * 96 / screen_shape[1]
+    for name, spec in specs.items():
+        ps = pixel[name] * 96 / screen_shape[1]
         scans[name] = make_synthetic_quad_scan(
             particles=beam,
             beamline_spec=spec,
@@ -597,8 +625,9 @@ def make_synthetic_awa6d(
         seed: Seed of the beam sample and the noise.
 
     Returns:
-        A :class:`MultiScanDataset` with the scans ``dipole_off`` and
-        ``dipole_on`` and the beam as ground truth.
+        A :class:`MultiScanDataset` with the scans ``dipole_off``,
+        ``dipole_on`` and one per ``dipole_scales``, and the beam as ground
+        truth.
 
     Example:
         >>> ms = make_synthetic_awa6d(n_particles=2000, k1_values=[-6.0, 6.0],
