@@ -20,6 +20,7 @@ from diffaccel.dynamics._validate import (
 from diffaccel.dynamics.cheetah_interop import (
     elements_from_cheetah,
     elements_from_lattice,
+    elements_from_ocelot,
     elements_to_cheetah,
 )
 from diffaccel.dynamics.elements._kernels import stack_columns
@@ -211,6 +212,17 @@ class Beamline(nn.Module):
         ``end``, ``approximate``, ``p0c``, ``species``, ``screens``).
         """
         return cls(elements_from_cheetah(segment, **kwargs))
+
+    @classmethod
+    def from_ocelot(cls, cell: Any, **kwargs: Any) -> Beamline:
+        """Build from an Ocelot cell (a list of Ocelot elements) through
+        cheetah's Ocelot converter (needs ``diffaccel[cheetah]`` and
+        ``diffaccel[ocelot]``).
+
+        See :func:`diffaccel.dynamics.cheetah_interop.elements_from_ocelot`
+        (same keywords as :meth:`from_cheetah`).
+        """
+        return cls(elements_from_ocelot(cell, **kwargs))
 
     def to_cheetah(self, **kwargs: Any) -> Any:
         """This beamline as a cheetah ``Segment`` (needs ``diffaccel[cheetah]``).

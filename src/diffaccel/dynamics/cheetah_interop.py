@@ -2,7 +2,8 @@
 
 cheetah-accelerator (GPL-3.0) is an optional dependency (``pip install
 diffaccel[cheetah]``), imported only inside these functions. Lattice files are
-read by cheetah's own parsers and converters (Bmad, elegant, LatticeJSON);
+read by cheetah's own parsers and converters (Bmad, elegant, LatticeJSON), and
+Ocelot cells (Python objects) by cheetah's Ocelot converter;
 where a converter loses information this module maps the element itself from
 cheetah's parsed attributes (see :func:`elements_from_lattice`).
 
@@ -63,6 +64,7 @@ __all__ = [
     "LatticeImportError",
     "elements_from_cheetah",
     "elements_from_lattice",
+    "elements_from_ocelot",
     "elements_to_cheetah",
     "lattice_format",
 ]
@@ -442,6 +444,91 @@ def elements_from_cheetah(
             out.append(_approximation(e, n, approximate, r, p0c, species))  # type: ignore[arg-type]
     _check_unique(out)
     return out
+
+
+#: Ocelot element classes cheetah's converter maps to an element of the same
+#: kind (any other class it turns into a drift, and ``TDCavity`` into an
+#: accelerating cavity: :func:`elements_from_ocelot` refuses those unless asked
+#: to approximate).
+_OCELOT_KNOWN = (
+    "Drift",
+    "Quadrupole",
+    "Sextupole",
+    "Solenoid",
+    "Hcor",
+    "Vcor",
+    "Bend",
+    "SBend",
+    "RBend",
+    "Cavity",
+    "TWCavity",
+    "Monitor",
+    "Marker",
+    "Undulator",
+    "Aperture",
+)
+
+
+def elements_from_ocelot(cell: Sequence[Any], **kwargs: Any) -> list[Element]:
+    """The elements of an Ocelot cell through cheetah's Ocelot converter.
+
+    Ocelot lattices are Python: import the lattice module yourself and pass
+    its cell (a list of Ocelot elements). Each element is converted by
+    cheetah (``cheetah.converters.ocelot``; an ``ocelot.Monitor`` whose id
+    contains ``"BSC"`` becomes a screen), then mapped as
+    :func:`elements_from_cheetah` maps a ``Segment``, with the same keywords
+    (``start``, ``end``, ``approximate``, ``p0c``, ``species``, ``screens``).
+    Needs ``diffaccel[cheetah]`` and ``diffaccel[ocelot]``.
+
+    ``ocelot.TDCavity`` is refused like an unknown class: cheetah 0.8.4's
+    converter makes it an accelerating cavity, which a deflector is not.
+
+    Raises:
+        LatticeImportError: naming every element of a class cheetah's
+            converter does not map faithfully (it would make each a drift, or
+            a deflector an accelerating cavity) unless ``approximate`` is
+            ``"drift"``, and whatever :func:`elements_from_cheetah` refuses.
+    """
+    cheetah = _require_cheetah()
+    try:
+        import ocelot
+    except ImportError:
+        raise ImportError(
+            "reading an Ocelot cell needs ocelot: pip install 'diffaccel[ocelot]'"
+        ) from None
+    from cheetah.converters import ocelot as convert
+
+    known = tuple(getattr(ocelot, name) for name in _OCELOT_KNOWN)
+    cell = list(cell)
+    unknown = [e for e in cell if not isinstance(e, known)]
+    approximate = kwargs.get("approximate")
+    if unknown and approximate is None:
+        listed = "; ".join(f"{e.id}: ocelot.{type(e).__name__}" for e in unknown)
+        raise LatticeImportError(
+            f"{len(unknown)} element(s) cheetah's Ocelot converter does not map: "
+            f"{listed}. Use approximate='drift' (a drift of the same length); "
+            "CLI: --approximate drift"
+        )
+    if unknown and approximate != "drift":
+        raise LatticeImportError(
+            f"elements cheetah's Ocelot converter does not map can only become "
+            f"drifts (approximate='drift'); got approximate={approximate!r}"
+        )
+    converted = []
+    for e in cell:
+        if not isinstance(e, known):
+            converted.append(
+                cheetah.Drift(torch.tensor(float(e.l), dtype=F64), name=e.id)
+            )
+            warnings.warn(
+                f"{e.id} (ocelot.{type(e).__name__}): a drift of the same length "
+                f"({float(e.l):g} m)",
+                LatticeConversionWarning,
+                stacklevel=2,
+            )
+            continue
+        converted.append(convert.convert_element(e, sanitize_name=False, dtype=F64))
+    return elements_from_cheetah(cheetah.Segment(converted), **kwargs)
 
 
 # ---- diffaccel -> cheetah ---------------------------------------------------------
