@@ -1100,20 +1100,30 @@ def _moment_sd(
     floor: float,
     kurtosis: Tensor | None,
     half_width: Tensor | None,
+    tails: Tensor | None,
 ) -> Tensor:
     """Error of a measured screen variance ``level`` (``(2, ...)``, x and y
     first): shot noise ``r level sqrt((kurtosis - 1) / 2)`` (``r level`` for a
     Gaussian beam), the floor, and the variance the screen edges hide
     (:func:`tail_variance` on both sides, ``half_width (2,)`` [m] from the
-    centroid)."""
+    centroid, for the kurtosis ``tails (2,)`` of the beam's tails)."""
     shape = 1.0 if kurtosis is None else ((kurtosis - 1.0) / 2.0).clamp_min(0).sqrt()
     sd = r * level * shape + floor
     if half_width is not None:
-        hw = half_width.reshape(2, *[1] * (level.ndim - 1))
-        kk = 3.0 if kurtosis is None else kurtosis
+        ones = [1] * (level.ndim - 1)
+        hw = half_width.reshape(2, *ones)
+        kk = 3.0 if tails is None else tails.reshape(2, *ones)
         c = hw / level.clamp_min(1e-300).sqrt()
         sd = sd + 2.0 * level * tail_variance(c, kk)
     return sd + 1e-300
+
+
+def _tails(kurtosis: Tensor | None) -> Tensor | None:
+    """Kurtosis of the beam's tails per plane: the median over the images
+    ``(K, 2) -> (2,)`` (an image the screen clips shows too little of them)."""
+    if kurtosis is None:
+        return None
+    return kurtosis.to(torch.float64).median(0).values
 
 
 #: Posterior draws that stand for a fit that is no physical beam (``S11 S22 <=
@@ -1195,8 +1205,9 @@ def quad_scan_posterior(
     error, where given: its shot noise follows its beam's kurtosis (``r <xx>_k
     sqrt((kurtosis_k - 1) / 2)``, the same as ``r <xx>_k`` for a Gaussian), and
     a screen edge ``half_width`` from the centroid hides the variance
-    :func:`tail_variance` gives for the fitted size and that kurtosis (both
-    sides; added to the error).
+    :func:`tail_variance` gives for the fitted size and the median kurtosis of
+    the plane's images (both sides; added to the error; an image the edges
+    clip shows too little of the tails to judge them itself).
 
     Args:
         maps: First-order maps ``(K, 6, 6)`` (or ``(K, 7, 7)``).
@@ -1224,6 +1235,7 @@ def quad_scan_posterior(
     yy = y.T  # (2, K)
     k = y.shape[0]
     kt = None if kurtosis is None else kurtosis.to(torch.float64).T
+    tails = _tails(kurtosis)
     hw = None if half_width is None else torch.tensor(half_width, dtype=torch.float64)
 
     def solve(r: float) -> tuple[Tensor, Tensor, Tensor]:
@@ -1231,7 +1243,7 @@ def quad_scan_posterior(
         # weighting by the data favours the low fluctuations (a bias)
         level = yy.abs()
         for _ in range(3):
-            sd = _moment_sd(level, r, floor, kt, hw)
+            sd = _moment_sd(level, r, floor, kt, hw, tails)
             aw = a_pl / sd[..., None]
             th = torch.linalg.lstsq(aw, (yy / sd)[..., None]).solution[..., 0]
             fit = (a_pl @ th[..., None])[..., 0]
@@ -1351,7 +1363,8 @@ def propose_quad_settings(
             )
         kc = kc[:, None, :]  # (2, 1, C)
     hw = None if half_width is None else torch.tensor(half_width, dtype=torch.float64)
-    sd = _moment_sd(pred.transpose(0, 1), r, floor, kc, hw).transpose(0, 1)
+    sd = _moment_sd(pred.transpose(0, 1), r, floor, kc, hw, _tails(kurtosis))
+    sd = sd.transpose(0, 1)
     aw = a_c[None] / sd[..., None]  # (D, 2, C, 3)
     add = torch.einsum("dpca,dpcb->dpcab", aw, aw)
     emit = (ths[..., 0] * ths[..., 2] - ths[..., 1] ** 2).clamp_min(1e-300).sqrt()
