@@ -8,7 +8,12 @@ point spread) of a fresh draw of ``--particles`` particles of the beam, so
 images carry shot noise. The estimator is the classic rms fit (second moments
 of the images, the point spread's variance removed, weighted least squares on
 the transfer matrices, error scale fitted to the residuals;
-``reconstruction.design.quad_scan_posterior``).
+``reconstruction.design.quad_scan_posterior``). Each image's error (the default
+``--error-model image``): shot noise from its beam's kurtosis
+(``image_kurtosis``), a floor of a quarter pixel rms, and the variance the
+screen's edges (8 mm from the beam's centroid) hide for the plane's median
+kurtosis (``tail_variance``); ``--error-model moments``: ``r <xx> + floor``
+alone. The design uses the same errors.
 
 - ``designed``: 3 settings (k1 = -5, 0, 5 1/m^2: the middle half of the
   range), then one at a time: ``propose_quad_settings`` proposes the remaining
@@ -24,7 +29,7 @@ the rms emittance of the beam's distribution (2 million particles). The last
 line is the JSON summary.
 
 Usage: ``python benchmarks/design.py [--seeds 10] [--first-seed 0] [--designed 5]
-[--even 10]``
+[--even 10] [--error-model image|moments]``
 """
 
 from __future__ import annotations
