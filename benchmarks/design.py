@@ -10,10 +10,11 @@ of the images, the point spread's variance removed, weighted least squares on
 the transfer matrices, error scale fitted to the residuals;
 ``reconstruction.design.quad_scan_posterior``). Each image's error (the default
 ``--error-model image``): shot noise from its beam's kurtosis
-(``image_kurtosis``), a floor of a quarter pixel rms, and the variance the
-screen's edges (8 mm from the beam's centroid) hide for the plane's median
-kurtosis (``tail_variance``); ``--error-model moments``: ``r <xx> + floor``
-alone. The design uses the same errors.
+(``image_kurtosis``) and a floor of a quarter pixel rms; the fit expects the
+share of each variance the screen's edges (8 mm from the beam's centroid) let
+through (``tail_variance`` for the plane's median kurtosis), and the design
+also adds the hidden part to a candidate's error. ``--error-model moments``:
+``r <xx> + floor`` alone.
 
 - ``designed``: 3 settings (k1 = -5, 0, 5 1/m^2: the middle half of the
   range), then one at a time: ``propose_quad_settings`` proposes the remaining

@@ -337,6 +337,25 @@ def test_quad_scan_error_model_of_each_image():
     )
     ratio = heavy["emit_std"] / plain["emit_std"]
     torch.testing.assert_close(ratio, torch.full((2,), 2.0**0.5, dtype=ratio.dtype))
+    # a screen that clips the larger spots: the fit expects the variance the
+    # edges hide and recovers the beam
+    truth = torch.stack(
+        [torch.linalg.det(cov[p : p + 2, p : p + 2]).sqrt() for p in (0, 2)]
+    )
+    k5 = torch.linspace(-10, 10, 5, dtype=torch.float64)
+    m5 = map_of(k5)
+    y5 = moments(m5)
+    half = 3.0 * float(y5.sqrt().amax())
+    clipped = y5 * (1 - 2 * dz.tail_variance(half / y5.sqrt()))
+    assert float((clipped / y5).amin()) < 0.9999
+    naive = dz.quad_scan_posterior(m5, clipped, relative_error=0.01)["emit"]
+    seen = dz.quad_scan_posterior(
+        m5, clipped, relative_error=0.01, half_width=(half, half)
+    )["emit"]
+    assert float((seen / truth - 1).abs().amax()) < 1e-4
+    assert float((naive / truth - 1).abs().amax()) > 10 * float(
+        (seen / truth - 1).abs().amax()
+    )
     # the proposal keeps the beam further inside a screen that clips large spots
     cand = torch.linspace(-10, 10, 41, dtype=torch.float64)
     rms = moments(map_of(cand)).sqrt()  # (C, 2)

@@ -1102,11 +1102,11 @@ def _moment_sd(
     half_width: Tensor | None,
     tails: Tensor | None,
 ) -> Tensor:
-    """Error of a measured screen variance ``level`` (``(2, ...)``, x and y
-    first): shot noise ``r level sqrt((kurtosis - 1) / 2)`` (``r level`` for a
-    Gaussian beam), the floor, and the variance the screen edges hide
-    (:func:`tail_variance` on both sides, ``half_width (2,)`` [m] from the
-    centroid, for the kurtosis ``tails (2,)`` of the beam's tails)."""
+    """Error of a screen variance ``level`` (``(2, ...)``, x and y first):
+    shot noise ``r level sqrt((kurtosis - 1) / 2)`` (``r level`` for a
+    Gaussian beam), the floor, and, with ``half_width (2,)`` [m] from the
+    centroid, the variance the screen edges hide (:func:`tail_variance` on
+    both sides for the kurtosis ``tails (2,)`` of the beam's tails)."""
     shape = 1.0 if kurtosis is None else ((kurtosis - 1.0) / 2.0).clamp_min(0).sqrt()
     sd = r * level * shape + floor
     if half_width is not None:
@@ -1116,6 +1116,18 @@ def _moment_sd(
         c = hw / level.clamp_min(1e-300).sqrt()
         sd = sd + 2.0 * level * tail_variance(c, kk)
     return sd + 1e-300
+
+
+def _kept(level: Tensor, half_width: Tensor | None, tails: Tensor | None) -> Tensor:
+    """Share of a beam variance ``level`` (``(2, ...)``) that a screen with
+    edges ``half_width (2,)`` from the centroid shows: one less the
+    :func:`tail_variance` of both sides (1 for an unbounded screen)."""
+    if half_width is None:
+        return torch.ones_like(level)
+    ones = [1] * (level.ndim - 1)
+    kk = 3.0 if tails is None else tails.reshape(2, *ones)
+    c = half_width.reshape(2, *ones) / level.clamp_min(1e-300).sqrt()
+    return (1.0 - 2.0 * tail_variance(c, kk)).clamp_min(1e-3)
 
 
 def _tails(kurtosis: Tensor | None) -> Tensor | None:
@@ -1201,13 +1213,14 @@ def quad_scan_posterior(
 
     ``<xx>_k = R11^2 S11 + 2 R11 R12 S12 + R12^2 S22`` (and y with ``R33,
     R34``) by weighted least squares, errors ``r <xx>_k + floor`` with
-    ``<xx>_k`` the fitted moment (three reweighted passes). Each image's own
-    error, where given: its shot noise follows its beam's kurtosis (``r <xx>_k
-    sqrt((kurtosis_k - 1) / 2)``, the same as ``r <xx>_k`` for a Gaussian), and
-    a screen edge ``half_width`` from the centroid hides the variance
-    :func:`tail_variance` gives for the fitted size and the median kurtosis of
-    the plane's images (both sides; added to the error; an image the edges
-    clip shows too little of the tails to judge them itself).
+    ``<xx>_k`` the fitted moment (three reweighted passes). Where given, each
+    image's shot noise follows its beam's kurtosis (``r <xx>_k sqrt((kurtosis_k
+    - 1) / 2)``, the same as ``r <xx>_k`` for a Gaussian). Screen edges
+    ``half_width`` from the centroid hide part of each variance: the fit
+    expects each image to show one less :func:`tail_variance` (both sides) of
+    the fitted variance, for the median kurtosis of the plane's images (an
+    image the edges clip shows too little of the tails to judge them itself);
+    what that expectation misses is left to the residuals and so to ``r``.
 
     Args:
         maps: First-order maps ``(K, 6, 6)`` (or ``(K, 7, 7)``).
@@ -1243,12 +1256,14 @@ def quad_scan_posterior(
         # weighting by the data favours the low fluctuations (a bias)
         level = yy.abs()
         for _ in range(3):
-            sd = _moment_sd(level, r, floor, kt, hw, tails)
-            aw = a_pl / sd[..., None]
+            # the clipped share is expected (keep), its misfit left to r
+            sd = _moment_sd(level, r, floor, kt, None, None)
+            keep = _kept(level, hw, tails)  # the share the screen shows
+            aw = a_pl * (keep / sd)[..., None]
             th = torch.linalg.lstsq(aw, (yy / sd)[..., None]).solution[..., 0]
             fit = (a_pl @ th[..., None])[..., 0]
             level = torch.where(fit > 0, fit, yy.abs())
-        res = (yy - fit) / sd
+        res = (yy - keep * fit) / sd
         return th, torch.linalg.pinv(aw.transpose(-1, -2) @ aw), res
 
     r = 0.01 if relative_error is None else float(relative_error)
@@ -1297,8 +1312,10 @@ def propose_quad_settings(
     their moments predicted by the fit and their errors those of
     :func:`quad_scan_posterior` (``r <xx> + floor``; with ``kurtosis``, the
     kurtosis of a candidate interpolated linearly in strength between the
-    measured ones, the nearest one's beyond them; with ``half_width``, the
-    variance the screen edges would hide).
+    measured ones, the nearest one's beyond them). With ``half_width`` a
+    candidate's moment is the share the screen would show, and the variance
+    its edges would hide is added to the candidate's error as well: the
+    design keeps away from the edges rather than rely on that share.
     Run in a loop (propose, measure the first, fit again) it is a sequential
     design with look-ahead.
 
@@ -1365,7 +1382,8 @@ def propose_quad_settings(
     hw = None if half_width is None else torch.tensor(half_width, dtype=torch.float64)
     sd = _moment_sd(pred.transpose(0, 1), r, floor, kc, hw, _tails(kurtosis))
     sd = sd.transpose(0, 1)
-    aw = a_c[None] / sd[..., None]  # (D, 2, C, 3)
+    keep = _kept(pred.transpose(0, 1), hw, _tails(kurtosis)).transpose(0, 1)
+    aw = a_c[None] * (keep / sd)[..., None]  # (D, 2, C, 3)
     add = torch.einsum("dpca,dpcb->dpcab", aw, aw)
     emit = (ths[..., 0] * ths[..., 2] - ths[..., 1] ** 2).clamp_min(1e-300).sqrt()
     g = torch.stack([ths[..., 2], -2 * ths[..., 1], ths[..., 0]], -1)
