@@ -8,7 +8,13 @@ point spread) of a fresh draw of ``--particles`` particles of the beam, so
 images carry shot noise. The estimator is the classic rms fit (second moments
 of the images, the point spread's variance removed, weighted least squares on
 the transfer matrices, error scale fitted to the residuals;
-``reconstruction.design.quad_scan_posterior``).
+``reconstruction.design.quad_scan_posterior``). Each image's error (the default
+``--error-model image``): shot noise from its beam's kurtosis
+(``image_kurtosis``) and a floor of a quarter pixel rms; the fit expects the
+share of each variance the screen's edges (8 mm from the beam's centroid) let
+through (``tail_variance`` for the plane's median kurtosis), and the design
+also adds the hidden part to a candidate's error. ``--error-model moments``:
+``r <xx> + floor`` alone.
 
 - ``designed``: 3 settings (k1 = -5, 0, 5 1/m^2: the middle half of the
   range), then one at a time: ``propose_quad_settings`` proposes the remaining
@@ -23,7 +29,8 @@ emittance's relative posterior std and of its absolute relative error against
 the rms emittance of the beam's distribution (2 million particles). The last
 line is the JSON summary.
 
-Usage: ``python benchmarks/design.py [--seeds 10] [--designed 5] [--even 10]``
+Usage: ``python benchmarks/design.py [--seeds 10] [--first-seed 0] [--designed 5]
+[--even 10] [--error-model image|moments]``
 """
 
 from __future__ import annotations
@@ -38,7 +45,11 @@ from _meta import add_store_flag, emit, git_commit
 from diffaccel.dynamics import Beamline
 from diffaccel.dynamics.images import cic_image
 from diffaccel.reconstruction import ScreenForwardModel
-from diffaccel.reconstruction.design import propose_quad_settings, quad_scan_posterior
+from diffaccel.reconstruction.design import (
+    image_kurtosis,
+    propose_quad_settings,
+    quad_scan_posterior,
+)
 from diffaccel.reconstruction.uncertainty import image_moments
 
 K1 = (-10.0, 10.0)
@@ -47,6 +58,8 @@ PIXEL = 80e-6
 BLUR = 1.0  # pixels
 #: Absolute error floor of a screen variance [m^2]: a quarter pixel rms.
 FLOOR = (0.25 * PIXEL) ** 2
+#: Distance from the beam's centroid (the screen's centre) to its edges [m].
+HALF_WIDTH = (SCREEN[1] / 2 * PIXEL, SCREEN[0] / 2 * PIXEL)
 #: Proposed strengths differ from each other and from measured ones by more
 #: than this [1/m^2] (a twentieth of the range).
 SEPARATION = 1.0
@@ -101,9 +114,11 @@ class Imager:
         self.fwd, self.seed, self.n, self.draw = fwd, seed, n, first_draw
         self.xs, self.ys = fwd.screen.pixel_centers(dtype=torch.float64)
 
-    def moments(self, k1: torch.Tensor) -> torch.Tensor:
+    def moments(self, k1: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(<xx>, <yy>)`` (the point spread's variance removed) and the beam
+        kurtosis in x and y of fresh images at ``k1``, each ``(K, 2)``."""
         maps = self.fwd.transfer_maps(k1[:, None])
-        out = []
+        out, kurt = [], []
         for m in maps:
             self.draw += 1
             x = beam(self.seed, self.n, self.draw) @ m[:6, :6].T
@@ -120,13 +135,25 @@ class Imager:
             mom = image_moments(img, self.xs, self.ys)[0]
             bx, by = self.fwd.blur_sigma()
             out.append(torch.stack([mom[2] - bx**2, mom[4] - by**2]))
-        return torch.stack(out)
+            kurt.append(image_kurtosis(img, self.xs, self.ys, (bx, by))[0])
+        return torch.stack(out), torch.stack(kurt)
 
 
-def run_arm(imager: Imager, k1: torch.Tensor, r: float | None) -> dict:
+def error_model(kind: str, kurtosis: torch.Tensor) -> dict:
+    """Keyword arguments of the fit's per-image error model: ``image`` (each
+    image's kurtosis, the screen's edges), ``moments`` (``r <xx> + floor``)."""
+    if kind == "moments":
+        return {}
+    return {"kurtosis": kurtosis, "half_width": HALF_WIDTH}
+
+
+def run_arm(imager: Imager, k1: torch.Tensor, r: float | None, kind: str) -> dict:
     fwd = imager.fwd
     maps = fwd.transfer_maps(k1[:, None])[:, :6, :6]
-    return quad_scan_posterior(maps, imager.moments(k1), floor=FLOOR, relative_error=r)
+    mom, kurt = imager.moments(k1)
+    return quad_scan_posterior(
+        maps, mom, floor=FLOOR, relative_error=r, **error_model(kind, kurt)
+    )
 
 
 def headline(result: dict) -> dict[str, str]:
@@ -147,6 +174,12 @@ def headline(result: dict) -> dict[str, str]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument(
+        "--first-seed",
+        type=int,
+        default=0,
+        help="Beams FIRST ... FIRST + SEEDS - 1 (odd ones non-Gaussian).",
+    )
     ap.add_argument("--designed", type=int, default=5)
     ap.add_argument("--even", type=int, default=10)
     ap.add_argument("--particles", type=int, default=20_000)
@@ -166,6 +199,14 @@ def main() -> None:
         help="Known relative error of each screen variance (default: fitted to "
         "the residuals).",
     )
+    ap.add_argument(
+        "--error-model",
+        choices=("image", "moments"),
+        default="image",
+        help="Error of each screen variance in the fit and the design: image "
+        "(shot noise from each image's kurtosis, the variance the screen's edges "
+        "hide) or moments (r <xx> + floor alone).",
+    )
     add_store_flag(ap)
     args = ap.parse_args()
     fwd = beamline()
@@ -177,7 +218,9 @@ def main() -> None:
     arms: dict[str, dict[str, list]] = {
         a: {"std": [], "err": [], "k1": []} for a in ("designed", "even")
     }
-    for seed, rep in itertools.product(range(args.seeds), range(args.repeats)):
+    for seed, rep in itertools.product(
+        range(args.first_seed, args.first_seed + args.seeds), range(args.repeats)
+    ):
         c = torch.cov(beam(seed, 2_000_000, draw=-1).T)  # the distribution
         truth = torch.stack(
             [torch.linalg.det(c[p : p + 2, p : p + 2]).sqrt() for p in (0, 2)]
@@ -185,7 +228,7 @@ def main() -> None:
         # designed: start, then one proposal at a time from the fit so far
         im = Imager(fwd, seed, args.particles, first_draw=100 * rep)
         k1 = torch.tensor([K1[0] / 2, 0.0, K1[1] / 2], dtype=torch.float64)
-        mom = im.moments(k1)
+        mom, kurt = im.moments(k1)
         while k1.shape[0] < args.designed:
             nxt = propose_quad_settings(
                 map_of,
@@ -198,17 +241,23 @@ def main() -> None:
                 measured=k1,
                 min_separation=SEPARATION,
                 draws=args.draws,
+                **error_model(args.error_model, kurt),
             )
             nxt = nxt[:1]  # measure the first of the look-ahead proposal
             k1 = torch.cat([k1, nxt])
-            mom = torch.cat([mom, im.moments(nxt)])
+            m_new, k_new = im.moments(nxt)
+            mom, kurt = torch.cat([mom, m_new]), torch.cat([kurt, k_new])
         post = quad_scan_posterior(
-            map_of(k1), mom, floor=FLOOR, relative_error=args.relative_error
+            map_of(k1),
+            mom,
+            floor=FLOOR,
+            relative_error=args.relative_error,
+            **error_model(args.error_model, kurt),
         )
         results = {"designed": (post, k1)}
         im = Imager(fwd, seed, args.particles, first_draw=10_000 + 100 * rep)
         ke = torch.linspace(*K1, args.even, dtype=torch.float64)
-        results["even"] = (run_arm(im, ke, args.relative_error), ke)
+        results["even"] = (run_arm(im, ke, args.relative_error, args.error_model), ke)
         for arm, (p, ks) in results.items():
             arms[arm]["std"] += (p["emit_std"] / p["emit"]).tolist()
             arms[arm]["err"] += ((p["emit"] / truth - 1).abs()).tolist()

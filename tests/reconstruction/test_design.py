@@ -259,3 +259,190 @@ def test_design_matches_the_moments_of_tracked_images(small_awa6d):
         assert (
             (m[:, 3] - pred[:, 1]) / (pred[:, 0] * pred[:, 2]).sqrt()
         ).abs().max() < 0.02
+
+
+def test_tail_variance_of_a_gaussian_and_heavier_tails():
+    c = torch.tensor([0.5, 1.0, 2.0, 3.0, 4.0], dtype=torch.float64)
+    normal = torch.distributions.Normal(0.0, 1.0)
+    pdf = normal.log_prob(c).exp()
+    exact = c * pdf + 1 - normal.cdf(c)  # int_c^inf x^2 phi(x) dx
+    torch.testing.assert_close(dz.tail_variance(c), exact, rtol=1e-6, atol=1e-9)
+    torch.testing.assert_close(dz.tail_variance(c, 2.5), exact, rtol=1e-6, atol=1e-9)
+    assert float(dz.tail_variance(torch.tensor(1e-6))) == 0.5
+    # a heavier tail hides more of the variance beyond the same edge
+    t = dz.tail_variance(torch.tensor(3.0), torch.tensor([3.0, 4.0, 6.0]))
+    assert bool((t.diff() > 0).all())
+    # a Student t's tail integral is that of its own density (numerical check)
+    x = torch.linspace(3.0, 3000.0, 2_000_001, dtype=torch.float64)
+    nu = 4 + 6 / (4.0 - 3)
+    st = torch.distributions.StudentT(nu, 0.0, ((nu - 2) / nu) ** 0.5)
+    ref = torch.trapezoid(x**2 * st.log_prob(x).exp(), x)
+    torch.testing.assert_close(
+        dz.tail_variance(torch.tensor(3.0), 4.0), ref, rtol=1e-3, atol=0
+    )
+
+
+def test_image_kurtosis_of_gaussian_and_uniform_beams():
+    from diffaccel.dynamics.images import cic_image
+
+    g = torch.Generator().manual_seed(0)
+    n, px = 200_000, 1e-4
+    xs = (torch.arange(128, dtype=torch.float64) - 63.5) * px
+    gauss = 15 * px * torch.randn(n, generator=g, dtype=torch.float64)
+    flat = 40 * px * (2 * torch.rand(n, generator=g, dtype=torch.float64) - 1)
+    blur = 0.9 * px
+    img = cic_image(gauss[None], flat[None], (128, 128), px, (0.0, 0.0), None, blur)
+    spread = (1.0 / 6.0 + 0.9**2) ** 0.5 * px
+    k = dz.image_kurtosis(img, xs, xs, (spread, spread))[0]
+    assert abs(float(k[0]) - 3.0) < 0.05
+    assert abs(float(k[1]) - 1.8) < 0.05
+
+
+def test_quad_scan_error_model_of_each_image():
+    fwd = ScreenForwardModel.from_spec(
+        {
+            "beamline": SPEC["scans"]["quad"]["beamline"],
+            "names": ["Q1.k1"],
+            "p0c": 43.36e6,
+            "species": "electron",
+            "blur_pixels": 1.0,
+        }
+    )
+    cov = _beam()
+
+    def map_of(k):
+        return fwd.transfer_maps(k[:, None])[:, :6, :6]
+
+    def moments(m):
+        s = m @ cov @ m.transpose(-1, -2)
+        return torch.stack([s[:, 0, 0], s[:, 2, 2]], -1)
+
+    k0 = torch.tensor([-10.0, 0.0, 10.0], dtype=torch.float64)
+    m0 = map_of(k0)
+    noise = 1 + 0.01 * torch.tensor([[1.0, -1.0], [-0.5, 0.5], [0.3, 0.2]])
+    y = moments(m0) * noise
+    plain = dz.quad_scan_posterior(m0, y, relative_error=0.01)
+    # a Gaussian kurtosis and a far-off screen edge change nothing
+    same = dz.quad_scan_posterior(
+        m0,
+        y,
+        relative_error=0.01,
+        kurtosis=torch.full((3, 2), 3.0),
+        half_width=(1.0, 1.0),
+    )
+    torch.testing.assert_close(same["emit_std"], plain["emit_std"])
+    # heavier tails: more shot noise, a larger std
+    heavy = dz.quad_scan_posterior(
+        m0, y, relative_error=0.01, kurtosis=torch.full((3, 2), 5.0)
+    )
+    ratio = heavy["emit_std"] / plain["emit_std"]
+    torch.testing.assert_close(ratio, torch.full((2,), 2.0**0.5, dtype=ratio.dtype))
+    # a screen that clips the larger spots: the fit expects the variance the
+    # edges hide and recovers the beam
+    truth = torch.stack(
+        [torch.linalg.det(cov[p : p + 2, p : p + 2]).sqrt() for p in (0, 2)]
+    )
+    k5 = torch.linspace(-10, 10, 5, dtype=torch.float64)
+    m5 = map_of(k5)
+    y5 = moments(m5)
+    half = 3.0 * float(y5.sqrt().amax())
+    clipped = y5 * (1 - 2 * dz.tail_variance(half / y5.sqrt()))
+    assert float((clipped / y5).amin()) < 0.9999
+    naive = dz.quad_scan_posterior(m5, clipped, relative_error=0.01)["emit"]
+    seen = dz.quad_scan_posterior(
+        m5, clipped, relative_error=0.01, half_width=(half, half)
+    )["emit"]
+    assert float((seen / truth - 1).abs().amax()) < 1e-4
+    assert float((naive / truth - 1).abs().amax()) > 10 * float(
+        (seen / truth - 1).abs().amax()
+    )
+    # the proposal keeps the beam further inside a screen that clips large spots
+    cand = torch.linspace(-10, 10, 41, dtype=torch.float64)
+    rms = moments(map_of(cand)).sqrt()  # (C, 2)
+    edge = float(4 * rms.amin(0).amax())  # some candidates reach past 4 rms
+    assert bool((rms > edge / 3).any())
+    free = dz.propose_quad_settings(map_of, m0, y, cand, n=2, relative_error=0.01)
+    best = dz.propose_quad_settings(
+        map_of, m0, y, cand, n=2, relative_error=0.01, half_width=(edge, edge)
+    )
+    largest = [float(moments(map_of(k)).sqrt().amax()) for k in (free, best)]
+    assert largest[1] < largest[0], (free, best, largest)
+
+
+def test_propose_quad_settings_from_a_fit_that_is_no_beam():
+    fwd = ScreenForwardModel.from_spec(
+        {
+            "beamline": SPEC["scans"]["quad"]["beamline"],
+            "names": ["Q1.k1"],
+            "p0c": 43.36e6,
+            "species": "electron",
+            "blur_pixels": 1.0,
+        }
+    )
+    cov = _beam()
+
+    def map_of(k):
+        return fwd.transfer_maps(k[:, None])[:, :6, :6]
+
+    k0 = torch.tensor([-10.0, 0.0, 10.0], dtype=torch.float64)
+    m0 = map_of(k0)
+    s = m0 @ cov @ m0.transpose(-1, -2)
+    y = torch.stack([s[:, 0, 0], s[:, 2, 2]], -1)
+    # the middle spot measured too large: three settings fit no beam in x
+    for factor in (2.0, 20.0):
+        bad = y.clone()
+        bad[1, 0] *= factor
+        post = dz.quad_scan_posterior(m0, bad, relative_error=0.01)
+        th = post["theta"][0]
+        assert float(th[0] * th[2] - th[1] ** 2) < 0
+        cand = torch.linspace(-10, 10, 41, dtype=torch.float64)
+        for draws in (0, 8):
+            best = dz.propose_quad_settings(
+                map_of,
+                m0,
+                bad,
+                cand,
+                n=2,
+                relative_error=0.01,
+                measured=k0,
+                min_separation=1.0,
+                draws=draws,
+            )
+            assert bool(torch.isfinite(best).all())
+            assert float((best[0] - best[1]).abs()) > 1.0, best
+            assert float((best[:, None] - k0[None]).abs().amin()) > 1.0, best
+
+
+def test_joint_proposals_keep_their_separation():
+    fwd = ScreenForwardModel.from_spec(
+        {
+            "beamline": SPEC["scans"]["quad"]["beamline"],
+            "names": ["Q1.k1"],
+            "p0c": 43.36e6,
+            "species": "electron",
+            "blur_pixels": 1.0,
+        }
+    )
+    cov = _beam()
+
+    def map_of(k):
+        return fwd.transfer_maps(k[:, None])[:, :6, :6]
+
+    k0 = torch.tensor([-10.0, 0.0, 10.0], dtype=torch.float64)
+    m0 = map_of(k0)
+    s = m0 @ cov @ m0.transpose(-1, -2)
+    y = torch.stack([s[:, 0, 0], s[:, 2, 2]], -1)
+    cand = torch.linspace(-10, 10, 41, dtype=torch.float64)
+    for joint in (True, False):
+        best = dz.propose_quad_settings(
+            map_of,
+            m0,
+            y,
+            cand,
+            n=4,
+            relative_error=0.01,
+            min_separation=2.0,
+            joint=joint,
+        )
+        gaps = (best[:, None] - best[None, :]).abs() + 10 * torch.eye(4)
+        assert float(gaps.amin()) > 2.0, (joint, best)

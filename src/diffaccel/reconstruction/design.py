@@ -59,6 +59,7 @@ look-ahead).
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 import re
@@ -66,6 +67,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -85,6 +87,7 @@ __all__ = [
     "ScanLayout",
     "beam_from_images",
     "beam_from_spec",
+    "image_kurtosis",
     "layouts_from_dataset",
     "layouts_from_spec",
     "moment_design",
@@ -96,6 +99,7 @@ __all__ = [
     "quantities",
     "recommend",
     "scaled_design",
+    "tail_variance",
 ]
 
 #: The 21 covariance entries ``(i, j), i <= j`` (columns of the design).
@@ -1008,18 +1012,215 @@ def singular_values_with(
 
 
 # ------------------------------------------------------ sequential quad design
+#: Gauss-Legendre nodes and weights on (0, 1) for the screen-edge tail integrals.
+_GL_NODES = 96
+
+
+@functools.cache
+def _gauss_legendre() -> tuple[Tensor, Tensor]:
+    xn, wn = np.polynomial.legendre.leggauss(_GL_NODES)
+    return (
+        torch.tensor(0.5 * (xn + 1.0), dtype=torch.float64),
+        torch.tensor(0.5 * wn, dtype=torch.float64),
+    )
+
+
+def tail_variance(c: Tensor, kurtosis: Tensor | float = 3.0) -> Tensor:
+    """Share of a projected variance beyond ``c`` rms on one side of the centroid.
+
+    ``int_c^inf x^2 f(x) dx`` for the unit-variance profile ``f`` with the
+    given kurtosis: a Gaussian for a kurtosis of 3 or less, else a Student t
+    with ``nu = 4 + 6 / (kurtosis - 3)`` degrees of freedom (the same
+    kurtosis). A screen edge ``c`` rms from the centroid hides this share of the
+    beam's variance from the image (a Gaussian: 1.1 % at 3.1 rms; kurtosis
+    4.4: 5 %).
+
+    Shapes: ``c`` and ``kurtosis`` broadcast -> their broadcast shape.
+    """
+    c = torch.as_tensor(c, dtype=torch.float64)
+    k = torch.as_tensor(kurtosis, dtype=torch.float64)
+    c, k = torch.broadcast_tensors(c, k)
+    w, wt = _gauss_legendre()
+    cc = c.clamp(1e-3, 1e3)[..., None]  # beyond 1000 rms: no tail left
+    heavy = (k > 3.0 + 1e-6)[..., None]
+    nu = (4.0 + 6.0 / (k - 3.0).clamp_min(1e-6)).clamp_max(1e6)[..., None]
+    s = ((nu - 2.0) / nu).sqrt()  # scale of unit variance
+
+    def density(x: Tensor) -> Tensor:
+        gauss = -0.5 * x**2 - 0.5 * math.log(2 * math.pi)
+        student = (
+            torch.lgamma((nu + 1) / 2)
+            - torch.lgamma(nu / 2)
+            - 0.5 * torch.log(nu * math.pi)
+            - torch.log(s)
+            - (nu + 1) / 2 * torch.log1p((x / s) ** 2 / nu)
+        )
+        return torch.exp(torch.where(heavy, student, gauss))
+
+    # beyond c (x = c / w, w in (0, 1]), or a half minus the part within c
+    outer = cc[..., 0] ** 3 * (density(cc / w) / w**4 * wt).sum(-1)
+    inner = cc[..., 0] ** 3 * (density(cc * w) * w**2 * wt).sum(-1)
+    out = torch.where(c > 1.0, outer, 0.5 - inner)
+    return torch.where(c > 1e-3, out, torch.full_like(out, 0.5)).clamp(0.0, 0.5)
+
+
+def image_kurtosis(
+    images: Tensor, xs: Tensor, ys: Tensor, point_spread: Sequence[float] = (0.0, 0.0)
+) -> Tensor:
+    """Kurtosis ``<u^4> / <u^2>^2`` of the beam behind each image, x and y.
+
+    From the image's marginal profiles: the fourth cumulant of the image is the
+    beam's (a Gaussian point spread adds none), its variance the beam's plus
+    the point spread's (``point_spread``, rms [m] in x and y). 3 for a Gaussian
+    beam; it sets the shot noise of a measured variance,
+    ``<xx> sqrt((kurtosis - 1) / N)`` for ``N`` particles.
+
+    Shapes: ``images (K, H, W)``, ``xs (W,)``, ``ys (H,)`` -> ``(K, 2)``.
+    """
+    w = images.to(torch.float64)
+    total = w.sum((-2, -1)).clamp_min(1e-300)
+    out = []
+    for prof, pos, ps in (
+        (w.sum(-2), xs, point_spread[0]),
+        (w.sum(-1), ys, point_spread[1]),
+    ):
+        p = prof / total[:, None]
+        pos = pos.to(torch.float64)
+        d = pos[None, :] - (p * pos).sum(-1, keepdim=True)
+        m2 = (p * d**2).sum(-1)
+        m4 = (p * d**4).sum(-1)
+        beam2 = (m2 - ps**2).clamp_min(1e-300)
+        out.append(3.0 + (m4 - 3.0 * m2**2) / beam2**2)
+    return torch.stack(out, -1)
+
+
+def _moment_sd(
+    level: Tensor,
+    r: float,
+    floor: float,
+    kurtosis: Tensor | None,
+    half_width: Tensor | None,
+    tails: Tensor | None,
+) -> Tensor:
+    """Error of a screen variance ``level`` (``(2, ...)``, x and y first):
+    shot noise ``r level sqrt((kurtosis - 1) / 2)`` (``r level`` for a
+    Gaussian beam), the floor, and, with ``half_width (2,)`` [m] from the
+    centroid, the variance the screen edges hide (:func:`tail_variance` on
+    both sides for the kurtosis ``tails (2,)`` of the beam's tails)."""
+    shape = 1.0 if kurtosis is None else ((kurtosis - 1.0) / 2.0).clamp_min(0).sqrt()
+    sd = r * level * shape + floor
+    if half_width is not None:
+        ones = [1] * (level.ndim - 1)
+        hw = half_width.reshape(2, *ones)
+        kk = 3.0 if tails is None else tails.reshape(2, *ones)
+        c = hw / level.clamp_min(1e-300).sqrt()
+        sd = sd + 2.0 * level * tail_variance(c, kk)
+    return sd + 1e-300
+
+
+def _kept(level: Tensor, half_width: Tensor | None, tails: Tensor | None) -> Tensor:
+    """Share of a beam variance ``level`` (``(2, ...)``) that a screen with
+    edges ``half_width (2,)`` from the centroid shows: one less the
+    :func:`tail_variance` of both sides (1 for an unbounded screen)."""
+    if half_width is None:
+        return torch.ones_like(level)
+    ones = [1] * (level.ndim - 1)
+    kk = 3.0 if tails is None else tails.reshape(2, *ones)
+    c = half_width.reshape(2, *ones) / level.clamp_min(1e-300).sqrt()
+    return (1.0 - 2.0 * tail_variance(c, kk)).clamp_min(1e-3)
+
+
+def _tails(kurtosis: Tensor | None) -> Tensor | None:
+    """Kurtosis of the beam's tails per plane: the median over the images
+    ``(K, 2) -> (2,)`` (an image the screen clips shows too little of them)."""
+    if kurtosis is None:
+        return None
+    return kurtosis.to(torch.float64).median(0).values
+
+
+#: Posterior draws that stand for a fit that is no physical beam (``S11 S22 <=
+#: S12^2`` in a plane, possible from three settings) in the design criterion.
+UNPHYSICAL_DRAWS = 32
+
+
+def _physical(th: Tensor) -> Tensor:
+    return (
+        (th[..., 0] > 0)
+        & (th[..., 2] > 0)
+        & (th[..., 0] * th[..., 2] > th[..., 1] ** 2)
+    )
+
+
+def _physical_draws(th: Tensor, cov: Tensor, draws: int, seed: int) -> Tensor:
+    """``(S11, S12, S22)`` per plane ``(D, 2, 3)`` the design criterion is
+    averaged over: the fit (``draws`` 0), or ``draws`` physical draws of its
+    posterior (drawn until there are enough, up to 64 times as many; too few
+    are repeated). A plane whose fit is no physical beam gets
+    :data:`UNPHYSICAL_DRAWS` of them even with ``draws`` 0; where none of its
+    draws is physical either, its correlation is shrunk until its emittance^2
+    is the posterior std of the emittance^2 (the scale the data cannot tell
+    from zero)."""
+    fit_ok = _physical(th)  # (2,)
+    if draws <= 0 and bool(fit_ok.all()):
+        return th[None]
+    n = draws if draws > 0 else UNPHYSICAL_DRAWS
+    gen = torch.Generator().manual_seed(seed)
+    z = torch.randn(64 * n, 2, 3, generator=gen, dtype=torch.float64)
+    w, v = torch.linalg.eigh(0.5 * (cov + cov.transpose(-1, -2)))
+    lc = v * w.clamp_min(0).sqrt()[:, None, :]
+    d = th[None] + torch.einsum("pab,dpb->dpa", lc, z)
+    ok = _physical(d)  # (64 n, 2)
+    out = th[None].repeat(n, 1, 1)
+    for p in range(2):
+        if draws <= 0 and bool(fit_ok[p]):
+            continue  # (the fit itself, repeated)
+        idx = ok[:, p].nonzero()[:, 0]
+        if idx.numel() > 0:
+            out[:, p] = d[idx[torch.arange(n) % idx.numel()], p]
+            continue
+        s11, s12, s22 = (float(v) for v in th[p])
+        g = torch.tensor([s22, -2 * s12, s11], dtype=torch.float64)
+        e2_sd = float((g @ cov[p] @ g).clamp_min(0).sqrt())
+        s11, s22 = abs(s11) + 1e-300, abs(s22) + 1e-300
+        e2 = max(e2_sd, 1e-6 * s11 * s22)
+        s12 = math.copysign(math.sqrt(max(s11 * s22 - e2, 0.0)), s12)
+        out[:, p] = torch.tensor([s11, s12, s22], dtype=torch.float64)
+    return out
+
+
+def _interp(x: Tensor, xp: Tensor, fp: Tensor) -> Tensor:
+    """Linear interpolation of ``fp`` at ``xp`` to ``x``, constant beyond."""
+    order = torch.argsort(xp)
+    xp, fp = xp[order], fp[order]
+    if xp.shape[0] == 1:
+        return fp.expand(x.shape[0]).clone()
+    i = torch.searchsorted(xp, x).clamp(1, xp.shape[0] - 1)
+    x0, x1 = xp[i - 1], xp[i]
+    t = ((x - x0) / (x1 - x0).clamp_min(1e-300)).clamp(0.0, 1.0)
+    return fp[i - 1] + t * (fp[i] - fp[i - 1])
+
+
 def quad_scan_posterior(
     maps: Tensor,
     moments: Tensor,
     *,
     relative_error: float | None = None,
     floor: float = 0.0,
+    kurtosis: Tensor | None = None,
+    half_width: Sequence[float] | None = None,
 ) -> dict[str, Tensor]:
     """Classic rms quadrupole-scan fit per plane with its Gaussian posterior.
 
     ``<xx>_k = R11^2 S11 + 2 R11 R12 S12 + R12^2 S22`` (and y with ``R33,
     R34``) by weighted least squares, errors ``r <xx>_k + floor`` with
-    ``<xx>_k`` the fitted moment (three reweighted passes).
+    ``<xx>_k`` the fitted moment (three reweighted passes). Where given, each
+    image's shot noise follows its beam's kurtosis (``r <xx>_k sqrt((kurtosis_k
+    - 1) / 2)``, the same as ``r <xx>_k`` for a Gaussian). Screen edges
+    ``half_width`` from the centroid hide part of each variance: the fit
+    expects each image to show one less :func:`tail_variance` (both sides) of
+    the fitted variance, for the median kurtosis of the plane's images (an
+    image the edges clip shows too little of the tails to judge them itself);
+    what that expectation misses is left to the residuals and so to ``r``.
 
     Args:
         maps: First-order maps ``(K, 6, 6)`` (or ``(K, 7, 7)``).
@@ -1028,6 +1229,10 @@ def quad_scan_posterior(
         relative_error: ``r``; None fits it to the residuals (pooled over both
             planes, ``2 K - 6`` degrees of freedom; 1 % where there are none).
         floor: Absolute error floor [m^2] (e.g. a fraction of a pixel^2).
+        kurtosis: Each image's beam kurtosis ``(K, 2)`` (:func:`image_kurtosis`);
+            None: Gaussian.
+        half_width: Distance from the beam's centroid to the screen edges in x
+            and y [m]; None: an unbounded screen.
 
     Returns:
         ``theta (2, 3)`` (``S11, S12, S22`` per plane), ``cov (2, 3, 3)``,
@@ -1042,18 +1247,23 @@ def quad_scan_posterior(
     a_pl = torch.stack(rows)  # (2, K, 3)
     yy = y.T  # (2, K)
     k = y.shape[0]
+    kt = None if kurtosis is None else kurtosis.to(torch.float64).T
+    tails = _tails(kurtosis)
+    hw = None if half_width is None else torch.tensor(half_width, dtype=torch.float64)
 
     def solve(r: float) -> tuple[Tensor, Tensor, Tensor]:
         # weights from the fitted moments (iterated), not the measured ones:
         # weighting by the data favours the low fluctuations (a bias)
         level = yy.abs()
         for _ in range(3):
-            sd = r * level + floor + 1e-300
-            aw = a_pl / sd[..., None]
+            # the clipped share is expected (keep), its misfit left to r
+            sd = _moment_sd(level, r, floor, kt, None, None)
+            keep = _kept(level, hw, tails)  # the share the screen shows
+            aw = a_pl * (keep / sd)[..., None]
             th = torch.linalg.lstsq(aw, (yy / sd)[..., None]).solution[..., 0]
             fit = (a_pl @ th[..., None])[..., 0]
             level = torch.where(fit > 0, fit, yy.abs())
-        res = (yy - fit) / sd
+        res = (yy - keep * fit) / sd
         return th, torch.linalg.pinv(aw.transpose(-1, -2) @ aw), res
 
     r = 0.01 if relative_error is None else float(relative_error)
@@ -1091,13 +1301,21 @@ def propose_quad_settings(
     measured: Tensor | None = None,
     draws: int = 0,
     seed: int = 0,
+    kurtosis: Tensor | None = None,
+    half_width: Sequence[float] | None = None,
 ) -> Tensor:
     """The next quadrupole strength(s) that minimise the emittances' posterior std.
 
     Fits the measurements so far (:func:`quad_scan_posterior`), then picks the
     ``n`` candidates (together, or one at a time) that minimise the summed
     relative variance of the emittances of ``planes`` once they are measured,
-    their moments predicted by the fit and their errors ``r <xx> + floor``.
+    their moments predicted by the fit and their errors those of
+    :func:`quad_scan_posterior` (``r <xx> + floor``; with ``kurtosis``, the
+    kurtosis of a candidate interpolated linearly in strength between the
+    measured ones, the nearest one's beyond them). With ``half_width`` a
+    candidate's moment is the share the screen would show, and the variance
+    its edges would hide is added to the candidate's error as well: the
+    design keeps away from the edges rather than rely on that share.
     Run in a loop (propose, measure the first, fit again) it is a sequential
     design with look-ahead.
 
@@ -1118,15 +1336,26 @@ def propose_quad_settings(
         measured: The strengths measured so far ``(K,)`` (for
             ``min_separation``).
         draws: Average the criterion over this many draws of the fit's
-            posterior (0: at the fit itself): a design that stays good where
-            the few measurements so far leave the beam uncertain.
+            posterior (0: at the fit itself), physical beams only: a design
+            that stays good where the few measurements so far leave the beam
+            uncertain. A fit that is no physical beam is replaced by such
+            draws (:data:`UNPHYSICAL_DRAWS` at least).
         seed: Seed of those draws.
+        kurtosis: Each measured image's beam kurtosis ``(K, 2)``
+            (:func:`image_kurtosis`; interpolated over ``measured``, their
+            mean without it); None: Gaussian.
+        half_width: As in :func:`quad_scan_posterior`.
 
     Returns:
         The proposed strengths ``(n,)`` in order.
     """
     post = quad_scan_posterior(
-        maps, moments, relative_error=relative_error, floor=floor
+        maps,
+        moments,
+        relative_error=relative_error,
+        floor=floor,
+        kurtosis=kurtosis,
+        half_width=half_width,
     )
     th = post["theta"]
     r = float(post["relative_error"])
@@ -1138,20 +1367,23 @@ def propose_quad_settings(
         rows.append(torch.stack([r1**2, 2 * r1 * r2, r2**2], -1))
     a_c = torch.stack(rows)  # (2, C, 3)
     info = torch.linalg.pinv(post["cov"])  # (2, 3, 3)
-    ths = th[None]  # (D, 2, 3): the fit, or draws of its posterior
-    if draws > 0:
-        gen = torch.Generator().manual_seed(seed)
-        z = torch.randn(draws, 2, 3, generator=gen, dtype=torch.float64)
-        w, v = torch.linalg.eigh(0.5 * (post["cov"] + post["cov"].transpose(-1, -2)))
-        lc = v * w.clamp_min(0).sqrt()[:, None, :]
-        d = th[None] + torch.einsum("pab,dpb->dpa", lc, z)
-        ok = (
-            (d[..., 0] > 0) & (d[..., 2] > 0) & (d[..., 0] * d[..., 2] > d[..., 1] ** 2)
-        )
-        ths = torch.where(ok[..., None], d, th[None])
+    ths = _physical_draws(th, post["cov"], draws, seed)  # (D, 2, 3)
     pred = torch.einsum("pca,dpa->dpc", a_c, ths).abs()  # (D, 2, C)
-    sd = r * pred + floor + 1e-300
-    aw = a_c[None] / sd[..., None]  # (D, 2, C, 3)
+    kc = None
+    if kurtosis is not None:
+        kt = kurtosis.to(torch.float64)
+        if measured is None:
+            kc = kt.mean(0)[:, None].expand(2, cand.shape[0])
+        else:
+            kc = torch.stack(
+                [_interp(cand, measured.to(cand), kt[:, p]) for p in (0, 1)]
+            )
+        kc = kc[:, None, :]  # (2, 1, C)
+    hw = None if half_width is None else torch.tensor(half_width, dtype=torch.float64)
+    sd = _moment_sd(pred.transpose(0, 1), r, floor, kc, hw, _tails(kurtosis))
+    sd = sd.transpose(0, 1)
+    keep = _kept(pred.transpose(0, 1), hw, _tails(kurtosis)).transpose(0, 1)
+    aw = a_c[None] * (keep / sd)[..., None]  # (D, 2, C, 3)
     add = torch.einsum("dpca,dpcb->dpcab", aw, aw)
     emit = (ths[..., 0] * ths[..., 2] - ths[..., 1] ** 2).clamp_min(1e-300).sqrt()
     g = torch.stack([ths[..., 2], -2 * ths[..., 1], ths[..., 0]], -1)
@@ -1176,7 +1408,7 @@ def propose_quad_settings(
         if min_separation > 0 and n > 1:
             vals = cand[combos]
             gaps = (vals[:, :, None] - vals[:, None, :]).abs()
-            gaps = gaps + torch.eye(n, dtype=gaps.dtype) * torch.inf
+            gaps = torch.where(torch.eye(n, dtype=torch.bool), torch.inf, gaps)
             score = torch.where(gaps.amin((-2, -1)) <= min_separation, torch.inf, score)
         return cand[combos[int(score.argmin())]]
     taken: list[float] = []
