@@ -292,7 +292,7 @@ class ReconstructionConfig:
             correlation units instead lets a strong chirp's emittance drift
             (the shared 6D file's emit_z -9 %) at 1e3 and barely moves the
             shape at 1e5.
-        hold_unseen: With ``place_unseen`` and ``dims = 6``, weight ``w`` of a
+        hold_unseen: With ``dims = 6``, weight ``w`` of a
             penalty ``w sum_k t_k^2`` that holds the beam at the prior point
             during training, ``t_k`` its covariance's displacement from that
             point along each unseen direction (correlation units;
@@ -1142,7 +1142,7 @@ def _beam_hold(
 
     With ``hold_covariance`` (the refit of a placed member) a
     :class:`CovarianceHold` at it with weight ``config.refit_hold``; else with
-    ``dims = 6``, ``place_unseen`` and ``hold_unseen > 0`` an
+    ``dims = 6`` and ``hold_unseen > 0`` an
     :class:`~diffaccel.reconstruction.unseen.UnseenHold` on the directions the
     scans do not see (from each scan's transfer maps, ``maps`` where given).
 
@@ -1154,7 +1154,7 @@ def _beam_hold(
         if config.dims != 6:
             raise ValueError("hold_covariance needs dims = 6.")
         return CovarianceHold(hold_covariance, config.refit_hold, norm, n)
-    if not (config.dims == 6 and config.place_unseen and config.hold_unseen > 0):
+    if not (config.dims == 6 and config.hold_unseen > 0):
         return None
     map_list = [None] * len(forwards) if maps is None else list(maps)
     return UnseenHold(
