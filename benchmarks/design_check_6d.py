@@ -8,13 +8,18 @@ the optimal-transport map (``unseen.transport_map``), so that every seen
 second moment stays as it was. The AWA 6D scan of that beam
 (``make_synthetic_awa6d``, k1 -12 ... 12 in 5 steps, histogram images) is
 designed with ``recommend`` (cavity -4 ... 4 MV, dipole angle -0.40 ... -0.28
-rad; the image-moment beam, no training). The recommended images are made by
-tracking the same beam. Then ``reconstruct`` (6D, default settings) runs on
-the scan alone and on the scan with the added images. The relative errors of
-emit_z and the 6D emittance are reported against the beam's.
+rad; the image-moment beam, no training). Every image, the scan's and the
+recommended ones, is then made by an independent tracking code: cheetah
+(``--tracker cheetah``, the default; its exact ``drift_kick_drift`` tracking of
+the same beamline, ``Beamline.to_cheetah``, nearest-pixel counts on the
+screen); ``--tracker diffaccel`` images with diffaccel's own tracking. Then
+``reconstruct`` (6D, default settings) runs on the scan alone and on the scan
+with the added images. The relative errors of emit_z and the 6D emittance are
+reported against the beam's.
 
-Usage: ``python benchmarks/design_check_6d.py [--partial 0.5] [--seed 0]``
-(two 6D reconstructions: some minutes on a 2-core CPU).
+Usage: ``python benchmarks/design_check_6d.py [--partial 0.5] [--seed 0]
+[--tracker cheetah]`` (two 6D reconstructions: some minutes on a 2-core CPU;
+cheetah from ``pip install -e ".[bench]"``).
 """
 
 from __future__ import annotations
@@ -26,8 +31,20 @@ import torch
 from _meta import add_store_flag, emit, git_commit
 from _sixd import DATA
 
-from diffaccel.data import make_synthetic_awa6d, make_synthetic_quad_scan
+from diffaccel.data import (
+    QuadScanDataset,
+    make_synthetic_awa6d,
+    make_synthetic_quad_scan,
+)
 from diffaccel.data.scans import MultiScanDataset, read_scans
+from diffaccel.dynamics import (
+    Beamline,
+    Species,
+    bmad_to_cheetah,
+    cheetah_to_bmad,
+    energy_to_p0c,
+    p0c_to_energy,
+)
 from diffaccel.reconstruction import ReconstructionConfig, reconstruct
 from diffaccel.reconstruction import design as dz
 from diffaccel.reconstruction.prior_dependence import move_to_partial
@@ -59,6 +76,52 @@ def shifted_beam(partial: float) -> torch.Tensor:
     return mu + (x - mu) @ a.T
 
 
+def cheetah_imaged(beam: torch.Tensor, scan: QuadScanDataset) -> QuadScanDataset:
+    """``scan`` with every image made again by cheetah's tracking of ``beam``.
+
+    For each setting the scanned parameters are written into the beamline
+    spec, the line is converted (``Beamline.to_cheetah``) and ``beam`` (Bmad
+    coordinates ``(N, 6)``) tracked by cheetah to the screen; the image is the
+    nearest-pixel count on the scan's screen (shape, pixel size, centre),
+    normalised to unit sum (one shot).
+    """
+    import cheetah  # the [bench] extra
+
+    species = Species.from_name(scan.species)
+    p0c = torch.tensor(scan.p0c, dtype=torch.float64)
+    start = torch.ones(beam.shape[0], 7, dtype=torch.float64)
+    start[:, :6] = bmad_to_cheetah(beam.to(torch.float64), p0c, species)
+    h, w = scan.screen_shape
+    psx, psy = scan.pixel_size
+    cx, cy = scan.center
+    images = []
+    for row in scan.settings.tolist():
+        spec = [dict(e) for e in scan.beamline_spec]
+        by_name = {e["name"]: e for e in spec}
+        for name, value in zip(scan.setting_names, row, strict=True):
+            element, _, param = name.partition(".")
+            by_name[element][param] = value
+        segment = Beamline.from_spec(spec).to_cheetah(p0c=scan.p0c, species=species)
+        out = segment.track(
+            cheetah.ParticleBeam(
+                start.clone(),
+                energy=p0c_to_energy(p0c, species),
+            )
+        )
+        end = cheetah_to_bmad(
+            out.particles[:, :6], energy_to_p0c(out.energy, species), species
+        )
+        col = torch.floor((end[:, 0] - cx) / psx + w / 2).long()
+        row_ = torch.floor((end[:, 2] - cy) / psy + h / 2).long()
+        inside = (col >= 0) & (col < w) & (row_ >= 0) & (row_ < h)
+        counts = torch.bincount((row_ * w + col)[inside], minlength=h * w).double()
+        images.append((counts / counts.sum()).reshape(h, w))
+    return scan.with_step(
+        {"step": "imaged by cheetah", "cheetah": cheetah.__version__},
+        images=torch.stack(images)[:, None].float(),
+    )
+
+
 def emittances(result, n: int = 100_000) -> dict[str, float]:
     m = result.moments(n=n)
     return {"emit_z": m["emit_z"]["mean"], "emit_6d": m["emit_6d"]["mean"]}
@@ -82,6 +145,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--partial", type=float, default=0.5)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--tracker", choices=("cheetah", "diffaccel"), default="cheetah")
     add_store_flag(ap)
     args = ap.parse_args()
     beam = shifted_beam(args.partial)
@@ -115,11 +179,28 @@ def main() -> None:
             image_method="histogram",
             seed=args.seed + 1 + i,
         )
+    agreement = {}
+    if args.tracker == "cheetah":
+        ours = scans
+        scans = {name: cheetah_imaged(beam, scan) for name, scan in ours.items()}
+        # the largest relative L1 between cheetah's and diffaccel's image
+        agreement = {
+            name: float(
+                (scans[name].mean_images() - scan.mean_images())
+                .abs()
+                .sum((-2, -1))
+                .max()
+            )
+            for name, scan in ours.items()
+        }
+        base = MultiScanDataset({name: scans[name] for name in base.names})
     added = MultiScanDataset(scans)
     out = {
         "name": "design_check_6d",
         "commit": git_commit(),
         "partial": args.partial,
+        "tracker": args.tracker,
+        "l1_cheetah_vs_diffaccel_images": agreement,
         "recommended": [
             {k: r[k] for k in ("scan", "names", "values")} for r in rec["recommended"]
         ],
