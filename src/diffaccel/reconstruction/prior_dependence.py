@@ -3,8 +3,8 @@
 Along the directions of :func:`~diffaccel.reconstruction.unseen.unseen_directions`
 (AWA 6D: the px-pz covariance traded against the pz variance, py-z against the
 z variance) no screen's second moments change to first order, so the images
-cannot tell a beam from its twin moved along one: the placement puts the
-traded pair at zero partial correlation (``ReconstructionConfig.unseen_prior``)
+cannot tell a beam from its twin moved along one: the objective's prior term
+puts the traded pair at zero partial correlation (``ReconstructionConfig.unseen_prior``)
 because nothing measured says where else. Two Gaussian beams 35 % apart in z
 emittance gave training images that differ by less than the sampling noise of
 two million particles.
@@ -29,10 +29,11 @@ from diffaccel.reconstruction.metrics import COORDINATES
 from diffaccel.reconstruction.unseen import traded_pairs, unseen_directions
 
 #: Partial correlations of a traded pair at which :func:`prior_dependence`
-#: evaluates the beam. README-family beams with a transverse curvature in px
-#: (px ~ x^2) and a curved chirp tilted in x have px-pz partial correlations of
-#: up to 0.14; the pair prior puts them at 0.
-DEPENDENCE_PARTIALS = (-0.1, 0.1)
+#: evaluates the beam: the range real beams take. README-family beams with a
+#: transverse curvature in px (px ~ x^2) and a curved chirp tilted in x have
+#: px-pz partial correlations of up to 0.27, a beam reconstructed from a real
+#: photoinjector's 6D scan +0.56; the pair prior puts them at 0.
+DEPENDENCE_PARTIALS = (-0.6, -0.3, -0.1, 0.1, 0.3, 0.6)
 
 #: Points of the grid along a direction on which the partial correlation is
 #: bracketed before bisection.
