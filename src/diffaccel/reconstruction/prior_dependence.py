@@ -29,10 +29,11 @@ from diffaccel.reconstruction.metrics import COORDINATES
 from diffaccel.reconstruction.unseen import traded_pairs, unseen_directions
 
 #: Partial correlations of a traded pair at which :func:`prior_dependence`
-#: evaluates the beam. README-family beams with a transverse curvature in px
-#: (px ~ x^2) and a curved chirp tilted in x have px-pz partial correlations of
-#: up to 0.14; the pair prior puts them at 0.
-DEPENDENCE_PARTIALS = (-0.1, 0.1)
+#: evaluates the beam: the range real beams take. README-family beams with a
+#: transverse curvature in px (px ~ x^2) and a curved chirp tilted in x have
+#: px-pz partial correlations of up to 0.27, a beam reconstructed from a real
+#: photoinjector's 6D scan +0.56; the pair prior puts them at 0.
+DEPENDENCE_PARTIALS = (-0.6, -0.3, -0.1, 0.1, 0.3, 0.6)
 
 #: Points of the grid along a direction on which the partial correlation is
 #: bracketed before bisection.
