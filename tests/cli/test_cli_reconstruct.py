@@ -817,10 +817,11 @@ def test_6d_run_states_what_the_prior_sets(tmp_path: Path) -> None:
             0.3,
             0.6,
         ]
-        # either side of it the same images fit another z emittance (this
-        # short run: changes of 1-5 % at -0.1 and +0.1)
-        low, high = (a["relative_change"]["emit_z"] for a in at[2:4])
-        assert low * high < 0 and min(abs(low), abs(high)) > 0.005
+        # elsewhere along the line the same images fit another z emittance
+        # (the line may pass the smallest one near the prior point, so one
+        # side can barely change: this short run's -9 % / +0.1 % at -0.1 / +0.1)
+        changes = [a["relative_change"]["emit_z"] for a in at if a["relative_change"]]
+        assert max(abs(c) for c in changes) > 0.02
     assert r.output.count("set by the prior, not the images:") == 2
 
 

@@ -137,6 +137,8 @@ def test_corrupt_checkpoint(tmp_path: Path) -> None:
         ({"penalty_start": math.nan}, "penalty_start must be a finite number"),
         ({"unseen_weight": -1.0}, "unseen_weight must be finite and >= 0"),
         ({"unseen_weight": math.nan}, "unseen_weight must be a finite number"),
+        ({"moment_weight": -1.0}, "moment_weight must be finite and >= 0"),
+        ({"moment_weight": math.inf}, "moment_weight must be a finite number"),
     ],
     ids=[
         "cycles",
@@ -151,6 +153,8 @@ def test_corrupt_checkpoint(tmp_path: Path) -> None:
         "penalty-nan",
         "hold-negative",
         "hold-nan",
+        "moments-negative",
+        "moments-inf",
     ],
 )
 def test_bad_config(kwargs: dict, match: str) -> None:
@@ -252,6 +256,12 @@ def test_sampling_offset_and_penalty_defaults() -> None:
     restored = ReconstructionConfig.from_dict(old)
     assert restored.unseen_weight == 0.0
     assert restored == ReconstructionConfig.from_dict({**d, "unseen_weight": 0.0})
+    # the moment term: in 6D only; runs saved before it trained without it
+    assert ReconstructionConfig(dims=6).moment_weight == 1.0
+    assert ReconstructionConfig(dims=4).moment_weight == 0.0
+    assert "moment_weight" in d
+    del d["moment_weight"]
+    assert ReconstructionConfig.from_dict(d).moment_weight == 0.0
 
 
 def test_sampling_offset_reaches_the_image_penalty(small_scan, monkeypatch) -> None:
