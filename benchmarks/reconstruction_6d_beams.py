@@ -439,8 +439,6 @@ def run_beam(name: str, seeds: list[int], overrides: dict | None = None) -> dict
             result.training_maps(), torch.cov(sample.T.double())
         )
         run["rms_max_abs"] = max(abs(e[f"rms_{c}"]) for c in "x px y py z pz".split())
-        if "unseen_probe" in result.info:  # --set probe_unseen=...
-            run["unseen_probe"] = result.info["unseen_probe"]
         if test is not None:
             run["held_out_relative_l1"] = {
                 n: image_errors(

@@ -8,6 +8,11 @@ import torch
 from diffaccel.data import make_synthetic_awa6d
 from diffaccel.reconstruction import ReconstructionConfig, moment_errors, reconstruct
 
+#: How close to zero the traded partial correlations come in 60 short steps of
+#: 2048 particles (measured 0.19 and 0.08; without the prior term -0.45 and
+#: 0.29; at the 6D defaults within 0.06 on the 6D benchmark beams).
+PARTIAL_TOLERANCE = 0.25
+
 
 @pytest.fixture(scope="module")
 def run() -> tuple:
@@ -30,12 +35,17 @@ def errors(run) -> dict[str, float]:
     return run[1]
 
 
-def test_the_members_are_polished_to_the_image_moments(run) -> None:
-    # the AWA layout leaves px-pz and py-z unseen: the refit runs, then the
-    # moment polish, which records what it did for each member
-    (report,) = run[0].info["moment_polish"]
-    assert report["applied"] and report["kept"] < 21
-    assert report["residual_after"] < 0.5 * report["residual_before"]
+def test_the_prior_term_sets_the_traded_partial_correlations(run) -> None:
+    # the AWA layout leaves px-pz and py-z unseen: the prior term of the
+    # objective holds each at zero partial correlation given the other four
+    # coordinates (the beam's own: px-pz -0.12, py-z -0.02)
+    result = run[0]
+    cov = torch.cov(result.sample(50_000, seed=2).T.double())
+    p = torch.linalg.inv(cov)
+    for i, j in ((1, 5), (3, 4)):
+        partial = float(p[i, j] / (p[i, i] * p[j, j]).sqrt())
+        assert abs(partial) < PARTIAL_TOLERANCE, (i, j, partial)
+    assert "moment_polish" not in result.info and "unseen_probe" not in result.info
 
 
 @pytest.mark.parametrize("key", ["rms_z", "rms_pz"])

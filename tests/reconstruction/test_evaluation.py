@@ -131,7 +131,7 @@ def test_6d_summary_without_a_prior_dependence_warns(monkeypatch) -> None:
         screen_shape=(24, 24),
         seed=3,
     )
-    config = ReconstructionConfig(dims=6, **FAST, place_unseen=False)
+    config = ReconstructionConfig(dims=6, **FAST)
     result = reconstruct(data, config, uncertainty=False)
 
     def degenerate(maps, cov):

@@ -124,7 +124,7 @@ def test_captured_6d_step_body_trains_like_eager_steps(
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     request.addfinalizer(lambda: torch.set_num_threads(threads))
-    cfg = {**FAST, "dims": 6, "place_unseen": False}
+    cfg = {**FAST, "dims": 6, "unseen_weight": 0.0}
     ref = reconstruct(small_awa6d, ReconstructionConfig(**cfg, cuda_graph=False))
     got = reconstruct(small_awa6d, ReconstructionConfig(**cfg), uncertainty=False)
     (replay,) = eager_graph.made
@@ -273,7 +273,7 @@ def test_cuda_failed_capture_goes_on_eagerly(small_scan, monkeypatch, caplog) ->
 
 def _step_events(scan, steps: int) -> dict[str, int]:
     cfg = ReconstructionConfig(
-        dims=6, n_particles=512, steps=steps, snapshots=1, place_unseen=False
+        dims=6, n_particles=512, steps=steps, snapshots=1, unseen_weight=0.0
     )
     with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as p:
         reconstruct(scan, cfg, uncertainty=False)
@@ -303,7 +303,7 @@ def test_cuda_graph_6d_steps(small_awa6d, captured, monkeypatch, caplog) -> None
     # before GRAPH_DIMS admits 6 (it fails where the capture does)
     monkeypatch.setattr(graphed_step, "GRAPH_DIMS", (4, 6))
     with caplog.at_level(logging.WARNING, logger="diffaccel.reconstruction"):
-        ref, got = _cuda_runs(small_awa6d, {**FAST, "dims": 6, "place_unseen": False})
+        ref, got = _cuda_runs(small_awa6d, {**FAST, "dims": 6, "unseen_weight": 0.0})
     assert "could not capture" not in caplog.text
     assert len(captured) == 1
     assert got.history["loss"] == pytest.approx(ref.history["loss"], rel=1e-3)

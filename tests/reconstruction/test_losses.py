@@ -17,6 +17,7 @@ from diffaccel.reconstruction import (
 )
 from diffaccel.reconstruction.losses import (
     ImagePenalty,
+    MomentMatch,
     image_penalty,
     off_screen_allowance,
 )
@@ -196,3 +197,50 @@ def test_offset_kl_puts_a_sampled_beam_at_its_true_size() -> None:
     assert plain > 1.004
     assert abs(offset - 1.0) < 0.007
     assert abs(offset - 1.0) < abs(plain - 1.0)
+
+
+def _gaussian_images(sx: float, sy: float, rho: float, n: int = 48) -> torch.Tensor:
+    """One sum-normalised Gaussian image ``(1, n, n)``, rms in pixels, centred."""
+    c = torch.arange(n, dtype=torch.float64) - (n - 1) / 2
+    x, y = c[None, :], c[:, None]
+    q = (x / sx) ** 2 - 2 * rho * x * y / (sx * sy) + (y / sy) ** 2
+    img = torch.exp(-q / (2 * (1 - rho**2)))
+    return (img / img.sum())[None]
+
+
+def test_moment_term_is_zero_at_the_measured_images_and_quadratic_off_them() -> None:
+    measured = _gaussian_images(4.0, 3.0, 0.5)
+    match = MomentMatch(measured, torch.ones_like(measured), 2.0)
+    sxx, syy, sxy = match.target[0].tolist()
+    assert sxx == pytest.approx(16.0, rel=1e-3) and syy == pytest.approx(9.0, rel=1e-3)
+    assert sxy == pytest.approx(0.5 * 12.0, rel=1e-3)
+    assert float(match(measured)) < 1e-20
+    # x 2 % wider: S_xx 4.04 % larger, S_xy 2 % larger (relative to sqrt(Sxx Syy))
+    wider = _gaussian_images(4.08, 3.0, 0.5)
+    expect = 2.0 * ((1.02**2 - 1) ** 2 + (0.02 * 0.5) ** 2)
+    assert float(match(wider)) == pytest.approx(expect, rel=0.02)
+
+
+def test_moment_term_counts_only_its_window_and_has_a_gradient() -> None:
+    measured = _gaussian_images(4.0, 3.0, 0.0)
+    window = torch.zeros_like(measured)
+    window[:, 6:42, 6:42] = 1.0
+    match = MomentMatch(measured, window, 1.0)
+    noisy = measured.clone()
+    noisy[:, 0, 0] += 0.05  # far outside the window: not counted
+    assert float(match(noisy)) < 1e-20
+    sim = _gaussian_images(4.2, 3.0, 0.0).requires_grad_(True)
+    (grad,) = torch.autograd.grad(match(sim), sim)
+    assert float(grad.abs().max()) > 0 and float(grad[:, 0, 0].abs()) == 0.0
+
+
+@pytest.mark.parametrize(
+    ("weight", "shape", "match"),
+    [(-1.0, None, "moment weight"), (float("nan"), None, "moment weight"),
+     (1.0, (1, 4, 4), "differ in shape")],
+)  # fmt: skip
+def test_moment_term_refuses_bad_input(weight, shape, match) -> None:
+    measured = _gaussian_images(4.0, 3.0, 0.0)
+    window = torch.ones(shape or measured.shape, dtype=measured.dtype)
+    with pytest.raises(ValueError, match=match):
+        MomentMatch(measured, window, weight)

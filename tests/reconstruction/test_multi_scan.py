@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -22,11 +21,6 @@ from diffaccel.reconstruction import (
     predicted_dataset,
     reconstruct,
     training_selection,
-)
-from diffaccel.reconstruction.unseen import (
-    PLACEMENT_PARTICLES,
-    coupling_directions,
-    member_moments,
 )
 
 BENT = [
@@ -188,151 +182,44 @@ def test_training_selection_errors_name_the_scan(two_scans, selection, message):
         training_selection(two_scans, selection)
 
 
-def test_refit_of_placed_members_changes_them(small_awa6d) -> None:
-    """``refit_steps`` (6D default 60): every placed member is trained again;
-    0 leaves the placed members as they are."""
-    assert CONFIG.refit_steps == 60
-    assert replace(CONFIG, dims=4, refit_steps=None).refit_steps == 0
-    config = replace(CONFIG, refit_steps=4)
-    refit = reconstruct(small_awa6d, config, uncertainty=False)
-    placed_only = reconstruct(
-        small_awa6d, replace(config, refit_steps=0), uncertainty=False
+def test_the_prior_term_changes_the_awa6d_members(small_awa6d) -> None:
+    """6D on the AWA layout (two directions unseen): the prior term
+    (``unseen_weight``, 6D default 1e3) enters training; 0 trains without it."""
+    assert CONFIG.unseen_weight == 1e3
+    assert replace(CONFIG, dims=4, unseen_weight=None).unseen_weight == 0.0
+    held = reconstruct(small_awa6d, CONFIG, uncertainty=False)
+    free = reconstruct(
+        small_awa6d, replace(CONFIG, unseen_weight=0.0), uncertainty=False
     )
-    assert refit.n_snapshots == placed_only.n_snapshots == 1
-    for a, b in zip(refit.snapshots, placed_only.snapshots, strict=True):
+    assert held.n_snapshots == free.n_snapshots == 1
+    for a, b in zip(held.snapshots, free.snapshots, strict=True):
         assert not torch.equal(a["offset"], b["offset"])
 
 
-def test_uncoupled_members_end_at_the_largest_determinant(small_awa6d) -> None:
-    """``place_coupling``: after training, placement and refit every member sits
-    where its determinant along the barely seen x-y coupling direction is
-    largest; training alone (no moment polish, which moves it toward what the
-    image moments say) leaves it wherever it settled."""
-    config = replace(CONFIG, refit_steps=4)
-
-    def slopes(result) -> list[float]:
-        maps = [
-            result.forwards[name].transfer_maps(scan.settings)
-            for name, scan in small_awa6d
-        ]
-        out = []
-        for state in result.snapshots:
-            _, cov = member_moments(
-                state, 6, config.width, config.depth, PLACEMENT_PARTICLES, config.seed
-            )
-            v = coupling_directions(maps, cov)
-            assert v.shape[0] == 1
-            # d log det / dt along the unit direction: 0 at the largest
-            out.append(abs(float(torch.einsum("ij,ji->", torch.linalg.inv(cov), v[0]))))
-        return out
-
-    placed = reconstruct(
-        small_awa6d, replace(config, place_coupling=True), uncertainty=False
-    )
-    plain = reconstruct(
-        small_awa6d, replace(config, polish_moments=False), uncertainty=False
-    )
-    assert max(slopes(placed)) < 1e-3
-    assert max(slopes(plain)) > 1e-2
-    # also after the probe along px-pz (both sides probed; whether this small
-    # run's gain takes it off the prior point depends on the last bits of the
-    # arithmetic, so either end is accepted): the coupling is placed last
-    probed = reconstruct(
-        small_awa6d,
-        replace(config, place_coupling=True, probe_unseen=0.05, probe_away=False),
-        uncertainty=False,
-    )
-    assert len(probed.info["unseen_probe"]["steps"]) >= 3  # the point and both sides
-    assert max(slopes(probed)) < 1e-3
-
-
-def test_progress_counts_training_and_refit(small_awa6d) -> None:
-    """The callback's steps run on through the refit of the placed members
-    (the plain refit; with the probe, test_probe_refits_every_member_...)."""
+def test_progress_counts_the_training_steps(small_awa6d) -> None:
+    """The callback sees every training step counted against ``steps``: no
+    stage after training."""
     seen: list[tuple[int, int]] = []
-    config = replace(CONFIG, refit_steps=4, report_every=2, probe_unseen=0.0)
+    config = replace(CONFIG, report_every=2)
     reconstruct(
         small_awa6d,
         config,
         callback=lambda info: seen.append((info.step, info.total)),
         uncertainty=False,
     )
-    # 6 training steps, then 4 refit steps of the one member (burn_in 1 of 2)
-    assert config.total_steps == 6 + 4
-    assert {t for _, t in seen} == {10}
+    assert {t for _, t in seen} == {6}
     steps = [s for s, _ in seen]
-    assert steps == sorted(steps)
-    assert steps[-1] == 10
-    assert any(s > 6 for s in steps)
+    assert steps == sorted(steps) and steps[-1] == 6
 
 
-def test_a_quadrupole_scan_alone_is_not_refitted(small_scan) -> None:
-    """6D on a quad scan: z and pz are not seen at all, nothing is placed, so
-    nothing is refitted (the same members as with ``refit_steps=0``; likewise
-    ``two_scans``, which has a dipole but no cavity: z unseen)."""
-    seen: list[tuple[int, int]] = []
+def test_a_quadrupole_scan_alone_holds_nothing(small_scan) -> None:
+    """6D on a quad scan: z and pz are not seen at all (their prior widths set
+    them), no direction is traded, so the prior term holds nothing: the same
+    members as with ``unseen_weight=0``."""
     config = ReconstructionConfig(dims=6, n_particles=512, steps=4, snapshots=2)
-    result = reconstruct(
-        small_scan,
-        config,
-        callback=lambda info: seen.append((info.step, info.total)),
-        uncertainty=False,
+    result = reconstruct(small_scan, config, uncertainty=False)
+    plain = reconstruct(
+        small_scan, replace(config, unseen_weight=0.0), uncertainty=False
     )
-    plain = reconstruct(small_scan, replace(config, refit_steps=0), uncertainty=False)
-    assert {t for _, t in seen} == {4}
     for a, b in zip(result.snapshots, plain.snapshots, strict=True):
         assert all(torch.equal(a[k], b[k]) for k in a)
-
-
-def test_probe_refits_every_member_at_three_points_and_records_them(
-    small_awa6d,
-) -> None:
-    """``probe_unseen`` without ``probe_away``: each member refitted at -step,
-    0, +step along px-pz (more steps only where the KL gain passes
-    ``probe_gain``); the record in ``info["unseen_probe"]``, the progress
-    counting every refit."""
-    seen: list[tuple[int, int]] = []
-    config = replace(
-        CONFIG, refit_steps=4, report_every=2, probe_unseen=0.05, probe_away=False
-    )
-    result = reconstruct(
-        small_awa6d,
-        config,
-        callback=lambda info: seen.append((info.step, info.total)),
-        uncertainty=False,
-    )
-    record = result.info["unseen_probe"]
-    points = [s["t"] for s in record["steps"]]
-    assert points[:3] == [0.0, -0.05, 0.05]
-    assert record["t"] in points
-    assert all(len(s["kl"]) == result.n_snapshots for s in record["steps"])
-    assert all(s["kl"][0] > 0 for s in record["steps"])
-    # 6 training steps, then 4 steps per refit, one member
-    assert config.total_steps == 6 + 3 * 4
-    steps = [s for s, _ in seen]
-    assert steps == sorted(steps)
-    assert steps[-1] == 6 + 4 * len(points)
-    assert (
-        "unseen_probe"
-        not in reconstruct(
-            small_awa6d, replace(config, probe_unseen=0.0), uncertainty=False
-        ).info
-    )
-
-
-def test_probe_away_probes_the_side_away_from_the_trained_members(
-    small_awa6d,
-) -> None:
-    """``probe_away`` (the default): the members' trained ``t`` recorded, the
-    probe's first two points the prior point and the step away from their
-    mean, the progress counting the refits so."""
-    config = replace(CONFIG, refit_steps=4, report_every=2, probe_unseen=0.05)
-    assert config.probe_away and config.total_steps == 6 + 2 * 4
-    result = reconstruct(small_awa6d, config, uncertainty=False)
-    record = result.info["unseen_probe"]
-    assert len(record["trained_t"]) == result.n_snapshots
-    mean = sum(record["trained_t"]) / len(record["trained_t"])
-    assert mean != 0
-    points = [s["t"] for s in record["steps"]]
-    assert points[:2] == [0.0, -math.copysign(0.05, mean)]
-    assert all(t * mean <= 0 for t in points)

@@ -106,7 +106,6 @@ def test_resume_of_a_6d_checkpoint_without_the_quadratic_term_is_refused(
         snapshots=1,
         burn_in=0,
         checkpoint_every=2,
-        refit_steps=0,
     )
     reconstruct(small_awa6d, cfg, checkpoint=ck, uncertainty=False)
     d = torch.load(ck, weights_only=True)
@@ -131,22 +130,15 @@ def test_corrupt_checkpoint(tmp_path: Path) -> None:
         ({"image_loss": "l3"}, "image_loss"),
         ({"n_particles": 3}, "n_particles"),
         ({"unseen_prior": "quadratic"}, "unseen_prior"),
-        ({"refit_steps": -1}, "refit_steps"),
-        ({"refit_lr": 0.0}, "refit_lr"),
         ({"sampling_offset": -0.1}, "sampling_offset must be finite and >= 0"),
         ({"sampling_offset": math.inf}, "sampling_offset must be a finite number"),
         ({"image_loss": "l1", "sampling_offset": 0.25}, "'kl' only"),
         ({"penalty_end": 0.0}, "penalty_start and penalty_end must be > 0"),
         ({"penalty_start": math.nan}, "penalty_start must be a finite number"),
-        ({"hold_unseen": -1.0}, "hold_unseen must be finite and >= 0"),
-        ({"hold_unseen": math.nan}, "hold_unseen must be a finite number"),
-        ({"refit_hold": -1.0}, "refit_hold must be finite and >= 0"),
-        ({"refit_hold": math.inf}, "refit_hold must be a finite number"),
-        ({"dims": 4, "place_coupling": True}, r"place_coupling.*dims=4"),
-        (
-            {"dims": 6, "place_unseen": False, "place_coupling": True},
-            "place_coupling.*place_unseen=False",
-        ),
+        ({"unseen_weight": -1.0}, "unseen_weight must be finite and >= 0"),
+        ({"unseen_weight": math.nan}, "unseen_weight must be a finite number"),
+        ({"moment_weight": -1.0}, "moment_weight must be finite and >= 0"),
+        ({"moment_weight": math.inf}, "moment_weight must be a finite number"),
     ],
     ids=[
         "cycles",
@@ -154,8 +146,6 @@ def test_corrupt_checkpoint(tmp_path: Path) -> None:
         "loss",
         "particles",
         "prior",
-        "refit",
-        "refit_lr",
         "offset-negative",
         "offset-inf",
         "offset-not-kl",
@@ -163,10 +153,8 @@ def test_corrupt_checkpoint(tmp_path: Path) -> None:
         "penalty-nan",
         "hold-negative",
         "hold-nan",
-        "refit-hold-negative",
-        "refit-hold-inf",
-        "coupling-4d",
-        "coupling-unplaced",
+        "moments-negative",
+        "moments-inf",
     ],
 )
 def test_bad_config(kwargs: dict, match: str) -> None:
@@ -242,22 +230,38 @@ def test_sampling_offset_and_penalty_defaults() -> None:
     d = ReconstructionConfig(dims=6).to_dict()
     del d["sampling_offset"]
     assert ReconstructionConfig.from_dict(d).sampling_offset == 0.0
-    # the hold of the unseen directions likewise
-    assert ReconstructionConfig(dims=6).hold_unseen == 0.0  # opt-in
-    d = ReconstructionConfig(dims=6, hold_unseen=1e3).to_dict()
-    assert ReconstructionConfig.from_dict(d).hold_unseen == 1e3
-    del d["hold_unseen"]
-    assert ReconstructionConfig.from_dict(d).hold_unseen == 0.0
-    # the refit of the placed members: 60 held steps in 6D, none in 4D; runs
-    # saved before the covariance hold refitted freely (or not at all)
-    assert ReconstructionConfig(dims=6).refit_steps == 60
-    assert ReconstructionConfig(dims=6).refit_hold == 1e4
-    assert ReconstructionConfig(dims=4).refit_steps == 0
-    d = ReconstructionConfig(dims=6, refit_steps=30).to_dict()
-    del d["refit_hold"]
-    assert ReconstructionConfig.from_dict(d).refit_hold == 0.0
-    del d["refit_steps"]
-    assert ReconstructionConfig.from_dict(d).refit_steps == 0
+    # the prior term on the unseen directions: 1e3 in 6D, none in 4D; runs
+    # saved before it trained without it (under its earlier name, or with
+    # the stages that moved members after training, whose settings are dropped)
+    assert ReconstructionConfig(dims=6).unseen_weight == 1e3
+    assert ReconstructionConfig(dims=4).unseen_weight == 0.0
+    d = ReconstructionConfig(dims=6, unseen_weight=50.0).to_dict()
+    assert ReconstructionConfig.from_dict(d).unseen_weight == 50.0
+    del d["unseen_weight"]
+    assert ReconstructionConfig.from_dict(d).unseen_weight == 0.0
+    old = {
+        **d,
+        "place_unseen": True,
+        "hold_unseen": 0.0,
+        "refit_steps": 60,
+        "refit_lr": 3e-3,
+        "refit_hold": 1e4,
+        "probe_unseen": 0.05,
+        "probe_gain": 5e-4,
+        "probe_points": 2,
+        "probe_away": True,
+        "polish_moments": True,
+        "place_coupling": False,
+    }
+    restored = ReconstructionConfig.from_dict(old)
+    assert restored.unseen_weight == 0.0
+    assert restored == ReconstructionConfig.from_dict({**d, "unseen_weight": 0.0})
+    # the moment term: in 6D only; runs saved before it trained without it
+    assert ReconstructionConfig(dims=6).moment_weight == 1.0
+    assert ReconstructionConfig(dims=4).moment_weight == 0.0
+    assert "moment_weight" in d
+    del d["moment_weight"]
+    assert ReconstructionConfig.from_dict(d).moment_weight == 0.0
 
 
 def test_sampling_offset_reaches_the_image_penalty(small_scan, monkeypatch) -> None:
@@ -331,7 +335,7 @@ def test_transfer_maps_are_computed_once_per_run(small_scan, monkeypatch) -> Non
 
 
 def test_training_starts_from_an_initial_model(small_scan) -> None:
-    """``initial_model``: the refit of placed members starts from them."""
+    """``initial_model``: training starts from a given generator state."""
     fwd = ScreenForwardModel.from_dataset(small_scan, blur_pixels=1.0)
     images, sets = small_scan.mean_images(), small_scan.settings
     guess = fit_gaussian([fwd], [images], [sets])
@@ -399,7 +403,7 @@ def test_default_4d_step_stays_within_the_op_budget(small_scan) -> None:
         ("lr_min", 0.1, r"lr_min \(0.1\) must not exceed lr_max"),
         ("width", 0, "width must be >= 1"),
         ("checkpoint_every", 0, "checkpoint_every must be >= 1"),
-        ("refit_lr", "3e-3", "refit_lr must be a finite number"),
+        ("unseen_weight", "1e3", "unseen_weight must be a finite number"),
     ],
 )
 def test_config_refuses_wrong_types_and_values_naming_the_field(
@@ -412,8 +416,8 @@ def test_config_refuses_wrong_types_and_values_naming_the_field(
 
 
 def test_config_takes_integers_for_numbers_and_lists_for_the_scale() -> None:
-    config = ReconstructionConfig(dims=6, refit_hold=10000, longitudinal_scale=[1, 2])
-    assert config.refit_hold == 10000
+    config = ReconstructionConfig(dims=6, unseen_weight=1000, longitudinal_scale=[1, 2])
+    assert config.unseen_weight == 1000
     assert config.longitudinal_scale == (1, 2)
     assert ReconstructionConfig.from_dict(config.to_dict()) == config
 

@@ -1,4 +1,4 @@
-"""Unseen longitudinal directions of the AWA 6D layout and where members go."""
+"""Unseen longitudinal directions of the AWA 6D layout and their prior point."""
 
 from __future__ import annotations
 
@@ -8,13 +8,8 @@ import torch
 from diffaccel.data.synthetic import AWA6D_BEAMLINES
 from diffaccel.dynamics import Beamline
 from diffaccel.reconstruction import ScreenForwardModel
-from diffaccel.reconstruction.generator import BeamGenerator
 from diffaccel.reconstruction.unseen import (
     UnseenHold,
-    _fold,
-    coupling_directions,
-    member_moments,
-    place_members,
     place_unseen,
     traded_pairs,
     transport_map,
@@ -184,89 +179,6 @@ def test_no_directions_without_dispersion_or_cavity() -> None:
     assert unseen_directions(_quad_scan_maps(), _beam_cov()).shape[0] == 0
 
 
-def test_awa6d_has_one_barely_seen_xy_coupling_direction() -> None:
-    maps, cov = _maps(), _beam_cov()
-    v = coupling_directions(maps, cov)
-    assert v.shape == (1, 6, 6)
-    sig = cov.diagonal().sqrt()
-    c = v[0] / (sig[:, None] * sig[None, :])
-    # cross-plane entries only
-    mask = torch.zeros(6, 6, dtype=torch.bool)
-    for i, j in ((0, 2), (0, 3), (1, 2), (1, 3)):
-        mask[i, j] = mask[j, i] = True
-    assert float(c[~mask].abs().max()) == 0.0
-    # one quadrupole and a drift L: <x y> at the screen weighs S_x,py and S_px,y
-    # alike and S_px,py by L, so they trade as (t, t, -2t/L): same sign for
-    # x-py and px-y, the opposite for px-py, x-y barely involved
-    assert float(c[0, 3] * c[1, 2]) > 0 and float(c[0, 3] * c[1, 3]) < 0
-    assert abs(float(c[0, 2])) < 0.1 * float(c.abs().max())
-    before = _screen_moments(maps, cov)
-    step = 0.2 / float(c.abs().max())
-    # 0.2 in correlation units: 3.0 % of a spot size^2 at most (measured)
-    assert _change(_screen_moments(maps, cov + step * v[0]), before) < 0.05
-    # the same change of px-py alone is seen 4.7x more (0.14)
-    e = torch.zeros(6, 6, dtype=torch.float64)
-    e[1, 3] = e[3, 1] = 0.2 * float(sig[1] * sig[3])
-    assert _change(_screen_moments(maps, cov + e), before) > 0.1
-
-
-def test_coupling_placement_goes_to_the_largest_determinant() -> None:
-    maps, cov = _maps(), _beam_cov()
-    v = unseen_directions(maps, cov)
-    c = coupling_directions(maps, cov)
-    sig = cov.diagonal().sqrt()
-    unit = sig[:, None] * sig[None, :]
-    # a beam without x-y coupling: the largest determinant along c is itself
-    moved = cov + 0.1 * c[0] + 0.1 * v[0]
-    placed = place_unseen(moved, v, coupling=c)
-    p = torch.linalg.inv(placed)
-    assert abs(float(torch.einsum("ij,ji->", p, c[0]))) < 1e-8
-    assert float(((placed - cov) / unit)[:4, :4].abs().max()) < 1e-6
-    # the longitudinal pair prior holds beside it
-    for i, j in traded_pairs(v, placed):
-        assert abs(_partial(placed, i, j)) < 1e-8
-    # the determinant is the largest along c: smaller on either side
-    for dt in (-0.01, 0.01):
-        assert torch.logdet(placed + dt * c[0]) < torch.logdet(placed)
-    # without coupling directions: the pair placement alone, as before
-    assert torch.allclose(
-        place_unseen(moved, v, coupling=torch.zeros(0, 6, 6)), place_unseen(moved, v)
-    )
-
-
-def test_coupling_placement_alone_goes_to_the_largest_determinant() -> None:
-    # no longitudinal direction (no pair criterion): the coupling alone
-    maps, cov = _maps(), _beam_cov()
-    c = coupling_directions(maps, cov)
-    placed = place_unseen(cov + 0.1 * c[0], torch.zeros(0, 6, 6), coupling=c)
-    sig = cov.diagonal().sqrt()
-    assert float(((placed - cov) / (sig[:, None] * sig[None, :])).abs().max()) < 1e-6
-
-
-def test_place_members_moves_the_coupling_only_when_asked() -> None:
-    g = torch.Generator().manual_seed(4)
-    maps, cov = _maps(), _beam_cov()
-    c = coupling_directions(maps, cov)[0]
-    # a member whose covariance is cov moved 0.15 along the coupling direction
-    target = cov + 0.15 * c
-    gen = BeamGenerator(6, width=8, depth=2, scale=torch.ones(6), generator=g)
-    state = {k: v.detach().clone() for k, v in gen.state_dict().items()}
-    mu, own = member_moments(state, 6, 8, 2, 4096, 0)
-    state = _fold(state, transport_map(own, target), mu)
-    sig = cov.diagonal().sqrt()
-    unit = (sig[:, None] * sig[None, :])[:4, :4]
-
-    def cross(s: dict) -> float:
-        _, m = member_moments(s, 6, 8, 2, 4096, 0)
-        return float(((m[:4, :4] - cov[:4, :4]) / unit).abs().max())
-
-    assert cross(state) > 0.05
-    kept = place_members([state], 6, 8, 2, maps, n_particles=4096)[0]
-    assert cross(kept) > 0.05  # the default leaves the coupling alone
-    moved = place_members([state], 6, 8, 2, maps, n_particles=4096, coupling=True)[0]
-    assert cross(moved) < 5e-3
-
-
 def test_transport_map_reaches_the_target() -> None:
     cov = _beam_cov()
     target = cov.clone()
@@ -280,34 +192,6 @@ def test_transport_map_reaches_the_target() -> None:
     d = cov.diagonal().sqrt()
     w = a * (d[None, :] / d[:, None])
     assert torch.allclose(w, w.T, atol=1e-10)
-
-
-def test_fold_moves_every_particle_by_the_map() -> None:
-    g = torch.Generator().manual_seed(0)
-    scale = torch.tensor([5e-4, 2.6e-4, 5e-4, 2.6e-4, 8e-4, 2e-3])
-    gen = BeamGenerator(6, width=8, depth=2, scale=scale, generator=g)
-    with torch.no_grad():  # a non-zero last layer, offset and scale
-        for p in gen.parameters():
-            p.add_(0.1 * torch.randn(p.shape, generator=g))
-    state = {k: v.detach().clone() for k, v in gen.state_dict().items()}
-    a = torch.eye(6, dtype=torch.float64)
-    a[5, 1], a[1, 5], a[5, 5] = 3.0, 0.01, 1.2
-    mu = torch.tensor([1e-4, 0, 0, 0, 0, -2e-4], dtype=torch.float64)
-    other = BeamGenerator(6, width=8, depth=2, scale=torch.ones(6))
-    other.load_state_dict(_fold(state, a, mu))
-    base = torch.randn(500, 6, generator=g)
-    with torch.no_grad():
-        x = gen.transform(base).double()
-        y = other.transform(base).double()
-    expect = mu + (x - mu) @ a.T
-    assert torch.allclose(y, expect, rtol=1e-4, atol=1e-5 * float(x.abs().max()))
-
-
-def test_place_members_leaves_4d_alone() -> None:
-    gen = BeamGenerator(4, width=8, scale=torch.ones(4))
-    state = gen.state_dict()
-    out = place_members([state], 4, 8, 2, _maps())
-    assert all(torch.equal(out[0][k], state[k]) for k in state)
 
 
 def _moments(x: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:

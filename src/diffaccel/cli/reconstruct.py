@@ -84,8 +84,6 @@ PARAMETER_FLAGS = {
     "image_loss": "--image-loss",
     "blur": "--blur",
     "loss_smoothing": "--loss-smoothing",
-    "uncoupled": "--uncoupled",
-    "probe": "--probe",
 }
 
 
@@ -176,25 +174,6 @@ _OPTIONS = [
         "the beam's smallest spot), so that the fit does not depend on the "
         "camera's pixel size; 0 compares pixel by pixel [default: auto for --dims "
         "4, 1 for --dims 6].",
-    ),
-    click.option(
-        "--uncoupled",
-        is_flag=True,
-        help="--dims 6: put the x-y coupling that the screens barely see (x-py, "
-        "px-y against px-py) at the largest entropy instead of where training "
-        "settled: the 4D and 6D emittances then do not depend on training there. "
-        "Right for beams not turned in x-y; wrong for beams turned in x-y (e.g. "
-        "by a solenoid).",
-    ),
-    click.option(
-        "--probe/--no-probe",
-        default=None,
-        help="--dims 6: let the training images move the beam off the stated prior "
-        "point along the px-pz direction the screens cannot see (zero px-pz partial "
-        "correlation) where members refitted there fit clearly better: a "
-        "likelihood-ratio probe on the side away from where training left the "
-        "members, one or more extra refits per member (about 20 s on two CPU cores) "
-        "[default: on for --dims 6].",
     ),
     click.option("--no-figures", is_flag=True, help="Skip the PNG figures."),
     click.option(
@@ -312,9 +291,7 @@ def run_reconstruction(
     """
     writer = not distributed or tdist.get_rank() == 0
     bar = tqdm(
-        # set by the first report: training, plus the refit of placed members
-        # where the scans leave directions unseen (not known before the fit)
-        total=None,
+        total=None,  # set by the first report (the run's training steps)
         desc="reconstruct",
         unit="step",
         leave=False,
@@ -322,7 +299,7 @@ def run_reconstruction(
     )
 
     def callback(info: StepInfo) -> None:
-        bar.total = info.total  # the refit's steps only where it runs
+        bar.total = info.total
         bar.n = info.step
         bar.set_postfix(
             image=f"{info.image_loss:.4f}", lr=f"{info.lr:.1e}", refresh=False

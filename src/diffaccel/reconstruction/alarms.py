@@ -40,7 +40,7 @@ benchmark files fitted with the defaults (4D: ``gpsr_4d_synthetic.h5``,
 
 - :data:`MOMENT_MISS_RAW` (misses as they are): good synthetic fits 0.2-4.7 %
   rms (sub-pixel beams at the focus take the most), the demo 0.8 %, the shared
-  6D file 0.28 % (the moment polish leaves 0.05 %), the GPSR 4D file 3.1 %,
+  6D file 0.28 %, the GPSR 4D file 3.1 %,
   the AWA measurement 13.7 % (its images are thresholded: their tails are
   cut, the fit's are not); a mislabelled setting 26 %, settings shuffled
   against their images 44 %, a 4D fit through a cavity 22 %.

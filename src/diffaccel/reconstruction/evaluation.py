@@ -289,9 +289,7 @@ def evaluate(
         ``rms_relative_ensemble_spread``, ``unconstrained_coordinates``,
         ``prior_dependence`` (6D: what the prior sets, see
         :func:`~diffaccel.reconstruction.prior_dependence.prior_dependence`;
-        4D: empty), ``moment_polish`` (6D: each member's
-        :class:`~diffaccel.reconstruction.moment_polish.PolishReport`; empty
-        where none ran), notes,
+        4D: empty), notes,
         ``config``, ``snapshots``, ``timings_s``, ``fit_quality`` (the
         signals of :func:`~diffaccel.reconstruction.alarms.fit_signals`),
         ``fit_alarms`` (each :class:`~diffaccel.reconstruction.alarms.FitAlarm`
@@ -417,7 +415,6 @@ def evaluate(
         "unconstrained_note": UNCONSTRAINED_NOTE,
         "prior_dependence": dependence,
         "prior_dependence_note": PRIOR_DEPENDENCE_NOTE,
-        "moment_polish": list(result.info.get("moment_polish", [])),
         "uncertainty_note": (
             UNCERTAINTY_NOTE if unc is not None else UNCERTAINTY_NOTE_ENSEMBLE_ONLY
         ),

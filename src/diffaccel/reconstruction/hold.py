@@ -7,15 +7,9 @@ Training computes the plain moment matrix of every step's particles anyway
 gradient enters through :meth:`MomentHold.surrogate`, exact also when the
 particles are split across processes.
 
-Two holds use this:
-
-- :class:`~diffaccel.reconstruction.unseen.UnseenHold` (opt-in,
-  ``ReconstructionConfig.hold_unseen``) holds the directions the scans cannot
-  see at their prior point during the main training;
-- :class:`CovarianceHold` holds the whole covariance at the placed one while
-  the refit after the placement fits the members' *shapes* to the images
-  (``ReconstructionConfig.refit_steps`` and ``refit_hold``; see
-  :func:`~diffaccel.reconstruction.pipeline.refit_members`).
+:class:`~diffaccel.reconstruction.unseen.UnseenHold`, the prior term of the
+6D objective (``ReconstructionConfig.unseen_weight``), holds the directions the
+scans cannot see at their prior point this way.
 """
 
 from __future__ import annotations
@@ -110,40 +104,3 @@ class MomentHold:
         xc = particles.to(torch.float64) - mu
         s = xc.T @ xc / (self.n - 1)  # this share's part of the covariance
         return 2.0 * self.weight * ((t[:, None, None] * self.q).sum(0) * s).sum()
-
-
-class CovarianceHold(MomentHold):
-    """Holds the whole covariance at ``target``, deviations whitened by it.
-
-    ``t`` is the upper triangle of ``W (S - T) W`` with ``W = T^(-1/2)``: the
-    covariance's deviation in the beam's own normal coordinates, so that a
-    change along a thin direction of a strongly correlated beam (the z-pz
-    chirp: emit_z changes by ``d(r_zpz) r / (1 - r^2)`` per unit correlation)
-    weighs by what it does to the emittances, not by its size in correlation
-    units. ``S = T (1 + e)`` gives ``t = e`` on the diagonal: penalty ``6 w e^2``.
-
-    Args:
-        target: ``T (6, 6)`` [Bmad units], positive definite.
-        weight: ``w``.
-        scale: Per-coordinate scale ``(6,)`` of the moments [Bmad units].
-        n: Particles of the beam (all processes together).
-
-    Raises:
-        ValueError: if ``target`` is not a finite, symmetric positive-definite
-            6x6 matrix.
-    """
-
-    def __init__(self, target: Tensor, weight: float, scale: Tensor, n: int) -> None:
-        super().__init__(weight, scale, n)
-        t = target.detach().to("cpu", torch.float64)
-        if t.shape != (6, 6) or not bool(torch.isfinite(t).all()):
-            raise ValueError(
-                f"target must be a finite (6, 6) covariance; got {tuple(t.shape)}."
-            )
-        t = 0.5 * (t + t.T)
-        w, v = torch.linalg.eigh(t)
-        if float(w.min()) <= 0:
-            raise ValueError("target covariance must be positive definite.")
-        root = v @ torch.diag(w.rsqrt()) @ v.T  # W = T^-1/2
-        iu = torch.triu_indices(6, 6)
-        self.set(root[iu[0]][:, :, None] * root[iu[1]][:, None, :], t)  # (W S W)_ab

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -21,10 +20,8 @@ from diffaccel.reconstruction.ensemble import (
     unconstrained_coordinates,
 )
 from diffaccel.reconstruction.forward import ScreenForwardModel
-from diffaccel.reconstruction.initial import GaussianGuess, check_guess, fit_gaussian
+from diffaccel.reconstruction.initial import check_guess, fit_gaussian
 from diffaccel.reconstruction.metrics import beam_moments
-from diffaccel.reconstruction.moment_polish import PolishReport, polish_members
-from diffaccel.reconstruction.probe import probe_members, training_kl
 from diffaccel.reconstruction.rank_members import (
     gather_members,
     member_checkpoint,
@@ -34,14 +31,9 @@ from diffaccel.reconstruction.training import (
     ReconstructionConfig,
     StepInfo,
     checkpoint_config,
-    compared_for,
     train_generator,
 )
 from diffaccel.reconstruction.uncertainty import analyse_moments
-from diffaccel.reconstruction.unseen import (
-    place_configured,
-    unseen_directions,
-)
 
 TrainIndices = Sequence[int] | Mapping[str, Sequence[int]] | str | None
 
@@ -335,17 +327,6 @@ def reconstruct(
     guess = fit_gaussian(list(forwards.values()), measured, settings, maps=maps)
     check_guess(guess, used, focusing_scanned=_scans_focusing(scans, used))
     t1 = time.perf_counter()
-    # the placed members' refit runs where the scans leave longitudinal
-    # directions unseen (not when they see z or pz not at all: quad-only 6D);
-    # progress counts training and refit together
-    unseen = (
-        config.dims == 6
-        and config.place_unseen
-        and unseen_directions(maps, guess.cov).shape[0] > 0
-    )
-    refit = unseen and config.refit_steps > 0
-    total = run_config.total_steps if refit else run_config.steps
-    report = _progress(callback, 0, total)
     state = train_generator(
         list(forwards.values()),
         [m.to(device) for m in measured],
@@ -354,7 +335,7 @@ def reconstruct(
         run_config,
         checkpoint=checkpoint,
         resume=resume,
-        callback=report,
+        callback=callback,
         device=device,
         distributed=distributed and not members,
         maps=maps,
@@ -362,37 +343,6 @@ def reconstruct(
     for fwd in forwards.values():
         fwd.to("cpu")
     snapshots = state.snapshots
-    t_place = time.perf_counter()
-    probe: dict = {}
-    polish: list[PolishReport] = []
-    if config.dims == 6 and config.place_unseen:
-        # longitudinal directions the scans cannot see: placed by a stated
-        # prior, not wherever training drifted (see reconstruction.unseen)
-        trained = snapshots
-        snapshots = place_configured(snapshots, run_config, maps)
-        if refit:
-            snapshots = refit_members(
-                snapshots,
-                list(forwards.values()),
-                [m.to(device) for m in measured],
-                settings,
-                guess,
-                run_config,
-                maps,
-                device=device,
-                callback=callback,
-                distributed=distributed and not members,
-                probe_record=probe,
-                trained=trained,
-            )
-            for fwd in forwards.values():
-                fwd.to("cpu")
-        if unseen and config.polish_moments:
-            snapshots, polish = polish_placed(
-                snapshots, list(forwards.values()), measured, settings, run_config
-            )
-            snapshots = place_configured(snapshots, run_config, maps)
-    t_place = time.perf_counter() - t_place
     if members:
         snapshots = gather_members(snapshots)
     per_scan = {
@@ -411,16 +361,11 @@ def reconstruct(
         "timings_s": {
             "initial_fit": t1 - t0,
             "training": state.elapsed_s,
-            "place_unseen": t_place,
         },
         "device": str(device),
         "member_processes": tdist.get_world_size() if members else 1,
         "unconstrained_coordinates": unconstrained_coordinates(maps, config.dims),
     }
-    if probe:
-        info["unseen_probe"] = probe
-    if polish:
-        info["moment_polish"] = [r.to_dict() for r in polish]
     if len(scans) == 1:
         info.update(per_scan[used[0]])
     result = Reconstruction(
@@ -436,184 +381,6 @@ def reconstruct(
         )
         result.info["timings_s"]["uncertainty"] = time.perf_counter() - t2
     return result
-
-
-def refit_members(
-    snapshots: Sequence[dict],
-    forwards: Sequence[ScreenForwardModel],
-    measured: Sequence[torch.Tensor],
-    settings: Sequence[torch.Tensor],
-    guess: GaussianGuess,
-    config: ReconstructionConfig,
-    maps: Sequence[torch.Tensor],
-    *,
-    device: str | torch.device = "cpu",
-    callback: Callable[[StepInfo], None] | None = None,
-    distributed: bool = False,
-    probe_record: dict | None = None,
-    trained: Sequence[dict] | None = None,
-) -> list[dict]:
-    """Placed members' shapes fitted again to the images, then placed again.
-
-    Each member (already moved along the unseen directions by a linear map,
-    which keeps the screens' second moments but not the shapes of non-Gaussian
-    images) trains for ``config.refit_steps`` steps (one cosine cycle from
-    ``config.refit_lr`` to ``config.lr_min`` at the final image penalty) with
-    its covariance held at the placed one
-    (:class:`~diffaccel.reconstruction.hold.CovarianceHold`, weight
-    ``config.refit_hold``; 0 refits freely), so that the image shapes follow
-    while the second moments stay; :func:`place_members` then removes what
-    drift is left along the unseen directions (a small move). See
-    ``ReconstructionConfig.refit_steps`` for the numbers.
-
-    Args:
-        snapshots: Placed members (generator state dicts).
-        forwards: Each scan's forward model (as trained).
-        measured: Each scan's sum-normalised training images ``(K_s, H_s, W_s)``.
-        settings: Their settings ``(K_s, P_s)``.
-        guess: The Gaussian that initialised training (same prior).
-        config: The run's settings (``refit_steps``, ``refit_lr``, ``seed``).
-        maps: Each scan's affine maps of its training settings ``(K_s, 7, 7)``.
-        device: Device to refit on.
-        callback: Progress callback: :class:`StepInfo` with ``step`` counted on
-            from the end of training (``config.steps``, then each member's
-            refit in turn) and ``total = config.total_steps``.
-        distributed: Split every refit step's particles across the processes
-            of the initialised ``torch.distributed`` group, as the training
-            does (:func:`~diffaccel.reconstruction.training.train_generator`);
-            every process returns the same members.
-        probe_record: With ``config.probe_unseen``, filled with the probe's
-            record (:func:`~diffaccel.reconstruction.probe.probe_members`).
-        trained: The members before the placement (the probe's side,
-            ``config.probe_away``).
-
-    Returns:
-        The refitted and placed state dicts, one per member.
-    """
-    refit = member_refit(
-        forwards,
-        measured,
-        settings,
-        guess,
-        config,
-        maps,
-        device=device,
-        distributed=distributed,
-    )
-    # the plain refit is the probe's first point (probe_unseen = 0: the only one)
-    snapshots, record = probe_members(
-        snapshots,
-        refit,
-        lambda state: training_kl(
-            state, config, forwards, measured, settings, maps, seed=config.seed
-        ),
-        config,
-        maps,
-        progress=lambda i: _progress(
-            callback,
-            config.steps + i * config.refit_steps,
-            max(config.total_steps, config.steps + (i + 1) * config.refit_steps),
-        ),
-        trained=trained,
-    )
-    if probe_record is not None and config.probe_unseen > 0:
-        probe_record.update(record)
-    return snapshots
-
-
-def member_refit(
-    forwards: Sequence[ScreenForwardModel],
-    measured: Sequence[torch.Tensor],
-    settings: Sequence[torch.Tensor],
-    guess: GaussianGuess,
-    config: ReconstructionConfig,
-    maps: Sequence[torch.Tensor],
-    *,
-    device: str | torch.device = "cpu",
-    distributed: bool = False,
-) -> Callable[[int, dict, torch.Tensor, Callable | None], dict]:
-    """``refit(k, state, hold, callback)``: member ``k`` refitted from ``state``
-    (:func:`refit_config`, seed ``config.seed + 1000 (k + 1)``) with its
-    covariance held at ``hold`` (``(6, 6)`` [Bmad units]; not held with
-    ``config.refit_hold = 0``); returns the refitted state dict."""
-    short = refit_config(config)
-
-    def refit(
-        k: int,
-        state: dict,
-        hold: torch.Tensor,
-        callback: Callable[[StepInfo], None] | None = None,
-    ) -> dict:
-        return train_generator(
-            list(forwards),
-            list(measured),
-            list(settings),
-            guess,
-            dataclasses.replace(short, seed=config.seed + 1000 * (k + 1)),
-            device=device,
-            maps=maps,
-            initial_model=state,
-            hold_covariance=hold if config.refit_hold > 0 else None,
-            callback=callback,
-            distributed=distributed,
-        ).model
-
-    return refit
-
-
-def polish_placed(
-    snapshots: Sequence[dict],
-    forwards: Sequence[ScreenForwardModel],
-    measured: Sequence[torch.Tensor],
-    settings: Sequence[torch.Tensor],
-    config: ReconstructionConfig,
-) -> tuple[list[dict], list[PolishReport]]:
-    """:func:`~diffaccel.reconstruction.moment_polish.polish_members` on the
-    CPU, with the training loss's point spread and smoothing (measured and
-    simulated images alike) and the run's generator size and seed."""
-    fwds = [f.to("cpu") for f in forwards]
-    meas = [m.detach().to("cpu", torch.float32) for m in measured]
-    fwds, meas = compared_for(config, fwds, meas)
-    return polish_members(
-        snapshots,
-        fwds,
-        meas,
-        [s.to("cpu") for s in settings],
-        width=config.width,
-        depth=config.depth,
-        seed=config.seed,
-    )
-
-
-def refit_config(config: ReconstructionConfig) -> ReconstructionConfig:
-    """Settings of one member's refit (:func:`refit_members`).
-
-    ``config.refit_steps`` steps of one cosine cycle from ``config.refit_lr``
-    at the final image penalty (``penalty_end`` throughout), one snapshot (the
-    last state), no burn-in and no checkpoints.
-    """
-    return dataclasses.replace(
-        config,
-        steps=config.refit_steps,
-        snapshots=1,
-        burn_in=0,
-        lr_max=config.refit_lr,
-        penalty_start=config.penalty_end,
-        checkpoint_every=10**9,
-    )
-
-
-def _progress(
-    callback: Callable[[StepInfo], None] | None, done: int, total: int
-) -> Callable[[StepInfo], None] | None:
-    """``callback`` seeing one stage's steps as ``done + step`` of ``total``."""
-    if callback is None:
-        return None
-
-    def report(info: StepInfo) -> None:
-        callback(dataclasses.replace(info, step=done + info.step, total=total))
-
-    return report
 
 
 def psf_excess(fwd: ScreenForwardModel) -> tuple[float, float]:

@@ -3,8 +3,8 @@
 Along the directions of :func:`~diffaccel.reconstruction.unseen.unseen_directions`
 (AWA 6D: the px-pz covariance traded against the pz variance, py-z against the
 z variance) no screen's second moments change to first order, so the images
-cannot tell a beam from its twin moved along one: the placement puts the
-traded pair at zero partial correlation (``ReconstructionConfig.unseen_prior``)
+cannot tell a beam from its twin moved along one: the objective's prior term
+puts the traded pair at zero partial correlation (``ReconstructionConfig.unseen_prior``)
 because nothing measured says where else. Two Gaussian beams 35 % apart in z
 emittance gave training images that differ by less than the sampling noise of
 two million particles.

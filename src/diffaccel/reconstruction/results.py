@@ -72,7 +72,6 @@ from diffaccel.reconstruction.pipeline import (
     reconstruct,
     training_selection,
 )
-from diffaccel.reconstruction.probe import PROBE_STEP
 from diffaccel.reconstruction.training import (
     CheckpointDataError,
     ReconstructionConfig,
@@ -148,8 +147,6 @@ CONFIG_OPTIONS = {
     "seed": "--seed",
     "image_loss": "--image-loss",
     "blur_pixels": "--blur",
-    "place_coupling": "--uncoupled",
-    "probe_unseen": "--probe",
 }
 #: The human-readable summary of a result folder (Markdown).
 REPORT = "report.md"
@@ -709,14 +706,11 @@ def config_options(
     image_loss: str,
     blur: float | None,
     loss_smoothing: str | None,
-    uncoupled: bool,
-    probe: bool | None,
 ) -> dict[str, Any]:
     """The options of ``reconstruct`` as :class:`ReconstructionConfig` keywords.
 
     None (an option not given) is the config's default; ``loss_smoothing`` is
-    a number of pixels or ``"auto"``; ``probe`` True probes by
-    :data:`~diffaccel.reconstruction.probe.PROBE_STEP`, False not at all.
+    a number of pixels or ``"auto"``.
 
     Raises:
         OptionError: a ``--loss-smoothing`` that is neither a number nor ``auto``.
@@ -738,8 +732,6 @@ def config_options(
         "image_loss": image_loss,
         "blur_pixels": blur,
         "loss_smoothing": loss_smoothing,
-        "place_coupling": uncoupled,
-        "probe_unseen": None if probe is None else PROBE_STEP if probe else 0.0,
     }
 
 
@@ -969,9 +961,8 @@ def finding_lines(summary: Mapping[str, Any]) -> list[str]:
 
     The coordinates the scans do not constrain, the headline numbers
     (:func:`headline_lines`), the unseen correlations set by the prior
-    (:func:`prior_dependence_lines`), the observability note and the moment
-    polish (the training images' second moments off by ... % rms per member,
-    before and after it); each line only where the summary holds it.
+    (:func:`prior_dependence_lines`) and the observability note; each line
+    only where the summary holds it.
     """
     lines = []
     if summary["unconstrained_coordinates"]:
@@ -983,14 +974,6 @@ def finding_lines(summary: Mapping[str, Any]) -> list[str]:
     lines += prior_dependence_lines(summary.get("prior_dependence", []))
     if summary.get("observability"):
         lines.append(summary["observability"])
-    polish = summary.get("moment_polish", [])
-    if polish:
-        before = ", ".join(f"{100 * p['residual_before']:.2f}" for p in polish)
-        after = ", ".join(f"{100 * p['residual_after']:.2f}" for p in polish)
-        lines.append(
-            "moment polish: training images' second moments off by "
-            f"{before} % rms (per member) before, {after} % after"
-        )
     return lines
 
 

@@ -32,16 +32,18 @@ from diffaccel.reconstruction.graphed_step import (
     GRAPH_WARMUP_STEPS as GRAPH_WARMUP_STEPS,
 )
 from diffaccel.reconstruction.graphed_step import TrainingSteps
-from diffaccel.reconstruction.hold import CovarianceHold, MomentHold
+from diffaccel.reconstruction.hold import MomentHold
 from diffaccel.reconstruction.initial import GaussianGuess
 from diffaccel.reconstruction.losses import (
     ImageLoss,
     ImagePenalty,
+    MomentMatch,
     RelativeEntropy,
     StepSchedule,
     off_screen_allowance,
 )
 from diffaccel.reconstruction.optimiser import FlatAdam
+from diffaccel.reconstruction.uncertainty import MOMENT_WINDOW, moment_window
 from diffaccel.reconstruction.unseen import UNSEEN_PRIORS, UnseenHold
 
 logger = logging.getLogger(__name__)
@@ -65,8 +67,8 @@ class _DimsDefaults:
     burn_in: int
     sampling_offset: float
     penalty_end: float
-    refit_steps: int
-    probe_unseen: float
+    unseen_weight: float
+    moment_weight: float
     smoothing: float | Literal["auto"]  # loss_smoothing when None ("auto": by the data)
 
 
@@ -90,21 +92,18 @@ _BYTES_PER_PARTICLE = 1536
 _BYTES_PER_PARTICLE_IMAGE_6D = 512
 
 _DIMS_DEFAULTS: dict[int, _DimsDefaults] = {
-    4: _DimsDefaults(6144, 300, 5, 1.0, 0.0, 0, 0.0, 1e4, 0, 0.0, "auto"),
+    4: _DimsDefaults(6144, 300, 5, 1.0, 0.0, 0, 0.0, 1e4, 0.0, 0.0, "auto"),
     6: _DimsDefaults(
-        16384, 360, 6, math.sqrt(1.0 / 12.0), 1.0, 3, 0.25, 3e4, 60, 0.05, 1.0
+        16384, 360, 6, math.sqrt(1.0 / 12.0), 1.0, 3, 0.25, 3e4, 1e3, 1.0, 1.0
     ),
 }
 
 
 _INT_FIELDS = frozenset(
-    "dims n_particles width depth steps snapshots burn_in refit_steps "
-    "probe_points seed checkpoint_every report_every".split()
+    "dims n_particles width depth steps snapshots burn_in seed checkpoint_every "
+    "report_every".split()
 )
-_BOOL_FIELDS = frozenset(
-    "quasi_random place_unseen place_coupling probe_away polish_moments "
-    "cuda_graph".split()
-)
+_BOOL_FIELDS = frozenset(("quasi_random", "cuda_graph"))
 
 
 @dataclass(frozen=True)
@@ -227,131 +226,46 @@ class ReconstructionConfig:
             or dispersion they come from the fitted image moments).
         prior_factor: Transverse prior widths are this factor times the widths of
             the Gaussian fitted to the image moments.
-        place_unseen: With ``dims = 6``, move every member after training along
-            the longitudinal covariance directions the scans cannot see (AWA 6D
+        unseen_prior: Where the prior term of ``unseen_weight`` puts the
+            longitudinal covariance directions the scans cannot see (AWA 6D
             layout: pz variance against the px-pz covariance, z variance
-            against py-z) to the point of zero partial correlation (see
-            :mod:`diffaccel.reconstruction.unseen`). Training alone drifts
-            there to the largest entropy: pz +8 to +44 % on synthetic beams.
-        unseen_prior: The prior point of ``place_unseen``
-            (:func:`~diffaccel.reconstruction.unseen.place_unseen`): ``"pair"``
-            (default) zero partial correlation of the pair each direction
-            trades (px-pz, py-z) given the other coordinates; ``"gaussian"``
-            ``tr(P V_off) = 0`` over the direction's whole off-diagonal part
-            (it also weighs the seen z-pz chirp in: on a compressed
-            double-horn bunch emit_z +10 to +12 % with it, +3 to +6 % with
-            ``"pair"``).
-        place_coupling: With ``place_unseen`` (6D scans that leave
-            longitudinal directions unseen), also move each member along the
-            transverse x-y coupling direction the screens barely see (x-py and
-            px-y against px-py after one quadrupole and a drift,
-            :func:`~diffaccel.reconstruction.unseen.coupling_directions`) to
-            the largest determinant there (the largest entropy; the truth of
-            the synthetic test beams not turned in x-y, within 0.2 % of 6D
-            emittance). Off by default. On a beam of three modes in x-y
-            (seeds 0-2) it puts the 6D emittance at -2.1 to -2.6 % (off: -6.5
-            to -14.2 %: training settles off along that direction), held-out
-            images within +0.004. On beams with real x-y
-            coupling (rotated in x-y, as after a solenoid) it throws away
-            what the image shapes say: 6D emittance -3.9 -> +11.7 %, 4D -0.4
-            -> +15.3 %, x-y correlations off by up to 0.36.
-        refit_steps: With ``place_unseen``, fit each placed member's *shape*
-            to the training images again for this many steps (one cosine cycle
-            from ``refit_lr`` to ``lr_min`` at ``penalty_end``), its covariance
-            held at the placed one (``refit_hold``), then place it again
-            (:func:`~diffaccel.reconstruction.pipeline.refit_members`). The
-            placement moves each member with a linear map, which keeps the
-            screens' second moments but not the shapes of non-Gaussian images
-            (a weakly chirped tilted beam: held-out dipole-on relative L1 0.074
-            before the move, 0.199 after it); the refit restores them at the
-            placed moments. None: 60 for ``dims = 6`` (0 for 4D, which places
-            nothing; a 6D run whose scans do not see z or pz at all, a
-            quadrupole scan alone, places and refits nothing either).
-            On the synthetic test beams of
-            ``benchmarks/reconstruction_6d_beams.py`` 60 steps keep every
-            held-out image within 0.085 relative L1 (without the refit: up to
-            0.199); 30 steps leave a large placement partly undone. The
-            moments do not depend on the length (the hold): mean |change|
-            30 -> 60 steps below 0.1 %.
-        refit_lr: Learning rate at the start of the refit (3e-3). A placed
-            member keeps a memory of where training left it along the unseen
-            direction; a short refit at 1e-3 does not shed it, so refits
-            nearer that point fit better whatever the truth (the shared 6D
-            file's members, trained at t = -0.043 to -0.049 from the prior
-            point, gain 3.3e-4 of KL at t = -0.05). At 3e-3 the same 60 steps
-            shed most of it, and the result at the prior point equals 1e-3's
-            (emit_z within 0.2 points, 6D within 0.4, held-out images within
-            0.001).
-        refit_hold: Weight ``w`` of the refit's hold on the covariance,
-            ``w sum (W (S - T) W)_ab^2`` over the upper triangle, ``T`` the
-            placed covariance and ``W = T^-1/2``
-            (:class:`~diffaccel.reconstruction.hold.CovarianceHold`): the
-            deviation in the beam's own normal coordinates, so a strongly
-            chirped beam's emittance is held, not just its correlations. 0
-            refits freely (images better, moments worse). A hold in
-            correlation units instead lets a strong chirp's emittance drift
-            (the shared 6D file's emit_z -9 %) at 1e3 and barely moves the
-            shape at 1e5.
-        hold_unseen: With ``dims = 6``, weight ``w`` of a
-            penalty ``w sum_k t_k^2`` that holds the beam at the prior point
-            during training, ``t_k`` its covariance's displacement from that
-            point along each unseen direction (correlation units;
-            :class:`~diffaccel.reconstruction.unseen.UnseenHold`). Without it
-            (0, the default) the entropy widens the beam along those
-            directions and the placement after training moves it back with a
-            linear map, which keeps the second moments but not the shapes of
-            non-Gaussian images (the default refit, ``refit_steps``, fits them
-            again). Opt-in. As the only prior, with nothing after training
-            (``place_unseen=False, hold_unseen=1e3``: one objective, training
-            35 s against 78 s on one thread), 25 of the 33 runs of
-            ``benchmarks/reconstruction_6d_beams.py`` (11 beams, seeds 0-2)
-            meet every limit, against 28 of 33 with the default chain: with
-            no moment polish, three chirped beams of that benchmark come out
-            with z emittances 11-24 % off on one or two seeds, where the chain
-            stays within 5.4 % on them (every held-out image within 0.09
-            relative L1 either way).
-        probe_unseen: With ``place_unseen`` and ``refit_steps``, the step
-            (correlation units; None: 0.05 for ``dims = 6``, 0 for 4D; 0
-            probes nothing, ``reconstruct --no-probe``) of the
-            likelihood-ratio probe along the px-pz unseen direction
-            (:func:`~diffaccel.reconstruction.probe.probe_members`): each
-            placed member is refitted at ``0`` and at ``+-step`` on the side
-            away from where training left it (``probe_away``), and the
-            ensemble leaves the prior point only where the members' mean
-            training-image KL gain exceeds ``probe_gain``, stepping on (at
-            most ``probe_points`` steps) while each step gains as much. One to
-            three more refits per member (about 20 s of the shared 6D
-            benchmark on two CPU cores). Training from the maximum-entropy
-            initial guess leaves nearly every beam on the wide-pz side, so
-            the probe rarely moves a beam: it does not rescue a beam whose
-            px-pz partial correlation the prior misses (see
-            :mod:`~diffaccel.reconstruction.probe`).
-        probe_gain: Mean KL gain (per image, summed over the scans) a probe
-            step must exceed (5e-4 at ``refit_lr`` 3e-3). On the synthetic
-            test beams a beam placed wrong by the prior gains 6.6e-4 to
-            2.5e-3 by the first step, beams placed right at most 3.1e-4
-            (away from their trained side). At ``refit_lr`` 1e-3 beams placed
-            right gain up to 1.2e-3 and no threshold separates them.
-        probe_points: Most steps the probe takes from the prior point.
-        probe_away: The probe looks only on the side of the prior point away
-            from where training left the members along px-pz (their mean;
-            both sides where that is exactly the prior point or with False).
-            A refitted member's KL favours the side it was trained on,
-            whatever the truth, so a
-            gain toward it is no evidence; one away from it is. It also
-            halves the probe's refits.
-        polish_moments: With ``place_unseen`` in 6D where the scans leave
-            longitudinal directions unseen (as the refit), correct each placed
-            (and refitted) member's covariance so that the second moments of
-            its exactly tracked training images equal the measured ones (one
-            Gauss-Newton step, finite-difference Jacobian of the exact images;
-            :mod:`~diffaccel.reconstruction.moment_polish`), then place it
-            again. Training fits image shapes and leaves the moments a few
-            tenths of a percent off, which a strong chirp turns into tens of
-            percent of z emittance. Default settings, seed 0: a beam with a
-            z-pz correlation of +0.949 emit z -30.1 % without, +0.3 % with it;
-            the shared 6D file's 6D emittance +2.1 % without, +0.0 % with it;
-            about 7 s more.
+            against py-z; :func:`~diffaccel.reconstruction.unseen.place_unseen`):
+            ``"pair"`` (default) zero partial correlation of the pair each
+            direction trades (px-pz, py-z) given the other coordinates;
+            ``"gaussian"`` ``tr(P V_off) = 0`` over the direction's whole
+            off-diagonal part (it also weighs the seen z-pz chirp in).
+        unseen_weight: Strength ``w`` of the prior term on those directions, a
+            term of the training objective: ``w sum_k t_k^2`` with ``t_k`` the
+            displacement of the beam's covariance from the prior point along
+            each unseen direction, in correlation units
+            (:class:`~diffaccel.reconstruction.unseen.UnseenHold`). It is flat
+            along every direction the screens see, so it decides what the
+            images leave free and nothing they see; without it the entropy
+            widens the beam along them (pz 8-44 % high on synthetic beams).
+            Where the scans leave no direction unseen (4D, or a 6D scan that
+            sees every longitudinal entry or none) it holds nothing. None: 1e3
+            for ``dims = 6`` (0 for 4D). On the eleven beams of
+            ``benchmarks/reconstruction_6d_beams.py`` (seed 0, one thread) it
+            meets every limit on ten, the eleventh (px-pz partial correlation
+            0.27 where the prior says 0) at rms pz -5.1 %, in half the time of
+            moving the members after training.
+        moment_weight: Strength ``mu`` of the moment term of the image term:
+            ``mu / K sum_k sum_a ((S_ka - M_ka) / s_ka)^2`` over the training
+            images, with ``S`` and ``M`` the simulated and measured images'
+            second central moments (xx, yy, xy) in a box of 6 rms of the
+            measured image (:class:`~diffaccel.reconstruction.losses.MomentMatch`),
+            weighed by the image penalty ``lambda`` like the image distance.
+            The KL distance fits the images' shapes; where the generator
+            cannot take the true shape exactly its optimum trades a few
+            tenths of a percent of second moment for shape, which a strong
+            z-pz chirp turns into 10-25 % of z emittance. None: 1 for ``dims
+            = 6`` (0 for 4D, whose benchmark was tuned without). On five
+            beams of ``benchmarks/reconstruction_6d_beams.py`` that missed a
+            limit without it (seeds 1, 2): 0 left 8 of 10 runs outside a
+            limit, 1 left 2 (a three-mode beam's 6D emittance), 3 left 1 (its
+            held-out images at 0.152 relative L1), 10 and 100 left 4 and 7
+            (held-out images up to 0.39: the moments then outweigh the
+            shapes).
         seed: Seed of the explicit ``torch.Generator`` (weights and samples).
         checkpoint_every: Steps between checkpoints (also at every snapshot).
         report_every: Steps between reads of the losses from the device (the
@@ -388,18 +302,9 @@ class ReconstructionConfig:
     burn_in: int | None = None
     longitudinal_scale: tuple[float, float] = (1e-3, 1e-3)
     prior_factor: float = 3.0
-    place_unseen: bool = True
     unseen_prior: str = "pair"
-    place_coupling: bool = False
-    refit_steps: int | None = None
-    refit_lr: float = 3e-3
-    refit_hold: float = 1e4
-    hold_unseen: float = 0.0
-    probe_unseen: float | None = None
-    probe_gain: float = 5e-4
-    probe_points: int = 2
-    probe_away: bool = True
-    polish_moments: bool = True
+    unseen_weight: float | None = None
+    moment_weight: float | None = None
     seed: int = 0
     checkpoint_every: int = 100
     report_every: int = 10
@@ -414,8 +319,8 @@ class ReconstructionConfig:
             "n_particles",
             "steps",
             "snapshots",
-            "refit_steps",
-            "probe_unseen",
+            "unseen_weight",
+            "moment_weight",
         ):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, getattr(defaults, name))
@@ -461,35 +366,14 @@ class ReconstructionConfig:
                 f"unseen_prior must be one of {UNSEEN_PRIORS}; got "
                 f"{self.unseen_prior!r}."
             )
-        if self.place_coupling and not (self.dims == 6 and self.place_unseen):
+        if not (math.isfinite(self.moment_weight) and self.moment_weight >= 0):
             raise ValueError(
-                "place_coupling (--uncoupled) applies to 6D reconstructions with "
-                f"place_unseen; got dims={self.dims}, "
-                f"place_unseen={self.place_unseen}."
+                f"moment_weight must be finite and >= 0; got {self.moment_weight}."
             )
-        if self.refit_steps < 0:
-            raise ValueError(f"refit_steps must be >= 0; got {self.refit_steps}.")
-        if not self.refit_lr > 0:
-            raise ValueError(f"refit_lr must be > 0; got {self.refit_lr}.")
-        if not (math.isfinite(self.refit_hold) and self.refit_hold >= 0):
+        if not (math.isfinite(self.unseen_weight) and self.unseen_weight >= 0):
             raise ValueError(
-                f"refit_hold must be finite and >= 0; got {self.refit_hold}."
+                f"unseen_weight must be finite and >= 0; got {self.unseen_weight}."
             )
-        if not (math.isfinite(self.hold_unseen) and self.hold_unseen >= 0):
-            raise ValueError(
-                f"hold_unseen must be finite and >= 0; got {self.hold_unseen}."
-            )
-        if not (math.isfinite(self.probe_unseen) and 0 <= self.probe_unseen < 1):
-            raise ValueError(
-                f"probe_unseen must be in [0, 1) (correlation units); got "
-                f"{self.probe_unseen}."
-            )
-        if not (math.isfinite(self.probe_gain) and self.probe_gain >= 0):
-            raise ValueError(
-                f"probe_gain must be finite and >= 0; got {self.probe_gain}."
-            )
-        if self.probe_points < 1:
-            raise ValueError(f"probe_points must be >= 1; got {self.probe_points}.")
         if self.report_every < 1:
             raise ValueError(f"report_every must be >= 1; got {self.report_every}.")
         if self.n_particles < 16:
@@ -590,28 +474,6 @@ class ReconstructionConfig:
         return int(self.n_particles) * per_particle
 
     @property
-    def total_steps(self) -> int:
-        """Optimiser steps of a run: training, plus in 6D with ``place_unseen``
-        the refit of every member (``refit_steps`` each, at two points with
-        ``probe_unseen`` and ``probe_away``, three without ``probe_away``, more
-        where the probe steps on; run only where
-        the scans leave longitudinal directions unseen, not for a quadrupole
-        scan alone).
-
-        Example:
-            >>> ReconstructionConfig(dims=6).total_steps  # 360 + 3 x 2 x 60
-            720
-            >>> ReconstructionConfig(dims=4).total_steps
-            300
-        """
-        refit = 0  # the probe's first points (more where it steps on)
-        if self.dims == 6 and self.place_unseen:
-            refit = self.refit_steps * (self.snapshots - self.burn_in)
-            if self.probe_unseen > 0:
-                refit *= 2 if self.probe_away else 3
-        return self.steps + refit
-
-    @property
     def cycle_length(self) -> int:
         """Steps per learning-rate cycle."""
         return self.steps // self.snapshots
@@ -661,14 +523,32 @@ class ReconstructionConfig:
         if "epochs" in d:  # files written before the rename to ``steps``
             d["steps"] = d.pop("epochs")
         d.setdefault("sampling_offset", 0.0)  # runs trained before it existed
-        d.setdefault("hold_unseen", 0.0)
-        d.setdefault("refit_steps", 0)  # runs trained before the refit
-        d.setdefault("refit_hold", 0.0)  # refits before the covariance hold
-        d.setdefault("probe_away", False)  # probes before the one-sided probe
-        d.setdefault("polish_moments", False)  # runs before the moment polish
-        d.setdefault("probe_unseen", 0.0)  # runs trained before the probe
+        # runs whose members were moved after training: the moves are in their
+        # stored members; the settings of those stages describe nothing now
+        for name in _AFTER_TRAINING_FIELDS:
+            d.pop(name, None)
+        if "hold_unseen" in d:  # the prior term's earlier name
+            d["unseen_weight"] = d.pop("hold_unseen")
+        d.setdefault("unseen_weight", 0.0)  # runs trained without the prior term
+        d.setdefault("moment_weight", 0.0)  # runs trained without the moment term
         d["longitudinal_scale"] = tuple(d["longitudinal_scale"])
         return cls(**d)
+
+
+#: Settings of the stages that moved members after training, in configs
+#: written before the prior term: dropped when such a config is read.
+_AFTER_TRAINING_FIELDS = (
+    "place_unseen",
+    "place_coupling",
+    "refit_steps",
+    "refit_lr",
+    "refit_hold",
+    "probe_unseen",
+    "probe_gain",
+    "probe_points",
+    "probe_away",
+    "polish_moments",
+)
 
 
 @dataclass
@@ -1017,7 +897,7 @@ def smoothed_for_loss(
     return out_f, out_m
 
 
-#: Steps between updates of the prior point of ``hold_unseen``
+#: Steps between updates of the prior point of the ``unseen_weight`` term
 #: (:class:`~diffaccel.reconstruction.unseen.UnseenHold`).
 HOLD_EVERY = 10
 
@@ -1099,7 +979,7 @@ def _loss_terms(
     measured: Sequence[Tensor],
     scales: tuple[Tensor, ...],
     distributed: bool,
-) -> tuple[list[ImagePenalty], RelativeEntropy]:
+) -> tuple[list[Callable[[Tensor], Tensor]], RelativeEntropy]:
     """Each scan's image term and the entropy term of the loss.
 
     Every image of every scan weighs the same (each scan's
@@ -1112,7 +992,7 @@ def _loss_terms(
     """
     n = config.n_particles
     n_images = sum(m.shape[0] for m in measured)
-    penalties = [
+    penalties: list[Callable[[Tensor], Tensor]] = [
         ImagePenalty(
             m,
             config.image_loss,
@@ -1122,6 +1002,11 @@ def _loss_terms(
         )
         for f, m in zip(forwards, measured, strict=True)
     ]
+    if config.moment_weight > 0:
+        penalties = [
+            _WithMoments(p, _moment_match(m, config.moment_weight / n_images))
+            for p, m in zip(penalties, measured, strict=True)
+        ]
     norm, prior_mean, prior_std = scales
     relative_entropy = RelativeEntropy(
         n,
@@ -1134,31 +1019,41 @@ def _loss_terms(
     return penalties, relative_entropy
 
 
+def _moment_match(measured: Tensor, weight: float) -> MomentMatch:
+    """The moment term of one scan's images, in a box of ``MOMENT_WINDOW`` rms
+    of each measured image around its centroid."""
+    h, w = measured.shape[-2:]
+    xs = torch.arange(w, dtype=torch.float64)
+    ys = torch.arange(h, dtype=torch.float64)
+    window = moment_window(measured.detach().cpu(), xs, ys, MOMENT_WINDOW)
+    return MomentMatch(measured, window.to(measured.device), weight)
+
+
+class _WithMoments:
+    """A scan's image term: the image distance plus its moment term."""
+
+    def __init__(self, penalty: ImagePenalty, moments: MomentMatch) -> None:
+        self.penalty, self.moments = penalty, moments
+
+    def __call__(self, simulated: Tensor) -> Tensor:
+        return self.penalty(simulated) + self.moments(simulated)
+
+
 def _beam_hold(
     config: ReconstructionConfig,
-    hold_covariance: Tensor | None,
     forwards: Sequence[ScreenForwardModel],
     settings: Sequence[Tensor],
     maps: Sequence[Tensor] | None,
     norm: Tensor,
 ) -> MomentHold | None:
-    """The quadratic hold on the beam's covariance (6D), or None.
+    """The prior term on the unseen directions (6D), or None.
 
-    With ``hold_covariance`` (the refit of a placed member) a
-    :class:`CovarianceHold` at it with weight ``config.refit_hold``; else with
-    ``dims = 6`` and ``hold_unseen > 0`` an
+    With ``dims = 6`` and ``unseen_weight > 0`` an
     :class:`~diffaccel.reconstruction.unseen.UnseenHold` on the directions the
     scans do not see (from each scan's transfer maps, ``maps`` where given).
-
-    Raises:
-        ValueError: for ``hold_covariance`` with ``dims != 6``.
     """
     n = config.n_particles
-    if hold_covariance is not None:
-        if config.dims != 6:
-            raise ValueError("hold_covariance needs dims = 6.")
-        return CovarianceHold(hold_covariance, config.refit_hold, norm, n)
-    if not (config.dims == 6 and config.hold_unseen > 0):
+    if not (config.dims == 6 and config.unseen_weight > 0):
         return None
     map_list = [None] * len(forwards) if maps is None else list(maps)
     return UnseenHold(
@@ -1166,7 +1061,7 @@ def _beam_hold(
             (f.transfer_maps(s) if r is None else r).cpu()
             for f, s, r in zip(forwards, settings, map_list, strict=True)
         ],
-        config.hold_unseen,
+        config.unseen_weight,
         norm,
         n,
         prior=config.unseen_prior,
@@ -1198,7 +1093,7 @@ class _StepLoss:
         self,
         net: FlatGenerator,
         images: ScanImages,
-        penalties: Sequence[ImagePenalty],
+        penalties: Sequence[Callable[[Tensor], Tensor]],
         relative_entropy: RelativeEntropy,
         hold: MomentHold | None,
         state: TrainingState,
@@ -1381,11 +1276,12 @@ def train_generator(
     distributed: bool = False,
     maps: Sequence[Tensor] | None = None,
     initial_model: dict | None = None,
-    hold_covariance: Tensor | None = None,
 ) -> TrainingState:
     """Fit a :class:`BeamGenerator` to screen images and collect snapshot members.
 
-    Loss at step ``t``: ``-(H(x) - C(x)) + lambda(t) * mean_k D(sim_k, meas_k)``
+    Loss at step ``t``: ``-(H(x) - C(x)) + lambda(t) * mean_k D(sim_k, meas_k)
+    + w sum_j t_j^2`` (the last term, in 6D, the prior on the directions the
+    scans cannot see, ``config.unseen_weight``)
     with ``H`` the tail-robust Gaussian entropy bound of the generated particles
     (float64), ``C`` the cross-entropy of a broad Gaussian prior (bounds
     coordinates the images do not see), ``D`` the image distance of
@@ -1429,11 +1325,7 @@ def train_generator(
             settings when the caller has computed them (not computed again).
         initial_model: Generator state dict to start from instead of the
             Gaussian ``guess`` (the guess still sets the prior of the entropy
-            term); used by the refit of placed members.
-        hold_covariance: Covariance ``(6, 6)`` [Bmad units] to hold the beam
-            at with weight ``config.refit_hold``
-            (:class:`~diffaccel.reconstruction.hold.CovarianceHold`, instead of
-            the ``hold_unseen`` hold); used by the refit of placed members.
+            term).
 
     Shapes:
         Scan ``s``: ``measured (K_s, H_s, W_s)``, ``settings (K_s, P_s)``.
@@ -1471,9 +1363,7 @@ def train_generator(
     penalties, entropy = _loss_terms(
         config, forwards, measured_list, scales, distributed
     )
-    hold = _beam_hold(
-        config, hold_covariance, forwards, settings_list, maps, norm=scales[0]
-    )
+    hold = _beam_hold(config, forwards, settings_list, maps, norm=scales[0])
     loss = _StepLoss(net, images, penalties, entropy, hold, state, device, distributed)
     schedule = config.schedule
     capture = config.cuda_graph and not distributed and hold is None
