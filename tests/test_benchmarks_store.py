@@ -178,17 +178,20 @@ def _case(ratio: float) -> dict:
 
 
 def _beams6d() -> dict:
-    ok = {"fails": [], "stats": {"held_out_relative_l1_worst": {"dipole_on": 0.05}}}
-    beams = {f"draw31{i:02d}_0": ok for i in range(27)}
-    beams |= {f"xyrot{10 * i}_correlated": ok for i in range(9)}
-    beams["double_horn"] = {
-        "fails": ["emit_z"],
-        "stats": {"held_out_relative_l1_worst": {"dipole_on": 0.088}},
-    }
+    def beam(l1: float, fails: list[str] | None = None) -> dict:
+        worst = {"dipole_off": l1 - 0.01, "dipole_on": l1}
+        return {"fails": fails or [], "stats": {"held_out_relative_l1_worst": worst}}
+
+    family = ["chirp_curved", "chirp_negative", "chirp_weak_tilted"]
+    beams = {name: beam(0.08) for name in family}
+    beams |= {f"draw31{i:02d}_0": beam(0.08) for i in range(2)}
+    beams |= {name: beam(0.08) for name in ("double_horn", "wide")}
+    beams |= {name: beam(0.09) for name in ("shared", "correlated", "gaussian_coupled")}
+    beams["nonlinear_ypy"] = beam(0.114, ["rms_pz", "emit_6d"])
     return {
-        "seeds": [0],
+        "seeds": [0, 1, 2],
         "beams": beams,
-        "fails": {"double_horn": ["emit_z"]},
+        "fails": {"nonlinear_ypy": ["rms_pz", "emit_6d"]},
     }
 
 
@@ -427,8 +430,8 @@ def test_a_headline_is_a_stored_result(meta, tmp_path) -> None:
         results=tmp_path,
     )
     stored = json.loads(path.read_text())
-    assert stored["headline"]["held-out relative L1, worst"] == "0.088"
-    assert stored["note"] == "outside a limit: double_horn (emit_z)"
+    assert stored["headline"]["held-out relative L1, worst"] == "0.114"
+    assert stored["note"] == "outside a limit: nonlinear_ypy (rms_pz, emit_6d)"
 
 
 def test_gpu_checks_summarise_the_files_of_a_run(tmp_path) -> None:
