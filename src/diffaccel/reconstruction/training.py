@@ -244,11 +244,12 @@ class ReconstructionConfig:
             widens the beam along them (pz 8-44 % high on synthetic beams).
             Where the scans leave no direction unseen (4D, or a 6D scan that
             sees every longitudinal entry or none) it holds nothing. None: 1e3
-            for ``dims = 6`` (0 for 4D). On the eleven beams of
-            ``benchmarks/reconstruction_6d_beams.py`` (seed 0, one thread) it
-            meets every limit on ten, the eleventh (px-pz partial correlation
-            0.27 where the prior says 0) at rms pz -5.1 %, in half the time of
-            moving the members after training.
+            for ``dims = 6`` (0 for 4D). With the moment term
+            (``moment_weight``), 31 of the 33 runs of
+            ``benchmarks/reconstruction_6d_beams.py`` (11 beams, seeds 0-2,
+            one thread, 39 s of training each) meet every limit, a beam whose
+            px-pz partial correlation is 0.27 where the prior says 0 included
+            (z emittance -4.4, -1.9, -0.8 %).
         moment_weight: Strength ``mu`` of the moment term of the image term:
             ``mu / K sum_k sum_a ((S_ka - M_ka) / s_ka)^2`` over the training
             images, with ``S`` and ``M`` the simulated and measured images'
@@ -261,7 +262,7 @@ class ReconstructionConfig:
             z-pz chirp turns into 10-25 % of z emittance. None: 1 for ``dims
             = 6`` (0 for 4D, whose benchmark was tuned without). On five
             beams of ``benchmarks/reconstruction_6d_beams.py`` that missed a
-            limit without it (seeds 1, 2): 0 left 8 of 10 runs outside a
+            limit without it (seeds 1, 2): 0 left 7 of 10 runs outside a
             limit, 1 left 2 (a three-mode beam's 6D emittance), 3 left 1 (its
             held-out images at 0.152 relative L1), 10 and 100 left 4 and 7
             (held-out images up to 0.39: the moments then outweigh the
