@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 import torch.distributed as tdist
-import torch.multiprocessing as mp
+from _gloo import spawn_gloo
 
 from diffaccel.data import read_scans, write_quad_scan, write_scans
 from diffaccel.data.quad_scan import read_quad_scan
@@ -40,7 +40,7 @@ def _worker(rank: int, world: int, folder: str, dims: int) -> None:
 )
 def test_two_gloo_processes_equal_one(small_scan, tmp_path: Path, dims: int) -> None:
     write_quad_scan(small_scan, tmp_path / "scan.h5")
-    mp.spawn(_worker, args=(2, str(tmp_path), dims), nprocs=2, join=True)
+    spawn_gloo(_worker, (2, str(tmp_path), dims), tmp_path)
     ranks = [torch.load(tmp_path / f"rank{r}.pt") for r in (0, 1)]
     # every process computes the whole-beam loss; gloo may sum the all-reduced
     # float32 images in another order on each rank, so allow rounding (1 ulp
@@ -100,7 +100,7 @@ def test_two_gloo_processes_train_6d_with_the_prior_term(
     particles across the processes (one training call, nothing after it) and
     gives the single-process members to rounding."""
     write_scans(small_awa6d, tmp_path / "awa.h5")
-    mp.spawn(_awa_worker, args=(2, str(tmp_path)), nprocs=2, join=True)
+    spawn_gloo(_awa_worker, (2, str(tmp_path)), tmp_path)
     ranks = [torch.load(tmp_path / f"rank{r}.pt") for r in (0, 1)]
     single = reconstruct(
         small_awa6d, ReconstructionConfig(dims=6, **CFG_AWA), uncertainty=False

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 import torch.distributed as tdist
-import torch.multiprocessing as mp
+from _gloo import spawn_gloo
 
 from diffaccel.data import write_quad_scan
 from diffaccel.data.quad_scan import read_quad_scan
@@ -57,7 +57,7 @@ def test_two_processes_train_their_own_members_and_share_all(
     small_scan, tmp_path: Path
 ) -> None:
     write_quad_scan(small_scan, tmp_path / "scan.h5")
-    mp.spawn(_worker, args=(2, str(tmp_path)), nprocs=2, join=True)
+    spawn_gloo(_worker, (2, str(tmp_path)), tmp_path)
     ranks = [torch.load(tmp_path / f"rank{r}.pt") for r in (0, 1)]
     # each process checkpointed its own run
     assert (tmp_path / "ck.pt").is_file() and (tmp_path / "ck.rank1.pt").is_file()
@@ -85,7 +85,7 @@ def test_two_processes_train_their_own_members_and_share_all(
     assert not torch.allclose(want[0], want[CFG["snapshots"]], rtol=1e-2)
     # --resume: each process finds its own checkpoint (process 1's was written
     # with seed 7919) and gives back the same members
-    mp.spawn(_worker, args=(2, str(tmp_path), True), nprocs=2, join=True)
+    spawn_gloo(_worker, (2, str(tmp_path), True), tmp_path)
     resumed = torch.load(tmp_path / "rank1-resumed.pt")
     for a, b in zip(resumed["members"], ranks[1]["members"], strict=True):
         assert torch.equal(a, b)
