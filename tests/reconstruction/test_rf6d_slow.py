@@ -11,12 +11,11 @@ out.
 
 With the nominal bend alone the energy spread is not measured (the dipole
 screen's R12 and R16 do not change over the scan, so pz-pz trades against
-px-pz): rms pz +9.2 / +8.8 %, emittance z +7.1 / +6.7 % (seeds 0 / 1). The
-second bend separates them. Measured with it (seed 0; the data's and the
-run's seed): rms x, px, y, py, z within 0.4 %, rms pz +2.3 %, emittance x
--0.4 %, y -0.3 %, z +3.5 %, 6D -2.0 %; correlations x-z 0.000, y-py +0.001,
-z-pz +0.011; held-out relative L1 0.052 / 0.076 / 0.072; every reported moment
-within 1.1 reported std.
+px-pz): rms pz +9.3 %, emittance z +6.7 % (seed 0). The second bend separates
+them. Measured with it (seed 0; the data's and the run's seed): rms x, px, y,
+py, z within 0.4 %, rms pz +0.6 %, emittance x -0.3 %, y +0.0 %, z +0.9 %, 6D
++0.6 %; correlations x-z 0.000, y-py +0.002, z-pz +0.002; held-out relative L1
+0.052 / 0.077 / 0.073.
 """
 
 from __future__ import annotations
