@@ -10,6 +10,8 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from diffaccel.reconstruction.uncertainty import image_moments
+
 ImageLoss = Literal["l1", "l2", "kl"]
 
 
@@ -354,7 +356,8 @@ class MomentMatch:
 
     Args:
         measured: Sum-normalised measured images ``(K, H, W)`` (pixels may be
-            negative: signed weights, as in ``image_moments``).
+            negative: signed weights, as in
+            :func:`~diffaccel.reconstruction.uncertainty.image_moments`).
         window: 0/1 weights ``(K, H, W)``: the pixels that count.
         weight: ``weight`` (e.g. the term's strength / number of images).
 
@@ -376,6 +379,9 @@ class MomentMatch:
         self.xs = torch.arange(w, **kw)
         self.ys = torch.arange(h, **kw)
         self.weight = float(weight)
+        # image_moments' columns <xx>, <yy>, <xy>, indexed on the device (no
+        # host copy per step)
+        self._order = torch.tensor([2, 4, 3], device=measured.device)
         self.target = self.moments(measured)
         sxx, syy = self.target[:, 0], self.target[:, 1]
         scale = torch.stack([sxx, syy, (sxx * syy).clamp_min(0).sqrt()], -1)
@@ -383,16 +389,8 @@ class MomentMatch:
 
     def moments(self, images: Tensor) -> Tensor:
         """``(K, 3)``: ``S_xx, S_yy, S_xy`` [pixel^2] of ``images`` in the window."""
-        w = images * self.window
-        total = w.sum((-2, -1)).clamp_min(1e-30)
-        px = w.sum(-2) / total[:, None]  # (K, W)
-        py = w.sum(-1) / total[:, None]  # (K, H)
-        dx = self.xs - (px * self.xs).sum(-1, keepdim=True)  # (K, W)
-        dy = self.ys - (py * self.ys).sum(-1, keepdim=True)  # (K, H)
-        sxx = (px * dx * dx).sum(-1)
-        syy = (py * dy * dy).sum(-1)
-        sxy = (w * dy[:, :, None] * dx[:, None, :]).sum((-2, -1)) / total
-        return torch.stack([sxx, syy, sxy], -1)
+        m = image_moments(images, self.xs, self.ys, self.window, dtype=None)
+        return m.index_select(-1, self._order)
 
     def __call__(self, simulated: Tensor) -> Tensor:
         r = (self.moments(simulated) - self.target) / self.scale

@@ -146,7 +146,11 @@ MOMENT_WINDOW = 6.0
 
 
 def image_moments(
-    images: Tensor, xs: Tensor, ys: Tensor, window: Tensor | None = None
+    images: Tensor,
+    xs: Tensor,
+    ys: Tensor,
+    window: Tensor | None = None,
+    dtype: torch.dtype | None = torch.float64,
 ) -> Tensor:
     """Centroids and second central moments of screen images.
 
@@ -160,24 +164,27 @@ def image_moments(
         window: Optional 0/1 weights ``(K, H, W)``: only these pixels count
             (the same window for measured and predicted images keeps far-off
             background from dominating the second moments).
+        dtype: Arithmetic dtype; None keeps the images' own (the training's
+            moment term, differentiable on the device).
 
     Returns:
-        ``(K, 5)`` float64: ``<x>, <y>, <xx>, <xy>, <yy>`` [m, m, m^2...].
+        ``(K, 5)``: ``<x>, <y>, <xx>, <xy>, <yy>`` [m, m, m^2...].
     """
-    w = images.to(torch.float64)
+    dtype = images.dtype if dtype is None else dtype
+    w = images.to(dtype)
     if window is not None:
-        w = w * window.to(torch.float64)
-    total = w.sum((-2, -1)).clamp_min(1e-300)
-    xs = xs.to(torch.float64)
-    ys = ys.to(torch.float64)
+        w = w * window.to(dtype)
+    total = w.sum((-2, -1)).clamp_min(torch.finfo(dtype).tiny)
+    xs = xs.to(dtype)
+    ys = ys.to(dtype)
     px = w.sum(-2) / total[:, None]  # (K, W)
     py = w.sum(-1) / total[:, None]  # (K, H)
     mx = (px * xs).sum(-1)
     my = (py * ys).sum(-1)
     dx = xs[None, :] - mx[:, None]  # (K, W)
     dy = ys[None, :] - my[:, None]  # (K, H)
-    sxx = (px * dx**2).sum(-1)
-    syy = (py * dy**2).sum(-1)
+    sxx = (px * dx * dx).sum(-1)
+    syy = (py * dy * dy).sum(-1)
     sxy = (w * dy[:, :, None] * dx[:, None, :]).sum((-2, -1)) / total
     return torch.stack([mx, my, sxx, sxy, syy], -1)
 
