@@ -33,12 +33,9 @@ class MomentHold:
         q: ``(F, 6, 6)`` coefficients of ``t`` on the covariance [Bmad units].
         b: ``(F,)`` offsets.
         ready: Whether ``q`` and ``b`` are set (else training calls
-            :meth:`update` with the first step's moments).
-        refreshes: Whether training calls :meth:`update` every
-            ``HOLD_EVERY`` steps (a host read of the moments).
+            :meth:`update` with the first step's moments; it calls it again
+            every ``HOLD_EVERY`` steps, a host read of the moments).
     """
-
-    refreshes = False
 
     def __init__(self, weight: float, scale: Tensor, n: int) -> None:
         if not (math.isfinite(weight) and weight >= 0):

@@ -1155,12 +1155,12 @@ class _StepLoss:
         return grad, dist, rel, moments, held
 
     def refresh_hold(self, done: int, held: Tensor | None) -> None:
-        """Move a refreshing hold's prior point to the moments ``held`` of the
-        latest beam after every :data:`HOLD_EVERY` of the ``done`` steps (a
-        host read; with the default ``report_every`` it coincides with the
-        losses' read)."""
+        """Move the hold's prior point to the moments ``held`` of the latest
+        beam after every :data:`HOLD_EVERY` of the ``done`` steps (a host
+        read; with the default ``report_every`` it coincides with the losses'
+        read)."""
         hold = self.hold
-        if hold is not None and hold.refreshes and done % HOLD_EVERY == 0:
+        if hold is not None and done % HOLD_EVERY == 0:
             self.state.hold_moments = held.cpu()
             hold.update(self.state.hold_moments)
 

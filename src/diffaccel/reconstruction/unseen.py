@@ -283,8 +283,6 @@ class UnseenHold(MomentHold):
         prior: ``"pair"`` or ``"gaussian"`` (:func:`place_unseen`).
     """
 
-    refreshes = True
-
     def __init__(
         self,
         maps: Sequence[Tensor],
