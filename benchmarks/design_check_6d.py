@@ -37,6 +37,7 @@ from diffaccel.data import (
     make_synthetic_quad_scan,
 )
 from diffaccel.data.scans import MultiScanDataset, read_scans
+from diffaccel.data.synthetic import _histogram_images
 from diffaccel.dynamics import (
     Beamline,
     Species,
@@ -91,9 +92,6 @@ def cheetah_imaged(beam: torch.Tensor, scan: QuadScanDataset) -> QuadScanDataset
     p0c = torch.tensor(scan.p0c, dtype=torch.float64)
     start = torch.ones(beam.shape[0], 7, dtype=torch.float64)
     start[:, :6] = bmad_to_cheetah(beam.to(torch.float64), p0c, species)
-    h, w = scan.screen_shape
-    psx, psy = scan.pixel_size
-    cx, cy = scan.center
     images = []
     for row in scan.settings.tolist():
         spec = [dict(e) for e in scan.beamline_spec]
@@ -111,11 +109,11 @@ def cheetah_imaged(beam: torch.Tensor, scan: QuadScanDataset) -> QuadScanDataset
         end = cheetah_to_bmad(
             out.particles[:, :6], energy_to_p0c(out.energy, species), species
         )
-        col = torch.floor((end[:, 0] - cx) / psx + w / 2).long()
-        row_ = torch.floor((end[:, 2] - cy) / psy + h / 2).long()
-        inside = (col >= 0) & (col < w) & (row_ >= 0) & (row_ < h)
-        counts = torch.bincount((row_ * w + col)[inside], minlength=h * w).double()
-        images.append((counts / counts.sum()).reshape(h, w))
+        # nearest-pixel counts as the synthetic scans count them
+        counts = _histogram_images(
+            end[None], scan.screen_shape, scan.pixel_size, scan.center
+        )[0]
+        images.append(counts / counts.sum())
     return scan.with_step(
         {"step": "imaged by cheetah", "cheetah": cheetah.__version__},
         images=torch.stack(images)[:, None].float(),
