@@ -20,7 +20,7 @@ per-step time (the same difference of the median training times of
 ``--repeats`` unprofiled runs) depends on the machine's load.
 
 On a CUDA device the default 4D step is captured as a CUDA graph after three
-eager steps (``ReconstructionConfig.cuda_graph``): the ATen ops counted are
+eager steps (``reconstruct(..., cuda_graph=...)``): the ATen ops counted are
 then the host's per step (one row copy, the replay, the copies of the losses);
 the ~290 operators of the step run inside the graph. ``--eager`` turns the
 graph off, the baseline to quote beside it (same run, same GPU).
@@ -44,20 +44,21 @@ from _meta import add_store_flag, emit, git_commit
 
 from diffaccel.data import read_quad_scan
 from diffaccel.reconstruction import ReconstructionConfig, reconstruct
+from diffaccel.reconstruction.training import REPORT_EVERY
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "phase_space"
 DATASET = DATA / "gpsr_4d_synthetic.h5"
 SYNC_OPS = ("aten::item", "aten::_local_scalar_dense")
 
 
-def _config(steps: int, particles: int, graph: bool = True) -> ReconstructionConfig:
-    return ReconstructionConfig(n_particles=particles, steps=steps, cuda_graph=graph)
+def _config(steps: int, particles: int) -> ReconstructionConfig:
+    return ReconstructionConfig(n_particles=particles, steps=steps)
 
 
-def _profile(ds, train, cfg, device) -> tuple[list, float]:
+def _profile(ds, train, cfg, device, graph: bool) -> tuple[list, float]:
     with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as p:
         t0 = time.perf_counter()
-        reconstruct(ds, cfg, train_indices=train, device=device)
+        reconstruct(ds, cfg, train_indices=train, device=device, cuda_graph=graph)
         wall = time.perf_counter() - t0
     return list(p.events()), wall
 
@@ -139,7 +140,7 @@ def main() -> None:
     counts = {}
     for steps in (short, long):
         events, _ = _profile(
-            ds, train, _config(steps, args.particles, not args.eager), args.device
+            ds, train, _config(steps, args.particles), args.device, not args.eager
         )
         aten = [e for e in events if e.name.startswith("aten::")]
         counts[steps] = {
@@ -158,7 +159,7 @@ def main() -> None:
         "n_particles": cfg.n_particles,
         "train_images": len(train),
         "steps_compared": [short, long],
-        "report_every": cfg.report_every,
+        "report_every": REPORT_EVERY,
         "aten_ops_per_step": (len(counts[long]["all"]) - len(counts[short]["all"])) / d,
         "aten_ops_top_level_per_step": (
             len(counts[long]["top"]) - len(counts[short]["top"])

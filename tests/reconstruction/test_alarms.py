@@ -25,7 +25,7 @@ from diffaccel.reconstruction.alarms import (
     prediction_alarms,
 )
 
-QUICK = {"n_particles": 1024, "steps": 120, "snapshots": 1, "checkpoint_every": 500}
+QUICK = {"n_particles": 1024, "steps": 120, "snapshots": 1}
 
 
 def _beamline(drift: float, quad: float = 0.1) -> list[dict]:

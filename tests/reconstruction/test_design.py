@@ -234,7 +234,7 @@ def test_propose_quad_settings_beats_a_poor_choice():
 
 
 def test_summary_stores_the_observability_line(small_scan):
-    fast = {"n_particles": 512, "steps": 4, "snapshots": 1, "checkpoint_every": 5}
+    fast = {"n_particles": 512, "steps": 4, "snapshots": 1}
     result = reconstruct(
         small_scan, ReconstructionConfig(**fast), train_indices=[0, 2, 4]
     )

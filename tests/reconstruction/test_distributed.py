@@ -13,7 +13,7 @@ from diffaccel.data import read_scans, write_quad_scan, write_scans
 from diffaccel.data.quad_scan import read_quad_scan
 from diffaccel.reconstruction import ReconstructionConfig, pipeline, reconstruct
 
-CFG = {"n_particles": 1024, "steps": 12, "snapshots": 2, "report_every": 1}
+CFG = {"n_particles": 1024, "steps": 12, "snapshots": 2}
 
 
 def _worker(rank: int, world: int, folder: str, dims: int) -> None:
@@ -24,7 +24,7 @@ def _worker(rank: int, world: int, folder: str, dims: int) -> None:
     try:
         ds = read_quad_scan(Path(folder) / "scan.h5")
         cfg = ReconstructionConfig(dims=dims, **CFG)
-        r = reconstruct(ds, cfg, distributed=True)
+        r = reconstruct(ds, cfg, distributed=True, report_every=1)
         torch.save(
             {"loss": r.history["loss"], "rms": r.history["rms"]},
             Path(folder) / f"rank{rank}.pt",
@@ -47,7 +47,9 @@ def test_two_gloo_processes_equal_one(small_scan, tmp_path: Path, dims: int) -> 
     # of float32 ~ 6e-8 relative) but nothing more
     assert ranks[0]["loss"] == pytest.approx(ranks[1]["loss"], rel=1e-6)
     single = reconstruct(
-        read_quad_scan(tmp_path / "scan.h5"), ReconstructionConfig(dims=dims, **CFG)
+        read_quad_scan(tmp_path / "scan.h5"),
+        ReconstructionConfig(dims=dims, **CFG),
+        report_every=1,
     )
     # the same particles (two blocks of one Sobol sample), so step 0 agrees to
     # float32 rounding of the summed images and float64 moments...

@@ -17,7 +17,7 @@ from diffaccel.reconstruction import (
     reconstruct,
 )
 
-FAST = {"n_particles": 512, "steps": 4, "snapshots": 1, "checkpoint_every": 5}
+FAST = {"n_particles": 512, "steps": 4, "snapshots": 1}
 
 
 @pytest.fixture(scope="module")

@@ -17,6 +17,7 @@ from diffaccel.dynamics import images
 from diffaccel.dynamics.elements import _kernels
 from diffaccel.reconstruction import ReconstructionConfig, graphed_step, reconstruct
 from diffaccel.reconstruction import training as training_module
+from diffaccel.reconstruction.config import PENALTY_START
 from diffaccel.reconstruction.graphed_step import (
     BC2_SQRT,
     GRAPH_WARMUP_STEPS,
@@ -27,7 +28,9 @@ from diffaccel.reconstruction.graphed_step import (
 from diffaccel.reconstruction.losses import cyclic_cosine_lr, penalty_schedule
 from diffaccel.reconstruction.optimiser import FlatAdam
 
-FAST = {"n_particles": 1024, "steps": 24, "snapshots": 3, "checkpoint_every": 5}
+FAST = {"n_particles": 1024, "steps": 24, "snapshots": 3}
+#: Runtime choices of these runs: checkpoints every 5 steps.
+RUN = {"checkpoint_every": 5}
 
 
 def test_factored_adam_step_equals_adam_step() -> None:
@@ -86,7 +89,8 @@ def test_captured_step_body_trains_like_eager_steps(
     cfg = ReconstructionConfig(**FAST, loss_smoothing=smoothing)
     ref = reconstruct(
         small_scan,
-        ReconstructionConfig(**FAST, loss_smoothing=smoothing, cuda_graph=False),
+        ReconstructionConfig(**FAST, loss_smoothing=smoothing),
+        cuda_graph=False,
     )
     got = reconstruct(small_scan, cfg, uncertainty=False)
     (replay,) = eager_graph.made
@@ -96,7 +100,7 @@ def test_captured_step_body_trains_like_eager_steps(
     cyc = cfg.cycle_length
     s = GRAPH_WARMUP_STEPS + 5
     assert replay.table[5, LAM].item() == penalty_schedule(
-        s, cyc, cfg.penalty_start, cfg.penalty_end
+        s, cyc, PENALTY_START, cfg.penalty_end
     )
     assert got.history["lr"] == ref.history["lr"]
     assert got.history["penalty"] == ref.history["penalty"]
@@ -125,7 +129,7 @@ def test_captured_6d_step_body_trains_like_eager_steps(
     torch.set_num_threads(1)
     request.addfinalizer(lambda: torch.set_num_threads(threads))
     cfg = {**FAST, "dims": 6, "unseen_weight": 0.0}
-    ref = reconstruct(small_awa6d, ReconstructionConfig(**cfg, cuda_graph=False))
+    ref = reconstruct(small_awa6d, ReconstructionConfig(**cfg), cuda_graph=False)
     got = reconstruct(small_awa6d, ReconstructionConfig(**cfg), uncertainty=False)
     (replay,) = eager_graph.made
     assert len(replay.calls) == FAST["steps"] - GRAPH_WARMUP_STEPS
@@ -161,8 +165,9 @@ def test_resumed_run_captures_again_and_continues_the_run(
     # a run stopped after its checkpoint at step 10 and resumed: eager warm-up
     # steps 10-12, then a new capture whose table starts at step 13 with
     # Adam's count going on from the checkpoint
-    cfg = ReconstructionConfig(**FAST, report_every=5)
-    ref = reconstruct(small_scan, cfg, uncertainty=False)
+    cfg = ReconstructionConfig(**FAST)
+    run = {**RUN, "report_every": 5, "uncertainty": False}
+    ref = reconstruct(small_scan, cfg, **run)
     ck = tmp_path / "ck.pt"
 
     def stop(info) -> None:
@@ -170,8 +175,8 @@ def test_resumed_run_captures_again_and_continues_the_run(
             raise _Stop
 
     with pytest.raises(_Stop):
-        reconstruct(small_scan, cfg, checkpoint=ck, callback=stop, uncertainty=False)
-    got = reconstruct(small_scan, cfg, checkpoint=ck, resume=True, uncertainty=False)
+        reconstruct(small_scan, cfg, checkpoint=ck, callback=stop, **run)
+    got = reconstruct(small_scan, cfg, checkpoint=ck, resume=True, **run)
     first, _, resumed = (
         eager_graph.made
     )  # the reference run's, the stopped, the resumed
@@ -181,7 +186,7 @@ def test_resumed_run_captures_again_and_continues_the_run(
 
 
 def test_no_capture_when_disabled_or_too_short(small_scan, eager_graph) -> None:
-    reconstruct(small_scan, ReconstructionConfig(**FAST, cuda_graph=False))
+    reconstruct(small_scan, ReconstructionConfig(**FAST), cuda_graph=False)
     short = {**FAST, "steps": GRAPH_WARMUP_STEPS, "snapshots": 1}
     reconstruct(small_scan, ReconstructionConfig(**short), uncertainty=False)
     assert eager_graph.made == []
@@ -193,7 +198,7 @@ def test_failed_capture_goes_on_eagerly(small_scan, monkeypatch, caplog) -> None
 
     monkeypatch.setattr(graphed_step, "graph_capable", lambda device: True)
     monkeypatch.setattr(graphed_step, "GraphedStep", refuse)
-    ref = reconstruct(small_scan, ReconstructionConfig(**FAST, cuda_graph=False))
+    ref = reconstruct(small_scan, ReconstructionConfig(**FAST), cuda_graph=False)
     with caplog.at_level(logging.WARNING, logger="diffaccel.reconstruction"):
         got = reconstruct(small_scan, ReconstructionConfig(**FAST))
     assert "could not capture the training step as a CUDA graph" in caplog.text
@@ -218,8 +223,13 @@ def captured(monkeypatch) -> list:
 
 def _cuda_runs(scan, cfg: dict):
     """The same training on CUDA with eager steps and with the CUDA graph."""
-    eager = ReconstructionConfig(**cfg, cuda_graph=False)
-    ref = reconstruct(scan, eager, device="cuda", uncertainty=False)
+    ref = reconstruct(
+        scan,
+        ReconstructionConfig(**cfg),
+        device="cuda",
+        uncertainty=False,
+        cuda_graph=False,
+    )
     got = reconstruct(
         scan, ReconstructionConfig(**cfg), device="cuda", uncertainty=False
     )
@@ -254,7 +264,8 @@ def test_cuda_failed_capture_goes_on_eagerly(small_scan, monkeypatch, caplog) ->
 
     ref = reconstruct(
         small_scan,
-        ReconstructionConfig(**FAST, cuda_graph=False),
+        ReconstructionConfig(**FAST),
+        cuda_graph=False,
         device="cuda",
         uncertainty=False,
     )

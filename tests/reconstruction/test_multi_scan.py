@@ -200,12 +200,12 @@ def test_progress_counts_the_training_steps(small_awa6d) -> None:
     """The callback sees every training step counted against ``steps``: no
     stage after training."""
     seen: list[tuple[int, int]] = []
-    config = replace(CONFIG, report_every=2)
     reconstruct(
         small_awa6d,
-        config,
+        CONFIG,
         callback=lambda info: seen.append((info.step, info.total)),
         uncertainty=False,
+        report_every=2,
     )
     assert {t for _, t in seen} == {6}
     steps = [s for s, _ in seen]

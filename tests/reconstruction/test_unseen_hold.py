@@ -58,8 +58,9 @@ def test_the_prior_term_keeps_training_near_the_prior_point(data) -> None:
 def test_resume_with_the_prior_term_equals_the_uninterrupted_run(
     data, tmp_path
 ) -> None:
-    cfg = _config(steps=20, checkpoint_every=5, report_every=3, unseen_weight=1e3)
-    ref = reconstruct(data, cfg)
+    cfg = _config(steps=20, unseen_weight=1e3)
+    run = {"checkpoint_every": 5, "report_every": 3}
+    ref = reconstruct(data, cfg, **run)
     ck = tmp_path / "ck.pt"
 
     def stop(info) -> None:
@@ -67,8 +68,8 @@ def test_resume_with_the_prior_term_equals_the_uninterrupted_run(
             raise _Stop
 
     with pytest.raises(_Stop):
-        reconstruct(data, cfg, checkpoint=ck, callback=stop)
+        reconstruct(data, cfg, checkpoint=ck, callback=stop, **run)
     assert load_checkpoint(ck).hold_moments is not None
-    res = reconstruct(data, cfg, checkpoint=ck, resume=True)
+    res = reconstruct(data, cfg, checkpoint=ck, resume=True, **run)
     for k in ref.snapshots[0]:
         assert torch.equal(res.snapshots[0][k], ref.snapshots[0][k]), k

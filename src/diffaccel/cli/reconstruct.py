@@ -58,6 +58,7 @@ from diffaccel.reconstruction.runtime import (
     resolve_device,
     shared_refusal,
 )
+from diffaccel.reconstruction.training import CHECKPOINT_EVERY
 
 __all__ = [
     "CHECKPOINT",
@@ -415,7 +416,7 @@ def reconstruct_command(
     except (KeyboardInterrupt, click.ClickException) as err:
         # a refused run (another run's lock) must not point at that run's files
         note = started and stopped_note(
-            out, isinstance(err, KeyboardInterrupt), config.checkpoint_every
+            out, isinstance(err, KeyboardInterrupt), CHECKPOINT_EVERY
         )
         if note:
             click.echo(note, err=True)

@@ -6,6 +6,7 @@ Example:
     4
 """
 
+from diffaccel.reconstruction.config import ReconstructionConfig
 from diffaccel.reconstruction.design import (
     moment_design,
     observability,
@@ -47,7 +48,6 @@ from diffaccel.reconstruction.pipeline import (
     training_selection,
 )
 from diffaccel.reconstruction.training import (
-    ReconstructionConfig,
     StepInfo,
     TrainingState,
     load_checkpoint,

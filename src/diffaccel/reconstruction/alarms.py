@@ -156,7 +156,7 @@ _MAX_LISTED = 6
 
 _UNDERFIT = (
     "training too short or with too few particles (more steps or particles)",
-    "a prior that holds the beam back (a smaller prior_factor)",
+    "a prior that holds the beam back (longitudinal_scale, unseen_weight)",
     "a generator too small for the beam (width, depth)",
 )
 _NO_BEAM = (

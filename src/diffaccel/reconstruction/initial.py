@@ -12,6 +12,11 @@ from torch import Tensor
 from diffaccel.dynamics.linalg import lstsq
 from diffaccel.reconstruction.forward import ScreenForwardModel
 
+#: Transverse prior widths of the entropy term in units of the widths of the
+#: Gaussian fitted to the image moments: broad enough to bound only what the
+#: images leave free (a seen coordinate's fitted width is 1/3 of its prior's).
+PRIOR_FACTOR = 3.0
+
 
 @dataclass(frozen=True)
 class GaussianGuess:
@@ -31,7 +36,7 @@ class GaussianGuess:
         self,
         dims: int,
         longitudinal_scale: tuple[float, float],
-        prior_factor: float,
+        prior_factor: float = PRIOR_FACTOR,
     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Initial scale, offset, correlation and prior widths for a generator.
 

@@ -28,6 +28,8 @@ from diffaccel.reconstruction.rank_members import (
     member_seed,
 )
 from diffaccel.reconstruction.training import (
+    CHECKPOINT_EVERY,
+    REPORT_EVERY,
     ReconstructionConfig,
     StepInfo,
     checkpoint_config,
@@ -237,6 +239,9 @@ def reconstruct(
     distributed: bool = False,
     split: Literal["particles", "members"] = "particles",
     uncertainty: bool = True,
+    checkpoint_every: int = CHECKPOINT_EVERY,
+    report_every: int = REPORT_EVERY,
+    cuda_graph: bool = True,
 ) -> Reconstruction:
     """Reconstruct the initial phase space of a beam from one or several scans.
 
@@ -270,6 +275,9 @@ def reconstruct(
         uncertainty: Attach the moment-space posterior of
             :func:`attach_uncertainty` (calibrated ``std`` of the moments;
             about 1 s on two CPU cores).
+        checkpoint_every, report_every, cuda_graph: Runtime choices of
+            :func:`~diffaccel.reconstruction.training.train_generator` (they do
+            not change the result).
 
     Returns:
         The :class:`Reconstruction`; ``info["scans"][name]`` holds each scan's
@@ -339,6 +347,9 @@ def reconstruct(
         device=device,
         distributed=distributed and not members,
         maps=maps,
+        checkpoint_every=checkpoint_every,
+        report_every=report_every,
+        cuda_graph=cuda_graph,
     )
     for fwd in forwards.values():
         fwd.to("cpu")

@@ -11,17 +11,18 @@ import pickle
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import torch
 import torch.distributed as tdist
 from torch import Tensor
 
 from diffaccel.data import atomic_write
-from diffaccel.dynamics import finite_checks, is_integer, is_real
+from diffaccel.dynamics import finite_checks, is_integer
 from diffaccel.dynamics.images import gaussian_blur
+from diffaccel.reconstruction.config import ReconstructionConfig as ReconstructionConfig
 from diffaccel.reconstruction.forward import (
     MAX_BLUR_PIXELS,
     ScanImages,
@@ -35,521 +36,25 @@ from diffaccel.reconstruction.graphed_step import TrainingSteps
 from diffaccel.reconstruction.hold import MomentHold
 from diffaccel.reconstruction.initial import GaussianGuess
 from diffaccel.reconstruction.losses import (
-    ImageLoss,
     ImagePenalty,
     MomentMatch,
     RelativeEntropy,
-    StepSchedule,
     off_screen_allowance,
 )
 from diffaccel.reconstruction.optimiser import FlatAdam
 from diffaccel.reconstruction.uncertainty import MOMENT_WINDOW, moment_window
-from diffaccel.reconstruction.unseen import UNSEEN_PRIORS, UnseenHold
+from diffaccel.reconstruction.unseen import UnseenHold
 
 logger = logging.getLogger(__name__)
 
 CHECKPOINT_VERSION = 2  # 2: optimiser state of one flat parameter vector
+#: Default steps between checkpoints (and reads of the losses from the device).
+CHECKPOINT_EVERY = 100
+REPORT_EVERY = 10
 
 
 class CheckpointDataError(ValueError):
     """A checkpoint to resume was written for other training data."""
-
-
-@dataclass(frozen=True)
-class _DimsDefaults:
-    """Defaults of :class:`ReconstructionConfig` that depend on ``dims``."""
-
-    n_particles: int
-    steps: int
-    snapshots: int
-    blur_pixels: float
-    loss_smoothing: float
-    burn_in: int
-    sampling_offset: float
-    penalty_end: float
-    unseen_weight: float
-    moment_weight: float
-    smoothing: float | Literal["auto"]  # loss_smoothing when None ("auto": by the data)
-
-
-#: 4D: tuned on the GPSR 4D benchmark (KDE images of one-pixel bandwidth).
-#: 6D: tuned on the shared 6D *training* file (its ground truth) and on
-#: synthetic AWA 6D beams of other shapes; see ``ReconstructionConfig``.
-#: Scans with a deflecting cavity and a dipole image small spots (down to ~1
-#: pixel at a waist), so the point spread sets the emittance: the default
-#: assumes images that are histograms of particle positions (nearest-pixel
-#: deposition, variance 1/12 pixel^2), reproduced exactly in training through
-#: the 1-pixel loss smoothing (see ``loss_smoothing``), which also keeps the KL
-#: distance unbiased for sparse simulated images. Measured on a validation
-#: split of the shared 6D training file (k1 = -6, 6 held out): blur 1.0 without
-#: smoothing left rms sizes ~10 % large; blur 0.5 with smoothing gave rms
-#: within 3 % but each member's y emittance 27-32 % low (a 0.35 mm waist is
-#: 1.3 pixels); sqrt(1/12) gave members within -3 ... -10 %. The first member
-#: (end of the first cycle, which ramps the image penalty) was under-fit in 6D
-#: (y emittance +85 %, 6D emittance +188 %), hence ``burn_in >= 1``.
-#: Lower ends of the measured training memory (see ReconstructionConfig.memory_bytes).
-_BYTES_PER_PARTICLE = 1536
-_BYTES_PER_PARTICLE_IMAGE_6D = 512
-
-_DIMS_DEFAULTS: dict[int, _DimsDefaults] = {
-    4: _DimsDefaults(6144, 300, 5, 1.0, 0.0, 0, 0.0, 1e4, 0.0, 0.0, "auto"),
-    6: _DimsDefaults(
-        16384, 360, 6, math.sqrt(1.0 / 12.0), 1.0, 3, 0.25, 3e4, 1e3, 1.0, 1.0
-    ),
-}
-
-
-_INT_FIELDS = frozenset(
-    "dims n_particles width depth steps snapshots burn_in seed checkpoint_every "
-    "report_every".split()
-)
-_BOOL_FIELDS = frozenset(("quasi_random", "cuda_graph"))
-
-
-@dataclass(frozen=True)
-class ReconstructionConfig:
-    """Settings of a phase-space reconstruction (everything but the data).
-
-    Defaults are sized so that a 4D reconstruction of a 20-setting, 100 x 100 pixel
-    quad scan takes ~2-2.5 s on two quiet CPU cores (``benchmarks/reconstruction.py``):
-    6144 fresh quasi-random particles x 300 steps of ~7 ms, MLP 2 x 48. On the
-    GPSR 4D benchmark 300 steps give rms sizes within 1.3 % (seed 0), x emittances of
-    -3.8 / -3.8 / -5.1 % and y emittances within 1 % (seeds 0, 1, 2; two
-    threads) and held-out relative L1 0.081 (seed 0; gpsr: 0.117).
-
-    Args:
-        dims: 4 reconstructs (x, px, y, py) with ``z = pz = 0``; 6 also generates
-            (z, pz), which a quad scan barely constrains (they stay near their prior).
-        n_particles: Fresh particles drawn at every step. None: 6144 for
-            ``dims = 4``, 16384 for ``dims = 6``. The image distance of a finite
-            sample is a biased estimate, and in 6D the bias lands on the
-            smallest-eigenvalue quantities: on the shared 6D training file
-            (truth known) the y emittance (y-py correlation 0.98) came out -5 to
-            -8 % with 6144 particles (three seeds) and drifted further low with
-            more steps (-5, -10 % at 600 steps), -1.5 % with 12288 and +1.5 to
-            +1.7 % with 16384 (two seeds each); at the true beam the same loss is
-            minimal at the true y emittance.
-        width: MLP hidden width.
-        depth: MLP hidden layers.
-        steps: Total optimisation steps (one step sees every training image).
-            None: 300 for ``dims = 4``, 360 for ``dims = 6``.
-        snapshots: Cosine learning-rate cycles; one ensemble member per cycle
-            after the ``burn_in``. None: 5 for ``dims = 4``, 6 for ``dims = 6``
-            (60-step cycles in both). The 6D emittance converges over cycles
-            (shared 6D training file, 16384 particles: the members of cycles 3
-            to 6 had +26, +18, +8 and +5 %), so 6D keeps the last three.
-        lr_max: Learning rate at the start of each cycle.
-        lr_min: Learning rate at the end of each cycle (snapshot point).
-        penalty_start: Image-penalty weight at step 0.
-        penalty_end: Image-penalty weight from the end of the first cycle on.
-            The entropy term has gradient 1 per unit ``log sigma`` of each
-            coordinate, so at weight ``lambda`` it can move a size until the
-            image mismatch rises by ~``1 / lambda`` per unit ``log sigma``. At
-            1e3 that still inflated the x emittance of the GPSR benchmark by
-            7-12 % (its x waist is 0.6 pixel rms, so a wider waist barely shows
-            in the images); at 1e4 the final images match to within their noise
-            and the emittances came out within 0-4 % (three seeds), while
-            coordinates the images do not see are still set by the entropy.
-            None: 1e4 for ``dims = 4``, 3e4 for ``dims = 6``: with the
-            ``sampling_offset`` (whose bias towards wide beams had held the
-            unresolved small-eigenvalue directions back) 1e4 left the shared 6D
-            file's y emittance (y-py 0.98) at +4.5 / +7.0 / +5.3 % (seeds 0-2),
-            3e4 at +1.8 / +3.2 / +2.9 %.
-        image_loss: ``"kl"`` (default), ``"l1"`` or ``"l2"``. Measured images
-            carry shot noise; L1 is minimised by the pixel-wise *median* of that
-            noise, which is below the mean in the sparse tails, so L1 fits come
-            out narrow (rms sizes 2-4 % low on the GPSR benchmark). KL is the
-            Poisson log-likelihood of the image, minimised by the mean, and gave
-            sizes within ~1.5 % on the same data.
-        quasi_random: Draw the fresh base samples of each step from the Sobol
-            sequence with a new random digital shift, on the device (less image
-            noise, hence less of the L1 bias towards narrow beams) instead of
-            i.i.d. normals.
-        blur_pixels: Total point-spread rms of the simulated images [pixels],
-            cloud-in-cell deposition (1/6 pixel^2 of variance) included; 1
-            matches screens with a ~1 pixel resolution and the 1-pixel KDE of the
-            GPSR benchmark. None (default): each scan's recorded screen
-            resolution (``QuadScanDataset.resolution_pixels``, the file's
-            ``screen.resolution_pixels``) where the file has one, else 1.0 for
-            ``dims = 4`` and sqrt(1/12) ~ 0.29 (images that are histograms, no
-            point spread) for ``dims = 6``; see :meth:`blur_for`.
-        entropy_radius: Mahalanobis scale of the redescending weights of the
-            tail-robust covariance (see ``robust_covariance``).
-        loss_smoothing: Rms [pixels] of a Gaussian applied to both the measured
-            and the simulated images before they are compared (the simulated
-            ones get it on top of ``blur_pixels``), or ``"auto"``: sized per scan
-            by the data (:func:`scan_smoothing`). A sample of N particles makes
-            sparse, noisy images, and the KL distance of noisy images is lower
-            for a wider beam (its tails cover more measured pixels), so compared
-            pixel by pixel the fitted beam depends on the camera's pixel size
-            and on N. ``"auto"`` smooths by Scott's bandwidth of the scan's
-            widest image (the finest comparison the sample supports), capped by
-            the beam's smallest rms spot on the screen (the finest detail the
-            scan must resolve); where that spans several camera pixels the
-            images are compared on pooled pixels (:func:`smoothed_for_loss`).
-            One beam imaged on 64-400 pixels per axis with a 12 % halo
-            (``benchmarks/resolution.py``, 6k-64k particles) comes out within
-            2.3 % of its emittances this way, 12-300 % high compared pixel by
-            pixel. On the GPSR 4D benchmark (100 pixels, a 0.6-pixel x waist
-            behind a 1-pixel point spread) the cap sets 0.58 pixels, and the x
-            emittance comes out 1-1.3 points lower than compared pixel by pixel
-            (-3.8 / -3.8 / -5.1 % against -2.9 / -2.2 / -3.8 % at seeds 0-2,
-            2 threads): the price of one estimator for every camera. A number
-            fixes the smoothing; 0 compares
-            the images as they are. None: ``"auto"`` for ``dims = 4``; 1 for
-            ``dims = 6``, whose waists of ~1 pixel the 1-pixel smoothing also
-            keeps unbiased for sparse simulated images (on the 6D benchmark,
-            6144 truth particles imaged at 0.5 pixel scored better 10 % wider
-            than true; smoothed by one pixel, within 0.4-1.4 % at 16 384
-            particles, and ``sampling_offset`` removes the rest); ``"auto"``
-            in 6D adds :func:`scan_smoothing` in quadrature to that pixel.
-        sampling_offset: Offset ``c`` of the KL image distance against the
-            sampling noise of the simulated images: ``eps = c kappa / N`` is
-            added to every pixel of each sum-normalised simulated image
-            (``kappa``: the squared deposit weights of one particle summed over
-            pixels, :meth:`ScreenForwardModel.pixel_kernel_sum_sq`; ``N``:
-            ``n_particles``); see :class:`.losses.ImagePenalty`.
-            Without it the KL distance of ``N`` sampled particles is lowest for
-            a beam wider than the one they were drawn from:
-            for six synthetic AWA 6D beams (truth scaled by 0.985-1.025,
-            8 draws of 16 384 particles) the least expected
-            distance at a scale of 1.004-1.014 with ``c = 0``, 1.000-1.002 with
-            0.125, 0.997-1.000 with 0.25 and 0.993-0.998 with the first-order
-            value 1/2. None: 0 for ``dims = 4`` (its benchmark was tuned
-            without), 0.25 for ``dims = 6``.
-        burn_in: Cycles whose end is not kept as an ensemble member (the first
-            cycle ramps the image penalty). None: 0 for ``dims = 4``, 3 for
-            ``dims = 6`` (at most ``snapshots - 1``); the ensemble has
-            ``snapshots - burn_in`` members.
-        longitudinal_scale: Initial and prior rms of (z [m], pz [1]) when
-            ``dims = 6`` and the scans do not see them (with a deflecting cavity
-            or dispersion they come from the fitted image moments).
-        prior_factor: Transverse prior widths are this factor times the widths of
-            the Gaussian fitted to the image moments.
-        unseen_prior: Where the prior term of ``unseen_weight`` puts the
-            longitudinal covariance directions the scans cannot see (AWA 6D
-            layout: pz variance against the px-pz covariance, z variance
-            against py-z; :func:`~diffaccel.reconstruction.unseen.place_unseen`):
-            ``"pair"`` (default) zero partial correlation of the pair each
-            direction trades (px-pz, py-z) given the other coordinates;
-            ``"gaussian"`` ``tr(P V_off) = 0`` over the direction's whole
-            off-diagonal part (it also weighs the seen z-pz chirp in).
-        unseen_weight: Strength ``w`` of the prior term on those directions, a
-            term of the training objective: ``w sum_k t_k^2`` with ``t_k`` the
-            displacement of the beam's covariance from the prior point along
-            each unseen direction, in correlation units
-            (:class:`~diffaccel.reconstruction.unseen.UnseenHold`). It is flat
-            along every direction the screens see, so it decides what the
-            images leave free and nothing they see; without it the entropy
-            widens the beam along them (pz 8-44 % high on synthetic beams).
-            Where the scans leave no direction unseen (4D, or a 6D scan that
-            sees every longitudinal entry or none) it holds nothing. None: 1e3
-            for ``dims = 6`` (0 for 4D). With the moment term
-            (``moment_weight``), 31 of the 33 runs of
-            ``benchmarks/reconstruction_6d_beams.py`` (11 beams, seeds 0-2,
-            one thread, 39 s of training each) meet every limit, a beam whose
-            px-pz partial correlation is 0.27 where the prior says 0 included
-            (z emittance -4.4, -1.9, -0.8 %).
-        moment_weight: Strength ``mu`` of the moment term of the image term:
-            ``mu / K sum_k sum_a ((S_ka - M_ka) / s_ka)^2`` over the training
-            images, with ``S`` and ``M`` the simulated and measured images'
-            second central moments (xx, yy, xy) in a box of 6 rms of the
-            measured image (:class:`~diffaccel.reconstruction.losses.MomentMatch`),
-            weighed by the image penalty ``lambda`` like the image distance.
-            The KL distance fits the images' shapes; where the generator
-            cannot take the true shape exactly its optimum trades a few
-            tenths of a percent of second moment for shape, which a strong
-            z-pz chirp turns into 10-25 % of z emittance. None: 1 for ``dims
-            = 6`` (0 for 4D, whose benchmark was tuned without). On five
-            beams of ``benchmarks/reconstruction_6d_beams.py`` that missed a
-            limit without it (seeds 1, 2): 0 left 7 of 10 runs outside a
-            limit, 1 left 2 (a three-mode beam's 6D emittance), 3 left 1 (its
-            held-out images at 0.152 relative L1), 10 and 100 left 4 and 7
-            (held-out images up to 0.39: the moments then outweigh the
-            shapes).
-        seed: Seed of the explicit ``torch.Generator`` (weights and samples).
-        checkpoint_every: Steps between checkpoints (also at every snapshot).
-        report_every: Steps between reads of the losses from the device (the
-            only host synchronisation of training): history, the finite-loss
-            check and the callback happen then (and at snapshots, checkpoints
-            and the last step). Does not change the result.
-        cuda_graph: On a CUDA device, capture the training step as a CUDA
-            graph after a few eager steps and replay it (one launch per step
-            instead of a few hundred; :mod:`~diffaccel.reconstruction.
-            graphed_step`; docs/gpu.md). 4D only (:data:`GRAPH_DIMS`): 6D
-            steps stay eager until their capture is checked on a GPU, as do
-            ``distributed`` training and steps with a covariance hold. The
-            same arithmetic up to rounding (the per-step factors are device
-            scalars); where a capture fails the run goes on eagerly with a
-            warning. Ignored on CPUs.
-    """
-
-    dims: int = 4
-    n_particles: int | None = None
-    width: int = 48
-    depth: int = 2
-    steps: int | None = None
-    snapshots: int | None = None
-    lr_max: float = 1e-2
-    lr_min: float = 1e-4
-    penalty_start: float = 10.0
-    penalty_end: float | None = None
-    image_loss: ImageLoss = "kl"
-    quasi_random: bool = True
-    blur_pixels: float | None = None
-    entropy_radius: float = 4.0
-    loss_smoothing: float | Literal["auto"] | None = None
-    sampling_offset: float | None = None
-    burn_in: int | None = None
-    longitudinal_scale: tuple[float, float] = (1e-3, 1e-3)
-    prior_factor: float = 3.0
-    unseen_prior: str = "pair"
-    unseen_weight: float | None = None
-    moment_weight: float | None = None
-    seed: int = 0
-    checkpoint_every: int = 100
-    report_every: int = 10
-    cuda_graph: bool = True
-
-    def __post_init__(self) -> None:
-        self._check_types()
-        if self.dims not in (4, 6):
-            raise ValueError(f"dims must be 4 or 6; got {self.dims}.")
-        defaults = _DIMS_DEFAULTS[self.dims]
-        for name in (
-            "n_particles",
-            "steps",
-            "snapshots",
-            "unseen_weight",
-            "moment_weight",
-        ):
-            if getattr(self, name) is None:
-                object.__setattr__(self, name, getattr(defaults, name))
-        if self.penalty_end is None:
-            object.__setattr__(self, "penalty_end", defaults.penalty_end)
-        if not (self.penalty_start > 0 and self.penalty_end > 0):
-            raise ValueError(
-                f"penalty_start and penalty_end must be > 0; got "
-                f"{self.penalty_start}, {self.penalty_end}."
-            )
-        if self.sampling_offset is None:  # an offset of the KL distance only
-            offset = defaults.sampling_offset if self.image_loss == "kl" else 0.0
-            object.__setattr__(self, "sampling_offset", offset)
-        if not (math.isfinite(self.sampling_offset) and self.sampling_offset >= 0):
-            raise ValueError(
-                f"sampling_offset must be finite and >= 0; got {self.sampling_offset}."
-            )
-        if self.sampling_offset > 0 and self.image_loss != "kl":
-            raise ValueError(
-                f"sampling_offset applies to image_loss 'kl' only; got "
-                f"{self.image_loss!r} with sampling_offset {self.sampling_offset}."
-            )
-        if self.burn_in is None:  # never all members
-            burn_in = min(defaults.burn_in, max(self.snapshots - 1, 0))
-            object.__setattr__(self, "burn_in", burn_in)
-        if not 0 <= self.burn_in < self.snapshots:
-            raise ValueError(
-                f"burn_in must be in [0, snapshots = {self.snapshots}); got "
-                f"{self.burn_in}."
-            )
-        if self.snapshots < 1 or self.steps < self.snapshots:
-            raise ValueError(
-                f"need 1 <= snapshots <= steps; got snapshots={self.snapshots}, "
-                f"steps={self.steps}."
-            )
-        if self.steps % self.snapshots:
-            raise ValueError(
-                f"steps ({self.steps}) must be a multiple of snapshots "
-                f"({self.snapshots}) so that every cycle has the same length."
-            )
-        if self.unseen_prior not in UNSEEN_PRIORS:
-            raise ValueError(
-                f"unseen_prior must be one of {UNSEEN_PRIORS}; got "
-                f"{self.unseen_prior!r}."
-            )
-        if not (math.isfinite(self.moment_weight) and self.moment_weight >= 0):
-            raise ValueError(
-                f"moment_weight must be finite and >= 0; got {self.moment_weight}."
-            )
-        if not (math.isfinite(self.unseen_weight) and self.unseen_weight >= 0):
-            raise ValueError(
-                f"unseen_weight must be finite and >= 0; got {self.unseen_weight}."
-            )
-        if self.report_every < 1:
-            raise ValueError(f"report_every must be >= 1; got {self.report_every}.")
-        if self.n_particles < 16:
-            raise ValueError(f"n_particles must be >= 16; got {self.n_particles}.")
-        if self.image_loss not in ("l1", "l2", "kl"):
-            raise ValueError(
-                f"image_loss must be 'l1', 'l2' or 'kl'; got {self.image_loss!r}."
-            )
-        if self.loss_smoothing is None:
-            object.__setattr__(self, "loss_smoothing", defaults.smoothing)
-        if self.loss_smoothing != "auto" and not (
-            math.isfinite(self.loss_smoothing)
-            and 0 <= self.loss_smoothing <= MAX_BLUR_PIXELS
-        ):
-            raise ValueError(
-                f"loss_smoothing must be in [0, {MAX_BLUR_PIXELS:g}] pixels or "
-                f"'auto' (sized by the data); got {self.loss_smoothing!r}."
-            )
-        if (
-            self.blur_pixels is not None
-            and not 0 <= self.blur_pixels <= MAX_BLUR_PIXELS
-        ):
-            raise ValueError(
-                f"blur_pixels must be in [0, {MAX_BLUR_PIXELS:g}] pixels; got "
-                f"{self.blur_pixels}."
-            )
-        if not self.lr_max > 0 or not self.lr_min >= 0:
-            raise ValueError("learning rates must be positive.")
-        if self.lr_min > self.lr_max:
-            raise ValueError(
-                f"lr_min ({self.lr_min}) must not exceed lr_max ({self.lr_max})."
-            )
-        for name in ("entropy_radius", "prior_factor"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0; got {getattr(self, name)}.")
-        if not all(v > 0 for v in self.longitudinal_scale):
-            raise ValueError(
-                "longitudinal_scale (rms z [m], pz [1]) must be > 0; got "
-                f"{tuple(self.longitudinal_scale)}."
-            )
-        for name in ("width", "depth", "checkpoint_every"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1; got {getattr(self, name)}.")
-
-    def _check_types(self) -> None:
-        """Every field a number of its kind (finite), a flag a bool: a wrong
-        type or a NaN fails here, naming the field, instead of deep in training."""
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if (
-                value is None
-                or f.name in ("image_loss", "unseen_prior")
-                or (f.name == "loss_smoothing" and value == "auto")
-            ):
-                continue  # None: the dims default, set below; text checked below
-            if f.name in _BOOL_FIELDS:
-                ok = isinstance(value, bool)
-                kind = "True or False"
-            elif f.name in _INT_FIELDS:
-                ok = is_integer(value)
-                kind = "an integer"
-            elif f.name == "longitudinal_scale":
-                ok = (
-                    isinstance(value, tuple | list)
-                    and len(value) == 2
-                    and all(is_real(v) for v in value)
-                )
-                kind = "two finite numbers (rms z [m], pz [1])"
-            else:
-                ok = is_real(value)
-                kind = "a finite number"
-            if not ok:
-                raise ValueError(f"{f.name} must be {kind}; got {value!r}.")
-        if isinstance(self.longitudinal_scale, list):
-            object.__setattr__(
-                self, "longitudinal_scale", tuple(self.longitudinal_scale)
-            )
-
-    def memory_bytes(self, n_images: int) -> int:
-        """Rough peak memory [bytes] of training on ``n_images`` images (CPU).
-
-        Measured peak RSS growth of a 2-step CPU run (float32, 32 x 32 and
-        64 x 64 pixels, 20k-320k particles): ~1.5-2 kB per particle in 4D,
-        not growing with the number of images (exact linear maps), plus
-        ~0.55 kB per particle and training image in 6D (tracked particles
-        and their autograd buffers per setting). The estimate uses the lower
-        ends, so a run it refuses would not have fitted.
-
-        Example:
-            >>> ReconstructionConfig(dims=4, n_particles=1000).memory_bytes(20)
-            1536000
-            >>> ReconstructionConfig(dims=6, n_particles=1000).memory_bytes(20)
-            11776000
-        """
-        per_particle = _BYTES_PER_PARTICLE
-        if self.dims == 6:
-            per_particle += _BYTES_PER_PARTICLE_IMAGE_6D * n_images
-        return int(self.n_particles) * per_particle
-
-    @property
-    def cycle_length(self) -> int:
-        """Steps per learning-rate cycle."""
-        return self.steps // self.snapshots
-
-    @property
-    def schedule(self) -> StepSchedule:
-        """Learning rate, penalty weight and members of every training step."""
-        return StepSchedule(
-            self.cycle_length,
-            self.lr_max,
-            self.lr_min,
-            self.penalty_start,
-            self.penalty_end,
-            self.burn_in,
-        )
-
-    def blur_for(self, scan: object | None = None) -> float:
-        """Point-spread rms [pixels] to image ``scan`` with.
-
-        ``blur_pixels`` when given, else the scan's recorded screen resolution
-        (``resolution_pixels``, when it has one), else the default by ``dims``
-        (1.0 for 4D, sqrt(1/12) for 6D).
-
-        Example:
-            >>> ReconstructionConfig(dims=4).blur_for()
-            1.0
-            >>> ReconstructionConfig(dims=6, blur_pixels=0.7).blur_for()
-            0.7
-        """
-        if self.blur_pixels is not None:
-            return float(self.blur_pixels)
-        recorded = getattr(scan, "resolution_pixels", None)
-        if recorded is not None:
-            return float(min(recorded, MAX_BLUR_PIXELS))
-        return float(_DIMS_DEFAULTS[self.dims].blur_pixels)
-
-    def to_dict(self) -> dict:
-        """Plain-Python form (JSON and ``weights_only`` safe)."""
-        d = asdict(self)
-        d["longitudinal_scale"] = list(self.longitudinal_scale)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> ReconstructionConfig:
-        """Inverse of :meth:`to_dict`."""
-        d = dict(d)
-        if "epochs" in d:  # files written before the rename to ``steps``
-            d["steps"] = d.pop("epochs")
-        d.setdefault("sampling_offset", 0.0)  # runs trained before it existed
-        # runs whose members were moved after training: the moves are in their
-        # stored members; the settings of those stages describe nothing now
-        for name in _AFTER_TRAINING_FIELDS:
-            d.pop(name, None)
-        if "hold_unseen" in d:  # the prior term's earlier name
-            d["unseen_weight"] = d.pop("hold_unseen")
-        d.setdefault("unseen_weight", 0.0)  # runs trained without the prior term
-        d.setdefault("moment_weight", 0.0)  # runs trained without the moment term
-        d["longitudinal_scale"] = tuple(d["longitudinal_scale"])
-        return cls(**d)
-
-
-#: Settings of the stages that moved members after training, in configs
-#: written before the prior term: dropped when such a config is read.
-_AFTER_TRAINING_FIELDS = (
-    "place_unseen",
-    "place_coupling",
-    "refit_steps",
-    "refit_lr",
-    "refit_hold",
-    "probe_unseen",
-    "probe_gain",
-    "probe_points",
-    "probe_away",
-    "polish_moments",
-)
 
 
 @dataclass
@@ -772,7 +277,7 @@ def loss_smoothing_for(
     6D)."""
     if config.loss_smoothing != "auto":
         return [float(config.loss_smoothing)] * len(measured)
-    floor = _DIMS_DEFAULTS[config.dims].loss_smoothing
+    floor = config.smoothing_floor
     spreads = [0.0] * len(measured) if point_spreads is None else list(point_spreads)
     return [
         scan_smoothing(m, config.n_particles, floor, b)
@@ -946,16 +451,14 @@ def _new_generator(
     Returns:
         The :class:`BeamGenerator` (weights from ``config.seed``), its
         :class:`FlatGenerator` drawing this process's share of
-        ``n_particles``, the random generator of the base samples (seeded per
-        process where they are i.i.d.) and, float64 on ``device``, the
-        coordinate scales ``(D,)`` [Bmad units], the prior's mean and rms
-        ``(D,)`` [Bmad units].
+        ``n_particles`` (Sobol points; the processes draw blocks of one
+        sequence), the random generator of their digital shifts and, float64
+        on ``device``, the coordinate scales ``(D,)`` [Bmad units], the
+        prior's mean and rms ``(D,)`` [Bmad units].
     """
-    dims, (rank, world) = config.dims, shard
+    dims = config.dims
     rng = torch.Generator(device=device).manual_seed(config.seed)
-    scale, offset, corr, prior = guess.generator_init(
-        dims, config.longitudinal_scale, config.prior_factor
-    )
+    scale, offset, corr, prior = guess.generator_init(dims, config.longitudinal_scale)
     model = BeamGenerator(
         dims,
         width=config.width,
@@ -965,9 +468,7 @@ def _new_generator(
         correlation=corr,
         generator=torch.Generator().manual_seed(config.seed),
     ).to(device)
-    if world > 1 and not config.quasi_random:
-        rng.manual_seed(config.seed + 7919 * rank)  # independent i.i.d. shares
-    net = FlatGenerator(model, config.n_particles, config.quasi_random, shard=shard)
+    net = FlatGenerator(model, config.n_particles, quasi_random=True, shard=shard)
     scales = tuple(
         t.to(device=device, dtype=torch.float64) for t in (scale, offset, prior)
     )
@@ -1014,7 +515,6 @@ def _loss_terms(
         norm,
         prior_mean,
         prior_std,
-        radius=config.entropy_radius,
         reduce=tdist.all_reduce if distributed else None,
     )
     return penalties, relative_entropy
@@ -1277,6 +777,9 @@ def train_generator(
     distributed: bool = False,
     maps: Sequence[Tensor] | None = None,
     initial_model: dict | None = None,
+    checkpoint_every: int = CHECKPOINT_EVERY,
+    report_every: int = REPORT_EVERY,
+    cuda_graph: bool = True,
 ) -> TrainingState:
     """Fit a :class:`BeamGenerator` to screen images and collect snapshot members.
 
@@ -1308,7 +811,7 @@ def train_generator(
         config: Training settings.
         checkpoint: File for atomic checkpoints; None disables them.
         resume: Continue from ``checkpoint`` if it exists.
-        callback: Called with a :class:`StepInfo` every ``config.report_every``
+        callback: Called with a :class:`StepInfo` every ``report_every``
             steps (and at snapshots, checkpoints and the end); an exception
             raised there stops training (the last checkpoint stays valid).
         device: Device to train on; default that of the first ``measured``.
@@ -1327,6 +830,20 @@ def train_generator(
         initial_model: Generator state dict to start from instead of the
             Gaussian ``guess`` (the guess still sets the prior of the entropy
             term).
+        checkpoint_every: Steps between checkpoints (also at every snapshot).
+        report_every: Steps between reads of the losses from the device (the
+            only host synchronisation of training): history, the finite-loss
+            check and the callback happen then (and at snapshots, checkpoints
+            and the last step). Does not change the result.
+        cuda_graph: On a CUDA device, capture the training step as a CUDA
+            graph after a few eager steps and replay it (one launch per step
+            instead of a few hundred; :mod:`~diffaccel.reconstruction.
+            graphed_step`; docs/gpu.md). 4D only (``graphed_step.GRAPH_DIMS``): 6D
+            steps stay eager until their capture is checked on a GPU, as do
+            ``distributed`` training and steps with a prior term. The
+            same arithmetic up to rounding (the per-step factors are device
+            scalars); where a capture fails the run goes on eagerly with a
+            warning. Ignored on CPUs.
 
     Shapes:
         Scan ``s``: ``measured (K_s, H_s, W_s)``, ``settings (K_s, P_s)``.
@@ -1337,8 +854,14 @@ def train_generator(
 
     Raises:
         ValueError: if the numbers of forward models, image stacks and settings
-            differ.
+            differ, or for a ``checkpoint_every`` or ``report_every`` below 1.
     """
+    for name, every in (
+        ("checkpoint_every", checkpoint_every),
+        ("report_every", report_every),
+    ):
+        if not (is_integer(every) and every >= 1):
+            raise ValueError(f"{name} must be an integer >= 1; got {every!r}.")
     forwards, measured_list, settings_list = _per_scan(forward, measured, settings)
     fingerprint = data_fingerprint(forwards, measured_list, settings_list)
     device = torch.device(device) if device is not None else measured_list[0].device
@@ -1367,14 +890,14 @@ def train_generator(
     hold = _beam_hold(config, forwards, settings_list, maps, norm=scales[0])
     loss = _StepLoss(net, images, penalties, entropy, hold, state, device, distributed)
     schedule = config.schedule
-    capture = config.cuda_graph and not distributed and hold is None
+    capture = cuda_graph and not distributed and hold is None
     reduce = tdist.all_reduce if distributed else None
     steps = TrainingSteps(
         loss, opt, schedule, gen_rng, state.step, total, dims, device, capture, reduce
     )
     # per-step values stay on the device, read every report_every steps, at
     # cycle ends, checkpoints and the end
-    record = _StepRecord(config.report_every, dims, device, entropy)
+    record = _StepRecord(report_every, dims, device, entropy)
     t0 = time.perf_counter() - state.elapsed_s
     while state.step < total:
         step = state.step
@@ -1385,10 +908,8 @@ def train_generator(
         loss.refresh_hold(state.step, held)
         cycle_end = schedule.cycle_end(state.step)
         member = schedule.member(state.step)
-        save = ckpt is not None and (
-            cycle_end or state.step % config.checkpoint_every == 0
-        )
-        report = state.step % config.report_every == 0 or state.step == total
+        save = ckpt is not None and (cycle_end or state.step % checkpoint_every == 0)
+        report = state.step % report_every == 0 or state.step == total
         if not (report or cycle_end or save):
             continue
         record.read(state.history, model)
