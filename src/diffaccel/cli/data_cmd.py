@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import click
 
+from diffaccel.cli.main import SUBCOMMANDS, LazyGroup
+
 __all__ = ["data"]
 
 
-@click.group("data")
+@click.group("data", cls=LazyGroup, table=SUBCOMMANDS["data"])
 def data() -> None:
     """Quad-scan files from DAQ output: camera frames, knob tables, backgrounds."""

@@ -7,8 +7,15 @@ from pathlib import Path
 import click
 from tqdm import tqdm
 
-from diffaccel.cli.options import echo_lines
-from diffaccel.cli.output import IN_FILE, OUT_FILE, SHOW_DEFAULTS, check_out_file
+from diffaccel.cli.output import (
+    IN_FILE,
+    OUT_FILE,
+    SHOW_DEFAULTS,
+    check_out_file,
+    echo_lines,
+    force_option,
+    out_option,
+)
 from diffaccel.data import FormatError, write_scans
 from diffaccel.data.experiment import (
     count_frames,
@@ -22,13 +29,8 @@ __all__ = ["import_command"]
 
 @click.command("import", context_settings=SHOW_DEFAULTS)
 @click.argument("experiment", type=IN_FILE)
-@click.option(
-    "--out",
-    required=True,
-    type=OUT_FILE,
-    help="Quad-scan file to write (HDF5, format version 2).",
-)
-@click.option("--force", is_flag=True, help="Replace an existing --out file.")
+@out_option(OUT_FILE, "Quad-scan file to write (HDF5, format version 2).")
+@force_option("Replace an existing --out file.")
 @click.option(
     "--progress/--no-progress",
     default=True,

@@ -8,8 +8,13 @@ from pathlib import Path
 
 import click
 
-from diffaccel.cli.options import seed_option
-from diffaccel.cli.output import OUT_DIR, output_folder
+from diffaccel.cli.output import (
+    OUT_DIR,
+    force_option,
+    out_option,
+    output_folder,
+    seed_option,
+)
 from diffaccel.cli.reconstruct import run_reconstruction
 from diffaccel.data import atomic_write_text, write_quad_scan
 from diffaccel.reconstruction import as_scans, training_selection
@@ -24,15 +29,8 @@ __all__ = ["demo"]
 
 
 @click.command("demo")
-@click.option(
-    "--out",
-    type=OUT_DIR,
-    required=True,
-    help="Output directory.",
-)
-@click.option(
-    "--force", is_flag=True, help="Replace an earlier demo in --out (at the end)."
-)
+@out_option(OUT_DIR, "Output directory.")
+@force_option("Replace an earlier demo in --out (at the end).")
 @seed_option
 def demo(out: Path, force: bool, seed: int) -> None:
     """Simulate a 6D quad scan and reconstruct it end to end (a few minutes on CPU)."""

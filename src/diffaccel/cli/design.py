@@ -8,8 +8,14 @@ from typing import Any
 
 import click
 
-from diffaccel.cli.options import echo_lines
-from diffaccel.cli.output import IN_DIR, IN_FILE, OUT_DIR, SHOW_DEFAULTS, click_errors
+from diffaccel.cli.output import (
+    IN_DIR,
+    IN_FILE,
+    OUT_DIR,
+    SHOW_DEFAULTS,
+    click_errors,
+    echo_lines,
+)
 from diffaccel.plotting.design import write_design_figures
 from diffaccel.reconstruction.design_report import (
     design_answers,

@@ -14,6 +14,7 @@ from typing import Any, TypeVar
 
 import click
 
+from diffaccel.cli.main import SUBCOMMANDS, LazyGroup
 from diffaccel.data import DEFAULT_RUN_COLUMN, DEFAULT_TIME_COLUMN, magnet_stream
 
 __all__ = [
@@ -31,7 +32,7 @@ F = TypeVar("F", bound=Callable)
 MAX_MAGNITUDE = magnet_stream.MAX_MAGNITUDE
 
 
-@click.group("hysteresis")
+@click.group("hysteresis", cls=LazyGroup, table=SUBCOMMANDS["hysteresis"])
 def hysteresis() -> None:
     """Preisach hysteresis models of magnets: fit and predict."""
 

@@ -14,12 +14,14 @@ from diffaccel.cli.hysteresis import (
     checked,
     time_column_option,
 )
-from diffaccel.cli.options import echo_lines
 from diffaccel.cli.output import (
     IN_FILE,
     OUT_DIR,
     SHOW_DEFAULTS,
     click_errors,
+    echo_lines,
+    force_option,
+    out_option,
     output_folder,
 )
 from diffaccel.data import (
@@ -72,12 +74,10 @@ MAX_SMOOTHNESS = 1e12
     help="Column of the measured output (e.g. the integrated field [T m]).",
 )
 @time_column_option
-@click.option(
-    "--out",
+@out_option(
+    OUT_DIR,
+    "Folder for summary.json, model.pt, model.json, stream.npz and figures.",
     "out_dir",
-    type=OUT_DIR,
-    required=True,
-    help="Folder for summary.json, model.pt, model.json, stream.npz and figures.",
 )
 @click.option(
     "--mesh-size",
@@ -141,9 +141,7 @@ MAX_SMOOTHNESS = 1e12
     "(+- 1.01 max|input| for --initial-state demagnetized).",
 )
 @click.option("--no-figures", is_flag=True, help="Skip fit.png and density.png.")
-@click.option(
-    "--force", is_flag=True, help="Replace an earlier fit in OUT (at the end)."
-)
+@force_option("Replace an earlier fit in OUT (at the end).")
 def fit_command(
     data: Path,
     train_rows: int,

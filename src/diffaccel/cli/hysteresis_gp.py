@@ -8,12 +8,14 @@ import click
 from tqdm import tqdm
 
 from diffaccel.cli.hysteresis import check_input_range, time_column_option
-from diffaccel.cli.options import echo_warnings
 from diffaccel.cli.output import (
     IN_FILE,
     OUT_DIR,
     SHOW_DEFAULTS,
     click_errors,
+    echo_warnings,
+    force_option,
+    out_option,
     output_folder,
 )
 from diffaccel.data import atomic_write_json
@@ -53,13 +55,7 @@ SEED_MAX = 2**64 - 1
     multiple=True,
     help="Extra non-hysteretic input column (repeatable).",
 )
-@click.option(
-    "--out",
-    "out_dir",
-    type=OUT_DIR,
-    required=True,
-    help=f"Folder for {SUMMARY_FILE} and {FIGURE_FILE}.",
-)
+@out_option(OUT_DIR, f"Folder for {SUMMARY_FILE} and {FIGURE_FILE}.", "out_dir")
 @click.option(
     "--mesh-size",
     type=click.IntRange(min=2, max=MAX_CLI_MESH_SIZE),
@@ -107,9 +103,7 @@ SEED_MAX = 2**64 - 1
     default=0,
     help="Seed of the random restarts.",
 )
-@click.option(
-    "--force", is_flag=True, help="Replace an earlier result in OUT (at the end)."
-)
+@force_option("Replace an earlier result in OUT (at the end).")
 def gp_fit(
     data: Path,
     x_col: str,

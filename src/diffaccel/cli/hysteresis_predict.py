@@ -4,14 +4,9 @@ Imports only what predicting needs: numpy, the streaming prediction of a CSV
 (:mod:`diffaccel.hysteresis.stream_csv`) and the CSV streaming of
 :mod:`diffaccel.data.magnet_stream`; no torch (~2 s of start-up), no plotting,
 no GP libraries (see ``benchmarks/preisach_stream.py``). A fit folder saved
-before ``stream.npz`` existed is read with torch instead.
-
-Rows whose input lies beyond the fit's input range are extrapolated: every
-hysteron switched (saturation) plus the linear term. They are flagged per row
-(``outside_input_range``) and counted in a warning; their ``prediction_std``
-widens only with the uncertainty of the model's linear term (see
-:mod:`diffaccel.hysteresis.band`), not with any doubt about the saturation,
-which no fitted number can measure. Rows inside the range are unaffected.
+before ``stream.npz`` existed is read with torch instead. The command's help
+says how rows beyond the fit's input range are predicted
+(:mod:`diffaccel.hysteresis.band` derives their band).
 """
 
 from __future__ import annotations
@@ -21,7 +16,15 @@ from pathlib import Path
 import click
 
 from diffaccel.cli.hysteresis import time_column_option
-from diffaccel.cli.output import IN_DIR, IN_FILE, OUT_FILE, SHOW_DEFAULTS, click_errors
+from diffaccel.cli.output import (
+    IN_DIR,
+    IN_FILE,
+    OUT_FILE,
+    SHOW_DEFAULTS,
+    click_errors,
+    force_option,
+    out_option,
+)
 from diffaccel.data import DEFAULT_INPUT_COLUMN
 from diffaccel.hysteresis.stream_csv import (
     COLUMNS,
@@ -49,12 +52,10 @@ MAX_CHUNK_ROWS = 10**9
     help="CSV with the input column of the fit, rows in time order (any length).",
 )
 @time_column_option
-@click.option(
-    "--out",
+@out_option(
+    OUT_FILE,
+    "CSV file to write: the input's columns plus the predicted ones.",
     "out_file",
-    type=OUT_FILE,
-    required=True,
-    help="CSV file to write: the input's columns plus the predicted ones.",
 )
 @click.option(
     "--chunk-rows",
@@ -62,11 +63,9 @@ MAX_CHUNK_ROWS = 10**9
     default=CHUNK_ROWS,
     help="Rows read, predicted and written at a time (memory grows with it).",
 )
-@click.option(
-    "--force",
-    is_flag=True,
-    help=f"Overwrite OUT if it exists, and replace the columns {', '.join(COLUMNS)} "
-    "of the input.",
+@force_option(
+    f"Overwrite OUT if it exists, and replace the columns {', '.join(COLUMNS)} "
+    "of the input."
 )
 def predict_command(
     fit_dir: Path,

@@ -17,8 +17,7 @@ from diffaccel.cli.hysteresis import (
     check_input_range,
     time_column_option,
 )
-from diffaccel.cli.options import echo_lines
-from diffaccel.cli.output import IN_DIR, IN_FILE, click_errors
+from diffaccel.cli.output import IN_DIR, IN_FILE, click_errors, echo_lines
 from diffaccel.data import DEFAULT_INPUT_COLUMN, DEFAULT_TIME_COLUMN, iter_magnet_csv
 from diffaccel.data.magnet_stream import check_time_column
 from diffaccel.hysteresis import field_for_k1

@@ -7,8 +7,15 @@ from pathlib import Path
 
 import click
 
-from diffaccel.cli.options import echo_lines, echo_warnings
-from diffaccel.cli.output import IN_FILE, OUT_FILE, check_out_file
+from diffaccel.cli.output import (
+    IN_FILE,
+    OUT_FILE,
+    check_out_file,
+    echo_lines,
+    echo_warnings,
+    force_option,
+    out_option,
+)
 from diffaccel.data.atomic import atomic_write_json
 from diffaccel.dynamics import Beamline
 from diffaccel.dynamics.cheetah_interop import LatticeImportError
@@ -56,13 +63,10 @@ __all__ = ["lattice"]
     default=None,
     help="Reference momentum [eV] for linear maps (--approximate linear, EMATRIX).",
 )
-@click.option(
-    "--out",
-    type=OUT_FILE,
-    default=None,
-    help="Write the beamline spec (JSON list of elements) here.",
+@out_option(
+    OUT_FILE, "Write the beamline spec (JSON list of elements) here.", required=False
 )
-@click.option("--force", is_flag=True, help="Overwrite --out if it exists.")
+@force_option("Overwrite --out if it exists.")
 def lattice(
     file: Path,
     start: str | None,

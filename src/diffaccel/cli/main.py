@@ -128,22 +128,12 @@ def _import(module: str, attr: str) -> click.Command:
 def load_command(name: str) -> click.Command:
     """Import the module of command ``name`` and return the command.
 
-    A group in ``SUBCOMMANDS`` comes back as a lazy group: its subcommands are
-    listed from the table and imported when they run. Only ``cli`` modules are
-    loaded this way (the leaf room: nothing imports it, so deferring these
-    imports cannot hide an import cycle).
+    A group in ``SUBCOMMANDS`` is a :class:`LazyGroup` over its table there:
+    its subcommands are listed from the table and imported when they run.
+    Only ``cli`` modules are loaded this way (the leaf room: nothing imports
+    it, so deferring these imports cannot hide an import cycle).
     """
-    module, attr, _ = COMMANDS[name]
-    cmd = _import(module, attr)
-    if name in SUBCOMMANDS and not isinstance(cmd, _LazyGroup):
-        cmd = _LazyGroup(
-            name=cmd.name,
-            callback=cmd.callback,
-            params=cmd.params,
-            help=cmd.help,
-            table=SUBCOMMANDS[name],
-        )
-    return cmd
+    return _import(*COMMANDS[name][:2])
 
 
 def _short_help(text: str, limit: int) -> str:
@@ -151,12 +141,12 @@ def _short_help(text: str, limit: int) -> str:
     return click.Command("_", help=text).get_short_help_str(limit)
 
 
-class _LazyGroup(click.Group):
+class LazyGroup(click.Group):
     """A click group whose commands are imported when they are invoked.
 
     ``table`` maps command names to ``(module, attribute, help)``; the top
-    level uses ``COMMANDS`` (and :func:`load_command`, which makes groups lazy
-    too).
+    level uses ``COMMANDS``, a group of subcommands its table in
+    ``SUBCOMMANDS``.
     """
 
     def __init__(
@@ -172,10 +162,7 @@ class _LazyGroup(click.Group):
         if cmd_name not in self.table:
             return None
         if cmd_name not in self.commands:
-            if self.table is COMMANDS:
-                self.commands[cmd_name] = load_command(cmd_name)
-            else:
-                self.commands[cmd_name] = _import(*self.table[cmd_name][:2])
+            self.commands[cmd_name] = _import(*self.table[cmd_name][:2])
         return self.commands[cmd_name]
 
     def invoke(self, ctx: click.Context) -> object:
@@ -213,7 +200,7 @@ class _LazyGroup(click.Group):
             formatter.write_dl(rows)
 
 
-@click.group(cls=_LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="diffaccel")
 @click.option(
     "-v", "--verbose", count=True, help="More log output (-v info, -vv debug)."

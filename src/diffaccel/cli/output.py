@@ -1,11 +1,12 @@
-"""Result folders, output files and path types of CLI commands; library errors
-as one line."""
+"""What several commands share: path types, the ``--out``, ``--force`` and
+``--seed`` options, result folders, library errors as one line, printed lines."""
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TypeVar
 
 import click
 
@@ -16,7 +17,7 @@ from diffaccel.data import (
     owned_files,
     result_folder,
 )
-from diffaccel.data.atomic import os_condition, os_error_text
+from diffaccel.data.atomic import os_condition
 
 __all__ = [
     "IN_DIR",
@@ -26,9 +27,15 @@ __all__ = [
     "SHOW_DEFAULTS",
     "check_out_file",
     "click_errors",
-    "os_error",
+    "echo_lines",
+    "echo_warnings",
+    "force_option",
+    "out_option",
     "output_folder",
+    "seed_option",
 ]
+
+F = TypeVar("F", bound=Callable)
 
 #: An existing file an argument or option reads.
 IN_FILE = click.Path(exists=True, dir_okay=False, path_type=Path)
@@ -40,6 +47,30 @@ OUT_FILE = click.Path(dir_okay=False, path_type=Path)
 OUT_DIR = click.Path(file_okay=False, path_type=Path)
 #: ``context_settings`` of the commands: every option's default in ``--help``.
 SHOW_DEFAULTS = {"show_default": True}
+
+
+def out_option(
+    path_type: click.Path, help: str, dest: str | None = None, required: bool = True
+) -> Callable[[F], F]:
+    """The ``--out`` option of a command: where it writes (``dest``: its parameter)."""
+    decls = ("--out",) if dest is None else ("--out", dest)
+    return click.option(*decls, type=path_type, required=required, help=help)
+
+
+def force_option(help: str) -> Callable[[F], F]:
+    """The ``--force`` flag: replace what ``--out`` already holds, as ``help`` says."""
+    return click.option("--force", is_flag=True, help=help)
+
+
+def seed_option(command: F) -> F:
+    """The ``--seed`` option (an integer, default 0)."""
+    return click.option(
+        "--seed",
+        type=int,
+        default=0,
+        show_default=True,
+        help="Random seed: the same seed gives the same numbers.",
+    )(command)
 
 
 @contextmanager
@@ -95,22 +126,20 @@ def output_folder(
         ) from err
 
 
-def check_out_file(
-    out: Path,
-    force: bool,
-    inputs: dict[str, Path | None],
-    option: str = "--out",
-    csv_columns: Sequence[str] = (),
-) -> None:
+def check_out_file(out: Path, force: bool, inputs: dict[str, Path | None]) -> None:
     """:func:`diffaccel.data.owned_files.check_out_file`, its refusal as one line."""
     try:
-        owned_files.check_out_file(out, force, inputs, option, csv_columns)
+        owned_files.check_out_file(out, force, inputs)
     except owned_files.OutputFileError as err:
         raise click.ClickException(str(err)) from err
 
 
-def os_error(
-    err: BaseException, path: Path, doing: str = "write"
-) -> click.ClickException:
-    """:func:`diffaccel.data.atomic.os_error_text` as a click error."""
-    return click.ClickException(os_error_text(err, path, doing))
+def echo_lines(lines: Sequence[str], err: bool = False) -> None:
+    """Each of ``lines`` on stdout (``err``: on stderr)."""
+    for line in lines:
+        click.echo(line, err=err)
+
+
+def echo_warnings(warnings: Sequence[str]) -> None:
+    """Each warning on stderr as ``warning: ...``."""
+    echo_lines([f"warning: {w}" for w in warnings], err=True)

@@ -7,8 +7,16 @@ from typing import Any
 
 import click
 
-from diffaccel.cli.options import echo_warnings, seed_option
-from diffaccel.cli.output import IN_DIR, IN_FILE, OUT_FILE, SHOW_DEFAULTS
+from diffaccel.cli.output import (
+    IN_DIR,
+    IN_FILE,
+    OUT_FILE,
+    SHOW_DEFAULTS,
+    echo_warnings,
+    force_option,
+    out_option,
+    seed_option,
+)
 from diffaccel.data import FormatError
 from diffaccel.reconstruction.prediction import check_prediction_files, predict_files
 
@@ -32,11 +40,9 @@ __all__ = ["predict"]
     help="Instead of --dataset: values of the scanned parameter(s) of the "
     "(first) training scan, e.g. '-3,0,2.5' (one parameter) or '1:2;3:4' (rows ';').",
 )
-@click.option(
-    "--out",
-    type=OUT_FILE,
-    required=True,
-    help="Output file: .h5 writes a quad-scan file of the same format version as "
+@out_option(
+    OUT_FILE,
+    "Output file: .h5 writes a quad-scan file of the same format version as "
     "--dataset with the predicted images (one shot, each summing to 1); .npy "
     "writes (K, H, W) float32 (one scan only). Settings where less than half of "
     "the beam lands on the screen are warned (and recorded in the .h5).",
@@ -58,7 +64,7 @@ __all__ = ["predict"]
     "such array per scan name (ensemble scatter and the moment-space posterior; "
     "see docs/methods/uncertainty.md).",
 )
-@click.option("--force", is_flag=True, help="Overwrite --out (and --std-out).")
+@force_option("Overwrite --out (and --std-out).")
 def predict(result_dir: Path, out: Path, force: bool, **options: Any) -> None:
     """Ensemble-mean screen images of a reconstruction (RESULT_DIR) for new settings."""
     dataset, std_out = options["dataset"], options["std_out"]

@@ -10,7 +10,7 @@ The command parses its options, checks the run with
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from contextlib import nullcontext
 from pathlib import Path
 from types import SimpleNamespace
@@ -22,13 +22,17 @@ import torch.distributed as tdist
 from click.core import ParameterSource
 from tqdm import tqdm
 
-from diffaccel.cli.options import echo_lines, echo_warnings, seed_option
 from diffaccel.cli.output import (
     IN_FILE,
     OUT_DIR,
     SHOW_DEFAULTS,
     click_errors,
+    echo_lines,
+    echo_warnings,
+    force_option,
+    out_option,
     output_folder,
+    seed_option,
 )
 from diffaccel.data import MultiScanDataset, partial_folder
 from diffaccel.plotting.reconstruction import (
@@ -39,10 +43,8 @@ from diffaccel.plotting.reconstruction import (
 )
 from diffaccel.reconstruction import ReconstructionConfig, StepInfo, reconstruct
 from diffaccel.reconstruction.results import (
-    CHECKPOINT,
     OWNED,
     REPORT,
-    SELECTION,
     ResultFigures,
     RunError,
     config_options,
@@ -60,59 +62,38 @@ from diffaccel.reconstruction.runtime import (
 )
 from diffaccel.reconstruction.training import CHECKPOINT_EVERY
 
-__all__ = [
-    "CHECKPOINT",
-    "OWNED",
-    "PARAMETER_FLAGS",
-    "SELECTION",
-    "check_device",
-    "reconstruct_command",
-    "run_reconstruction",
-]
+__all__ = ["check_device", "reconstruct_command", "run_reconstruction"]
 
 F = TypeVar("F", bound=Callable)
 
 _DEFAULTS = {d: ReconstructionConfig(dims=d) for d in (4, 6)}
 
 
-#: Parameters of ``reconstruct`` that set the config, by their flags.
-PARAMETER_FLAGS = {
-    "dims": "--dims",
-    "particles": "--particles",
-    "steps": "--steps",
-    "snapshots": "--snapshots",
-    "seed": "--seed",
-    "image_loss": "--image-loss",
-    "blur": "--blur",
-    "loss_smoothing": "--loss-smoothing",
-}
+def _by_dims(field: str) -> str:
+    """The config's default ``field`` for both ``--dims``, as the help states it."""
+    four, six = (getattr(_DEFAULTS[d], field) for d in (4, 6))
+    return f"{four} for --dims 4, {six} for --dims 6"
 
 
-def given_flags(ctx: click.Context) -> set[str]:
-    """The flags of :data:`PARAMETER_FLAGS` given on the command line."""
+def given_flags(ctx: click.Context, names: Iterable[str]) -> set[str]:
+    """The first flags of the parameters ``names`` given on the command line."""
     return {
-        flag
-        for name, flag in PARAMETER_FLAGS.items()
-        if ctx.get_parameter_source(name) in (ParameterSource.COMMANDLINE,)
+        param.opts[0]
+        for param in ctx.command.params
+        if param.name in names
+        and ctx.get_parameter_source(param.name) is ParameterSource.COMMANDLINE
     }
 
 
 #: The argument and options of ``reconstruct``, in the order of its ``--help``.
 _OPTIONS = [
     click.argument("dataset", type=IN_FILE),
-    click.option(
-        "--out",
-        type=OUT_DIR,
-        required=True,
-        help="Output directory (ensemble, summary.json, figures).",
-    ),
+    out_option(OUT_DIR, "Output directory (ensemble, summary.json, figures)."),
     click.option(
         "--particles",
         type=click.IntRange(min=16),
         default=None,
-        help="Fresh particles per training step [default: "
-        f"{_DEFAULTS[4].n_particles} for --dims 4, {_DEFAULTS[6].n_particles} for "
-        "--dims 6].",
+        help=f"Fresh particles per training step [default: {_by_dims('n_particles')}].",
     ),
     click.option(
         "--steps",
@@ -121,17 +102,14 @@ _OPTIONS = [
         type=click.IntRange(min=1),
         default=None,
         help="Optimisation steps (multiple of --snapshots); --epochs is an alias "
-        f"[default: {_DEFAULTS[4].steps} for --dims 4, {_DEFAULTS[6].steps} for "
-        "--dims 6].",
+        f"[default: {_by_dims('steps')}].",
     ),
     click.option(
         "--snapshots",
         type=click.IntRange(min=1),
         default=None,
         help="Cosine learning-rate cycles; the ensemble keeps the last snapshots - "
-        f"burn-in (burn-in {_DEFAULTS[4].burn_in} for --dims 4, "
-        f"{_DEFAULTS[6].burn_in} for --dims 6) [default: {_DEFAULTS[4].snapshots} for "
-        f"--dims 4, {_DEFAULTS[6].snapshots} for --dims 6].",
+        f"burn-in (burn-in {_by_dims('burn_in')}) [default: {_by_dims('snapshots')}].",
     ),
     seed_option,
     click.option("--device", default="cpu", help="cpu, cuda, cuda:1..."),
@@ -192,11 +170,9 @@ _OPTIONS = [
         "docs/methods/uncertainty.md) and the per-pixel spread in the image figures; "
         "--no-uncertainty reports the ensemble scatter only (faster, under-covers).",
     ),
-    click.option(
-        "--force",
-        is_flag=True,
-        help="Replace an earlier reconstruction in --out (at the end); discard an "
-        "interrupted run's checkpoint in .OUT.partial.",
+    force_option(
+        "Replace an earlier reconstruction in --out (at the end); discard an "
+        "interrupted run's checkpoint in .OUT.partial."
     ),
     click.option(
         "--resume",
@@ -281,7 +257,7 @@ def run_reconstruction(
     """Reconstruct with a progress bar, then write the result into ``folder``.
 
     ``folder`` is the staging folder of an :func:`~diffaccel.cli.output.output_folder`
-    (the checkpoint and :data:`SELECTION` go there too); the files are those of
+    (the checkpoint and the training selection go there too); the files are those of
     :func:`~diffaccel.reconstruction.results.write_result`, the figures
     :data:`FIGURES` unless not ``figures``. With ``distributed`` (an
     initialised ``torch.distributed`` group) every process trains its share
@@ -353,7 +329,7 @@ def reconstruct_command(
     # _init_distributed: a module name, looked up here (tests replace it)
     dev = _init_distributed(device) if distributed else check_device(device)
     writer = not distributed or tdist.get_rank() == 0
-    with click_errors():  # the options of PARAMETER_FLAGS
+    with click_errors():  # --dims, --particles, --steps, ...: the config's
         options = config_options(**config_values)
     charge_C = None if charge_pc is None else charge_pc * 1e-12
     source = ctx.get_parameter_source("train_indices")
@@ -362,7 +338,7 @@ def reconstruct_command(
             dataset,
             out,
             options,
-            given=given_flags(ctx),
+            given=given_flags(ctx, config_values),
             train_indices=train_indices,
             indices_given=source == ParameterSource.COMMANDLINE,
             resume=resume,

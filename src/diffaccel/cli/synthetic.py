@@ -12,9 +12,10 @@ from diffaccel.cli.output import (
     OUT_FILE,
     SHOW_DEFAULTS,
     click_errors,
-    os_error,
+    force_option,
 )
 from diffaccel.data import FormatError
+from diffaccel.data.atomic import os_error_text
 from diffaccel.data.quad_scan import PARAMETER_LIMITS
 from diffaccel.data.synthetic import PRESETS
 from diffaccel.data.synthetic_file import (
@@ -132,7 +133,7 @@ _K1 = PARAMETER_LIMITS["k1"]
 @click.option(
     "--seed", type=int, default=0, help="Seed of the beam sample and the noise."
 )
-@click.option("--force", is_flag=True, help="Overwrite OUT if it exists.")
+@force_option("Overwrite OUT if it exists.")
 def synthetic(out: Path, force: bool, **options: Any) -> None:
     """Simulate a quadrupole scan of a known beam and write it to OUT (HDF5)."""
     opts = SyntheticRequest(**options)
@@ -143,7 +144,7 @@ def synthetic(out: Path, force: bool, **options: Any) -> None:
     except (FormatError, ValueError, FileExistsError) as err:
         raise click.ClickException(str(err)) from err
     except OSError as err:  # a read-only folder, a full disk, a locked file
-        raise os_error(err, out) from err
+        raise click.ClickException(os_error_text(err, out)) from err
     except (MemoryError, RuntimeError) as err:
         if not isinstance(err, MemoryError) and "alloc" not in str(err):
             raise
