@@ -16,8 +16,8 @@ from diffaccel.reconstruction import (
     reconstruct,
 )
 from diffaccel.reconstruction import design as dz
-from diffaccel.reconstruction.uncertainty import covariance_design, image_moments
-from diffaccel.reconstruction.unseen import _LONGITUDINAL, _moment_design
+from diffaccel.reconstruction import screen_moments as sm
+from diffaccel.reconstruction.uncertainty import image_moments
 
 SPEC = {
     "p0c": 43.36e6,
@@ -64,28 +64,6 @@ def test_quad_scan_leaves_z_and_pz_unseen(small_scan):
     assert "z and pz not seen at all" in obs.summary_line()
 
 
-def test_design_is_the_three_existing_designs():
-    maps = ScreenForwardModel.from_spec(
-        {
-            "beamline": SPEC["scans"]["quad"]["beamline"],
-            "names": ["Q1.k1"],
-            "p0c": 43.36e6,
-            "species": "electron",
-            "blur_pixels": 1.0,
-        }
-    ).transfer_maps(torch.linspace(-10, 10, 5)[:, None])
-    d = dz.moment_design([maps])
-    assert torch.equal(d, covariance_design(maps[:, :6, :6].double(), 6))
-    cov = _beam()
-    scaled, _ = dz.scaled_design(d, cov)
-    ref, *_ = _moment_design([maps], cov, _LONGITUDINAL)  # rows xx, yy, xy blocks
-    cols = [dz.ENTRIES.index(e) for e in _LONGITUDINAL]
-    mine = scaled[:, cols].reshape(5, 3, -1)
-    theirs = ref.reshape(3, 5, -1)
-    for a, b in ((0, 0), (2, 1), (1, 2)):
-        torch.testing.assert_close(mine[:, a], theirs[b], rtol=1e-12, atol=1e-15)
-
-
 def test_design_matches_tracked_images(small_awa6d):
     """First-order design against tracked particles and their images (6D layout)."""
     cov = _beam()
@@ -94,10 +72,10 @@ def test_design_matches_tracked_images(small_awa6d):
     g = torch.Generator().manual_seed(0)
     x = torch.randn(40_000, 6, generator=g, dtype=torch.float64)
     x = x @ torch.linalg.cholesky(cov).T
-    theta = dz.theta_of(torch.cov(x.T))
+    theta = sm.theta_of(torch.cov(x.T))
     for _, scan in small_awa6d:
         fwd = ScreenForwardModel.from_dataset(scan, blur_pixels=0.0)
-        pred = dz.moment_design([fwd.transfer_maps(scan.settings)]) @ theta
+        pred = sm.moment_design([fwd.transfer_maps(scan.settings)]) @ theta
         pred = pred.reshape(-1, 3)
         at = fwd.track_to_screen(x, scan.settings)  # (K, N, 6)
         xs, ys = at[..., 0], at[..., 2]
@@ -246,10 +224,10 @@ def test_summary_stores_the_observability_line(small_scan):
 
 def test_design_matches_the_moments_of_tracked_images(small_awa6d):
     """The synthetic files' images (exact tracking, histograms) against the design."""
-    theta = dz.theta_of(torch.cov(small_awa6d.ground_truth.double().T))
+    theta = sm.theta_of(torch.cov(small_awa6d.ground_truth.double().T))
     for _, scan in small_awa6d:
         fwd = ScreenForwardModel.from_dataset(scan)
-        pred = dz.moment_design([fwd.transfer_maps(scan.settings)]) @ theta
+        pred = sm.moment_design([fwd.transfer_maps(scan.settings)]) @ theta
         pred = pred.reshape(-1, 3)
         xs, ys = scan.pixel_centers()
         m = image_moments(scan.mean_images().double(), xs, ys)

@@ -8,7 +8,6 @@ Example:
 
 from diffaccel.reconstruction.config import ReconstructionConfig
 from diffaccel.reconstruction.design import (
-    moment_design,
     observability,
     propose_quad_settings,
     recommend,
@@ -47,6 +46,7 @@ from diffaccel.reconstruction.pipeline import (
     reconstruct,
     training_selection,
 )
+from diffaccel.reconstruction.screen_moments import moment_design
 from diffaccel.reconstruction.training import (
     StepInfo,
     TrainingState,

@@ -84,12 +84,11 @@ from diffaccel.data.scans import MultiScanDataset
 from diffaccel.reconstruction.ensemble import Reconstruction, unconstrained_coordinates
 from diffaccel.reconstruction.forward import ScreenForwardModel
 from diffaccel.reconstruction.pipeline import as_scans, psf_excess
+from diffaccel.reconstruction.screen_moments import covariance_design, pair_indices
 from diffaccel.reconstruction.uncertainty import (
-    covariance_design,
     image_moments,
     linear_posterior,
     moment_window,
-    pair_indices,
 )
 
 __all__ = [
@@ -278,7 +277,7 @@ def _relative_moment_misses(fit: ScanFit) -> tuple[Tensor, Tensor, Tensor, Tenso
     """``(misses (K, 3), residual (3K,), scale (3K,), halo (K,))``: relative
     misses of ``<xx>, <xy>, <yy>`` per image, the raw residuals with their
     scales (the rows of
-    :func:`~diffaccel.reconstruction.uncertainty.covariance_design`), and the
+    :func:`~diffaccel.reconstruction.screen_moments.covariance_design`), and the
     measured intensity outside the moment box less the predicted (a background
     the beam does not explain shows there). Scales are the predicted variances
     plus one pixel^2 (a beam smaller than a pixel has no resolved size)."""

@@ -1,20 +1,16 @@
 """What a set of scans determines, and which settings to add: observability and design.
 
-**The moment design.** At a setting with first-order map ``R`` the screen's
-second moments are linear in the beam covariance ``Sigma``:
-``<xx> = a Sigma a^T``, ``<xy> = a Sigma b^T``, ``<yy> = b Sigma b^T`` with ``a,
-b`` the x and y rows of ``R``. :func:`moment_design` stacks those rows over
-every setting of every scan (columns: the 21 upper-triangular entries of
-:func:`~diffaccel.reconstruction.uncertainty.pair_indices`;
-:func:`~diffaccel.reconstruction.uncertainty.covariance_design` per scan).
-:func:`scaled_design` puts it in the units in which directions are compared:
-unknowns in correlation units (``S_ij / (sig_i sig_j)``) and rows relative to
-the screen sizes of the beam (the scaling of
-:func:`~diffaccel.reconstruction.unseen.unseen_directions`). It is exact for
-the first-order part of the optics; chromatic and higher-order terms (a
-cavity's streak of an energy-spread beam, a bend's ``T166``) make tracked
-images differ at the per-cent level (``tests/reconstruction/test_design.py``
-checks it against tracked images).
+**The moment design** (:mod:`~diffaccel.reconstruction.screen_moments`, the
+one the initial guess, the unseen directions, the prior report and the moment
+posterior use). :func:`moment_design` maps the 21 upper-triangular entries of
+the beam covariance to the second moments of every screen at every setting of
+every scan; :func:`scaled_design` puts it in the units in which directions are
+compared: unknowns in correlation units (``S_ij / (sig_i sig_j)``) and rows
+relative to the screen sizes of the beam. It is exact for the first-order part
+of the optics; chromatic and higher-order terms (a cavity's streak of an
+energy-spread beam, a bend's ``T166``) make tracked images differ at the
+per-cent level (``tests/reconstruction/test_design.py`` checks it against
+tracked images).
 
 **Observability** (:func:`observability`). With a relative error ``r`` of each
 screen moment (``r <xx>``, ``r sqrt(<xx><yy>/2)``, ``r <yy>``) and the prior of
@@ -76,7 +72,12 @@ from diffaccel.reconstruction.forward import ScreenForwardModel
 from diffaccel.reconstruction.initial import fit_gaussian
 from diffaccel.reconstruction.metrics import COORDINATES
 from diffaccel.reconstruction.prior_dependence import _moves
-from diffaccel.reconstruction.uncertainty import covariance_design, pair_indices
+from diffaccel.reconstruction.screen_moments import (
+    ENTRIES,
+    moment_design,
+    pair_indices,
+    scaled_design,
+)
 from diffaccel.reconstruction.unseen import UNSEEN_TOLERANCE, traded_pairs
 
 __all__ = [
@@ -90,7 +91,6 @@ __all__ = [
     "image_kurtosis",
     "layouts_from_dataset",
     "layouts_from_spec",
-    "moment_design",
     "observability",
     "observability_line",
     "parse_knob",
@@ -98,12 +98,9 @@ __all__ = [
     "quad_scan_posterior",
     "quantities",
     "recommend",
-    "scaled_design",
     "tail_variance",
 ]
 
-#: The 21 covariance entries ``(i, j), i <= j`` (columns of the design).
-ENTRIES = pair_indices(6)
 #: Entry names, e.g. ``"py-z"``.
 ENTRY_NAMES = [f"{COORDINATES[i]}-{COORDINATES[j]}" for i, j in ENTRIES]
 #: Named quantities of :func:`quantities`.
@@ -150,53 +147,7 @@ JOINT_LIMIT = 200_000
 KNOB_POINTS = 5
 
 
-# ------------------------------------------------------------------ the design
-def moment_design(maps: Sequence[Tensor]) -> Tensor:
-    """Linear map from the 21 covariance entries to every screen's second moments.
-
-    Args:
-        maps: First-order maps of each scan's settings ``(K_s, 6, 6)`` or
-            affine ``(K_s, 7, 7)``.
-
-    Returns:
-        ``(3 K, 21)`` float64, rows ``<xx>_k, <xy>_k, <yy>_k`` setting-major
-        over the scans in order, columns :data:`ENTRIES` [Bmad units].
-    """
-    rows = [covariance_design(m.to(torch.float64)[:, :6, :6], 6) for m in maps]
-    if not rows:
-        return torch.zeros(0, len(ENTRIES), dtype=torch.float64)
-    return torch.cat(rows)
-
-
-def theta_of(cov: Tensor) -> Tensor:
-    """The 21 entries :data:`ENTRIES` of a covariance ``(6, 6)`` -> ``(21,)``."""
-    ii = torch.tensor([e[0] for e in ENTRIES])
-    jj = torch.tensor([e[1] for e in ENTRIES])
-    return cov.to(torch.float64)[ii, jj]
-
-
-def scaled_design(design: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
-    """:func:`moment_design` in correlation units, rows relative to the screen sizes.
-
-    Args:
-        design: ``(3 K, 21)`` from :func:`moment_design`.
-        cov: Beam covariance ``(6, 6)`` [Bmad units].
-
-    Returns:
-        ``(scaled (3 K, 21), moments (3 K,))``: column ``(i, j)`` times
-        ``sig_i sig_j``, row ``<uv>`` divided by ``sqrt(<uu><vv>)`` (so ``<xx>``
-        rows by ``<xx>``) of the beam; ``moments`` the beam's screen moments.
-    """
-    s = cov.to(torch.float64)
-    sig = s.diagonal().clamp_min(1e-300).sqrt()
-    col = torch.stack([sig[i] * sig[j] for i, j in ENTRIES])
-    m = design @ theta_of(s)
-    k = m.reshape(-1, 3)
-    xx, yy = k[:, 0].clamp_min(1e-300), k[:, 2].clamp_min(1e-300)
-    row = torch.stack([xx, (xx * yy).sqrt(), yy], -1).reshape(-1)
-    return design * col[None, :] / row[:, None], m
-
-
+# ------------------------------------------- the design's information
 def _row_weights(n_rows: int, relative_error: float | Tensor) -> Tensor:
     """Inverse variances of scaled rows: ``1/r^2`` for ``<xx>, <yy>``, ``2/r^2``
     for ``<xy>``."""

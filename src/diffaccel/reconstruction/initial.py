@@ -11,6 +11,7 @@ from torch import Tensor
 
 from diffaccel.dynamics.linalg import lstsq
 from diffaccel.reconstruction.forward import ScreenForwardModel
+from diffaccel.reconstruction.screen_moments import covariance_design
 
 #: Transverse prior widths of the entropy term in units of the widths of the
 #: Gaussian fitted to the image moments: broad enough to bound only what the
@@ -279,7 +280,7 @@ def fit_gaussian(
     forwards = list(forward) if isinstance(forward, list | tuple) else [forward]
     image_list = list(images) if isinstance(images, list | tuple) else [images]
     setting_list = list(settings) if isinstance(settings, list | tuple) else [settings]
-    rx_all, ry_all, mx_all, my_all, vxx_all, vyy_all, vxy_all = ([] for _ in range(7))
+    r_all, mx_all, my_all, vxx_all, vyy_all, vxy_all = ([] for _ in range(6))
     floors, drift = [], 0.0
     map_list = list(maps) if maps is not None else [None] * len(forwards)
     if not len(forwards) == len(image_list) == len(setting_list) == len(map_list):
@@ -320,11 +321,10 @@ def fit_gaussian(
         # centroids less the orbit offsets of misaligned elements
         mx_all.append(mx - r[:, 0, 6])
         my_all.append(my - r[:, 2, 6])
-        rx_all.append(r[:, 0, :6])
-        ry_all.append(r[:, 2, :6])
+        r_all.append(r[:, :6, :6])
         floors.append(float(xs.diff().abs().mean()) * 0.5)
         drift = max(drift, float(fwd.drift_length()))
-    rx, ry = torch.cat(rx_all), torch.cat(ry_all)
+    rx, ry = (torch.cat([r[:, row] for r in r_all]) for row in (0, 2))
     seen = sorted(set(range(4)) | set(_observed(torch.cat([rx, ry]))))
     rx, ry = rx[:, seen], ry[:, seen]
     n = len(seen)
@@ -332,17 +332,13 @@ def fit_gaussian(
     a = torch.cat([rx, ry], 0)
     b = torch.cat([torch.cat(mx_all), torch.cat(my_all)], 0)
     mean_seen = lstsq(a, b[:, None])[:, 0]
-    # second moments: linear in the upper-triangular entries of Sigma
+    # second moments: the moment design of the seen entries of Sigma (rows
+    # <xx>, <xy>, <yy> of each setting; columns in the order of triu_indices)
     iu = torch.triu_indices(n, n)
-    mult = torch.where(iu[0] == iu[1], 1.0, 2.0).to(torch.float64)
-
-    def rows(u: Tensor, v: Tensor) -> Tensor:
-        # <(u.x)(v.x)> = sum_ij u_i v_j S_ij, symmetrised
-        uv = 0.5 * (u[:, :, None] * v[:, None, :] + v[:, :, None] * u[:, None, :])
-        return uv[:, iu[0], iu[1]] * mult
-
-    a2 = torch.cat([rows(rx, rx), rows(ry, ry), rows(rx, ry)], 0)
-    b2 = torch.cat([torch.cat(vxx_all), torch.cat(vyy_all), torch.cat(vxy_all)], 0)
+    a2 = covariance_design(torch.cat(r_all), seen)
+    b2 = torch.stack(
+        [torch.cat(vxx_all), torch.cat(vxy_all), torch.cat(vyy_all)], -1
+    ).reshape(-1)
     # scale unknowns for conditioning
     col = a2.abs().amax(0).clamp_min(1e-300)
     sol = lstsq(a2 / col, b2[:, None])[:, 0] / col

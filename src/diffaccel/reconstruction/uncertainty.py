@@ -45,17 +45,19 @@ import torch
 from torch import Tensor
 
 from diffaccel.reconstruction.metrics import covariance_moments
+from diffaccel.reconstruction.screen_moments import (
+    centroid_design,
+    covariance_design,
+    pair_indices,
+)
 
 __all__ = [
     "MOMENT_WINDOW",
     "MomentUncertainty",
     "analyse_moments",
-    "centroid_design",
-    "covariance_design",
     "covariance_moments",
     "image_moments",
     "linear_posterior",
-    "pair_indices",
 ]
 
 #: Moments whose draws :func:`covariance_moments` returns.
@@ -74,63 +76,6 @@ MOMENT_KEYS = (
     "alpha_x",
     "alpha_y",
 )
-
-
-def pair_indices(dims: int) -> list[tuple[int, int]]:
-    """Upper-triangular index pairs ``(i, j), i <= j`` of a ``dims x dims`` matrix.
-
-    Example:
-        >>> pair_indices(2)
-        [(0, 0), (0, 1), (1, 1)]
-    """
-    return [(i, j) for i in range(dims) for j in range(i, dims)]
-
-
-def _sym_coeff(a: Tensor, b: Tensor, dims: int) -> Tensor:
-    """Coefficients of ``a Sigma b^T`` in the upper-triangular elements of Sigma.
-
-    Shapes: ``a, b (K, dims)`` -> ``(K, P)``.
-    """
-    cols = []
-    for i, j in pair_indices(dims):
-        if i == j:
-            cols.append(a[:, i] * b[:, i])
-        else:
-            cols.append(a[:, i] * b[:, j] + a[:, j] * b[:, i])
-    return torch.stack(cols, -1)
-
-
-def covariance_design(maps: Tensor, dims: int) -> Tensor:
-    """Linear operator from beam covariance to screen second moments.
-
-    Args:
-        maps: First-order transfer matrices to the screen ``(K, 6, 6)``.
-        dims: Reconstructed coordinates (4: x, px, y, py; 6: all).
-
-    Returns:
-        ``(3K, P)`` with rows ``<xx>_k, <xy>_k, <yy>_k`` (setting-major) and
-        columns the ``P = dims (dims + 1) / 2`` elements of :func:`pair_indices`.
-
-    Example:
-        >>> r = torch.eye(6)[None]  # a screen at the source
-        >>> covariance_design(r, 4)[0].tolist()  # <xx> = Sigma_00
-        [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
-    """
-    a = maps[:, 0, :dims]
-    b = maps[:, 2, :dims]
-    rows = torch.stack(
-        [_sym_coeff(a, a, dims), _sym_coeff(a, b, dims), _sym_coeff(b, b, dims)], 1
-    )  # (K, 3, P)
-    return rows.reshape(-1, rows.shape[-1])
-
-
-def centroid_design(maps: Tensor, dims: int) -> Tensor:
-    """Linear operator from beam centroid to screen centroids ``(2K, dims)``.
-
-    Rows ``<x>_k, <y>_k`` (setting-major); offsets of misaligned elements add a
-    constant that cancels in residuals.
-    """
-    return maps[:, [0, 2], :dims].reshape(-1, dims)
 
 
 #: Half-width, in rms of the simulated image, of the box around its centroid in

@@ -48,6 +48,11 @@ from torch import Tensor
 
 from diffaccel.dynamics.linalg import lstsq
 from diffaccel.reconstruction.hold import MomentHold
+from diffaccel.reconstruction.screen_moments import (
+    ENTRIES,
+    moment_design,
+    scaled_design,
+)
 
 #: Covariance entries (i <= j) that involve z or pz: the unknowns.
 _LONGITUDINAL = [(i, j) for i in range(6) for j in range(i, 6) if j >= 4]
@@ -57,33 +62,21 @@ _LONGITUDINAL = [(i, j) for i in range(6) for j in range(i, 6) if j >= 4]
 UNSEEN_TOLERANCE = 0.02
 
 
-def _moment_design(
-    maps: Sequence[Tensor], cov: Tensor, entries: Sequence[tuple[int, int]]
+def _longitudinal_design(
+    maps: Sequence[Tensor], cov: Tensor
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Linear map from covariance ``entries`` to every screen's second moments.
-
-    Unknowns in correlation units (``S_ij / (sig_i sig_j)``), rows relative to
-    the screen sizes of ``cov``: rows ``<xx>, <yy>, <xy>`` of every setting.
+    """The scaled moment design (:func:`~diffaccel.reconstruction.screen_moments.
+    scaled_design`) of the longitudinal entries :data:`_LONGITUDINAL`.
 
     Returns:
         ``(design (3K, E), sig (6,), ii (E,), jj (E,))`` float64.
     """
-    s = cov.to(torch.float64)
-    sig = s.diagonal().clamp_min(1e-300).sqrt()
-    r = torch.cat([m.to(torch.float64)[:, :6, :6] for m in maps])
-    ii = torch.tensor([e[0] for e in entries])
-    jj = torch.tensor([e[1] for e in entries])
-    mult = torch.where(ii == jj, 1.0, 2.0).to(torch.float64)
-    rows = []
-    for a, b in ((0, 0), (2, 2), (0, 2)):
-        u, v = r[:, a], r[:, b]  # (K, 6)
-        # <(u.x)(v.x)> = sum_ij u_i v_j S_ij, symmetrised, in correlation units
-        coef = 0.5 * (u[:, ii] * v[:, jj] + v[:, ii] * u[:, jj]) * mult
-        coef = coef * (sig[ii] * sig[jj])
-        su = torch.einsum("ki,ij,kj->k", u, s, u).clamp_min(1e-300)
-        sv = torch.einsum("ki,ij,kj->k", v, s, v).clamp_min(1e-300)
-        rows.append(coef / (su * sv).sqrt()[:, None])  # relative to the sizes
-    return torch.cat(rows), sig, ii, jj
+    scaled, _ = scaled_design(moment_design(maps), cov)
+    cols = [ENTRIES.index(e) for e in _LONGITUDINAL]
+    sig = cov.to(torch.float64).diagonal().clamp_min(1e-300).sqrt()
+    ii = torch.tensor([e[0] for e in _LONGITUDINAL])
+    jj = torch.tensor([e[1] for e in _LONGITUDINAL])
+    return scaled[:, cols], sig, ii, jj
 
 
 def _directions(
@@ -121,7 +114,7 @@ def unseen_directions(
         longitudinal entry, or do not see z or pz at all (no dispersion or no
         deflecting cavity: then the prior sets that coordinate).
     """
-    design, sig, ii, jj = _moment_design(maps, cov, _LONGITUDINAL)
+    design, sig, ii, jj = _longitudinal_design(maps, cov)
     scale = design.abs().amax(0)
     if any(
         float(scale[_LONGITUDINAL.index((i, i))]) <= 1e-9 * float(scale.max())
