@@ -102,6 +102,64 @@ def test_save_load_round_trip(result, tmp_path: Path) -> None:
         result.save(tmp_path)
 
 
+#: The config of a result folder as written by earlier versions: settings that
+#: are fixed now (quasi_random ... sampling_offset), runtime choices that are
+#: arguments now, and the settings of the stages that moved members after
+#: training (with the prior term under its earlier name).
+OLD_CONFIG = {
+    "dims": 4,
+    "n_particles": 1024,
+    "width": 48,
+    "depth": 2,
+    "steps": 12,
+    "snapshots": 3,
+    "lr_max": 0.01,
+    "lr_min": 0.0001,
+    "penalty_start": 10.0,
+    "penalty_end": 30000.0,
+    "image_loss": "kl",
+    "quasi_random": True,
+    "blur_pixels": None,
+    "entropy_radius": 4.0,
+    "loss_smoothing": 1.0,
+    "sampling_offset": 0.25,
+    "burn_in": 1,
+    "longitudinal_scale": [0.001, 0.001],
+    "prior_factor": 3.0,
+    "unseen_prior": "pair",
+    "hold_unseen": 1000.0,
+    "place_unseen": True,
+    "refit_steps": 60,
+    "probe_unseen": 0.05,
+    "polish_moments": True,
+    "seed": 2,
+    "checkpoint_every": 100,
+    "report_every": 10,
+    "cuda_graph": True,
+}
+
+
+def test_a_result_folder_of_an_earlier_version_loads(result, tmp_path: Path) -> None:
+    result.save(tmp_path)
+    payload = torch.load(tmp_path / "ensemble.pt", weights_only=True)
+    payload["config"] = OLD_CONFIG
+    torch.save(payload, tmp_path / "ensemble.pt")
+    back = load(tmp_path)
+    assert back.config == ReconstructionConfig(
+        dims=4,
+        n_particles=1024,
+        steps=12,
+        snapshots=3,
+        burn_in=1,
+        penalty_end=3e4,
+        loss_smoothing=1.0,
+        seed=2,
+        unseen_weight=1000.0,
+        moment_weight=0.0,  # trained without the moment term
+    )
+    assert torch.equal(back.sample(100, seed=1), result.sample(100, seed=1))
+
+
 def test_load_errors(tmp_path: Path) -> None:
     with pytest.raises(FileNotFoundError):
         load(tmp_path)
