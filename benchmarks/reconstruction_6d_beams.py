@@ -547,7 +547,7 @@ def headline(result: dict) -> dict[str, str]:
     misses = [
         m["in_reported_std"]
         for b in beams.values()
-        for r in b["runs"]
+        for r in b.get("runs", [])
         for m in r.get("misses", {}).values()
     ]
     if misses:
