@@ -275,9 +275,11 @@ def reconstruct(
         uncertainty: Attach the moment-space posterior of
             :func:`attach_uncertainty` (calibrated ``std`` of the moments;
             about 1 s on two CPU cores).
-        checkpoint_every, report_every, cuda_graph: Runtime choices of
-            :func:`~diffaccel.reconstruction.training.train_generator` (they do
-            not change the result).
+        checkpoint_every: Steps between checkpoints (a runtime choice of
+            :func:`~diffaccel.reconstruction.training.train_generator`, as are
+            the next two; none changes the result).
+        report_every: Steps between reads of the losses from the device.
+        cuda_graph: Capture the training step as a CUDA graph on a GPU.
 
     Returns:
         The :class:`Reconstruction`; ``info["scans"][name]`` holds each scan's
