@@ -25,7 +25,12 @@ from diffaccel.reconstruction.graphed_step import (
     STEP_SIZE,
     step_factors,
 )
-from diffaccel.reconstruction.losses import cyclic_cosine_lr, penalty_schedule
+from diffaccel.reconstruction.hold import MomentHold
+from diffaccel.reconstruction.losses import (
+    StepSchedule,
+    cyclic_cosine_lr,
+    penalty_schedule,
+)
 from diffaccel.reconstruction.optimiser import FlatAdam
 
 FAST = {"n_particles": 1024, "steps": 24, "snapshots": 3}
@@ -153,6 +158,83 @@ def test_captured_6d_step_body_trains_like_eager_steps(
         rtol=3e-4,
         atol=0,
     )
+
+
+def test_captured_6d_step_body_with_the_prior_term_trains_like_eager_steps(
+    small_awa6d, eager_graph, monkeypatch, request
+) -> None:
+    """The 6D default objective, its prior term on the unseen directions
+    included: the body reads the hold's directions and prior point, which
+    training refreshes in place between replays."""
+    monkeypatch.setattr(graphed_step, "GRAPH_DIMS", (4, 6))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    request.addfinalizer(lambda: torch.set_num_threads(threads))
+    cfg = ReconstructionConfig(**FAST, dims=6)
+    assert cfg.unseen_weight > 0
+    ref = reconstruct(small_awa6d, cfg, cuda_graph=False, uncertainty=False)
+    got = reconstruct(small_awa6d, cfg, uncertainty=False)
+    (replay,) = eager_graph.made
+    assert len(replay.calls) == FAST["steps"] - GRAPH_WARMUP_STEPS
+    # the same bounds as without the prior term (the factors' rounding)
+    loss_got = torch.tensor(got.history["loss"], dtype=torch.float64)
+    loss_ref = torch.tensor(ref.history["loss"], dtype=torch.float64)
+    drift = (loss_got - loss_ref).abs() / loss_ref.abs()
+    assert drift[:11].max() <= 1e-5, drift
+    assert drift.max() <= 3e-4, drift
+    torch.testing.assert_close(
+        torch.tensor(got.history["rms"]),
+        torch.tensor(ref.history["rms"]),
+        rtol=3e-4,
+        atol=0,
+    )
+
+
+def test_hold_refreshes_in_place_and_counts_layout_changes() -> None:
+    hold = MomentHold(1.0, torch.ones(6, dtype=torch.float64), 100)
+    q = torch.randn(2, 6, 6, dtype=torch.float64)
+    hold.set(q, torch.eye(6))
+    layout, ptr = hold.layout, hold.q.data_ptr()
+    hold.set(2 * q, 3 * torch.eye(6))
+    assert (hold.layout, hold.q.data_ptr()) == (layout, ptr)  # read in place
+    torch.testing.assert_close(hold.q, 2 * q)
+    torch.testing.assert_close(hold.b, 6 * q.diagonal(dim1=1, dim2=2).sum(-1))
+    hold.set(q[:1], torch.eye(6))  # one direction fewer
+    assert hold.layout == layout + 1
+
+
+def test_replays_stop_where_the_holds_layout_changes(eager_graph) -> None:
+    flat = torch.zeros(3, requires_grad=True)
+    hold = MomentHold(1.0, torch.ones(6, dtype=torch.float64), 100)
+    hold.set(torch.zeros(1, 6, 6), torch.eye(6))
+    moments = torch.eye(7, dtype=torch.float64)
+
+    def gradient(lam, rng):
+        x = torch.randn(3, generator=rng)
+        return x, x.sum(), x.sum(), moments + 0 * x.sum(), moments.clone()
+
+    schedule = StepSchedule(10, 1e-2, 1e-4, 10.0, 1e4)
+    steps = graphed_step.TrainingSteps(
+        gradient,
+        FlatAdam(flat),
+        schedule,
+        torch.Generator().manual_seed(0),
+        0,
+        10,
+        4,
+        torch.device("cpu"),
+        capture=True,
+        hold=hold,
+    )
+    slot = (torch.zeros(()), torch.zeros(()), torch.zeros(7, 7, dtype=torch.float64))
+    held = [steps(s, schedule.lr(s), schedule.penalty(s), slot) for s in range(6)]
+    (replay,) = eager_graph.made
+    assert replay.calls == [0, 1, 2]  # steps 3, 4, 5 replayed
+    assert all(h is not None for h in held)  # replays return what the hold reads
+    hold.set(torch.zeros(2, 6, 6), torch.eye(6))  # another number of directions
+    for s in range(6, 10):
+        steps(s, schedule.lr(s), schedule.penalty(s), slot)
+    assert replay.calls == [0, 1, 2]  # eager from then on
 
 
 class _Stop(Exception):
@@ -309,12 +391,17 @@ def test_6d_step_reads_nothing_back_on_a_gpu_path(small_awa6d, monkeypatch) -> N
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-def test_cuda_graph_6d_steps(small_awa6d, captured, monkeypatch, caplog) -> None:
-    # whether 6D steps capture and train like eager ones: the check to pass
-    # before GRAPH_DIMS admits 6 (it fails where the capture does)
+@pytest.mark.parametrize("unseen_weight", [0.0, None], ids=["no-prior", "default"])
+def test_cuda_graph_6d_steps(
+    small_awa6d, captured, monkeypatch, caplog, unseen_weight
+) -> None:
+    # whether 6D steps capture and train like eager ones, with and without the
+    # prior term on the unseen directions: the check to pass before
+    # GRAPH_DIMS admits 6 (it fails where the capture does)
     monkeypatch.setattr(graphed_step, "GRAPH_DIMS", (4, 6))
+    cfg = {**FAST, "dims": 6, "unseen_weight": unseen_weight}
     with caplog.at_level(logging.WARNING, logger="diffaccel.reconstruction"):
-        ref, got = _cuda_runs(small_awa6d, {**FAST, "dims": 6, "unseen_weight": 0.0})
+        ref, got = _cuda_runs(small_awa6d, cfg)
     assert "could not capture" not in caplog.text
     assert len(captured) == 1
     assert got.history["loss"] == pytest.approx(ref.history["loss"], rel=1e-3)

@@ -28,6 +28,7 @@ from contextlib import nullcontext
 import torch
 from torch import Tensor
 
+from diffaccel.reconstruction.hold import MomentHold
 from diffaccel.reconstruction.losses import StepSchedule
 from diffaccel.reconstruction.optimiser import FlatAdam
 
@@ -39,8 +40,10 @@ LAM, STEP_SIZE, BC2_SQRT = 0, 1, 2
 #: Eager steps (on a side stream) before the step is captured as a CUDA graph.
 GRAPH_WARMUP_STEPS = 3
 #: Generator dimensions whose training steps are captured (``cuda_graph``).
-#: 6D steps read nothing back from the device but have not been
-#: captured on a GPU yet (docs/gpu.md; ``test_cuda_graph_6d_steps`` checks it).
+#: 6D steps, their prior term on the unseen directions included, read nothing
+#: back from the device (the CPU tests replay the captured body), but they have
+#: not been captured on a GPU yet (docs/gpu.md; ``test_cuda_graph_6d_steps``
+#: checks it).
 GRAPH_DIMS = (4,)
 
 #: One step's loss gradient: called with the image-penalty weight (a float, or
@@ -173,12 +176,17 @@ class TrainingSteps:
         capture: Whether this run may capture its step at all.
         all_reduce: Sums a tensor over processes in place (distributed
             training), or None.
+        hold: The quadratic hold of the loss, or None. A replay returns the
+            moments it reads (float32-rounded, as an eager step's); where the
+            number of held directions changes (:attr:`MomentHold.layout`) the
+            captured step no longer fits and the run goes on eagerly.
 
     Attributes:
         rng: The random generator the steps draw from: after a failed capture
             a fresh one with the state from before it (a generator registered
-            with a failed capture cannot draw outside it); a checkpoint stores
-            its state.
+            with a failed capture cannot draw outside it), after a change of
+            the hold's layout a fresh one with its current state; a checkpoint
+            stores its state.
     """
 
     def __init__(
@@ -193,8 +201,11 @@ class TrainingSteps:
         device: torch.device,
         capture: bool,
         all_reduce: Callable[[Tensor], object] | None = None,
+        hold: MomentHold | None = None,
     ) -> None:
         self.gradient, self.opt, self.schedule = gradient, opt, schedule
+        self.hold = hold
+        self.layout = None  # the hold's layout the captured step was made for
         self.rng, self.total, self.device = rng, total, device
         self.all_reduce = all_reduce
         self.use_graph = (
@@ -218,15 +229,22 @@ class TrainingSteps:
         hold).
         """
         if self.use_graph and self.graphed is None and step == self.graph_start:
+            self.layout = None if self.hold is None else self.hold.layout
             self.graphed = self._capture(step)
             self.use_graph, self.side = self.graphed is not None, None
+        if self.graphed is not None and self.hold is not None:
+            if self.hold.layout != self.layout:  # other shapes: step eagerly
+                self.graphed = None
+                self.rng = _unregistered(self.rng, self.device)
         if self.graphed is not None:
             values = self.graphed(step - self.graph_start)
             self.opt.steps += 1  # the captured Adam step's count
             with torch.no_grad():
                 for target, value in zip(slot, values, strict=True):
                     target.copy_(value)
-            return None
+            if self.hold is None:
+                return None
+            return values[2].detach().float().double()
         side = self.side
         with torch.cuda.stream(side) if side is not None else nullcontext():
             grad, dist, rel, moments, held = self.gradient(lam, self.rng)
@@ -273,6 +291,15 @@ class TrainingSteps:
                 "training goes on step by step",
                 str(err).splitlines()[0] if str(err) else type(err).__name__,
             )
-            self.rng = torch.Generator(device=self.device)
-            self.rng.set_state(before)
+            self.rng = _unregistered(self.rng, self.device, before)
             return None
+
+
+def _unregistered(
+    rng: torch.Generator, device: torch.device, state: Tensor | None = None
+) -> torch.Generator:
+    """A generator not registered with any CUDA graph, at ``state`` (default:
+    ``rng``'s current state)."""
+    fresh = torch.Generator(device=device)
+    fresh.set_state(rng.get_state() if state is None else state)
+    return fresh

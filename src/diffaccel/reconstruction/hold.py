@@ -35,6 +35,9 @@ class MomentHold:
         ready: Whether ``q`` and ``b`` are set (else training calls
             :meth:`update` with the first step's moments; it calls it again
             every ``HOLD_EVERY`` steps, a host read of the moments).
+        layout: Counts the changes of the number of held directions ``F``.
+            Between them :meth:`set` writes ``q`` and ``b`` in place, so a
+            training step captured as a CUDA graph reads the current ones.
     """
 
     def __init__(self, weight: float, scale: Tensor, n: int) -> None:
@@ -47,6 +50,7 @@ class MomentHold:
         # step (a resume differed from the uninterrupted run)
         self.scale = scale.detach().float().double()
         self.n = n
+        self.layout = 0
         self.set(torch.zeros(0, 6, 6, dtype=torch.float64), torch.zeros(6, 6))
         self.ready = False  # until a subclass or update() sets what to hold
 
@@ -55,8 +59,13 @@ class MomentHold:
         ``(F, 6, 6)``, ``target`` ``(6, 6)``, both Bmad units, host)."""
         device = self.scale.device
         q = q.to(torch.float64)
-        self.q = q.to(device)
-        self.b = (q * target.to(torch.float64)).sum((1, 2)).to(device)
+        b = (q * target.to(torch.float64)).sum((1, 2))
+        if getattr(self, "q", None) is not None and self.q.shape == q.shape:
+            self.q.copy_(q)  # in place: what a captured step reads
+            self.b.copy_(b)
+        else:
+            self.q, self.b = q.to(device, copy=True), b.to(device, copy=True)
+            self.layout += 1
         self.ready = True
 
     def covariance(self, moments: Tensor) -> Tensor:

@@ -839,8 +839,8 @@ def train_generator(
             graph after a few eager steps and replay it (one launch per step
             instead of a few hundred; :mod:`~diffaccel.reconstruction.
             graphed_step`; docs/gpu.md). 4D only (``graphed_step.GRAPH_DIMS``): 6D
-            steps stay eager until their capture is checked on a GPU, as do
-            ``distributed`` training and steps with a prior term. The
+            steps stay eager until their capture is checked on a GPU, as does
+            ``distributed`` training. The
             same arithmetic up to rounding (the per-step factors are device
             scalars); where a capture fails the run goes on eagerly with a
             warning. Ignored on CPUs.
@@ -890,10 +890,20 @@ def train_generator(
     hold = _beam_hold(config, forwards, settings_list, maps, norm=scales[0])
     loss = _StepLoss(net, images, penalties, entropy, hold, state, device, distributed)
     schedule = config.schedule
-    capture = cuda_graph and not distributed and hold is None
+    capture = cuda_graph and not distributed
     reduce = tdist.all_reduce if distributed else None
     steps = TrainingSteps(
-        loss, opt, schedule, gen_rng, state.step, total, dims, device, capture, reduce
+        loss,
+        opt,
+        schedule,
+        gen_rng,
+        state.step,
+        total,
+        dims,
+        device,
+        capture,
+        reduce,
+        hold=hold,
     )
     # per-step values stay on the device, read every report_every steps, at
     # cycle ends, checkpoints and the end
