@@ -783,24 +783,16 @@ def train_generator(
 ) -> TrainingState:
     """Fit a :class:`BeamGenerator` to screen images and collect snapshot members.
 
-    Loss at step ``t``: ``-(H(x) - C(x)) + lambda(t) * mean_k D(sim_k, meas_k)
-    + w sum_j t_j^2`` (the last term, in 6D, the prior on the directions the
-    scans cannot see, ``config.unseen_weight``)
-    with ``H`` the tail-robust Gaussian entropy bound of the generated particles
-    (float64), ``C`` the cross-entropy of a broad Gaussian prior (bounds
-    coordinates the images do not see), ``D`` the image distance of
-    :func:`~diffaccel.reconstruction.losses.image_distance` between the
-    *unnormalised* simulated images (sum = fraction on screen) and the
-    sum-normalised measured ones, averaged over the images of all scans (each
-    image weighs the same), and ``lambda(t)`` the schedule of
-    :func:`~diffaccel.reconstruction.losses.penalty_schedule`. Adam with a cosine
-    cyclic learning rate; the generator weights at the end of each cycle are one
-    ensemble member.
-
-    Every step draws one fresh sample of ``n_particles`` and images it through
-    every scan (:class:`~diffaccel.reconstruction.forward.ScanImages`: affine
-    maps where they are exact in 4D, exact tracking otherwise, the leading
-    elements that scans share tracked once per step).
+    Minimises ``-(H - C) + lambda(t) [D + moment term] + w sum_j t_j^2``
+    (docs/methods/reconstruction_6d.md): ``H`` the tail-robust Gaussian entropy
+    bound of the generated particles, ``C`` the cross-entropy of a broad
+    Gaussian prior, ``D`` the mean image distance over the images of all scans
+    (:class:`~diffaccel.reconstruction.losses.ImagePenalty`; the simulated
+    images unnormalised, so beam off the screen costs), the moment term of
+    ``config.moment_weight``, and in 6D the prior term of
+    ``config.unseen_weight`` on the directions the scans cannot see, over
+    ``n_particles`` fresh particles per step. Adam, cosine learning-rate cycles:
+    the generator at the end of each cycle after the burn-in is one member.
 
     Args:
         forward: Screen forward model of each scan (tracking + imaging); a single
@@ -811,39 +803,28 @@ def train_generator(
         config: Training settings.
         checkpoint: File for atomic checkpoints; None disables them.
         resume: Continue from ``checkpoint`` if it exists.
-        callback: Called with a :class:`StepInfo` every ``report_every``
-            steps (and at snapshots, checkpoints and the end); an exception
-            raised there stops training (the last checkpoint stays valid).
+        callback: Called with a :class:`StepInfo` every ``report_every`` steps
+            (and at snapshots, checkpoints and the end); an exception raised
+            there stops training (the last checkpoint stays valid).
         device: Device to train on; default that of the first ``measured``.
-        distributed: Split the particles of every step across the processes of
-            the initialised default ``torch.distributed`` process group (gloo on
-            CPUs, NCCL on GPUs; launched e.g. by ``torchrun``): each process
-            generates and tracks its share, the images and the moment matrices
-            of the entropy are summed over all processes (all-reduce) and so are
-            the generator's gradients, so every process computes the loss of
-            the whole beam and takes the same optimiser step. With the default
-            quasi-random samples the shares are blocks of the single-process
-            sample: the result equals a single-process run up to the rounding
-            of the sums. Only process 0 writes checkpoints.
+        distributed: Split every step's particles across the processes of the
+            initialised ``torch.distributed`` group (gloo on CPUs, NCCL on GPUs):
+            images, entropy moments and gradients are all-reduced, so every
+            process takes the same step, equal to a single-process run up to the
+            rounding of the sums (docs/distributed.md). Process 0 checkpoints.
         maps: Each scan's :meth:`ScreenForwardModel.transfer_maps` of its
-            settings when the caller has computed them (not computed again).
+            settings when the caller has computed them.
         initial_model: Generator state dict to start from instead of the
-            Gaussian ``guess`` (the guess still sets the prior of the entropy
-            term).
+            Gaussian ``guess`` (which still sets the entropy's prior).
         checkpoint_every: Steps between checkpoints (also at every snapshot).
         report_every: Steps between reads of the losses from the device (the
-            only host synchronisation of training): history, the finite-loss
-            check and the callback happen then (and at snapshots, checkpoints
-            and the last step). Does not change the result.
-        cuda_graph: On a CUDA device, capture the training step as a CUDA
-            graph after a few eager steps and replay it (one launch per step
-            instead of a few hundred; :mod:`~diffaccel.reconstruction.
-            graphed_step`; docs/gpu.md). 4D only (``graphed_step.GRAPH_DIMS``): 6D
-            steps stay eager until their capture is checked on a GPU, as does
-            ``distributed`` training. The
-            same arithmetic up to rounding (the per-step factors are device
-            scalars); where a capture fails the run goes on eagerly with a
-            warning. Ignored on CPUs.
+            only host synchronisation of training; the callback runs then).
+            Does not change the result.
+        cuda_graph: On a CUDA device, capture the step as a CUDA graph after a
+            few eager steps and replay it (:mod:`~diffaccel.reconstruction.
+            graphed_step`, docs/gpu.md; 4D, not ``distributed``); where the
+            capture fails the run goes on eagerly with a warning. Ignored on
+            CPUs; does not change the result beyond rounding.
 
     Shapes:
         Scan ``s``: ``measured (K_s, H_s, W_s)``, ``settings (K_s, P_s)``.
