@@ -160,6 +160,22 @@ def test_finding_lines_hold_only_what_the_summary_found() -> None:
         plain[0],
         "only 3 of 4 directions seen",
     ]
+    # 6D: what the prior sets comes with the command that ranks settings to add
+    left = "observability: px-pz together with pz-pz unseen; left to the prior: emit_z"
+    six = finding_lines(
+        _summary(
+            unconstrained_coordinates=[],
+            observability=left,
+            config={"dims": 6},
+            dataset="scan.h5",
+        )
+    )
+    assert six[-2] == left
+    assert six[-1].startswith("settings that would see them: diffaccel design scan.h5")
+    four = finding_lines(
+        _summary(unconstrained_coordinates=[], observability=left, config={"dims": 4})
+    )
+    assert four[-1] == left
 
 
 def test_stopped_note_names_the_kept_checkpoint(tmp_path: Path) -> None:

@@ -961,8 +961,9 @@ def finding_lines(summary: Mapping[str, Any]) -> list[str]:
 
     The coordinates the scans do not constrain, the headline numbers
     (:func:`headline_lines`), the unseen correlations set by the prior
-    (:func:`prior_dependence_lines`) and the observability note; each line
-    only where the summary holds it.
+    (:func:`prior_dependence_lines`) and the observability note, in 6D with
+    the command that ranks the settings to add where it leaves quantities to
+    the prior; each line only where the summary holds it.
     """
     lines = []
     if summary["unconstrained_coordinates"]:
@@ -974,6 +975,13 @@ def finding_lines(summary: Mapping[str, Any]) -> list[str]:
     lines += prior_dependence_lines(summary.get("prior_dependence", []))
     if summary.get("observability"):
         lines.append(summary["observability"])
+        six = summary.get("config", {}).get("dims") == 6
+        if six and "left to the prior" in summary["observability"]:
+            lines.append(
+                "settings that would see them: diffaccel design "
+                f"{summary.get('dataset', 'DATA.h5')} --knob ELEMENT.PARAMETER=LOW:HIGH"
+                " (ranked by the std they remove; diffaccel design --help)"
+            )
     return lines
 
 
