@@ -70,5 +70,6 @@ def test_one_moment_design_for_the_guess_the_unseen_directions_and_the_posterior
         # less than the tolerance times what the best-seen direction moves
         moved = (d @ sm.theta_of(direction) / scale).abs().max()
         assert moved < 0.02 * largest
-        sym = sm.symmetric(sm.theta_of(direction), sm.ENTRIES, 6)
+        iu = torch.tensor(sm.ENTRIES).T
+        sym = sm.symmetric(sm.theta_of(direction), iu, 6)
         torch.testing.assert_close(sym, direction, rtol=0, atol=1e-18)

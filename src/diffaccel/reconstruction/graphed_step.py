@@ -28,7 +28,7 @@ from contextlib import nullcontext
 import torch
 from torch import Tensor
 
-from diffaccel.reconstruction.hold import MomentHold
+from diffaccel.reconstruction.hold import MomentHold, held_moments
 from diffaccel.reconstruction.losses import StepSchedule
 from diffaccel.reconstruction.optimiser import FlatAdam
 
@@ -244,7 +244,7 @@ class TrainingSteps:
                     target.copy_(value)
             if self.hold is None:
                 return None
-            return values[2].detach().float().double()
+            return held_moments(values[2])
         side = self.side
         with torch.cuda.stream(side) if side is not None else nullcontext():
             grad, dist, rel, moments, held = self.gradient(lam, self.rng)

@@ -20,6 +20,13 @@ import torch
 from torch import Tensor
 
 
+def held_moments(moments: Tensor) -> Tensor:
+    """The plain moments a hold reads: rounded to float32 (threaded float64
+    sums scatter in the last bits from run to run, and the hold feeds them
+    back into the step; rounded, a resume is bit for bit), as float64."""
+    return moments.detach().float().double()
+
+
 class MomentHold:
     """Penalty ``w sum_k t_k^2`` with ``t = sum_ij Q_k,ij S_ij - b_k``.
 

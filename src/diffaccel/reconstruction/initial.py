@@ -11,7 +11,7 @@ from torch import Tensor
 
 from diffaccel.dynamics.linalg import lstsq
 from diffaccel.reconstruction.forward import ScreenForwardModel
-from diffaccel.reconstruction.screen_moments import covariance_design
+from diffaccel.reconstruction.screen_moments import covariance_design, symmetric
 
 #: Transverse prior widths of the entropy term in units of the widths of the
 #: Gaussian fitted to the image moments: broad enough to bound only what the
@@ -204,7 +204,7 @@ def _max_entropy_fit(
     basis[torch.arange(m), iu[1], iu[0]] = 1.0
 
     def objective(v: Tensor) -> float:
-        c, info = torch.linalg.cholesky_ex(_sym(v, iu, n))
+        c, info = torch.linalg.cholesky_ex(symmetric(v, iu, n))
         if int(info) != 0:
             return math.inf
         r = a @ v - target
@@ -215,7 +215,7 @@ def _max_entropy_fit(
     if not math.isfinite(value):
         return start
     for _ in range(iterations):
-        p = torch.linalg.inv(_sym(v, iu, n))
+        p = torch.linalg.inv(symmetric(v, iu, n))
         pe = p @ basis  # (m, n, n)
         grad = 2 * a.T @ (a @ v - target) - ENTROPY_WEIGHT * torch.einsum("aii->a", pe)
         hess = 2 * a.T @ a + ENTROPY_WEIGHT * torch.einsum("aij,bji->ab", pe, pe)
@@ -232,14 +232,7 @@ def _max_entropy_fit(
         else:
             break
         v, value = v + t * step, trial
-    return _sym(v, iu, n) * (d[:, None] * d[None, :])
-
-
-def _sym(v: Tensor, iu: Tensor, n: int) -> Tensor:
-    """The symmetric ``(n, n)`` matrix of upper-triangular entries ``v`` at ``iu``."""
-    s = v.new_zeros(n, n)
-    s[iu[0], iu[1]] = v
-    return s + s.T - torch.diag(s.diagonal())
+    return symmetric(v, iu, n) * (d[:, None] * d[None, :])
 
 
 def fit_gaussian(
@@ -342,7 +335,7 @@ def fit_gaussian(
     # scale unknowns for conditioning
     col = a2.abs().amax(0).clamp_min(1e-300)
     sol = lstsq(a2 / col, b2[:, None])[:, 0] / col
-    s_seen = _sym(sol, iu, n)
+    s_seen = symmetric(sol, iu, n)
     s4 = s_seen[:4, :4].clone()
     floor = min(floors)
     for p, q in ((0, 1), (2, 3)):

@@ -117,15 +117,12 @@ def theta_of(cov: Tensor) -> Tensor:
     return cov.to(torch.float64)[ii, jj]
 
 
-def symmetric(theta: Tensor, pairs: Sequence[tuple[int, int]], n: int) -> Tensor:
-    """The symmetric ``(n, n)`` matrix whose entries ``pairs`` are ``theta``
-    (the inverse of reading those entries); other entries are zero."""
-    ii = torch.tensor([p[0] for p in pairs])
-    jj = torch.tensor([p[1] for p in pairs])
-    s = theta.new_zeros(n, n)
-    s[ii, jj] = theta
-    s[jj, ii] = theta
-    return s
+def symmetric(v: Tensor, iu: Tensor, n: int) -> Tensor:
+    """The symmetric ``(n, n)`` matrix whose upper-triangular entries at ``iu``
+    (``(2, P)`` row and column indices) are ``v`` ``(P,)``; others are zero."""
+    s = v.new_zeros(n, n)
+    s[iu[0], iu[1]] = v
+    return s + s.T - torch.diag(s.diagonal())
 
 
 def scaled_design(design: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:

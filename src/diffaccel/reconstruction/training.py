@@ -33,7 +33,7 @@ from diffaccel.reconstruction.graphed_step import (
     GRAPH_WARMUP_STEPS as GRAPH_WARMUP_STEPS,
 )
 from diffaccel.reconstruction.graphed_step import TrainingSteps
-from diffaccel.reconstruction.hold import MomentHold
+from diffaccel.reconstruction.hold import MomentHold, held_moments
 from diffaccel.reconstruction.initial import GaussianGuess
 from diffaccel.reconstruction.losses import (
     ImagePenalty,
@@ -636,10 +636,7 @@ class _StepLoss:
             objective = torch.sub(rel, dist, alpha=lam)
         held, hold = None, self.hold
         if hold is not None:  # the hold's gradient
-            # the moments rounded to float32: threaded float64 sums scatter
-            # in the last bits from run to run, and the hold feeds them back
-            # into the step (without rounding a resume was not bit for bit)
-            held = moments.detach().float().double()
+            held = held_moments(moments)
             if not hold.ready:  # its prior point: the checkpoint's or this
                 if self.state.hold_moments is None:  # sample's, then every
                     self.state.hold_moments = held.cpu()  # HOLD_EVERY steps
