@@ -49,6 +49,7 @@ GROUPS = (
             "background_bias",
             "daq_6d",
             "resolution",
+            "validate_defaults",
             "alarms",
             "design",
             "design_6d",
