@@ -802,7 +802,7 @@ def test_6d_run_states_what_the_prior_sets(tmp_path: Path) -> None:
     s = json.loads((out / "summary.json").read_text())
     dep = {e["pair"]: e for e in s["prior_dependence"]}
     assert set(dep) == {"px-pz", "py-z"}
-    assert "unseen_prior" in s["prior_dependence_note"]
+    assert "unseen_weight" in s["prior_dependence_note"]
     assert dep["px-pz"]["moves"] == "rms_pz" and dep["py-z"]["moves"] == "rms_z"
     for e in dep.values():
         # held near the prior point by the prior term: zero partial

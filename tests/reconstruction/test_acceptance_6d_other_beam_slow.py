@@ -21,9 +21,9 @@ not import the benchmarks).
 
 The third beam, ``double_horn`` (a compressed bunch: arcsine current profile,
 chirp z-pz -0.91 with curvature, built here again), checks the prior point of
-the unseen directions on a strong chirp: ``unseen_prior="gaussian"`` places
-its truth at z emittance +11.9 %; the ``"pair"`` default leaves its truth where
-it is.
+the unseen directions on a strong chirp: a criterion over the direction's whole
+off-diagonal part (z-pz chirp included) would place its truth at z emittance
++11.9 %; the traded pair's partial correlation leaves its truth where it is.
 
 Measured at the defaults (seed 0, one thread, the same beams in
 ``benchmarks/reconstruction_6d_beams.py``): three-mode rms within 2.8 %,

@@ -246,8 +246,8 @@ def test_demo_inputs_are_a_6d_scan_and_a_short_6d_run() -> None:
 
 def test_config_options_are_the_configs_keywords() -> None:
     given = dict(
-        dims="6", particles=None, steps=60, snapshots=2, seed=1, image_loss="kl",
-        blur=None, loss_smoothing="0.5",
+        dims="6", particles=None, steps=60, snapshots=2, seed=1, blur=None,
+        loss_smoothing="0.5",
     )  # fmt: skip
     options = config_options(**given)
     assert options["dims"] == 6 and options["loss_smoothing"] == 0.5

@@ -129,9 +129,7 @@ def test_corrupt_checkpoint(tmp_path: Path) -> None:
     [
         ({"steps": 10, "snapshots": 3}, "multiple of snapshots"),
         ({"dims": 5}, "dims must be 4 or 6"),
-        ({"image_loss": "l3"}, "image_loss"),
         ({"n_particles": 3}, "n_particles"),
-        ({"unseen_prior": "quadratic"}, "unseen_prior"),
         ({"penalty_end": 0.0}, "penalty_end must be > 0"),
         ({"penalty_end": math.nan}, "penalty_end must be a finite number"),
         ({"unseen_weight": -1.0}, "unseen_weight must be finite and >= 0"),
@@ -142,9 +140,7 @@ def test_corrupt_checkpoint(tmp_path: Path) -> None:
     ids=[
         "cycles",
         "dims",
-        "loss",
         "particles",
-        "prior",
         "penalty-zero",
         "penalty-nan",
         "hold-negative",
@@ -219,8 +215,10 @@ def test_sampling_offset_and_penalty_defaults() -> None:
     assert ReconstructionConfig(dims=6).penalty_end == 3e4
     assert ReconstructionConfig(dims=4).penalty_end == 1e4
     assert ReconstructionConfig(dims=6, penalty_end=5e3).penalty_end == 5e3
-    # an offset of the KL distance: none for the other distances
-    assert ReconstructionConfig(dims=6, image_loss="l2").sampling_offset == 0.0
+    # older configs name the image distance and the unseen prior, fixed now
+    old = {**ReconstructionConfig(dims=6).to_dict(), "image_loss": "kl"}
+    old["unseen_prior"] = "pair"
+    assert ReconstructionConfig.from_dict(old) == ReconstructionConfig(dims=6)
     d = ReconstructionConfig(dims=6).to_dict()
     # the prior term on the unseen directions: 1e3 in 6D, none in 4D; runs
     # saved before it trained without it (under its earlier name, or with

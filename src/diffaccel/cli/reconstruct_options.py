@@ -84,13 +84,6 @@ _OPTIONS = [
         "cavity and/or dispersion; otherwise weakly constrained).",
     ),
     click.option(
-        "--image-loss",
-        type=click.Choice(["kl", "l1", "l2"]),
-        default=_DEFAULTS[4].image_loss,
-        help="Distance of simulated from measured images: kl (the images' Poisson "
-        "log-likelihood), l1 or l2.",
-    ),
-    click.option(
         "--blur",
         type=click.FloatRange(min=0),
         default=None,

@@ -333,7 +333,7 @@ def plot_training_curves(reconstruction: Reconstruction) -> Figure:
     (a1, a2) = fig.subplots(2, 1, sharex=True)
     a1.plot(steps, h["image_loss"], color="C0", lw=0.8, label="image mismatch D")
     _log_scale(a1)
-    a1.set_ylabel(f"image mismatch ({reconstruction.config.image_loss})")
+    a1.set_ylabel("image mismatch (KL)")
     a1b = a1.twinx()
     a1b.plot(steps, h["loss"], color="C1", lw=0.8, label="total loss")
     a1b.set_ylabel("total loss (-H + lambda D)")

@@ -84,10 +84,10 @@ UNCONSTRAINED_NOTE = (
 PRIOR_DEPENDENCE_NOTE = (
     "correlations the scans cannot see (every screen's second moments are "
     "unchanged to first order along these directions): the prior sets them "
-    "(ReconstructionConfig.unseen_prior: zero partial correlation of the pair "
-    "given the other four coordinates). relative_change: how the moments would "
-    "differ, with the same images, if the pair's partial correlation were the "
-    "value listed (null: no valid beam there). See "
+    "(zero partial correlation of the pair given the other four coordinates, "
+    "with the strength ReconstructionConfig.unseen_weight). relative_change: "
+    "how the moments would differ, with the same images, if the pair's partial "
+    "correlation were the value listed (null: no valid beam there). See "
     "diffaccel.reconstruction.prior_dependence"
 )
 UNCERTAINTY_NOTE = (

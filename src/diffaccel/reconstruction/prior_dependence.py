@@ -3,11 +3,11 @@
 Along the directions of :func:`~diffaccel.reconstruction.unseen.unseen_directions`
 (AWA 6D: the px-pz covariance traded against the pz variance, py-z against the
 z variance) no screen's second moments change to first order, so the images
-cannot tell a beam from its twin moved along one: the objective's prior term
-puts the traded pair at zero partial correlation (``ReconstructionConfig.unseen_prior``)
-because nothing measured says where else. Two Gaussian beams 35 % apart in z
-emittance gave training images that differ by less than the sampling noise of
-two million particles.
+cannot tell a beam from its twin moved along one: the objective's prior term puts the
+traded pair at zero partial correlation given the other coordinates (with the strength
+``ReconstructionConfig.unseen_weight``) because nothing measured says where else. Two
+Gaussian beams 35 % apart in z emittance gave training images that differ by less than
+the sampling noise of two million particles.
 
 :func:`prior_dependence` states what that choice is worth: for each direction,
 the beam moved along it until the pair's partial correlation is each of a few

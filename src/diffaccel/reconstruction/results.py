@@ -145,7 +145,6 @@ CONFIG_OPTIONS = {
     "steps": "--steps",
     "snapshots": "--snapshots",
     "seed": "--seed",
-    "image_loss": "--image-loss",
     "blur_pixels": "--blur",
 }
 #: The human-readable summary of a result folder (Markdown).
@@ -703,7 +702,6 @@ def config_options(
     steps: int | None,
     snapshots: int | None,
     seed: int,
-    image_loss: str,
     blur: float | None,
     loss_smoothing: str | None,
 ) -> dict[str, Any]:
@@ -729,7 +727,6 @@ def config_options(
         "steps": steps,
         "snapshots": snapshots,
         "seed": seed,
-        "image_loss": image_loss,
         "blur_pixels": blur,
         "loss_smoothing": loss_smoothing,
     }

@@ -497,7 +497,7 @@ def _loss_terms(
     penalties: list[Callable[[Tensor], Tensor]] = [
         ImagePenalty(
             m,
-            config.image_loss,
+            "kl",
             off_screen_allowance(m),
             1.0 / n_images,
             offset=_kl_offset(config.sampling_offset, f, n),
@@ -565,7 +565,6 @@ def _beam_hold(
         config.unseen_weight,
         norm,
         n,
-        prior=config.unseen_prior,
     )
 
 

@@ -17,16 +17,15 @@ ones held), names the correlation each one trades (:func:`traded_pairs`) and
 states the prior point along them (:func:`place_unseen`): where the correlation
 that each direction trades (AWA 6D: px-pz, py-z) carries no information beyond
 the other four coordinates (zero partial correlation of that pair,
-``P_ij = 0`` with ``P`` the precision matrix; ``prior="pair"``, the default).
+``P_ij = 0`` with ``P`` the precision matrix).
 :class:`UnseenHold` is the prior term of the training objective
 (``ReconstructionConfig.unseen_weight``): a quadratic penalty on the beam's
 displacement from that point along the unseen directions, flat along every
 direction the screens' second moments see.
 
-The alternative criterion ``prior="gaussian"`` solves ``tr(P V_off) = 0`` over
-the direction's whole off-diagonal part: the direction also touches seen
-entries (the z-pz chirp), so it weighs in their partial correlations and
-places strongly chirped truths off.
+The pair's partial correlation is the criterion, not the direction's whole
+off-diagonal part: a direction also touches seen entries (the z-pz chirp), and
+weighing their partial correlations in would place strongly chirped beams off.
 
 Known limit: a beam whose traded correlation is not zero (dispersion at the
 reconstruction point, a transverse curvature times a tilted chirp) is put at
@@ -126,10 +125,6 @@ def unseen_directions(
     return _directions(design, sig, ii, jj, tolerance)
 
 
-#: Priors of :func:`place_unseen` (see there).
-UNSEEN_PRIORS = ("pair", "gaussian")
-
-
 def traded_pairs(directions: Tensor, cov: Tensor) -> list[tuple[int, int]]:
     """The correlation each direction trades: its largest off-diagonal entry.
 
@@ -155,41 +150,27 @@ def place_unseen(
     cov: Tensor,
     directions: Tensor,
     iterations: int = 30,
-    prior: str = "pair",
 ) -> Tensor:
     """``cov`` moved along ``directions`` to zero partial correlation of their trade.
 
-    ``prior="pair"`` (the default) solves ``P_ij = 0`` for the pair ``(i, j)``
-    that each direction ``V_k`` trades (:func:`traded_pairs`; AWA 6D: px-pz,
-    py-z), ``P`` the inverse of ``cov + sum_k t_k V_k``: those two coordinates
-    are uncorrelated given the other four. ``prior="gaussian"`` solves
-    ``tr(P V_k,off) = 0`` with ``V_off`` the direction's whole off-diagonal
-    part instead, which also weighs in the partial correlations of the seen
-    entries the direction touches (z-pz: a strongly chirped beam's truth is
-    placed off, see the module). Damped Newton steps that keep the covariance
-    positive definite.
+    Solves ``P_ij = 0`` for the pair ``(i, j)`` that each direction ``V_k``
+    trades (:func:`traded_pairs`; AWA 6D: px-pz, py-z), ``P`` the inverse of
+    ``cov + sum_k t_k V_k``: those two coordinates are uncorrelated given the
+    other four. Damped Newton steps that keep the covariance positive definite.
 
     Shapes:
         ``cov (6, 6)``, ``directions (F, 6, 6)`` -> ``(6, 6)`` float64.
-
-    Raises:
-        ValueError: for a ``prior`` other than those of :data:`UNSEEN_PRIORS`.
     """
-    if prior not in UNSEEN_PRIORS:
-        raise ValueError(f"prior must be one of {UNSEEN_PRIORS}; got {prior!r}.")
     s0 = cov.to(torch.float64)
     if directions.shape[0] == 0:
         return s0
     v = directions.to(torch.float64)
-    if prior == "pair":
-        pairs = traded_pairs(v, s0)
-        ii = torch.tensor([p[0] for p in pairs], dtype=torch.long)
-        jj = torch.tensor([p[1] for p in pairs], dtype=torch.long)
-        sel = torch.zeros(len(pairs), 6, 6, dtype=torch.float64)
-        sel[torch.arange(len(pairs)), ii, jj] = 1.0
-        sel = 0.5 * (sel + sel.transpose(1, 2))  # P_ij = tr(P E), E symmetric
-    else:
-        sel = v - torch.diag_embed(v.diagonal(dim1=-2, dim2=-1))
+    pairs = traded_pairs(v, s0)
+    ii = torch.tensor([p[0] for p in pairs], dtype=torch.long)
+    jj = torch.tensor([p[1] for p in pairs], dtype=torch.long)
+    sel = torch.zeros(len(pairs), 6, 6, dtype=torch.float64)
+    sel[torch.arange(len(pairs)), ii, jj] = 1.0
+    sel = 0.5 * (sel + sel.transpose(1, 2))  # P_ij = tr(P E), E symmetric
     t = torch.zeros(v.shape[0], dtype=torch.float64)
 
     def precision(t: Tensor) -> Tensor | None:
@@ -273,7 +254,6 @@ class UnseenHold(MomentHold):
         scale: Per-coordinate scale ``(6,)`` of the moments [Bmad units]
             (``RelativeEntropy.scale``).
         n: Particles of the beam (all processes together).
-        prior: ``"pair"`` or ``"gaussian"`` (:func:`place_unseen`).
     """
 
     def __init__(
@@ -282,11 +262,9 @@ class UnseenHold(MomentHold):
         weight: float,
         scale: Tensor,
         n: int,
-        prior: str = "pair",
     ) -> None:
         super().__init__(weight, scale, n)
         self.maps = [m.detach().to("cpu", torch.float64) for m in maps]
-        self.prior = prior
 
     def update(self, moments: Tensor) -> None:
         """Directions and prior point of the beam whose moments are given (host)."""
@@ -299,4 +277,4 @@ class UnseenHold(MomentHold):
         # V_k = sum_e u_e sig_i sig_j (E_ij + E_ji), so
         # t_k = sum_e u_e S_ij / (sig_i sig_j) over the upper triangle
         q = torch.triu(v / (sig[:, None] * sig[None, :]) ** 2)
-        self.set(q, place_unseen(cov, v, prior=self.prior))
+        self.set(q, place_unseen(cov, v))
