@@ -144,7 +144,9 @@ def test_gp_fit_results_do_not_depend_on_output_units(
         summaries.append(json.loads((out / "gp_summary.json").read_text()))
     unit, scaled = summaries
     # the same standardised fit, but the offset rounds the data differently
-    # (~1e-12 relative) and 60 L-BFGS-B iterations end before convergence,
-    # which moves the end point by ~0.2 %: allow 2 % (the bug: 100x too large)
+    # (~1e-12 relative), and the marginal likelihood of 32 points is flat in
+    # the noise over ~12 % (its statistical width): L-BFGS-B ends 0.2-5 % apart
+    # depending on the scipy/BoTorch release. Allow 10 %, well inside that
+    # width (the bug: 100x too large)
     for key in ("mean_predictive_sigma", "noise_sigma", "rmse_vs_data"):
-        assert scaled[key] == pytest.approx(1e-5 * unit[key], rel=0.02), key
+        assert scaled[key] == pytest.approx(1e-5 * unit[key], rel=0.1), key
