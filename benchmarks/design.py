@@ -190,7 +190,7 @@ def main() -> None:
         help="Posterior draws the design criterion is averaged over (0: the fit).",
     )
     ap.add_argument(
-        "--repeats", type=int, default=3, help="Noise realisations per beam."
+        "--repeats", type=int, default=10, help="Noise realisations per beam."
     )
     ap.add_argument(
         "--relative-error",
