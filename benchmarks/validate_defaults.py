@@ -1,27 +1,34 @@
-"""The 4D defaults against their neighbours, judged on held-out camera settings.
+"""The defaults against their neighbours, judged on held-out settings of synthetic data.
 
-Three synthetic beams of their own family (a correlated beam with a 10 % halo
+**4D**: three beams of their own family (a correlated beam with a 10 % halo
 twice as wide, a three-mode beam with curvature, a Gaussian with a 15 % halo
-three times as wide; seeds 11-13, none of them a benchmark file) are scanned
-(Quadrupole 0.1 m + Drift 1 m, 11 settings k1 = -20 ... 20 1/m^2) and imaged on
-a 320 x 320 camera of 64 um pixels as histograms of 250 000 particles (Poisson
-counts). Each beam is reconstructed from the even settings with the defaults
-and with each setting of ``--sweep`` moved one step down and up; the odd
-settings are held out.
+three times as wide; seeds 11-13) are scanned (Quadrupole 0.1 m + Drift 1 m,
+11 settings k1 = -20 ... 20 1/m^2) and imaged on a 320 x 320 camera of 64 um
+pixels as histograms of 250 000 particles (Poisson counts), reconstructed from
+the even settings; the odd ones are held out.
 
-The validation score needs no truth: the mean over the held-out settings and
-both axes of ``|sigma_pred / sigma_meas - 1|``, the rms sizes of the predicted
-and measured held-out images, beside the held-out relative L1. The truth's
-emittance errors are reported for reading, not for choosing.
+**6D**: two fresh beams of the AWA 6D benchmark's families (``draw9100_0`` and
+``tilted9100_0`` of ``benchmarks/reconstruction_6d_beams.py``, which its own
+runs do not use), trained on its k1 = -12 ... 12 scans and scored on its held-out
+k1 = -9, -3, 3, 9 scans (cavity on, dipole off and on).
 
-Usage: ``python benchmarks/validate_defaults.py [--beams 0 1 2] [--seeds 0 1]
+Each beam is reconstructed with the defaults and with each setting of the
+sweep moved one step down and up. The score needs no truth: the mean over the
+held-out images and both axes of ``|sigma_pred / sigma_meas - 1|``, the rms
+sizes of the predicted (200 000 particles per member) and measured images,
+beside the held-out relative L1. The truth's emittance errors are reported
+for reading, not for choosing. The unseen-direction prior
+(``unseen_weight``) is not swept: held-out images of the same scans cannot see
+what it decides.
+
+Usage: ``python benchmarks/validate_defaults.py [--dims 4 6] [--seeds 0 1]
 [--threads 2] [--store]``
 
-Last line: ``{"name": "validate_defaults", "runs": [{"beam": .., "seed": ..,
-"setting": .., "value": .., "held_out_rms_err": .., "held_out_l1": ..,
-"emit_x_rel_err": .., "emit_y_rel_err": .., "seconds": ..}, ...], "chosen":
-{SETTING: VALUE}, "default": {SETTING: VALUE}, "mean_held_out_rms_err":
-{SETTING: {VALUE: ..}}}``.
+Last line: ``{"name": "validate_defaults", "runs": [{"dims": .., "beam": ..,
+"seed": .., "setting": .., "value": .., "held_out_rms_err": ..,
+"held_out_l1": .., "emit_x": .., "emit_y": .., ("emit_z", "emit_6d" in 6D),
+"seconds": ..}, ...], "chosen": {"4": {SETTING: VALUE}, ...}, "default": {...},
+"mean_held_out_rms_err": {"4": {SETTING: {VALUE: ..}}, ...}}``.
 """
 
 from __future__ import annotations
@@ -36,47 +43,39 @@ from _meta import add_store_flag, emit
 
 from diffaccel.data.synthetic import make_synthetic_quad_scan, sample_preset_beam
 from diffaccel.reconstruction import ReconstructionConfig, reconstruct
-from diffaccel.reconstruction.evaluation import predict_dataset
-from diffaccel.reconstruction.metrics import image_errors
-from diffaccel.reconstruction.uncertainty import image_moments
+from diffaccel.reconstruction.metrics import image_errors, moment_errors
+from diffaccel.reconstruction.training import image_rms_pixels
 
 PIXELS = 320
 PIXEL_M = 64e-6
-#: (preset, halo fraction, halo width factor) of each validation beam.
-BEAMS = (("correlated", 0.10, 2.0), ("nonlinear", 0.0, 1.0), ("gaussian", 0.15, 3.0))
-#: Each setting's neighbours (one step down, one step up).
+#: (preset, halo fraction, halo width factor) of each 4D validation beam.
+BEAMS_4D = (("correlated", 0.10, 2.0), ("nonlinear", 0.0, 1.0), ("gaussian", 0.15, 3.0))
+#: Fresh beams of the 6D benchmark's families.
+BEAMS_6D = ("draw9100_0", "tilted9100_0")
+#: Each setting's neighbours (one step down, one step up), by dims.
 SWEEP = {
-    "penalty_end": (3e3, 3e4),
-    "n_particles": (3072, 12288),
-    "steps": (150, 600),
+    4: {"penalty_end": (3e3, 3e4), "n_particles": (3072, 12288), "steps": (150, 600)},
+    6: {"penalty_end": (1e4, 1e5), "moment_weight": (0.3, 3.0)},
 }
+#: Emittances whose errors against the truth are reported, by dims.
+EMITTANCES = {4: ("emit_x", "emit_y"), 6: ("emit_x", "emit_y", "emit_z", "emit_6d")}
+#: Particles per member of the predicted held-out images.
+PREDICTION_PARTICLES = 200_000
 
 
-def beam(kind: int, n: int = 250_000) -> torch.Tensor:
-    """Bmad particles ``(n, 6)`` of validation beam ``kind`` (0, 1, 2)."""
+def beam_4d(kind: int, n: int = 250_000) -> torch.Tensor:
+    """Bmad particles ``(n, 6)`` of 4D validation beam ``kind`` (0, 1, 2)."""
     g = torch.Generator().manual_seed(11 + kind)
-    preset, halo, wide = BEAMS[kind]
+    preset, halo, wide = BEAMS_4D[kind]
     p = sample_preset_beam(preset, n, g)
     p[: int(halo * n), :4] *= wide
     p[:, :4] *= 0.5
     return p - p.mean(0)
 
 
-def emittance(p: torch.Tensor, i: int) -> float:
-    c = torch.cov(p[:, i : i + 2].T.to(torch.float64))
-    return float(torch.linalg.det(c).sqrt())
-
-
-def rms_sizes(images: torch.Tensor) -> torch.Tensor:
-    """Rms x and y [m] of images ``(K, H, W)`` -> ``(K, 2)``."""
-    xs = (torch.arange(PIXELS, dtype=torch.float64) - (PIXELS - 1) / 2) * PIXEL_M
-    m = image_moments(images.to(torch.float64), xs, xs)
-    return torch.stack([m[:, 2], m[:, 4]], -1).clamp_min(0).sqrt()
-
-
-def run(kind: int, config: ReconstructionConfig, seed: int) -> dict:
-    """One reconstruction of beam ``kind`` (data and training ``seed``)."""
-    truth = beam(kind)
+def scans_4d(kind: int, seed: int) -> tuple:
+    """``(truth, train, held_out)`` of 4D beam ``kind``: one scan, split by setting."""
+    truth = beam_4d(kind)
     ds = make_synthetic_quad_scan(
         particles=truth,
         n_settings=11,
@@ -86,24 +85,51 @@ def run(kind: int, config: ReconstructionConfig, seed: int) -> dict:
         image_method="histogram",
         seed=100 * seed + kind,
     )
+    return truth, ds, list(range(0, 11, 2))
+
+
+def held_out_scores(rec, pairs) -> tuple[float, float]:
+    """Mean held-out rms-size error and relative L1 over ``(predicted,
+    measured)`` image pairs ``(K, H, W)``."""
+    sizes, l1 = [], []
+    for pred, meas in pairs:
+        err = image_rms_pixels(pred) / image_rms_pixels(meas) - 1
+        sizes.append(err.abs().flatten())
+        l1.append(image_errors(pred, meas)["relative_l1"])
+    return float(torch.cat(sizes).mean()), statistics.fmean(l1)
+
+
+def run(dims: int, beam: int | str, config: ReconstructionConfig, seed: int) -> dict:
+    """One reconstruction of ``beam`` at ``seed`` and its held-out scores."""
+    config = replace(config, seed=seed)
     t0 = time.perf_counter()
-    rec = reconstruct(
-        ds,
-        replace(config, seed=seed),
-        train_indices=list(range(0, 11, 2)),
-        uncertainty=False,
-    )
+    if dims == 4:
+        truth, ds, train = scans_4d(beam, seed)
+        rec = reconstruct(ds, config, train_indices=train, uncertainty=False)
+        held = [i for i in range(ds.n_settings) if i not in train]
+        pred = rec.predict_images(ds.settings[held], n_particles=PREDICTION_PARTICLES)
+        pairs = [(pred, ds.mean_images()[held])]
+    else:
+        from reconstruction_6d_beams import beam_scans
+
+        truth, train, test = beam_scans(beam)
+        rec = reconstruct(train, config, uncertainty=False)
+        pairs = [
+            (
+                rec.predict_images(
+                    scan.settings, scan=name, n_particles=PREDICTION_PARTICLES
+                ),
+                scan.mean_images(),
+            )
+            for name, scan in test
+        ]
     seconds = time.perf_counter() - t0
-    held = list(range(1, 11, 2))
-    pred = next(iter(predict_dataset(rec, ds, n_particles=200_000).values()))
-    meas = ds.mean_images()
-    size_err = rms_sizes(pred[held]) / rms_sizes(meas[held]) - 1
-    m = rec.moments(50_000)
+    size_err, l1 = held_out_scores(rec, pairs)
+    e = moment_errors(rec.sample(100_000), truth)
     return {
-        "held_out_rms_err": round(float(size_err.abs().mean()), 4),
-        "held_out_l1": round(image_errors(pred[held], meas[held])["relative_l1"], 4),
-        "emit_x_rel_err": round(m["emit_x"]["mean"] / emittance(truth, 0) - 1, 4),
-        "emit_y_rel_err": round(m["emit_y"]["mean"] / emittance(truth, 2) - 1, 4),
+        "held_out_rms_err": round(size_err, 4),
+        "held_out_l1": round(l1, 4),
+        **{k: round(e[k], 4) for k in EMITTANCES[dims]},
         "seconds": round(seconds, 1),
     }
 
@@ -111,52 +137,61 @@ def run(kind: int, config: ReconstructionConfig, seed: int) -> dict:
 def headline(result: dict) -> dict[str, str]:
     """The docs page's figures: each setting's mean held-out rms error by value."""
     figures = {}
-    for name, by_value in result["mean_held_out_rms_err"].items():
-        cells = ", ".join(f"{v}: {100 * e:.2f} %" for v, e in by_value.items())
-        key = f"{name} (default {result['default'][name]:g}): held-out rms error"
-        figures[key] = f"{cells}; lowest at {result['chosen'][name]:g}"
+    for dims, by_setting in result["mean_held_out_rms_err"].items():
+        for name, by_value in by_setting.items():
+            cells = ", ".join(f"{v}: {100 * e:.2f} %" for v, e in by_value.items())
+            default = result["default"][dims][name]
+            key = f"{dims}D {name} (default {default:g}): held-out rms error"
+            figures[key] = f"{cells}; lowest at {result['chosen'][dims][name]:g}"
     return figures
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--beams", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--dims", type=int, nargs="+", default=[4, 6], choices=(4, 6))
     ap.add_argument(
         "--seeds",
         type=int,
         nargs="+",
         default=[0, 1],
-        help="Data (images) and training seeds; every beam is run at each.",
+        help="4D: data (images) and training seeds; 6D: training seeds.",
     )
+    ap.add_argument("--threads", type=int, default=2)
     add_store_flag(ap)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    base = ReconstructionConfig(dims=4)
     runs = []
-    cases = [("default", None, base)]
-    for name, values in SWEEP.items():
-        cases += [(name, v, replace(base, **{name: v})) for v in values]
-    for kind in args.beams:
-        for seed in args.seeds:
-            for name, value, config in cases:
-                r = {"beam": kind, "seed": seed, "setting": name, "value": value}
-                r.update(run(kind, config, seed))
-                runs.append(r)
-                print(r, flush=True)
     chosen, default, means = {}, {}, {}
-    for name in SWEEP:
-        default[name] = getattr(base, name)
-        score = {default[name]: []}
-        for r in runs:
-            if r["setting"] == "default":
-                score[default[name]].append(r["held_out_rms_err"])
-            elif r["setting"] == name:
-                score.setdefault(r["value"], []).append(r["held_out_rms_err"])
-        means[name] = {
-            f"{v:g}": round(statistics.fmean(e), 4) for v, e in score.items()
-        }
-        chosen[name] = min(score, key=lambda v: statistics.fmean(score[v]))
+    for dims in args.dims:
+        base = ReconstructionConfig(dims=dims)
+        cases = [("default", None, base)]
+        for name, values in SWEEP[dims].items():
+            cases += [(name, v, replace(base, **{name: v})) for v in values]
+        beams = range(len(BEAMS_4D)) if dims == 4 else BEAMS_6D
+        mine = []
+        for beam in beams:
+            for seed in args.seeds:
+                for name, value, config in cases:
+                    r = {"dims": dims, "beam": beam, "seed": seed, "setting": name}
+                    r["value"] = value
+                    r.update(run(dims, beam, config, seed))
+                    mine.append(r)
+                    print(r, flush=True)
+        runs += mine
+        key = str(dims)
+        chosen[key], default[key], means[key] = {}, {}, {}
+        for name in SWEEP[dims]:
+            default[key][name] = getattr(base, name)
+            score = {default[key][name]: []}
+            for r in mine:
+                if r["setting"] == "default":
+                    score[default[key][name]].append(r["held_out_rms_err"])
+                elif r["setting"] == name:
+                    score.setdefault(r["value"], []).append(r["held_out_rms_err"])
+            means[key][name] = {
+                f"{v:g}": round(statistics.fmean(e), 4) for v, e in score.items()
+            }
+            chosen[key][name] = min(score, key=lambda v: statistics.fmean(score[v]))
     emit(
         {
             "name": "validate_defaults",
