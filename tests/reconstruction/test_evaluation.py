@@ -34,6 +34,10 @@ def test_a_fit_that_reproduces_its_images_has_no_warning(
     assert s["metrics"]["images_train"]["relative_l1"] < POOR_FIT_RELATIVE_L1
     assert s["warnings"] == []
     assert min(s["scans"]["scan"]["fraction_on_screen"]) > 0.95
+    # its waist (0.55 pixels rms) is below the 1-pixel point spread: a note,
+    # not a warning about the fit
+    [note] = s["point_spread"]
+    assert "scan 'scan'" in note and "point spread's shape" in note
 
 
 def test_a_fit_that_misses_its_training_images_is_warned(

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
+from pathlib import Path
 
 import pytest
 import torch
@@ -21,6 +23,8 @@ from diffaccel.reconstruction.training import (
     scan_smoothing,
     smoothed_for_loss,
 )
+
+DATA = Path(__file__).resolve().parents[2] / "data" / "phase_space"
 
 SCREEN_M = 20.48e-3
 
@@ -232,3 +236,17 @@ def test_images_finer_than_the_sample_resolves_are_warned():
     few = ReconstructionConfig(dims=4, n_particles=16)  # Scott's 4x the waist
     [line] = resolution_warnings(few, scans[320], {})
     assert "smallest spot" in line and "--particles" in line
+
+
+def test_spots_below_the_point_spread_are_noted():
+    from diffaccel.data import read_quad_scan
+    from diffaccel.reconstruction.evaluation import point_spread_notes
+    from diffaccel.reconstruction.pipeline import as_scans
+
+    gpsr = as_scans(read_quad_scan(DATA / "gpsr_4d_synthetic.h5"))
+    config = ReconstructionConfig(dims=4)  # 1-pixel point spread
+    [line] = point_spread_notes(config, gpsr, {})
+    spot = float(line.split("spot (")[1].split(" pixels")[0])
+    assert 0.4 < spot < 0.8 and "point spread's shape" in line  # a 0.6-pixel waist
+    # the same images with a point spread below the waist: nothing to warn
+    assert point_spread_notes(replace(config, blur_pixels=0.5), gpsr, {}) == []

@@ -958,7 +958,8 @@ def finding_lines(summary: Mapping[str, Any]) -> list[str]:
 
     The coordinates the scans do not constrain, the headline numbers
     (:func:`headline_lines`), the unseen correlations set by the prior
-    (:func:`prior_dependence_lines`) and the observability note, in 6D with
+    (:func:`prior_dependence_lines`), the scans whose smallest spot is below
+    their point spread and the observability note, in 6D with
     the command that ranks the settings to add where it leaves quantities to
     the prior; each line only where the summary holds it.
     """
@@ -970,6 +971,7 @@ def finding_lines(summary: Mapping[str, Any]) -> list[str]:
         )
     lines += headline_lines(summary)
     lines += prior_dependence_lines(summary.get("prior_dependence", []))
+    lines += summary.get("point_spread", [])
     if summary.get("observability"):
         lines.append(summary["observability"])
         six = summary.get("config", {}).get("dims") == 6
