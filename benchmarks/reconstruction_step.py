@@ -14,8 +14,10 @@ Counts, per step on average:
 * ``host_syncs``: ``aten::item`` / ``aten::_local_scalar_dense`` events (the
   ops that read a device value on the host, i.e. synchronise on CUDA).
 
-The budget: at most 1 sync and 300 ops per step; ``met`` applies the 300
-to the stricter count, ``aten_ops_per_step``. Counts are deterministic; the
+The budget: at most 1 sync and 300 ops per step without the moment term
+(``moment_weight = 0``, ``aten_ops_per_step_without_moment_term``) and 80 more
+for the moment term; ``met`` applies them to the stricter count,
+``aten_ops_per_step``. Counts are deterministic; the
 per-step time (the same difference of the median training times of
 ``--repeats`` unprofiled runs) depends on the machine's load.
 
@@ -51,8 +53,8 @@ DATASET = DATA / "gpsr_4d_synthetic.h5"
 SYNC_OPS = ("aten::item", "aten::_local_scalar_dense")
 
 
-def _config(steps: int, particles: int) -> ReconstructionConfig:
-    return ReconstructionConfig(n_particles=particles, steps=steps)
+def _config(steps: int, particles: int, **fields) -> ReconstructionConfig:
+    return ReconstructionConfig(n_particles=particles, steps=steps, **fields)
 
 
 def _profile(ds, train, cfg, device, graph: bool) -> tuple[list, float]:
@@ -87,8 +89,11 @@ def headline(result: dict) -> dict[str, str | float]:
     threads = result["threads"]
     where = "CPU" if result["device"] == "cpu" else result["device"]
     syncs = result["host_syncs_per_step"]
-    return {
-        f"ATen ops per default 4D training step (budget <= {acc['max_aten_ops']})": (
+    without = result.get("aten_ops_per_step_without_moment_term")
+    moment = acc.get("max_moment_term_aten_ops")
+    budget = f"{acc['max_aten_ops']}" + (f" + {moment} moment term" if moment else "")
+    figures = {
+        f"ATen ops per default 4D training step (budget <= {budget})": (
             round(result["aten_ops_per_step"], 1)
         ),
         f"host syncs per step (budget <= {acc['max_host_syncs']})": (
@@ -98,6 +103,9 @@ def headline(result: dict) -> dict[str, str | float]:
             f"{1000 * result['step_time_s']:.1f} ms"
         ),
     }
+    if without is not None:
+        figures["ATen ops per step without the moment term"] = round(without, 1)
+    return figures
 
 
 def main() -> None:
@@ -130,14 +138,15 @@ def main() -> None:
         for _ in range(args.repeats):
             r = reconstruct(
                 ds,
-                _config(steps, args.particles, not args.eager),
+                _config(steps, args.particles),
                 train_indices=train,
                 device=args.device,
+                cuda_graph=not args.eager,
             )
             t.append(r.info["timings_s"]["training"])
         timings[steps] = statistics.median(t)
     step_time = (timings[long] - timings[short]) / (long - short)
-    counts = {}
+    counts, core = {}, {}
     for steps in (short, long):
         events, _ = _profile(
             ds, train, _config(steps, args.particles), args.device, not args.eager
@@ -148,6 +157,15 @@ def main() -> None:
             "top": _top_level(events),
             "syncs": sum(e.name in SYNC_OPS for e in aten),
         }
+        # the same step without the moment term
+        events, _ = _profile(
+            ds,
+            train,
+            _config(steps, args.particles, moment_weight=0.0),
+            args.device,
+            not args.eager,
+        )
+        core[steps] = sum(e.name.startswith("aten::") for e in events)
     d = long - short
     cfg = _config(short, args.particles)
     result = {
@@ -161,6 +179,7 @@ def main() -> None:
         "steps_compared": [short, long],
         "report_every": REPORT_EVERY,
         "aten_ops_per_step": (len(counts[long]["all"]) - len(counts[short]["all"])) / d,
+        "aten_ops_per_step_without_moment_term": (core[long] - core[short]) / d,
         "aten_ops_top_level_per_step": (
             len(counts[long]["top"]) - len(counts[short]["top"])
         )
@@ -168,15 +187,23 @@ def main() -> None:
         "host_syncs_per_step": (counts[long]["syncs"] - counts[short]["syncs"]) / d,
         "step_time_s": step_time,
         "training_s": timings,
-        "acceptance": {"max_aten_ops": 300, "max_host_syncs": 1},
+        "acceptance": {
+            "max_aten_ops": 300,
+            "max_moment_term_aten_ops": 80,
+            "max_host_syncs": 1,
+        },
         "load_avg_1min": os.getloadavg()[0],
         "torch": torch.__version__,
         "python": platform.python_version(),
         "git_commit": git_commit(),
     }
-    # met on the stricter count (every ATen event, nested ones included)
+    # met on the stricter count (every ATen event, nested ones included): 300
+    # for the step without the moment term, 80 more for that term
+    without = result["aten_ops_per_step_without_moment_term"]
     result["met"] = (
-        result["aten_ops_per_step"] <= 300 and result["host_syncs_per_step"] <= 1
+        without <= 300
+        and result["aten_ops_per_step"] - without <= 80
+        and result["host_syncs_per_step"] <= 1
     )
     if args.top:
         ca = Counter(e.name for e in counts[long]["all"])

@@ -234,6 +234,21 @@ def test_moment_term_counts_only_its_window_and_has_a_gradient() -> None:
     assert float(grad.abs().max()) > 0 and float(grad[:, 0, 0].abs()) == 0.0
 
 
+def test_moment_term_gradient_is_the_derivative_of_its_value() -> None:
+    # the written-out backward against finite differences (float64)
+    g = torch.Generator().manual_seed(3)
+    measured = torch.rand(3, 9, 11, generator=g, dtype=torch.float64)
+    window = (torch.rand(3, 9, 11, generator=g) > 0.2).double()
+    match = MomentMatch(measured, window, 1.7)
+    sim = torch.rand(3, 9, 11, generator=g, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(match, (sim,))
+    # and equal to autograd through the moments themselves
+    (written,) = torch.autograd.grad(match(sim), sim)
+    r = (match.moments(sim) - match.target) / match.scale
+    (auto,) = torch.autograd.grad(1.7 * (r * r).sum(), sim)
+    assert torch.allclose(written, auto, rtol=1e-10, atol=1e-14)
+
+
 @pytest.mark.parametrize(
     ("weight", "shape", "match"),
     [(-1.0, None, "moment weight"), (float("nan"), None, "moment weight"),

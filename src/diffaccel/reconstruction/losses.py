@@ -373,28 +373,87 @@ class MomentMatch:
             )
         if not (math.isfinite(weight) and weight >= 0):
             raise ValueError(f"moment weight must be finite and >= 0; got {weight}.")
-        kw = {"dtype": measured.dtype, "device": measured.device}
-        self.window = window.to(**kw)
-        h, w = measured.shape[-2:]
-        self.xs = torch.arange(w, **kw)
-        self.ys = torch.arange(h, **kw)
+        k, h, w = measured.shape
+        win = window.detach().to(torch.float64)
+        # pixel offsets from the measured centroid in the window (float64, once):
+        # the sums below are then moments about a point near each image's
+        # centroid, free of the cancellation of raw moments in float32
+        xs = torch.arange(w, dtype=torch.float64, device=win.device)
+        ys = torch.arange(h, dtype=torch.float64, device=win.device)
+        c = image_moments(measured.detach().to(torch.float64), xs, ys, win)
+        dx = (xs[None, :] - c[:, 0:1])[:, None, :]  # (K, 1, W)
+        dy = (ys[None, :] - c[:, 1:2])[:, :, None]  # (K, H, 1)
+        one = torch.ones_like(dx) * torch.ones_like(dy)
+        basis = torch.stack(
+            [one, dx * one, dy * one, dx * dx * one, dy * dy * one, dx * dy], 1
+        )  # (K, 6, H, W): 1, x, y, xx, yy, xy
+        basis = basis * win[:, None]
+        #: ``(K, H W, 6)``: an image's six windowed sums are one batched product
+        self.basis = basis.reshape(k, 6, h * w).transpose(1, 2).to(measured.dtype)
+        self.basis = self.basis.contiguous()
         self.weight = float(weight)
-        # image_moments' columns <xx>, <yy>, <xy>, indexed on the device (no
-        # host copy per step)
-        self._order = torch.tensor([2, 4, 3], device=measured.device)
+        # columns of the sums (1, x, y, xx, yy, xy) that the means of each
+        # second moment (xx, yy, xy) multiply
+        self._a = torch.tensor([1, 2, 1], device=measured.device)
+        self._b = torch.tensor([1, 2, 2], device=measured.device)
         self.target = self.moments(measured)
         sxx, syy = self.target[:, 0], self.target[:, 1]
         scale = torch.stack([sxx, syy, (sxx * syy).clamp_min(0).sqrt()], -1)
         self.scale = scale.clamp_min(1e-6)
+        self.inv_scale = 1.0 / self.scale
+
+    def _normalised(self, images: Tensor) -> Tensor:
+        """``(K, 6)``: the windowed sums of ``images`` over their total (1, <x>,
+        <y>, <xx>, <yy>, <xy> about the measured centroid)."""
+        k = images.shape[0]
+        sums = torch.bmm(images.reshape(k, 1, -1), self.basis)[:, 0]  # (K, 6)
+        return sums / sums[:, :1].clamp_min(torch.finfo(sums.dtype).tiny)
 
     def moments(self, images: Tensor) -> Tensor:
         """``(K, 3)``: ``S_xx, S_yy, S_xy`` [pixel^2] of ``images`` in the window."""
-        m = image_moments(images, self.xs, self.ys, self.window, dtype=None)
-        return m.index_select(-1, self._order)
+        q = self._normalised(images)
+        return q[:, 3:] - q.index_select(1, self._a) * q.index_select(1, self._b)
 
     def __call__(self, simulated: Tensor) -> Tensor:
-        r = (self.moments(simulated) - self.target) / self.scale
-        return self.weight * (r * r).sum()
+        return _MomentMatchFn.apply(simulated, self)
+
+
+class _MomentMatchFn(torch.autograd.Function):
+    """:class:`MomentMatch`'s value with its gradient written out.
+
+    With the windowed sums ``s_j = sum_p B_pj I_p`` (``B``: the basis 1, x, y,
+    xx, yy, xy), ``q = s / s_0`` and the moments ``S_a = q_a - q_i(a) q_j(a)``
+    (``xx: q_3 - q_1^2``, ``yy: q_4 - q_2^2``, ``xy: q_5 - q_1 q_2``), the
+    value is ``w sum r^2`` with ``r = (S - target) / scale``. Backward:
+    ``g = 2 w r / scale``; ``dq_a = g``, ``dq_i -= g q_j``, ``dq_j -= g q_i``;
+    ``ds = (dq - (dq . q) e_0) / s_0``; ``dI = B ds``.
+    """
+
+    @staticmethod
+    def forward(ctx, images: Tensor, spec: MomentMatch) -> Tensor:  # type: ignore[override]
+        k = images.shape[0]
+        sums = torch.bmm(images.reshape(k, 1, -1), spec.basis)[:, 0]  # (K, 6)
+        inv_t = sums[:, :1].clamp_min(torch.finfo(sums.dtype).tiny).reciprocal()
+        q = sums * inv_t
+        qa, qb = q.index_select(1, spec._a), q.index_select(1, spec._b)
+        r = (q[:, 3:] - qa * qb - spec.target) * spec.inv_scale
+        ctx.save_for_backward(q, qa, qb, r, inv_t)
+        ctx.spec, ctx.image_shape = spec, images.shape
+        return (r * r).sum() * spec.weight
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:  # type: ignore[override]
+        q, qa, qb, r, inv_t = ctx.saved_tensors
+        spec = ctx.spec
+        g = r * spec.inv_scale * (2.0 * spec.weight) * grad  # (K, 3)
+        dq = torch.zeros_like(q)
+        dq[:, 3:] = g
+        dq.index_add_(1, spec._a, -g * qb)
+        dq.index_add_(1, spec._b, -g * qa)
+        dq[:, :1] -= (dq * q).sum(1, keepdim=True)
+        ds = dq * inv_t
+        d_images = torch.bmm(spec.basis, ds[:, :, None]).reshape(ctx.image_shape)
+        return d_images, None
 
 
 class _KLPenaltyFn(torch.autograd.Function):
