@@ -373,12 +373,17 @@ FAKES: dict[str, dict] = {
         "particles": 6144,
     },
     "reconstruction_step": {
-        "acceptance": {"max_aten_ops": 300, "max_host_syncs": 1},
-        "aten_ops_per_step": 299.4,
+        "acceptance": {
+            "max_aten_ops": 300,
+            "max_moment_term_aten_ops": 80,
+            "max_host_syncs": 1,
+        },
+        "aten_ops_per_step": 375.4,
+        "aten_ops_per_step_without_moment_term": 299.4,
         "host_syncs_per_step": 0.0,
         "device": "cpu",
         "threads": 1,
-        "step_time_s": 0.011,
+        "step_time_s": 0.0085,
     },
     "tracking": {
         "acceptance": {"min_ratio_kde": 100.0, "min_ratio_cic": 5.0},

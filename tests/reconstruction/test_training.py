@@ -188,7 +188,7 @@ def test_defaults_depend_on_dims_and_explicit_values_win() -> None:
     four, six = ReconstructionConfig(dims=4), ReconstructionConfig(dims=6)
     assert (four.n_particles, four.steps, four.snapshots, four.burn_in) == (
         6144,
-        300,
+        600,
         5,
         0,
     )
@@ -200,7 +200,7 @@ def test_defaults_depend_on_dims_and_explicit_values_win() -> None:
         6,
         3,
     )
-    assert six.steps // six.snapshots == four.steps // four.snapshots  # 60-step cycles
+    assert (four.cycle_length, six.cycle_length) == (120, 60)
     mine = ReconstructionConfig(dims=6, n_particles=2048, steps=40, snapshots=2)
     assert (mine.n_particles, mine.steps, mine.burn_in) == (2048, 40, 1)
     assert ReconstructionConfig(dims=6, steps=10, snapshots=1).burn_in == 0
@@ -246,9 +246,9 @@ def test_sampling_offset_and_penalty_defaults() -> None:
     restored = ReconstructionConfig.from_dict(old)
     assert restored.unseen_weight == 0.0
     assert restored == ReconstructionConfig.from_dict({**d, "unseen_weight": 0.0})
-    # the moment term: in 6D only; runs saved before it trained without it
+    # the moment term: 1 in 6D, 0.3 in 4D; runs saved before it trained without it
     assert ReconstructionConfig(dims=6).moment_weight == 1.0
-    assert ReconstructionConfig(dims=4).moment_weight == 0.0
+    assert ReconstructionConfig(dims=4).moment_weight == 0.3
     assert "moment_weight" in d
     del d["moment_weight"]
     assert ReconstructionConfig.from_dict(d).moment_weight == 0.0
@@ -393,8 +393,8 @@ def test_cuda_training_matches_cpu_in_distribution(small_scan, dims: int) -> Non
     assert torch.allclose(rms["cpu"], rms["cuda"], rtol=0.06)
 
 
-def _aten_ops(scan, steps: int) -> tuple[int, int]:
-    cfg = ReconstructionConfig(n_particles=1024, steps=steps, snapshots=1)
+def _aten_ops(scan, steps: int, **config) -> tuple[int, int]:
+    cfg = ReconstructionConfig(n_particles=1024, steps=steps, snapshots=1, **config)
     with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as p:
         reconstruct(scan, cfg, uncertainty=False)
     names = [e.name for e in p.events() if e.name.startswith("aten::")]
@@ -404,15 +404,21 @@ def _aten_ops(scan, steps: int) -> tuple[int, int]:
 
 def test_default_4d_step_stays_within_the_op_budget(small_scan) -> None:
     # budget: at most 300 ATen ops (nested ones included) and 1 host sync per
-    # step; the difference of two runs cancels set-up and bookkeeping (the same
-    # snapshot count, reads every report_every = 10 steps in both). A fresh
-    # placeholder tensor per step pushes the count to 304.4
-    (ops_short, syncs_short), (ops_long, syncs_long) = (
-        _aten_ops(small_scan, s) for s in (20, 40)
-    )
-    per_step = (ops_long - ops_short) / 20
-    assert 250 < per_step <= 300
-    assert (syncs_long - syncs_short) / 20 <= 1
+    # step without the moment term, and 80 more for the moment term (its
+    # written-out gradient, 75); the difference of two runs cancels set-up
+    # and bookkeeping (the same snapshot count, reads every report_every = 10
+    # steps in both). A fresh placeholder tensor per step pushes the count
+    # without the moment term to 304.4; the moment term through autograd
+    # costs 127
+    per_step = {}
+    for weight in (0.0, None):  # None: the default (0.3)
+        (ops_short, syncs_short), (ops_long, syncs_long) = (
+            _aten_ops(small_scan, s, moment_weight=weight) for s in (20, 40)
+        )
+        per_step[weight] = (ops_long - ops_short) / 20
+        assert (syncs_long - syncs_short) / 20 <= 1
+    assert 250 < per_step[0.0] <= 300
+    assert 0 < per_step[None] - per_step[0.0] <= 80
 
 
 @pytest.mark.parametrize(
