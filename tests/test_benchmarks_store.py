@@ -187,14 +187,14 @@ def _beams6d() -> dict:
     beams |= {f"draw31{i:02d}_0": beam(0.08) for i in range(2)}
     beams |= {name: beam(0.08) for name in ("double_horn", "wide")}
     beams |= {name: beam(0.09) for name in ("shared", "correlated", "gaussian_coupled")}
-    beams["nonlinear_ypy"] = beam(0.114, ["rms_pz", "emit_6d"])
+    beams["nonlinear_ypy"] = beam(0.1149, ["rms_pz", "emit_6d"])
     beams["nonlinear_ypy"]["runs"] = [
         {"misses": {}},
-        {"misses": {"emit_6d": {"error": -0.163, "in_reported_std": -0.29}}},
+        {"misses": {"emit_6d": {"error": -0.158, "in_reported_std": -0.28}}},
         {
             "misses": {
-                "rms_pz": {"error": 0.058, "in_reported_std": 0.14},
-                "emit_6d": {"error": -0.268, "in_reported_std": -0.41},
+                "rms_pz": {"error": 0.053, "in_reported_std": 0.13},
+                "emit_6d": {"error": -0.248, "in_reported_std": -0.39},
             }
         },
     ]
@@ -445,7 +445,7 @@ def test_a_headline_is_a_stored_result(meta, tmp_path) -> None:
         results=tmp_path,
     )
     stored = json.loads(path.read_text())
-    assert stored["headline"]["held-out relative L1, worst"] == "0.114"
+    assert stored["headline"]["held-out relative L1, worst"] == "0.115"
     assert stored["note"] == "outside a limit: nonlinear_ypy (rms_pz, emit_6d)"
 
 
