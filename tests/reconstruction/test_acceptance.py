@@ -6,8 +6,8 @@ sizes within 3 % of the truth (measured within 0.7 %), x and y emittances within
 5 % (measured -4.9 / -0.3 % at seed 0, x -4.0 / -3.3 % at seeds 1 / 2), held-out
 relative L1 below gpsr's 0.117 (measured 0.062-0.071 over seeds 0-2). The
 bounds below add the sampling error of the 100 000-particle sample the errors
-are measured on (rms: sqrt(1/2N) = 0.2 %; emittance ~0.4 %) to the figures
-measured before (rms within 1.8 %, L1 up to 0.087) or the limit (emittances).
+are measured on (rms: sqrt(1/2N) = 0.2 %; emittance ~0.4 %) to looser figures
+(rms within 1.8 %, L1 below 0.087) or to the limit (emittances).
 """
 
 from __future__ import annotations
@@ -51,8 +51,7 @@ def test_gpsr_4d_emittances_as_claimed(gpsr_errors, key: str) -> None:
 
 
 def test_gpsr_4d_held_out_images_as_claimed(gpsr_errors) -> None:
-    # 0.062-0.071 at seeds 0-2 (0.087 the worst before the moment term and 600
-    # steps); gpsr 0.2.0 gets 0.117
+    # 0.062-0.071 at seeds 0-2; gpsr 0.2.0 gets 0.117
     assert gpsr_errors["held_out_l1"] < 0.087, gpsr_errors["held_out_l1"]
 
 

@@ -45,9 +45,9 @@ class _DimsDefaults:
     smoothing: float | Literal["auto"]  # loss_smoothing when None ("auto": by the data)
 
 
-#: 4D: steps and moment_weight moved where held-out settings of synthetic
-#: camera scans put them (``benchmarks/validate_defaults.py``, one setting at a
-#: time from the earlier defaults), checked on the GPSR 4D benchmark (KDE
+#: 4D: steps and moment_weight where held-out settings of synthetic camera
+#: scans put them (``benchmarks/validate_defaults.py``, one setting at a
+#: time), checked on the GPSR 4D benchmark (KDE
 #: images of one-pixel bandwidth). Known limit: at these defaults the same
 #: validation still prefers a neighbour of each 4D setting (held-out rms error
 #: 1.21 % here; moment_weight 1: 0.84 %, 1200 steps: 0.98 %, 12288 particles:
