@@ -37,6 +37,7 @@ Last line: ``{"name": "validate_defaults", "runs": [{"dims": .., "beam": ..,
 from __future__ import annotations
 
 import argparse
+import functools
 import statistics
 import time
 from dataclasses import replace
@@ -85,8 +86,10 @@ def beam_4d(kind: int, n: int = 250_000) -> torch.Tensor:
     return p - p.mean(0)
 
 
+@functools.cache
 def scans_4d(kind: int, seed: int) -> tuple:
-    """``(truth, train, held_out)`` of 4D beam ``kind``: one scan, split by setting."""
+    """``(truth, scan, train indices)`` of 4D beam ``kind`` at ``seed`` (made
+    once: every case of the sweep sees the same images)."""
     truth = beam_4d(kind)
     ds = make_synthetic_quad_scan(
         particles=truth,
@@ -100,7 +103,15 @@ def scans_4d(kind: int, seed: int) -> tuple:
     return truth, ds, list(range(0, 11, 2))
 
 
-def held_out_scores(rec, pairs) -> tuple[float, float]:
+@functools.cache
+def scans_6d(beam: str) -> tuple:
+    """``(truth, train, test)`` of 6D beam ``beam`` (made once)."""
+    from reconstruction_6d_beams import beam_scans
+
+    return beam_scans(beam)
+
+
+def held_out_scores(pairs) -> tuple[float, float]:
     """Mean held-out rms-size error and relative L1 over ``(predicted,
     measured)`` image pairs ``(K, H, W)``."""
     sizes, l1 = [], []
@@ -114,17 +125,16 @@ def held_out_scores(rec, pairs) -> tuple[float, float]:
 def run(dims: int, beam: int | str, config: ReconstructionConfig, seed: int) -> dict:
     """One reconstruction of ``beam`` at ``seed`` and its held-out scores."""
     config = replace(config, seed=seed)
-    t0 = time.perf_counter()
     if dims == 4:
         truth, ds, train = scans_4d(beam, seed)
-        rec = reconstruct(ds, config, train_indices=train, uncertainty=False)
         held = [i for i in range(ds.n_settings) if i not in train]
+        t0 = time.perf_counter()  # reconstruction and prediction, not the data
+        rec = reconstruct(ds, config, train_indices=train, uncertainty=False)
         pred = rec.predict_images(ds.settings[held], n_particles=PREDICTION_PARTICLES)
         pairs = [(pred, ds.mean_images()[held])]
     else:
-        from reconstruction_6d_beams import beam_scans
-
-        truth, train, test = beam_scans(beam)
+        truth, train, test = scans_6d(beam)
+        t0 = time.perf_counter()
         rec = reconstruct(train, config, uncertainty=False)
         pairs = [
             (
@@ -136,7 +146,7 @@ def run(dims: int, beam: int | str, config: ReconstructionConfig, seed: int) -> 
             for name, scan in test
         ]
     seconds = time.perf_counter() - t0
-    size_err, l1 = held_out_scores(rec, pairs)
+    size_err, l1 = held_out_scores(pairs)
     e = moment_errors(rec.sample(100_000), truth)
     return {
         "held_out_rms_err": round(size_err, 4),

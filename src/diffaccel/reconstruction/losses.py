@@ -383,11 +383,9 @@ class MomentMatch:
         c = image_moments(measured.detach().to(torch.float64), xs, ys, win)
         dx = (xs[None, :] - c[:, 0:1])[:, None, :]  # (K, 1, W)
         dy = (ys[None, :] - c[:, 1:2])[:, :, None]  # (K, H, 1)
-        one = torch.ones_like(dx) * torch.ones_like(dy)
-        basis = torch.stack(
-            [one, dx * one, dy * one, dx * dx * one, dy * dy * one, dx * dy], 1
-        )  # (K, 6, H, W): 1, x, y, xx, yy, xy
-        basis = basis * win[:, None]
+        terms = (torch.ones_like(dx), dx, dy, dx * dx, dy * dy, dx * dy)
+        basis = torch.stack(torch.broadcast_tensors(*terms), 1)  # (K, 6, H, W)
+        basis = basis * win[:, None]  # 1, x, y, xx, yy, xy in the window
         #: ``(K, H W, 6)``: an image's six windowed sums are one batched product
         self.basis = basis.reshape(k, 6, h * w).transpose(1, 2).to(measured.dtype)
         self.basis = self.basis.contiguous()
@@ -402,16 +400,16 @@ class MomentMatch:
         self.scale = scale.clamp_min(1e-6)
         self.inv_scale = 1.0 / self.scale
 
-    def _normalised(self, images: Tensor) -> Tensor:
-        """``(K, 6)``: the windowed sums of ``images`` over their total (1, <x>,
-        <y>, <xx>, <yy>, <xy> about the measured centroid)."""
+    def sums(self, images: Tensor) -> Tensor:
+        """``(K, 6)``: the windowed sums of ``images`` (1, x, y, xx, yy, xy
+        about the measured centroid)."""
         k = images.shape[0]
-        sums = torch.bmm(images.reshape(k, 1, -1), self.basis)[:, 0]  # (K, 6)
-        return sums / sums[:, :1].clamp_min(torch.finfo(sums.dtype).tiny)
+        return torch.bmm(images.reshape(k, 1, -1), self.basis)[:, 0]
 
     def moments(self, images: Tensor) -> Tensor:
         """``(K, 3)``: ``S_xx, S_yy, S_xy`` [pixel^2] of ``images`` in the window."""
-        q = self._normalised(images)
+        s = self.sums(images)
+        q = s / s[:, :1].clamp_min(torch.finfo(s.dtype).tiny)
         return q[:, 3:] - q.index_select(1, self._a) * q.index_select(1, self._b)
 
     def __call__(self, simulated: Tensor) -> Tensor:
@@ -431,8 +429,7 @@ class _MomentMatchFn(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, images: Tensor, spec: MomentMatch) -> Tensor:  # type: ignore[override]
-        k = images.shape[0]
-        sums = torch.bmm(images.reshape(k, 1, -1), spec.basis)[:, 0]  # (K, 6)
+        sums = spec.sums(images)
         inv_t = sums[:, :1].clamp_min(torch.finfo(sums.dtype).tiny).reciprocal()
         q = sums * inv_t
         qa, qb = q.index_select(1, spec._a), q.index_select(1, spec._b)
