@@ -61,10 +61,16 @@ SWEEP = {
     4: {
         "penalty_end": (3e3, 3e4),
         "n_particles": (3072, 12288),
-        "steps": (300, 1200),
-        "moment_weight": (0.0, 1.0),
+        "steps": (600, 2400),
+        "moment_weight": (0.3, 3.0),
     },
-    6: {"penalty_end": (1e4, 1e5), "moment_weight": (0.3, 3.0)},
+    6: {
+        "penalty_end": (1e4, 1e5),
+        "n_particles": (8192, 32768),
+        "steps": (180, 720),
+        "loss_smoothing": (0.5, 2.0),
+        "moment_weight": (0.3, 3.0),
+    },
 }
 #: Emittances whose errors against the truth are reported, by dims.
 EMITTANCES = {4: ("emit_x", "emit_y"), 6: ("emit_x", "emit_y", "emit_z", "emit_6d")}

@@ -188,7 +188,7 @@ def test_defaults_depend_on_dims_and_explicit_values_win() -> None:
     four, six = ReconstructionConfig(dims=4), ReconstructionConfig(dims=6)
     assert (four.n_particles, four.steps, four.snapshots, four.burn_in) == (
         6144,
-        600,
+        1200,
         5,
         0,
     )
@@ -200,7 +200,7 @@ def test_defaults_depend_on_dims_and_explicit_values_win() -> None:
         6,
         3,
     )
-    assert (four.cycle_length, six.cycle_length) == (120, 60)
+    assert (four.cycle_length, six.cycle_length) == (240, 60)
     mine = ReconstructionConfig(dims=6, n_particles=2048, steps=40, snapshots=2)
     assert (mine.n_particles, mine.steps, mine.burn_in) == (2048, 40, 1)
     assert ReconstructionConfig(dims=6, steps=10, snapshots=1).burn_in == 0
@@ -246,9 +246,9 @@ def test_sampling_offset_and_penalty_defaults() -> None:
     restored = ReconstructionConfig.from_dict(old)
     assert restored.unseen_weight == 0.0
     assert restored == ReconstructionConfig.from_dict({**d, "unseen_weight": 0.0})
-    # the moment term: 1 in 6D, 0.3 in 4D; runs saved before it trained without it
+    # the moment term: 1 in 4D and 6D; runs saved before it trained without it
     assert ReconstructionConfig(dims=6).moment_weight == 1.0
-    assert ReconstructionConfig(dims=4).moment_weight == 0.3
+    assert ReconstructionConfig(dims=4).moment_weight == 1.0
     assert "moment_weight" in d
     del d["moment_weight"]
     assert ReconstructionConfig.from_dict(d).moment_weight == 0.0

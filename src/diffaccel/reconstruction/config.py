@@ -47,20 +47,25 @@ class _DimsDefaults:
 
 #: 4D: steps and moment_weight where held-out settings of synthetic camera
 #: scans put them (``benchmarks/validate_defaults.py``, one setting at a
-#: time), checked on the GPSR 4D benchmark (KDE
-#: images of one-pixel bandwidth). Known limit: at these defaults the same
-#: validation still prefers a neighbour of each 4D setting (held-out rms error
-#: 1.21 % here; moment_weight 1: 0.84 %, 1200 steps: 0.98 %, 12288 particles:
-#: 1.12 %, penalty_end 3e3: 1.15 %; held-out L1 as good or better): the
+#: time), checked on the GPSR 4D benchmark (KDE images of one-pixel
+#: bandwidth). Known limit: at these defaults the same validation still
+#: prefers a neighbour of some settings (held-out rms error 0.64 % here;
+#: 2400 steps: 0.42 % at twice the run time; 3072 particles: 0.45 %, but
+#: then a 5-setting scan on a 320-pixel camera draws too few particles to
+#: resolve its smallest spot and the resolution check warns; penalty_end
+#: 3e4: 0.58 %, within the spread of the beams and seeds): the
 #: one-at-a-time search has not converged, and steps and particles trade
 #: against run time, which its score leaves out.
 #: 6D: set on the shared 6D *training* file (its ground truth) and on
 #: synthetic AWA 6D beams of other shapes; see ``ReconstructionConfig``. On the
 #: held-out scans of two fresh beams of those families
-#: (``benchmarks/validate_defaults.py``, seeds 0, 1) the default penalty_end
-#: and moment_weight give the smallest held-out rms-size error (0.20 %), their
-#: neighbours 0.21-0.22 %: the held-out images barely tell them apart, and
-#: they cannot tell the unseen-direction prior's strength at all.
+#: (``benchmarks/validate_defaults.py``, seeds 0, 1) the defaults of
+#: penalty_end, n_particles, steps, loss_smoothing and moment_weight give a
+#: held-out rms-size error of 0.20 %; their neighbours one step down and up
+#: give 0.20-0.21 %, except 180 steps (0.23 %) and a loss smoothing of 0.5
+#: pixel (0.32 %, held-out L1 4 % higher): the held-out images barely tell
+#: the others apart (8192 or 32768 particles, 720 steps), and they cannot
+#: tell the unseen-direction prior's strength at all.
 #: Scans with a deflecting cavity and a dipole image small spots (down to ~1
 #: pixel at a waist), so the point spread sets the emittance: the default
 #: assumes images that are histograms of particle positions (nearest-pixel
@@ -74,7 +79,7 @@ class _DimsDefaults:
 #: (end of the first cycle, which ramps the image penalty) was under-fit in 6D
 #: (y emittance +85 %, 6D emittance +188 %), hence ``burn_in >= 1``.
 _DIMS_DEFAULTS: dict[int, _DimsDefaults] = {
-    4: _DimsDefaults(6144, 600, 5, 1.0, 0.0, 0, 0.0, 1e4, 0.0, 0.3, "auto"),
+    4: _DimsDefaults(6144, 1200, 5, 1.0, 0.0, 0, 0.0, 1e4, 0.0, 1.0, "auto"),
     6: _DimsDefaults(
         16384, 360, 6, math.sqrt(1.0 / 12.0), 1.0, 3, 0.25, 3e4, 1e3, 1.0, 1.0
     ),
@@ -98,10 +103,10 @@ class ReconstructionConfig:
     (docs/methods/reconstruction_6d.md). The fields come in four groups
     (:data:`GROUPS`, :meth:`groups`). A default 4D reconstruction of the
     GPSR 4D benchmark (10 training settings, 100 x 100 pixels; 6144 fresh
-    quasi-random particles x 600 steps, MLP 2 x 48) takes ~4 s on two CPU
-    cores (``benchmarks/reconstruction.py``) and gives rms sizes within 0.7 %,
-    x emittances of -4.9 / -4.0 / -3.3 %, y emittances within 0.8 % and
-    held-out relative L1 0.062-0.071 (seeds 0, 1, 2; gpsr: 0.117).
+    quasi-random particles x 1200 steps, MLP 2 x 48) takes ~7 s on two CPU
+    cores (``benchmarks/reconstruction.py``) and gives rms sizes within 0.5 %,
+    x emittances of -3.5 / -3.2 / -3.2 %, y emittances within 1.4 % and
+    held-out relative L1 0.054-0.063 (seeds 0, 1, 2; gpsr: 0.117).
 
     **Model** (the beam generator):
 
@@ -127,19 +132,21 @@ class ReconstructionConfig:
 
     Args:
         steps: Total optimisation steps (one step sees every training image).
-            None: 600 for ``dims = 4``, 360 for ``dims = 6``. 4D: on held-out
+            None: 1200 for ``dims = 4``, 360 for ``dims = 6``. 4D: on held-out
             settings of three synthetic camera scans (320 x 320 pixels, seeds
-            0, 1; ``benchmarks/validate_defaults.py``) the held-out rms sizes
-            were off by 1.21 % on average with 600 steps, 1.66 % with 300 and
-            2.26 % with 150, the held-out images fitting better too (relative
-            L1 0.172, 0.191, 0.234); a three-mode beam with curvature is not
-            converged at 300. Without the moment term (``moment_weight = 0``)
-            600 steps took the GPSR 4D benchmark's x emittance, a 0.6-pixel
-            waist behind a 1-pixel point spread, to -6.4 % (seed 0); with it,
-            -4.9 / -4.0 / -3.3 % (seeds 0-2).
+            0, 1; ``benchmarks/validate_defaults.py``, ``moment_weight`` 1)
+            the held-out rms sizes were off by 0.64 % on average with 1200
+            steps, 0.84 % with 600, 1.53 % with 300 and 0.42 % with 2400, the
+            held-out images fitting better with every doubling (relative L1
+            0.157, 0.175, 0.210, 0.152); a three-mode beam with curvature is
+            not converged at 600 (its held-out L1 0.13 against 0.095 at 1200).
+            Without the moment term (``moment_weight = 0``) 600 steps took the
+            GPSR 4D benchmark's x emittance, a 0.6-pixel waist behind a
+            1-pixel point spread, to -6.4 % (seed 0); with it (1200 steps),
+            -3.5 / -3.2 / -3.2 % (seeds 0-2).
         snapshots: Cosine learning-rate cycles; one ensemble member per cycle
             after the ``burn_in``. None: 5 for ``dims = 4``, 6 for ``dims = 6``
-            (120- and 60-step cycles). The 6D emittance converges over cycles
+            (240- and 60-step cycles). The 6D emittance converges over cycles
             (shared 6D training file, 16384 particles: the members of cycles 3
             to 6 had +26, +18, +8 and +5 %), so 6D keeps the last three.
         burn_in: Cycles whose end is not kept as an ensemble member (the first
@@ -218,17 +225,16 @@ class ReconstructionConfig:
             cannot take the true shape exactly its optimum trades a few
             tenths of a percent of second moment for shape, which a strong
             z-pz chirp turns into 10-25 % of z emittance, and a heavy halo
-            into a wrong x-px shape. None: 0.3 for ``dims = 4``, 1 for ``dims
-            = 6``. 4D, on the held-out settings of three synthetic camera scans
-            (``benchmarks/validate_defaults.py``, seeds 0, 1, 300 steps):
+            into a wrong x-px shape. None: 1 for ``dims = 4`` and ``dims =
+            6``. 4D, on the held-out settings of three synthetic camera scans
+            (``benchmarks/validate_defaults.py``, seeds 0, 1): at 300 steps,
             without the term the held-out rms sizes were off by 2.45 % on
             average and a beam with a 15 % halo three times as wide came out
-            +4.6 / +6.9 % in emittance (seed 0); 0.3 gave 1.66 % (that beam
-            +0.5 / +1.4 %), 1 gave 1.53 % but raised the held-out relative L1
-            by 14 % (0.3: 4 %); the benchmark keeps the lowest rms error among
-            the values within 5 % of the lowest L1 (at 600 steps 1 fits the
-            held-out images as well as 0.3, see the module's
-            defaults note). 6D: on five
+            +4.6 / +6.9 % in emittance (seed 0), 0.3 gave 1.66 % (that beam
+            +0.5 / +1.4 %); at 1200 steps 0.3, 1 and 3 gave 0.98, 0.64 and
+            0.66 %, 3 with a held-out relative L1 9 % above the others (the
+            benchmark keeps the lowest rms error among the values within 5 %
+            of the lowest L1). 6D: on five
             beams of ``benchmarks/reconstruction_6d_beams.py`` that missed a
             limit without it (seeds 1, 2): 0 left 7 of 10 runs outside a
             limit, 1 left 2 (a three-mode beam's 6D emittance), 3 left 1 (its
