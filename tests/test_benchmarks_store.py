@@ -220,12 +220,16 @@ FAKES: dict[str, dict] = {
         "good_fits": 20,
         "false_alarms": 0,
         "bad_fits": 7,
-        "detected": 7,
+        "detected": 6,
         "limits": {"pedestal": [], "k1_scale_wrong": []},
         "cases": {
             "quad_length_doubled": {
                 "expected": "inconsistent_scans",
                 "alarms": ["inconsistent_scans"],
+            },
+            "mislabelled_setting": {
+                "expected": "outlier_setting",
+                "alarms": ["moment_miss"],
             },
             "pedestal": {"expected": None, "alarms": []},
             "good_single_gaussian_0": {"alarms": []},

@@ -201,11 +201,11 @@ class ReconstructionConfig:
             (:func:`~diffaccel.reconstruction.training.smoothed_for_loss`). One
             beam imaged on 64-400 pixels per axis with a 12 % halo
             (``benchmarks/resolution.py``, 6k-64k particles) comes out within
-            2.3 % of its emittances this way, 12-300 % high compared pixel by
+            1.2 % of its emittances this way, 12-300 % high compared pixel by
             pixel. On the GPSR 4D benchmark (100 pixels, a 0.6-pixel x waist
             behind a 1-pixel point spread) the cap sets 0.58 pixels, and the x
-            emittance comes out 1-1.3 points lower than compared pixel by
-            pixel (-3.8 / -3.8 / -5.1 % against -2.9 / -2.2 / -3.8 % at seeds
+            emittance comes out about 2 points lower than compared pixel by
+            pixel (-3.5 / -3.2 / -3.2 % against -0.8 / -1.0 / -1.6 % at seeds
             0-2, 2 threads): the price of one estimator for every camera. A
             number fixes the smoothing; 0 compares the images as they are.
             None: ``"auto"`` for ``dims = 4``; 1 for ``dims = 6``, whose waists

@@ -490,14 +490,15 @@ def resolution_warnings(
             need = config.n_particles * (h / max(used, 1e-9)) ** 6
             out.append(
                 f"{head}, coarser than its smallest spot ({used:.1f} pixels rms), "
-                "so the fit is limited by the sample's noise and may over-estimate "
-                f"the emittances; rerun with more --particles (about {need:.2g} "
+                "so the fit is limited by the sample's noise and its emittances may "
+                f"be biased either way; rerun with more --particles (about {need:.2g} "
                 "resolve the smallest spot)"
             )
         else:
             out.append(
-                f"{head}, and images compared at {used:g} pixels over-estimate "
-                "the emittances; rerun with --loss-smoothing auto (compares them "
+                f"{head}, and images compared at {used:g} pixels bias the "
+                "emittances (upwards when compared pixel by pixel); rerun with "
+                "--loss-smoothing auto (compares them "
                 "at the resolution the sample supports) or with more --particles"
             )
     return out
