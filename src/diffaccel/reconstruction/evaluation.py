@@ -9,7 +9,6 @@ and errors against a known ground truth.
 from __future__ import annotations
 
 import copy
-import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -43,9 +42,9 @@ from diffaccel.reconstruction.pipeline import as_scans
 from diffaccel.reconstruction.prior_dependence import prior_dependence
 from diffaccel.reconstruction.training import (
     ReconstructionConfig,
-    image_rms_pixels,
     loss_smoothing_for,
     sampling_smoothing,
+    smallest_spot,
 )
 
 __all__ = [
@@ -463,6 +462,18 @@ def _signal_summary(signals: Mapping[str, Any]) -> dict[str, Any]:
 SPARSE_SAMPLE_PIXELS = 4.0
 
 
+def _training_images(
+    scans: MultiScanDataset, train: Mapping[str, Sequence[int]]
+) -> list[tuple[str, Any, Tensor]]:
+    """``(name, scan, training images (K, H, W))`` of each scan: the settings
+    ``train[name]``, every setting where it names none."""
+    out = []
+    for name, scan in scans:
+        rows = list(train.get(name, [])) or list(range(scan.n_settings))
+        out.append((name, scan, scan.mean_images()[rows]))
+    return out
+
+
 def resolution_warnings(
     config: ReconstructionConfig,
     scans: MultiScanDataset,
@@ -475,9 +486,7 @@ def resolution_warnings(
     ``"auto"`` that is capped by the scan's smallest spot, see
     :func:`~diffaccel.reconstruction.training.scan_smoothing`)."""
     out = []
-    for name, scan in scans:
-        rows = list(train.get(name, [])) or list(range(scan.n_settings))
-        images = scan.mean_images()[rows]
+    for name, scan, images in _training_images(scans, train):
         h = float(sampling_smoothing(images, config.n_particles).max())
         [used] = loss_smoothing_for(config, [images], [config.blur_for(scan)])
         if not (h > SPARSE_SAMPLE_PIXELS and h > 2.0 * used):
@@ -523,11 +532,9 @@ def point_spread_notes(
     Settings whose waist spans several pixels (or a finer camera) decide it.
     """
     out = []
-    for name, scan in scans:
-        rows = list(train.get(name, [])) or list(range(scan.n_settings))
+    for name, scan, images in _training_images(scans, train):
         spread = config.blur_for(scan)
-        smallest = float(image_rms_pixels(scan.mean_images()[rows]).min())
-        spot = math.sqrt(max(smallest**2 - spread**2, 0.0))
+        spot = smallest_spot(images, spread)
         if spot >= spread:
             continue
         out.append(

@@ -387,8 +387,8 @@ class MomentMatch:
         basis = torch.stack(torch.broadcast_tensors(*terms), 1)  # (K, 6, H, W)
         basis = basis * win[:, None]  # 1, x, y, xx, yy, xy in the window
         #: ``(K, H W, 6)``: an image's six windowed sums are one batched product
-        self.basis = basis.reshape(k, 6, h * w).transpose(1, 2).to(measured.dtype)
-        self.basis = self.basis.contiguous()
+        basis = basis.reshape(k, 6, h * w).transpose(1, 2)
+        self.basis = basis.to(measured.dtype).contiguous()
         self.weight = float(weight)
         # columns of the sums (1, x, y, xx, yy, xy) that the means of each
         # second moment (xx, yy, xy) multiply

@@ -260,9 +260,16 @@ def scan_smoothing(
         5.0
     """
     sampled = float(sampling_smoothing(measured, n_particles).max())
-    smallest = float(image_rms_pixels(measured).min())
-    beam = math.sqrt(max(smallest**2 - float(point_spread) ** 2, 0.0))
+    beam = smallest_spot(measured, point_spread)
     return min(math.hypot(floor, min(sampled, beam)), MAX_BLUR_PIXELS)
+
+
+def smallest_spot(measured: Tensor, point_spread: float = 0.0) -> float:
+    """The beam's smallest rms spot [pixels] in images ``(K, H, W)``: the
+    smallest rms size along x or y, ``point_spread`` [pixels] taken out in
+    quadrature (0 where the image is no wider than the point spread)."""
+    smallest = float(image_rms_pixels(measured).min())
+    return math.sqrt(max(smallest**2 - float(point_spread) ** 2, 0.0))
 
 
 def loss_smoothing_for(
