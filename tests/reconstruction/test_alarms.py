@@ -16,7 +16,9 @@ from diffaccel.reconstruction import (
 )
 from diffaccel.reconstruction.alarms import (
     EDGE_LEVEL,
+    MOMENT_MISS,
     MOMENT_MISS_RAW,
+    OUTLIER_RATIO,
     ScanFit,
     fit_alarms,
     fit_signals,
@@ -180,6 +182,33 @@ def test_an_image_that_stands_out_is_warned(beam) -> None:
     (out,) = [a for a in alarms if a.kind == "outlier_setting"]
     assert "setting 3" in out.message
     assert out.causes[0].startswith("the image recorded at another setting")
+
+
+def test_an_image_whose_moments_stand_out_is_named(beam) -> None:
+    # every prediction noisy (relative L1 ~0.25 each), setting 3's image taken
+    # of a beam 30 % wider in x: its L1 does not stand out, its moments do
+    scan = _scan(beam, 1.0, 1)
+    fit = _perfect_fit(scan)
+    g = torch.Generator().manual_seed(0)
+    noisy = fit.measured * (1 + 0.3 * torch.randn(fit.measured.shape, generator=g))
+    fit.predicted = noisy.clamp_min(0)
+    fit.predicted /= fit.predicted.sum((-2, -1), keepdim=True)
+    wide = beam.clone()
+    wide[:, :2] *= 1.3
+    fwd = ScreenForwardModel.from_dataset(scan)
+    img = fwd.images(wide.float(), scan.settings[3:4]).detach()[0].double()
+    fit.measured = fit.measured.clone()
+    fit.measured[3] = img / img.sum()
+    signals = fit_signals([fit], torch.cov(beam.T), 4)
+    assert signals["image_l1_worst_ratio"] < OUTLIER_RATIO
+    assert signals["moment_left_worst"] > MOMENT_MISS
+    assert signals["moment_left_worst_ratio"] > OUTLIER_RATIO
+    (out,) = [a for a in fit_alarms(signals) if a.kind == "outlier_setting"]
+    assert "setting 3 " in out.message and "setting 2 " not in out.message
+    # without the wide image: no setting stands out
+    fit.measured[3] = _perfect_fit(scan).measured[3]
+    quiet = fit_alarms(fit_signals([fit], torch.cov(beam.T), 4))
+    assert "outlier_setting" not in _kinds(quiet)
 
 
 def test_a_scan_that_stands_out_is_warned(beam) -> None:
