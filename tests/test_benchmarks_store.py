@@ -220,7 +220,7 @@ FAKES: dict[str, dict] = {
         "good_fits": 20,
         "false_alarms": 0,
         "bad_fits": 7,
-        "detected": 6,
+        "detected": 7,
         "limits": {"pedestal": [], "k1_scale_wrong": []},
         "cases": {
             "quad_length_doubled": {
@@ -229,7 +229,7 @@ FAKES: dict[str, dict] = {
             },
             "mislabelled_setting": {
                 "expected": "outlier_setting",
-                "alarms": ["moment_miss"],
+                "alarms": ["moment_miss", "outlier_setting"],
             },
             "pedestal": {"expected": None, "alarms": []},
             "good_single_gaussian_0": {"alarms": []},
