@@ -16,6 +16,7 @@ from diffaccel.reconstruction import (
 )
 from diffaccel.reconstruction.alarms import (
     EDGE_LEVEL,
+    FLOOR_SHARE,
     MOMENT_MISS,
     MOMENT_MISS_RAW,
     OUTLIER_RATIO,
@@ -209,6 +210,31 @@ def test_an_image_whose_moments_stand_out_is_named(beam) -> None:
     fit.measured[3] = _perfect_fit(scan).measured[3]
     quiet = fit_alarms(fit_signals([fit], torch.cov(beam.T), 4))
     assert "outlier_setting" not in _kinds(quiet)
+
+
+def test_images_on_a_floor_are_warned(beam) -> None:
+    scan = _scan(beam, 1.0, 1)
+    fit = _perfect_fit(scan)  # the fit reproduces what it is given
+    g = torch.Generator().manual_seed(0)
+    peak = fit.measured.amax((-2, -1), keepdim=True)
+    noise = 0.05 * peak * torch.randn(fit.measured.shape, generator=g)
+    # background-subtracted frames: zero-mean noise, signed; quiet
+    fit.measured = fit.measured + noise
+    signals = fit_signals([fit], torch.cov(beam.T), 4)
+    assert abs(torch.tensor(signals["scans"]["scan"]["floor_share"]).median()) < 0.01
+    assert "background" not in _kinds(fit_alarms(signals))
+    # the same noise clipped at 0: a floor of its positive half
+    fit.measured = fit.measured.clamp_min(0)
+    (floor,) = [
+        a for a in fit_alarms(fit_signals([fit], torch.cov(beam.T), 4))
+        if a.kind == "background"
+    ]  # fmt: skip
+    assert floor.value > FLOOR_SHARE
+    assert floor.causes[0].startswith("background or a pedestal not subtracted")
+    # a beam cut by one edge raises that edge only: no floor
+    band = dataclasses.replace(scan, images=scan.images[:, :, 15:17, :].clone())
+    alarms = fit_alarms(fit_signals([_perfect_fit(band)], torch.cov(beam.T), 4))
+    assert "background" not in _kinds(alarms)
 
 
 def test_a_scan_that_stands_out_is_warned(beam) -> None:

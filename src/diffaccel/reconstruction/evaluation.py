@@ -440,7 +440,8 @@ def evaluate(
 
 
 def _signal_summary(signals: Mapping[str, Any]) -> dict[str, Any]:
-    """The pooled fit-quality signals and, per scan, the worst edge level."""
+    """The pooled fit-quality signals and, per scan, the worst edge level and
+    the median floor share (:func:`~diffaccel.reconstruction.alarms.floor_share`)."""
     out = {k: v for k, v in signals.items() if k != "scans"}
     out["scans"] = {
         name: {
@@ -448,6 +449,11 @@ def _signal_summary(signals: Mapping[str, Any]) -> dict[str, Any]:
             "moment_residual_one_beam": s.get("moment_residual_one_beam"),
             "moment_residual_own_beam": s.get("moment_residual_own_beam"),
             "edge_level_max": max(s["edge_level"], default=0.0),
+            "floor_share": (
+                float(torch.tensor(s["floor_share"]).median())
+                if s.get("floor_share")
+                else None
+            ),
         }
         for name, s in signals.get("scans", {}).items()
     }
