@@ -219,9 +219,9 @@ FAKES: dict[str, dict] = {
     "alarms": {
         "good_fits": 20,
         "false_alarms": 0,
-        "bad_fits": 7,
-        "detected": 7,
-        "limits": {"pedestal": [], "k1_scale_wrong": []},
+        "bad_fits": 8,
+        "detected": 8,
+        "limits": {"k1_scale_wrong": []},
         "cases": {
             "quad_length_doubled": {
                 "expected": "inconsistent_scans",
@@ -231,7 +231,7 @@ FAKES: dict[str, dict] = {
                 "expected": "outlier_setting",
                 "alarms": ["moment_miss", "outlier_setting"],
             },
-            "pedestal": {"expected": None, "alarms": []},
+            "pedestal": {"expected": "background", "alarms": ["background"]},
             "good_single_gaussian_0": {"alarms": []},
         },
     },
