@@ -81,9 +81,9 @@ benchmark files fitted with the defaults (4D: ``gpsr_4d_synthetic.h5``,
   (``benchmarks/background_bias.py``'s, signed: the noise is not a floor); the
   same frames with negative pixels clipped at 0 (screen rms +100-180 %)
   4.7-5.3 %; a pedestal of 0.1 % of the peak 18 % (128 x 128 pixels), of 1 %
-  69 %, of 10 % 96 %. A fit
-  reproduces a pedestal with a halo, so no fit signal sees it (10 % of the
-  peak: moments 11 %, 1.5 % after the best change of the beam, edge 0.09).
+  69 %, of 10 % 96 %. A fit reproduces a pedestal with a halo, so no fit
+  signal sees it (10 % of the peak: moments 11 %, 1.5 % after the best change
+  of the beam, edge 0.09).
 
 Known limit (in the benchmark too): a single scan in the wrong units (fitted
 by another beam; no fit signal sees it) stays quiet.
@@ -130,6 +130,7 @@ __all__ = [
     "poor_fit_causes",
     "prediction_alarms",
     "scan_fits",
+    "scan_floor_share",
 ]
 
 #: Rms relative miss of the training images' second moments left after the
@@ -365,6 +366,19 @@ def _fit_residual(
     return [float(v) for v in r], left.square().mean(1).sqrt()
 
 
+def _edge_profiles(img: Tensor, dy: int, dx: int) -> tuple[Tensor, ...]:
+    """Mean of the outermost ``dy`` rows (first, last) and ``dx`` columns
+    (first, last) of images ``(K, H, W)``: four profiles ``(K, W)`` or ``(K, H)``,
+    in the order of :data:`_SIDES`."""
+    h, w = img.shape[-2:]
+    return (
+        img[:, :dy, :].mean(1),
+        img[:, h - dy :, :].mean(1),
+        img[:, :, :dx].mean(2),
+        img[:, :, w - dx :].mean(2),
+    )
+
+
 def _edge_levels(images: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Per image: ``(level, flatness, side)`` of its brightest edge.
 
@@ -376,14 +390,7 @@ def _edge_levels(images: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     img = images.detach().to("cpu", torch.float64).clamp_min(0)
     _, h, w = img.shape
     peak = img.amax((-2, -1)).clamp_min(1e-300)
-    depth_y = 2 if h >= 8 else 1
-    depth_x = 2 if w >= 8 else 1
-    profiles = [
-        img[:, :depth_y, :].mean(1),
-        img[:, h - depth_y :, :].mean(1),
-        img[:, :, :depth_x].mean(2),
-        img[:, :, w - depth_x :].mean(2),
-    ]
+    profiles = _edge_profiles(img, 2 if h >= 8 else 1, 2 if w >= 8 else 1)
     levels, flats = [], []
     for prof in profiles:
         n = prof.shape[-1]
@@ -406,11 +413,11 @@ def floor_share(images: Tensor) -> Tensor:
     columns (an eighth of the screen, 1 to 4 of them). Zero-mean noise (a
     background-subtracted camera frame) averages out, a beam cut by an edge
     raises that edge only, and a pedestal, an unsubtracted background or noise
-    clipped at zero raises all four. A level
-    within two standard errors of zero (the edge's spread) counts as 0. The
-    share is that level times the number of pixels over the image's sum: the
-    intensity a uniform floor spreads over the frame, which the second
-    moments weight by the squared distance from the beam.
+    clipped at zero raises all four. A level within two standard errors of
+    zero (the edge's spread) counts as 0. The share is that level times the
+    number of pixels over the image's sum: the intensity a uniform floor
+    spreads over the frame, which the second moments weight by the squared
+    distance from the beam.
 
     Example:
         >>> im = torch.zeros(1, 16, 16); im[0, 6:10, 6:10] = 1.0
@@ -419,14 +426,7 @@ def floor_share(images: Tensor) -> Tensor:
     """
     img = images.detach().to("cpu", torch.float64)
     _, h, w = img.shape
-    dy = max(1, min(4, h // 8))
-    dx = max(1, min(4, w // 8))
-    edges = (
-        img[:, :dy, :].mean(1),
-        img[:, h - dy :, :].mean(1),
-        img[:, :, :dx].mean(2),
-        img[:, :, w - dx :].mean(2),
-    )
+    edges = _edge_profiles(img, max(1, min(4, h // 8)), max(1, min(4, w // 8)))
     levels = torch.stack([e.median(-1).values for e in edges], -1)  # (K, 4)
     # standard error of each median (1.25 std / sqrt(n) for Gaussian noise)
     errors = torch.stack(
@@ -628,15 +628,18 @@ def fit_alarms(
     return alarms
 
 
+def scan_floor_share(scan: Mapping[str, Any]) -> float | None:
+    """Median over a scan's images of their :func:`floor_share` (``scan``: one
+    scan's entry of :func:`fit_signals`); None without images."""
+    shares = scan.get("floor_share")
+    return float(torch.tensor(shares).median()) if shares else None
+
+
 def _floor_alarm(scans: Mapping[str, Any]) -> FitAlarm | None:
-    """Scans whose measured images sit on a floor: the median over the scan's
-    images of :func:`floor_share` above :data:`FLOOR_SHARE`."""
-    shares = {
-        n: float(torch.tensor(s["floor_share"]).median())
-        for n, s in scans.items()
-        if s.get("floor_share")
-    }
-    hits = {n: v for n, v in shares.items() if v > FLOOR_SHARE}
+    """Scans whose measured images sit on a floor: :func:`scan_floor_share`
+    above :data:`FLOOR_SHARE`."""
+    shares = {n: scan_floor_share(s) for n, s in scans.items()}
+    hits = {n: v for n, v in shares.items() if v is not None and v > FLOOR_SHARE}
     if not hits:
         return None
     per = ", ".join(f"{n!r} {100 * v:.1f} %" for n, v in hits.items())

@@ -26,6 +26,7 @@ from diffaccel.reconstruction.alarms import (
     longitudinal_alarm,
     poor_fit_causes,
     scan_fits,
+    scan_floor_share,
 )
 from diffaccel.reconstruction.design import observability_line
 from diffaccel.reconstruction.ensemble import Reconstruction
@@ -441,7 +442,8 @@ def evaluate(
 
 def _signal_summary(signals: Mapping[str, Any]) -> dict[str, Any]:
     """The pooled fit-quality signals and, per scan, the worst edge level and
-    the median floor share (:func:`~diffaccel.reconstruction.alarms.floor_share`)."""
+    the median floor share
+    (:func:`~diffaccel.reconstruction.alarms.scan_floor_share`)."""
     out = {k: v for k, v in signals.items() if k != "scans"}
     out["scans"] = {
         name: {
@@ -449,11 +451,7 @@ def _signal_summary(signals: Mapping[str, Any]) -> dict[str, Any]:
             "moment_residual_one_beam": s.get("moment_residual_one_beam"),
             "moment_residual_own_beam": s.get("moment_residual_own_beam"),
             "edge_level_max": max(s["edge_level"], default=0.0),
-            "floor_share": (
-                float(torch.tensor(s["floor_share"]).median())
-                if s.get("floor_share")
-                else None
-            ),
+            "floor_share": scan_floor_share(s),
         }
         for name, s in signals.get("scans", {}).items()
     }
