@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 
 import pytest
@@ -132,6 +133,33 @@ def test_knob_errors_are_one_line(small_awa6d):
         with pytest.raises(ValueError, match=msg) as err:
             dz.recommend(layouts, cov, [dz.parse_knob(text)])
         assert "\n" not in str(err.value)
+
+
+def test_spec_errors_name_the_scan_and_field():
+    """Planned scans that measure nothing are refused in one line, not traced back."""
+
+    def spec_with(**scan):
+        spec = copy.deepcopy(SPEC)
+        spec["scans"]["quad"].update(scan)
+        return spec
+
+    off = copy.deepcopy(SPEC)
+    off["scans"]["quad"]["beamline"][-1]["pixel_size"] = [1e-8, 1e-8]
+    cases = {
+        "no knobs": spec_with(knobs={}),
+        "n must be a whole number >= 1": spec_with(knobs={"Q1.k1": [-1, 1, 0]}),
+        "rows of 1 value": spec_with(names=["Q1.k1"], settings=[[1.0, 2.0]]),
+        "settings: not rows of numbers": spec_with(names=["Q1.k1"], settings=[["a"]]),
+        "misses the screen at every setting": off,
+    }
+    for msg, spec in cases.items():
+        with pytest.raises(ValueError, match=msg) as err:
+            dz.layouts_from_spec(spec)
+        assert "scans.quad" in str(err.value) and "\n" not in str(err.value)
+    one_knob = spec_with(names=["Q1.k1"], settings=[-1.0, 0.0, 1.0])
+    one_knob["scans"]["quad"].pop("knobs")
+    [layout], _ = dz.layouts_from_spec(one_knob)
+    assert tuple(layout.settings.shape) == (3, 1)
 
 
 def test_a_knob_that_moves_nothing_is_refused():

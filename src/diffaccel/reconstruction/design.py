@@ -340,7 +340,10 @@ def layouts_from_spec(spec: Mapping[str, Any]) -> tuple[list[ScanLayout], Tensor
     combination). ``"settings"`` with ``"names"`` gives explicit rows instead.
 
     Raises:
-        ValueError: one line naming the field that is missing or wrong.
+        ValueError: one line naming the field that is missing or wrong: no
+            knobs, a grid of fewer than one value, settings rows that do not
+            match the names, or a scan whose every setting puts the prior
+            beam off its screen (:data:`MIN_ON_SCREEN`).
     """
     for key in ("p0c", "beam", "scans"):
         if key not in spec:
@@ -357,28 +360,56 @@ def layouts_from_spec(spec: Mapping[str, Any]) -> tuple[list[ScanLayout], Tensor
             raise ValueError(f"{where}.beamline: {err}") from None
         if "settings" in scan:
             names = list(scan.get("names", []))
-            settings = torch.tensor(scan["settings"], dtype=torch.float64)
+            try:
+                settings = torch.tensor(scan["settings"], dtype=torch.float64)
+            except (TypeError, ValueError) as err:
+                raise ValueError(
+                    f"{where}.settings: not rows of numbers ({err})"
+                ) from None
+            if settings.dim() == 1 and len(names) == 1:  # one knob: a list of values
+                settings = settings[:, None]
         else:
             knobs = scan.get("knobs", {})
+            if not isinstance(knobs, Mapping) or not knobs:
+                raise ValueError(
+                    f"{where}: no knobs; give the scanned parameters, e.g. "
+                    '"knobs": {"Q1.k1": [-10, 10, 7]}, or "names" and "settings"'
+                )
             names = list(knobs)
             grids = []
             for k, v in knobs.items():
                 if not (isinstance(v, list | tuple) and len(v) in (1, 2, 3)):
                     raise ValueError(f"{where}.knobs.{k}: expected [low, high, n]")
                 lo, hi = float(v[0]), float(v[-1] if len(v) < 3 else v[1])
-                n = int(v[2]) if len(v) == 3 else (1 if lo == hi else KNOB_POINTS)
-                grids.append(torch.linspace(lo, hi, max(n, 1), dtype=torch.float64))
+                n = v[2] if len(v) == 3 else (1 if lo == hi else KNOB_POINTS)
+                if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+                    raise ValueError(
+                        f"{where}.knobs.{k}: n must be a whole number >= 1; got {n!r}"
+                    )
+                grids.append(torch.linspace(lo, hi, n, dtype=torch.float64))
             rows = list(itertools.product(*[g.tolist() for g in grids]))
             settings = torch.tensor(rows, dtype=torch.float64).reshape(-1, len(names))
         try:
             fwd = ScreenForwardModel(
                 line, names, float(spec["p0c"]), species=spec.get("species", "electron")
             )
-            if settings.shape[0]:
-                fwd.check_settings(settings)
-        except ValueError as err:
+            if not settings.shape[0] or settings.shape[-1] != len(names):
+                raise ValueError(
+                    f"settings must be rows of {len(names)} value(s), one per "
+                    f"name in {names}; got shape {tuple(settings.shape)}."
+                )
+            fwd.check_settings(settings)
+        except (TypeError, ValueError) as err:
             raise ValueError(f"{where}: {err}") from None
-        out.append(ScanLayout(str(name), fwd, settings.reshape(-1, len(names))))
+        settings = settings.reshape(-1, len(names))
+        frac = _on_screen(fwd, settings, cov)
+        if not bool((frac >= MIN_ON_SCREEN).any()):  # the scan measures nothing
+            raise ValueError(
+                f"{where}: the prior beam misses the screen at every setting (less "
+                f"than {MIN_ON_SCREEN:.0%} of it lands on it); check the beam's rms, "
+                "the screen's shape and pixel_size, and the knob ranges"
+            )
+        out.append(ScanLayout(str(name), fwd, settings))
     return out, cov
 
 
