@@ -68,7 +68,7 @@ SWEEP = {
         "penalty_end": (1e4, 1e5),
         "n_particles": (8192, 32768),
         "steps": (180, 720),
-        "loss_smoothing": (1.0, 2.0),  # around "auto": a fixed 1 pixel, 2 pixels
+        "loss_smoothing": (0.5, 2.0),
         "moment_weight": (0.3, 3.0),
     },
 }
@@ -128,11 +128,6 @@ def held_out_scores(pairs) -> tuple[float, float]:
     return float(torch.cat(sizes).mean()), statistics.fmean(l1)
 
 
-def _label(value: float | str) -> str:
-    """A swept value as the JSON's key (``"auto"`` as it is)."""
-    return value if isinstance(value, str) else f"{value:g}"
-
-
 def run(dims: int, beam: int | str, config: ReconstructionConfig, seed: int) -> dict:
     """One reconstruction of ``beam`` at ``seed`` and its held-out scores."""
     config = replace(config, seed=seed)
@@ -178,8 +173,8 @@ def headline(result: dict) -> dict[str, str]:
                 f"{v}: {100 * e:.2f} % (L1 {l1[v]:.3f})" for v, e in by_value.items()
             )
             default = result["default"][dims][name]
-            key = f"{dims}D {name} (default {_label(default)}): held-out rms error"
-            figures[key] = f"{cells}; chosen {_label(result['chosen'][dims][name])}"
+            key = f"{dims}D {name} (default {default:g}): held-out rms error"
+            figures[key] = f"{cells}; chosen {result['chosen'][dims][name]:g}"
     return figures
 
 
@@ -231,8 +226,8 @@ def main() -> None:
             best_l1 = min(mean_l1.values())
             eligible = [v for v in rms if mean_l1[v] <= (1 + L1_TOLERANCE) * best_l1]
             chosen[key][name] = min(eligible, key=mean_rms.get)
-            means[key][name] = {_label(v): round(e, 4) for v, e in mean_rms.items()}
-            l1s[key][name] = {_label(v): round(e, 4) for v, e in mean_l1.items()}
+            means[key][name] = {f"{v:g}": round(e, 4) for v, e in mean_rms.items()}
+            l1s[key][name] = {f"{v:g}": round(e, 4) for v, e in mean_l1.items()}
     emit(
         {
             "name": "validate_defaults",

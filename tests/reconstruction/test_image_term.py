@@ -79,11 +79,7 @@ def test_loss_smoothing_given_or_sized_by_the_data():
     im = _gaussian_image(64, 1.5e-3)
     assert loss_smoothing_for(ReconstructionConfig(loss_smoothing=0.5), [im]) == [0.5]
     assert ReconstructionConfig(dims=4).loss_smoothing == "auto"
-    six = ReconstructionConfig(dims=6)  # "auto" in quadrature with 1 pixel
-    assert six.loss_smoothing == "auto"
-    [default6] = loss_smoothing_for(six, [im])
-    bandwidth = float(sampling_smoothing(im, six.n_particles).max())
-    assert default6 == pytest.approx(math.hypot(1.0, bandwidth))
+    assert loss_smoothing_for(ReconstructionConfig(dims=6), [im]) == [1.0]
     auto4 = ReconstructionConfig(dims=4, n_particles=4096, loss_smoothing="auto")
     [auto] = loss_smoothing_for(auto4, [im])
     assert auto == pytest.approx(float(sampling_smoothing(im, 4096).max()))

@@ -99,8 +99,8 @@ _OPTIONS = [
         "they are compared [camera pixels], or 'auto': sized per scan by the data "
         "(the widest image's rms times N^(-1/6) for N particles per step, at most "
         "the beam's smallest spot), so that the fit does not depend on the "
-        "camera's pixel size; 0 compares pixel by pixel [default: auto; with "
-        "--dims 6 in quadrature with 1 pixel].",
+        "camera's pixel size; 0 compares pixel by pixel [default: auto for --dims "
+        "4, 1 for --dims 6].",
     ),
     click.option("--no-figures", is_flag=True, help="Skip the PNG figures."),
     click.option(

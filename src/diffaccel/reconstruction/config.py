@@ -61,20 +61,18 @@ class _DimsDefaults:
 #: held-out scans of two fresh beams of those families
 #: (``benchmarks/validate_defaults.py``, seeds 0, 1) the defaults of
 #: penalty_end, n_particles, steps, loss_smoothing and moment_weight give a
-#: held-out rms-size error of 0.20-0.22 % (a fixed 1-pixel loss smoothing:
-#: 0.20 %, 0.5 pixel: 0.32 % with a held-out L1 4 % higher); their
-#: neighbours one step down and up give 0.20-0.21 %, except 180 steps
-#: (0.23 %): the held-out images barely tell
+#: held-out rms-size error of 0.20 %; their neighbours one step down and up
+#: give 0.20-0.21 %, except 180 steps (0.23 %) and a loss smoothing of 0.5
+#: pixel (0.32 %, held-out L1 4 % higher): the held-out images barely tell
 #: the others apart (8192 or 32768 particles, 720 steps), and they cannot
 #: tell the unseen-direction prior's strength at all.
 #: Scans with a deflecting cavity and a dipole image small spots (down to ~1
 #: pixel at a waist), so the point spread sets the emittance: the default
 #: assumes images that are histograms of particle positions (nearest-pixel
 #: deposition, variance 1/12 pixel^2), reproduced exactly in training through
-#: the loss smoothing of at least one pixel (see ``loss_smoothing``), which
-#: also keeps the KL distance unbiased for sparse simulated images. Measured
-#: on a validation split of the shared 6D training file (k1 = -6, 6 held
-#: out): blur 1.0 without
+#: the 1-pixel loss smoothing (see ``loss_smoothing``), which also keeps the KL
+#: distance unbiased for sparse simulated images. Measured on a validation
+#: split of the shared 6D training file (k1 = -6, 6 held out): blur 1.0 without
 #: smoothing left rms sizes ~10 % large; blur 0.5 with smoothing gave rms
 #: within 3 % but each member's y emittance 27-32 % low (a 0.35 mm waist is
 #: 1.3 pixels); sqrt(1/12) gave members within -3 ... -10 %. The first member
@@ -83,7 +81,7 @@ class _DimsDefaults:
 _DIMS_DEFAULTS: dict[int, _DimsDefaults] = {
     4: _DimsDefaults(6144, 1200, 5, 1.0, 0.0, 0, 0.0, 1e4, 0.0, 1.0, "auto"),
     6: _DimsDefaults(
-        16384, 360, 6, math.sqrt(1.0 / 12.0), 1.0, 3, 0.25, 3e4, 1e3, 1.0, "auto"
+        16384, 360, 6, math.sqrt(1.0 / 12.0), 1.0, 3, 0.25, 3e4, 1e3, 1.0, 1.0
     ),
 }
 
@@ -210,19 +208,13 @@ class ReconstructionConfig:
             pixel (-3.5 / -3.2 / -3.2 % against -0.8 / -1.0 / -1.6 % at seeds
             0-2, 2 threads): the price of one estimator for every camera. A
             number fixes the smoothing; 0 compares the images as they are.
-            None: ``"auto"``. In 6D ``scan_smoothing`` is added in quadrature
-            to one pixel, which keeps waists of ~1 pixel unbiased for sparse
+            None: ``"auto"`` for ``dims = 4``; 1 for ``dims = 6``, whose waists
+            of ~1 pixel the 1-pixel smoothing also keeps unbiased for sparse
             simulated images (on the 6D benchmark, 6144 truth particles imaged
             at 0.5 pixel scored better 10 % wider than true; smoothed by one
             pixel, within 0.4-1.4 % at 16 384 particles, and the sampling
-            offset removes the rest). A fixed pixel is not enough on finer
-            cameras: on synthetic AWA 6D scans of 300 x 300 pixels it left the
-            images compared finer than the sample resolves (the resolution
-            check warned), where ``"auto"`` gave the same moments (rms within
-            0.3 %, emittances x, y within 0.3 %), correlations within 0.6
-            points instead of 2.2, in 34 s instead of 78 s. On the 96-pixel
-            benchmark families both give the same held-out rms sizes
-            (0.20-0.22 %) and L1 (0.058).
+            offset removes the rest); ``"auto"`` in 6D adds ``scan_smoothing``
+            in quadrature to that pixel.
         moment_weight: Strength ``mu`` of the moment term of the image term:
             ``mu / K sum_k sum_a ((S_ka - M_ka) / s_ka)^2`` over the training
             images, with ``S`` and ``M`` the simulated and measured images'
