@@ -393,7 +393,11 @@ def layouts_from_spec(spec: Mapping[str, Any]) -> tuple[list[ScanLayout], Tensor
             fwd = ScreenForwardModel(
                 line, names, float(spec["p0c"]), species=spec.get("species", "electron")
             )
-            if not settings.shape[0] or settings.shape[-1] != len(names):
+            if (
+                settings.dim() != 2
+                or not len(settings)
+                or settings.shape[1] != len(names)
+            ):
                 raise ValueError(
                     f"settings must be rows of {len(names)} value(s), one per "
                     f"name in {names}; got shape {tuple(settings.shape)}."
@@ -401,7 +405,6 @@ def layouts_from_spec(spec: Mapping[str, Any]) -> tuple[list[ScanLayout], Tensor
             fwd.check_settings(settings)
         except (TypeError, ValueError) as err:
             raise ValueError(f"{where}: {err}") from None
-        settings = settings.reshape(-1, len(names))
         frac = _on_screen(fwd, settings, cov)
         if not bool((frac >= MIN_ON_SCREEN).any()):  # the scan measures nothing
             raise ValueError(
