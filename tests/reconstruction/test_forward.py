@@ -135,6 +135,59 @@ def test_blur_adds_the_point_spread_variance(gaussian_beam) -> None:
     assert (var - beam).item() == pytest.approx(4e-6, rel=0.05)
 
 
+def _added_variance_px2(fwd: ScreenForwardModel, beam: torch.Tensor, img=None) -> float:
+    """Image x variance minus the tracked beam's [pixels^2] at k1 = 0."""
+    if img is None:
+        img = fwd.images(beam, K1[1:2])[0]
+    xs, _ = fwd.screen.pixel_centers(dtype=torch.float64)
+    px = img.double().sum(0) / img.double().sum()
+    var = (px * xs**2).sum() - (px * xs).sum() ** 2
+    x = fwd.track_to_screen(beam, K1[1:2])[0, :, 0]
+    return float(var - x.var(correction=0)) / fwd.screen.pixel_size[0] ** 2
+
+
+@pytest.mark.parametrize("blur", [0.5, 0.7, 1.0])
+def test_sub_pixel_blur_adds_its_variance(gaussian_beam, blur: float) -> None:
+    # blur_pixels is the total point-spread rms below one pixel too: the
+    # Gaussian after cloud-in-cell is sized by the variance its sampled kernel
+    # has (a nominal 0.29 pixel adds 0.004 pixel^2 instead of 0.083)
+    added = _added_variance_px2(_model(blur), gaussian_beam)
+    assert added == pytest.approx(blur**2, rel=0.02)
+
+
+@pytest.mark.parametrize(
+    ("blur", "smoothing"),
+    [(1.0, 0.3), (1.0, 0.58), (math.sqrt(1 / 12), 0.6), (math.sqrt(1 / 12), 1.0)],
+)
+def test_smoothing_adds_the_same_variance_as_to_measured_images(
+    gaussian_beam, blur: float, smoothing: float
+) -> None:
+    # the image term smooths the measured images with gaussian_blur and the
+    # simulated ones through image_smoothing: both must gain the same variance,
+    # or the fit moves the beam by the difference where its spot is smallest
+    # (0.09 against 0.002 pixel^2 for a nominal 0.3-pixel smoothing)
+    from diffaccel.dynamics.images import blur_variance, gaussian_blur
+
+    smoothed = ScreenForwardModel(
+        Beamline.from_spec(SPEC),
+        ["Q1.k1"],
+        43e6,
+        blur_pixels=blur,
+        image_smoothing=torch.full((1, 2), smoothing),
+    )
+    added = _added_variance_px2(smoothed, gaussian_beam)
+    # a measured image with a point spread of rms `blur` gains this much
+    measured = blur**2 + float(blur_variance(smoothing))
+    assert added == pytest.approx(measured, abs=2e-3)
+    if blur**2 > 1 / 6:  # the model's own point spread, then the same smoothing
+        plain = _model(blur)
+        img = plain.images(gaussian_beam, K1[1:2])
+        again = gaussian_blur(img, smoothing * 1e-3, plain.screen.pixel_size)[0]
+        assert _added_variance_px2(plain, gaussian_beam, again) == pytest.approx(
+            added, abs=2e-3
+        )
+
+
 @pytest.mark.parametrize(
     ("names", "match"),
     [(["Q9.k1"], "no element 'Q9'"), (["Q1.k7"], "no parameter 'k7'")],

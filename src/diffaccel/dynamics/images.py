@@ -22,7 +22,14 @@ from torch import Tensor
 
 from diffaccel.dynamics._validate import broadcast_shapes, finite_checks_enabled
 
-__all__ = ["cic_image", "gaussian_blur", "kde_image", "pixel_centers"]
+__all__ = [
+    "blur_rms_for_variance",
+    "blur_variance",
+    "cic_image",
+    "gaussian_blur",
+    "kde_image",
+    "pixel_centers",
+]
 
 # exp(-80) = 1.8e-35 is still a normal float32: clamping the exponent there keeps
 # CPU float32 arithmetic out of (very slow) denormals at a negligible error.
@@ -156,6 +163,51 @@ def _gaussian_matrix(n: int, sigma_px: float | Tensor, like: Tensor) -> Tensor:
     r = math.ceil(8 * sigma_px) + n
     full = torch.arange(-r, r + 1, dtype=like.dtype, device=like.device)
     return g / torch.exp(-0.5 * (full / sigma_px).square()).sum()
+
+
+def blur_variance(sigma_px: Tensor | float) -> Tensor:
+    """Variance [pixels^2] of the kernel :func:`gaussian_blur` applies for rms
+    ``sigma_px`` [pixels], away from the edges.
+
+    The kernel is the Gaussian sampled at whole pixels and normalised to sum 1,
+    so its variance is below ``sigma_px^2`` for rms below about one pixel
+    (0.32 instead of 0.33 at 0.58 pixel, 0.002 instead of 0.07 at 0.27 pixel)
+    and equal to it beyond. Two blurs meant to differ by a known variance
+    (the two sides of an image comparison) must be sized by this, not by
+    ``sigma_px^2``: see :func:`blur_rms_for_variance`.
+
+    Shapes: ``sigma_px`` any shape -> the same shape, float64.
+
+    Example:
+        >>> round(float(blur_variance(1.0)), 6), round(float(blur_variance(0.27)), 4)
+        (1.0, 0.0021)
+    """
+    s = torch.as_tensor(sigma_px, dtype=torch.float64).clamp_min(1e-6)
+    r = math.ceil(8.0 * float(s.max())) + 2 if s.numel() else 2
+    k = torch.arange(-r, r + 1, dtype=torch.float64)
+    g = torch.exp(-0.5 * (k / s[..., None]).square())
+    return (g * k.square()).sum(-1) / g.sum(-1)
+
+
+def blur_rms_for_variance(variance_px2: Tensor | float) -> Tensor:
+    """The rms [pixels] whose :func:`gaussian_blur` kernel has variance
+    ``variance_px2`` [pixels^2] (the inverse of :func:`blur_variance`); 0
+    where the variance is <= 0.
+
+    Shapes: any shape -> the same shape, float64.
+
+    Example:
+        >>> round(float(blur_rms_for_variance(blur_variance(0.3))), 9)
+        0.3
+    """
+    v = torch.as_tensor(variance_px2, dtype=torch.float64)
+    lo = torch.zeros_like(v)
+    hi = v.clamp_min(0.0).sqrt() + 1.0  # blur_variance(s) <= s^2: a bracket
+    for _ in range(60):  # bisection: the variance grows with the rms
+        mid = 0.5 * (lo + hi)
+        low = blur_variance(mid) < v
+        lo, hi = torch.where(low, mid, lo), torch.where(low, hi, mid)
+    return torch.where(v > 0, 0.5 * (lo + hi), torch.zeros_like(v))
 
 
 def gaussian_blur(
