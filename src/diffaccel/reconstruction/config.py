@@ -105,8 +105,8 @@ class ReconstructionConfig:
     GPSR 4D benchmark (10 training settings, 100 x 100 pixels; 6144 fresh
     quasi-random particles x 1200 steps, MLP 2 x 48) takes ~7 s on two CPU
     cores (``benchmarks/reconstruction.py``) and gives rms sizes within 0.5 %,
-    x emittances of -3.5 / -3.2 / -3.2 %, y emittances within 1.4 % and
-    held-out relative L1 0.054-0.063 (seeds 0, 1, 2; gpsr: 0.117).
+    x emittances of -1.3 / -0.9 / -0.7 %, y emittances within 1.0 % and
+    held-out relative L1 0.057 (seed 0; gpsr: 0.117).
 
     **Model** (the beam generator):
 
@@ -143,7 +143,7 @@ class ReconstructionConfig:
             Without the moment term (``moment_weight = 0``) 600 steps took the
             GPSR 4D benchmark's x emittance, a 0.6-pixel waist behind a
             1-pixel point spread, to -6.4 % (seed 0); with it (1200 steps),
-            -3.5 / -3.2 / -3.2 % (seeds 0-2).
+            -1.3 / -0.9 / -0.7 % (seeds 0-2).
         snapshots: Cosine learning-rate cycles; one ensemble member per cycle
             after the ``burn_in``. None: 5 for ``dims = 4``, 6 for ``dims = 6``
             (240- and 60-step cycles). The 6D emittance converges over cycles
@@ -204,9 +204,12 @@ class ReconstructionConfig:
             1.2 % of its emittances this way, 12-300 % high compared pixel by
             pixel. On the GPSR 4D benchmark (100 pixels, a 0.6-pixel x waist
             behind a 1-pixel point spread) the cap sets 0.58 pixels, and the x
-            emittance comes out about 2 points lower than compared pixel by
-            pixel (-3.5 / -3.2 / -3.2 % against -0.8 / -1.0 / -1.6 % at seeds
-            0-2, 2 threads): the price of one estimator for every camera. A
+            emittance comes out as compared pixel by pixel (-1.3 / -0.9 / -0.7
+            % against -0.8 / -1.0 / -1.6 % at seeds 0-2, 2 threads); both sides
+            gain exactly the same variance from the smoothing
+            (:meth:`~diffaccel.reconstruction.forward.ScreenForwardModel.images`
+            sizes the simulated side's kernel by
+            :func:`~diffaccel.dynamics.images.blur_variance`). A
             number fixes the smoothing; 0 compares the images as they are.
             None: ``"auto"`` for ``dims = 4``; 1 for ``dims = 6``, whose waists
             of ~1 pixel the 1-pixel smoothing also keeps unbiased for sparse

@@ -42,10 +42,13 @@ class ScreenForwardModel:
         species: Species name (``"electron"``, ``"positron"``, ``"proton"``).
         blur_pixels: Total point-spread rms of the images [pixels]. Cloud-in-cell
             deposition already spreads each particle with variance 1/6 pixel^2
-            per axis, so the Gaussian blur applied afterwards has rms
-            ``sqrt(blur_pixels^2 - 1/6)`` pixels (none below ``sqrt(1/6)``).
+            per axis, so the Gaussian blur applied afterwards adds variance
+            ``blur_pixels^2 - 1/6`` pixel^2 (none below ``sqrt(1/6)``).
         image_smoothing: Optional extra Gaussian rms per image ``(K, 2)``
-            [pixels] (x, y), added in quadrature to the blur, for images of
+            [pixels] (x, y): the images gain exactly the variance that
+            :func:`~diffaccel.dynamics.images.gaussian_blur` with this rms adds
+            to a measured image
+            (:func:`~diffaccel.dynamics.images.blur_variance`), for images of
             exactly ``K`` settings at a time (the image term of training, see
             :func:`~diffaccel.reconstruction.training.smoothed_for_loss`).
 
