@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from diffaccel.dynamics import Beamline
+from diffaccel.dynamics.images import blur_variance, gaussian_blur
 from diffaccel.reconstruction import ScreenForwardModel
 
 SPEC = [
@@ -166,8 +167,6 @@ def test_smoothing_adds_the_same_variance_as_to_measured_images(
     # simulated ones through image_smoothing: both must gain the same variance,
     # or the fit moves the beam by the difference where its spot is smallest
     # (0.09 against 0.002 pixel^2 for a nominal 0.3-pixel smoothing)
-    from diffaccel.dynamics.images import blur_variance, gaussian_blur
-
     smoothed = ScreenForwardModel(
         Beamline.from_spec(SPEC),
         ["Q1.k1"],

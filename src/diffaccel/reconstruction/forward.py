@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from functools import cached_property
 from typing import Any
 
 import torch
@@ -105,7 +106,6 @@ class ScreenForwardModel:
             ):
                 raise ValueError("image_smoothing must be finite and >= 0 pixels.")
         self.image_smoothing = image_smoothing
-        self._blur_sizes: tuple[float, float] | Tensor | bool | None = None
         self.device = torch.device("cpu")
 
     # ----------------------------------------------------------------- spec I/O
@@ -222,7 +222,12 @@ class ScreenForwardModel:
 
     def _blur(self) -> tuple[float, float] | Tensor | None:
         """Rms of the Gaussian applied after CIC ``(x, y)`` [m], or None; one
-        pair per image ``(K, 2)`` with ``image_smoothing``.
+        pair per image ``(K, 2)`` with ``image_smoothing``."""
+        return self._blur_sizes
+
+    @cached_property
+    def _blur_sizes(self) -> tuple[float, float] | Tensor | None:
+        """:meth:`_blur`'s value, made once (no tensor per step).
 
         Sized by the variance of the kernel that
         :func:`~diffaccel.dynamics.images.gaussian_blur` applies
@@ -234,20 +239,15 @@ class ScreenForwardModel:
         to the simulated one (0.32 against 0.33 pixel^2 at 0.58 pixel), and
         the fit narrows the beam where its spot is smallest.
         """
-        if self._blur_sizes is None:  # made once: no tensor per step
-            extra = self.blur_pixels**2 - 1.0 / 6.0
-            psx, psy = self.screen.pixel_size
-            if self.image_smoothing is not None:
-                total = blur_rms_for_variance(
-                    extra + blur_variance(self.image_smoothing)
-                )
-                self._blur_sizes = total * torch.tensor([psx, psy], dtype=torch.float64)
-            elif extra > 1e-6:
-                rms = float(blur_rms_for_variance(extra))
-                self._blur_sizes = (rms * psx, rms * psy)
-            else:
-                self._blur_sizes = False
-        return self._blur_sizes if self._blur_sizes is not False else None
+        extra = self.blur_pixels**2 - 1.0 / 6.0
+        psx, psy = self.screen.pixel_size
+        if self.image_smoothing is not None:
+            total = blur_rms_for_variance(extra + blur_variance(self.image_smoothing))
+            return total * torch.tensor([psx, psy], dtype=torch.float64)
+        if extra <= 1e-6:
+            return None
+        rms = float(blur_rms_for_variance(extra))
+        return (rms * psx, rms * psy)
 
     def _max_blur_pixels(self) -> float:
         """Largest total point-spread rms of the images [pixels]."""
