@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from scipy.optimize import brentq
 
 from diffaccel.data.synthetic import make_synthetic_quad_scan, sample_preset_beam
 from diffaccel.dynamics import Beamline, Drift, Quadrupole, Screen
@@ -208,6 +209,33 @@ def test_each_image_is_smoothed_by_its_own_size():
         assert got.tolist() == pytest.approx(want.tolist(), rel=0.01)
 
 
+def test_sparse_variance_share_of_a_gaussian_image_is_analytic():
+    from diffaccel.reconstruction.evaluation import sparse_variance_share
+
+    # a round Gaussian of 10 pixels rms; N chosen so that one particle is
+    # expected at r = 2 rms: the pixels beyond hold the share
+    # E[x^2; r > R] / E[x^2] = (R^2 / s^2 + 2) exp(-R^2 / 2 s^2) / 2 = 3 e^-2
+    sigma, radius = 10.0, 20.0
+    c = torch.arange(161, dtype=torch.float64) - 80.0
+    r2 = c[:, None] ** 2 + c[None, :] ** 2
+    img = torch.exp(-r2 / (2 * sigma**2))[None]
+    img = img / img.sum()
+    level = math.exp(-(radius**2) / (2 * sigma**2)) / (2 * math.pi * sigma**2)
+    kappa = 0.25
+    n = round(kappa / level)
+    share, need = sparse_variance_share(img, n, kappa)
+    assert share == pytest.approx(3 * math.exp(-2), abs=0.01)
+    # 20 % of the variance lies beyond R^2 = u s^2 with (u + 2) exp(-u / 2) = 0.4
+    u = brentq(lambda u: (u + 2) * math.exp(-u / 2) - 0.4, 1.0, 20.0)
+    assert need == pytest.approx(
+        kappa * 2 * math.pi * sigma**2 * math.exp(u / 2), rel=0.03
+    )
+    # the particles it asks for bring every image's share down to the target
+    _, need_01 = sparse_variance_share(img, n, kappa, share=0.1)
+    assert need_01 > n
+    assert sparse_variance_share(img, math.ceil(need_01), kappa)[0] <= 0.1 + 1e-9
+
+
 def test_images_finer_than_the_sample_resolves_are_warned():
     from diffaccel.data.synthetic import make_synthetic_quad_scan
     from diffaccel.reconstruction.evaluation import resolution_warnings
@@ -237,6 +265,29 @@ def test_images_finer_than_the_sample_resolves_are_warned():
     few = ReconstructionConfig(dims=4, n_particles=16)  # Scott's 4x the waist
     [line] = resolution_warnings(few, scans[320], {})
     assert "smallest spot" in line and "--particles" in line
+
+
+@pytest.mark.parametrize(
+    ("name", "dims"),
+    [
+        ("gpsr_4d_synthetic.h5", 4),
+        ("awa_quad_scan_train.h5", 4),
+        ("sixd_synthetic_train.h5", 6),
+    ],
+)
+def test_the_shared_scans_are_resolved_at_the_defaults(name: str, dims: int):
+    from diffaccel.data import read_scans
+    from diffaccel.reconstruction.evaluation import resolution_warnings
+    from diffaccel.reconstruction.pipeline import as_scans
+
+    # the default fits of these files meet the benchmarks' limits: no warning
+    scans = as_scans(read_scans(DATA / name))
+    assert resolution_warnings(ReconstructionConfig(dims=dims), scans, {}) == []
+    # a 64th of the particles leaves them unresolved
+    few = ReconstructionConfig(
+        dims=dims, n_particles=ReconstructionConfig(dims=dims).n_particles // 64
+    )
+    assert len(resolution_warnings(few, scans, {})) == len(scans.names)
 
 
 def test_spots_below_the_point_spread_are_noted():

@@ -50,10 +50,8 @@ class _DimsDefaults:
 #: time), checked on the GPSR 4D benchmark (KDE images of one-pixel
 #: bandwidth). Known limit: at these defaults the same validation still
 #: prefers a neighbour of some settings (held-out rms error 0.64 % here;
-#: 2400 steps: 0.42 % at twice the run time; 3072 particles: 0.45 %, but
-#: then a 5-setting scan on a 320-pixel camera draws too few particles to
-#: resolve its smallest spot and the resolution check warns; penalty_end
-#: 3e4: 0.58 %, within the spread of the beams and seeds): the
+#: 2400 steps: 0.42 % at twice the run time; 3072 particles: 0.45 %;
+#: penalty_end 3e4: 0.58 %, within the spread of the beams and seeds): the
 #: one-at-a-time search has not converged, and steps and particles trade
 #: against run time, which its score leaves out.
 #: 6D: set on the shared 6D *training* file (its ground truth) and on

@@ -233,9 +233,11 @@ def scan_smoothing(
     ``point_spread`` taken out in quadrature), beyond which the images stop
     telling beam sizes apart and the entropy would fill in what they lost.
     The result is the smaller of the two, in quadrature with ``floor``. Where
-    the first limit exceeds the second, the particles per step are too few
-    for the scan's resolution
-    (:func:`~diffaccel.reconstruction.evaluation.resolution_warnings`).
+    the first limit exceeds the second the comparison is finer than the
+    sample resolves, and
+    :func:`~diffaccel.reconstruction.evaluation.resolution_warnings` says when
+    that leaves too much of an image's variance on pixels that fewer than one
+    simulated particle reaches.
 
     Args:
         measured: Measured images of the scan ``(K, H, W)``.
