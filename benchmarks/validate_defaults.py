@@ -59,6 +59,8 @@ BEAMS_6D = ("draw9100_0", "tilted9100_0")
 #: Each setting's neighbours (one step down, one step up), by dims.
 SWEEP = {
     4: {
+        "width": (48, 128),
+        "depth": (2, 4),
         "penalty_end": (3e3, 3e4),
         "n_particles": (3072, 12288),
         "steps": (600, 2400),

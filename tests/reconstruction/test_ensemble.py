@@ -139,7 +139,15 @@ OLD_CONFIG = {
 }
 
 
-def test_a_result_folder_of_an_earlier_version_loads(result, tmp_path: Path) -> None:
+def test_a_result_folder_of_an_earlier_version_loads(
+    small_scan, tmp_path: Path
+) -> None:
+    # the earlier version's generator: 2 x 48, as its config says
+    result = reconstruct(
+        small_scan,
+        ReconstructionConfig(**FAST, width=48, depth=2),
+        train_indices=[0, 2, 4],
+    )
     result.save(tmp_path)
     payload = torch.load(tmp_path / "ensemble.pt", weights_only=True)
     payload["config"] = OLD_CONFIG
@@ -148,6 +156,8 @@ def test_a_result_folder_of_an_earlier_version_loads(result, tmp_path: Path) -> 
     assert back.config == ReconstructionConfig(
         dims=4,
         n_particles=1024,
+        width=48,
+        depth=2,
         steps=12,
         snapshots=3,
         burn_in=1,

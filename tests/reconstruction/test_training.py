@@ -410,15 +410,26 @@ def test_default_4d_step_stays_within_the_op_budget(small_scan) -> None:
     # steps in both). A fresh placeholder tensor per step pushes the count
     # without the moment term to 304.4; the moment term through autograd
     # costs 127
+    # (for a generator of 2 hidden layers; each further layer, as in the
+    # default 4D generator, adds its matrix product, activation and their
+    # gradients: at most 20 ops)
     per_step = {}
-    for weight in (0.0, None):  # None: the default (0.3)
+    small = {"width": 48, "depth": 2}
+    for weight in (0.0, None):  # None: the default (1)
         (ops_short, syncs_short), (ops_long, syncs_long) = (
-            _aten_ops(small_scan, s, moment_weight=weight) for s in (20, 40)
+            _aten_ops(small_scan, s, moment_weight=weight, **small) for s in (20, 40)
         )
         per_step[weight] = (ops_long - ops_short) / 20
         assert (syncs_long - syncs_short) / 20 <= 1
     assert 250 < per_step[0.0] <= 300
     assert 0 < per_step[None] - per_step[0.0] <= 80
+    default = ReconstructionConfig()
+    (ops_short, syncs_short), (ops_long, syncs_long) = (
+        _aten_ops(small_scan, s) for s in (20, 40)
+    )
+    assert (syncs_long - syncs_short) / 20 <= 1
+    extra = (ops_long - ops_short) / 20 - per_step[None]
+    assert 0 < extra <= 20 * (default.depth - 2)
 
 
 @pytest.mark.parametrize(
