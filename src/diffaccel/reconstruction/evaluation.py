@@ -464,11 +464,10 @@ def _signal_summary(signals: Mapping[str, Any]) -> dict[str, Any]:
 #: (:func:`sparse_variance_share`). There the simulated image is the kernels
 #: of lone particles, and the fitted tails follow the sample's noise. On
 #: synthetic scans (4D camera scans with the "auto" smoothing and a 2 x 48
-#: generator; a 6D scan at
-#: 300 x 300 pixels compared at 0-1 pixel with 4096 or 16 384 particles)
-#: shares up to 0.17 gave emittances within 0.8 % of the truth, 0.25 gave
-#: 2.3 %, and 0.29-0.52 gave 6-14 % in x or y or 16-30 % in the 4D and 6D
-#: emittances.
+#: generator; a 6D scan at 300 x 300 pixels compared at 0-1 pixel with 4096
+#: or 16 384 particles) shares up to 0.17 gave emittances within 0.8 % of the
+#: truth, 0.25 gave 2.3 %, and 0.29-0.52 gave 6-14 % in x or y or 16-30 % in
+#: the 4D and 6D emittances.
 SPARSE_VARIANCE_SHARE = 0.2
 
 
