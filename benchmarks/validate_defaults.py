@@ -64,7 +64,7 @@ SWEEP = {
         "penalty_end": (3e3, 3e4),
         "n_particles": (3072, 12288),
         "steps": (600, 2400),
-        "moment_weight": (0.3, 3.0),
+        "moment_weight": (1.0, 10.0),
     },
     6: {
         "penalty_end": (1e4, 1e5),

@@ -246,9 +246,9 @@ def test_sampling_offset_and_penalty_defaults() -> None:
     restored = ReconstructionConfig.from_dict(old)
     assert restored.unseen_weight == 0.0
     assert restored == ReconstructionConfig.from_dict({**d, "unseen_weight": 0.0})
-    # the moment term: 1 in 4D and 6D; runs saved before it trained without it
+    # the moment term: 3 in 4D, 1 in 6D; runs saved before it trained without it
     assert ReconstructionConfig(dims=6).moment_weight == 1.0
-    assert ReconstructionConfig(dims=4).moment_weight == 1.0
+    assert ReconstructionConfig(dims=4).moment_weight == 3.0
     assert "moment_weight" in d
     del d["moment_weight"]
     assert ReconstructionConfig.from_dict(d).moment_weight == 0.0

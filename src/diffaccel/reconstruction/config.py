@@ -79,7 +79,7 @@ class _DimsDefaults:
 #: (end of the first cycle, which ramps the image penalty) was under-fit in 6D
 #: (y emittance +85 %, 6D emittance +188 %), hence ``burn_in >= 1``.
 _DIMS_DEFAULTS: dict[int, _DimsDefaults] = {
-    4: _DimsDefaults(6144, 96, 3, 1200, 5, 1.0, 0.0, 0, 0.0, 1e4, 0.0, 1.0, "auto"),
+    4: _DimsDefaults(6144, 96, 3, 1200, 5, 1.0, 0.0, 0, 0.0, 1e4, 0.0, 3.0, "auto"),
     6: _DimsDefaults(
         16384, 48, 2, 360, 6, math.sqrt(1.0 / 12.0), 1.0, 3, 0.25, 3e4, 1e3, 1.0, 1.0
     ),
@@ -133,7 +133,7 @@ class ReconstructionConfig:
             0.142; on a 360 x 320 pixel scan whose smallest spot is 2 pixels
             rms (21 settings, 11 trained, a 12 % halo) 2 x 48 left the y
             emittance 12-14 % low (seeds 0, 1), 3 x 96 5.6-7.2 % (seeds 0, 1)
-            and 3 x 128 2-5 % (seeds 0-2). The 4D step costs about twice the
+            and 3 x 128 2-5 % (seeds 0-2), all with ``moment_weight`` 1. The 4D step costs about twice the
             time on 100 x 100 pixel images and little more on camera images.
             6D keeps 2 x 48, where its benchmarks were validated.
 
@@ -240,16 +240,18 @@ class ReconstructionConfig:
             cannot take the true shape exactly its optimum trades a few
             tenths of a percent of second moment for shape, which a strong
             z-pz chirp turns into 10-25 % of z emittance, and a heavy halo
-            into a wrong x-px shape. None: 1 for ``dims = 4`` and ``dims =
+            into a wrong x-px shape. None: 3 for ``dims = 4``, 1 for ``dims =
             6``. 4D, on the held-out settings of three synthetic camera scans
-            (``benchmarks/validate_defaults.py``, seeds 0, 1): at 300 steps,
-            without the term the held-out rms sizes were off by 2.45 % on
-            average and a beam with a 15 % halo three times as wide came out
-            +4.6 / +6.9 % in emittance (seed 0), 0.3 gave 1.66 % (that beam
-            +0.5 / +1.4 %); at 1200 steps 0.3, 1 and 3 gave 0.98, 0.64 and
-            0.66 %, 3 with a held-out relative L1 9 % above the others (the
-            benchmark keeps the lowest rms error among the values within 5 %
-            of the lowest L1). 6D: on five
+            (``benchmarks/validate_defaults.py``, seeds 0, 1; the benchmark
+            keeps the lowest rms error among the values within 5 % of the
+            lowest L1): with the 3 x 96 generator 0.3, 1 and 3 gave held-out
+            rms errors of 0.93, 0.37 and 0.19 % (relative L1 0.143, 0.145,
+            0.150); on the 360 x 320 pixel scan with a 2-pixel waist
+            described under ``depth``, 1 left the emittances -5.9 / -7.2 %
+            and -4.2 / -5.6 % (x / y, seeds 0, 1), 3 -2.6 / +0.4 % and -2.7 /
+            -1.7 %. Without the term (2 x 48, 300 steps) the held-out rms
+            sizes were off by 2.45 % on average and a beam with a 15 % halo
+            three times as wide came out +4.6 / +6.9 % in emittance. 6D: on five
             beams of ``benchmarks/reconstruction_6d_beams.py`` that missed a
             limit without it (seeds 1, 2): 0 left 7 of 10 runs outside a
             limit, 1 left 2 (a three-mode beam's 6D emittance), 3 left 1 (its
