@@ -49,6 +49,7 @@ GROUPS = (
             "background_bias",
             "daq_6d",
             "resolution",
+            "camera_4d",
             "validate_defaults",
             "alarms",
             "design",
