@@ -91,12 +91,13 @@ def eager_graph(monkeypatch):
 def test_captured_step_body_trains_like_eager_steps(
     small_scan, eager_graph, smoothing
 ) -> None:
-    cfg = ReconstructionConfig(**FAST, loss_smoothing=smoothing)
-    ref = reconstruct(
-        small_scan,
-        ReconstructionConfig(**FAST, loss_smoothing=smoothing),
-        cuda_graph=False,
-    )
+    # moment weight 1: the body is the same for any weight, but with the 4D
+    # default 3 this 24-step run's loss spikes to ~640 at step 9 and the
+    # following Adam step amplifies the body's ~5e-6 rounding to ~2e-4
+    # (chaotically, as in the 6D test below), which is not what this test is about
+    fast = {**FAST, "loss_smoothing": smoothing, "moment_weight": 1.0}
+    cfg = ReconstructionConfig(**fast)
+    ref = reconstruct(small_scan, ReconstructionConfig(**fast), cuda_graph=False)
     got = reconstruct(small_scan, cfg, uncertainty=False)
     (replay,) = eager_graph.made
     # the body replaces every step after the eager warm-up, each with its row

@@ -103,10 +103,10 @@ class ReconstructionConfig:
     (docs/methods/reconstruction_6d.md). The fields come in four groups
     (:data:`GROUPS`, :meth:`groups`). A default 4D reconstruction of the
     GPSR 4D benchmark (10 training settings, 100 x 100 pixels; 6144 fresh
-    quasi-random particles x 1200 steps, MLP 3 x 96) takes ~17 s on two CPU
-    cores (``benchmarks/reconstruction.py``) and gives rms sizes within 0.5 %,
-    x emittances of -1.6 / +0.7 / -1.3 %, y emittances within 1.1 % (seeds
-    0-2) and held-out relative L1 0.052 (seed 0; gpsr: 0.117).
+    quasi-random particles x 1200 steps, MLP 3 x 96) takes ~15 s on two CPU
+    cores (``benchmarks/reconstruction.py``) and gives rms sizes within 0.4 %,
+    emittances within 0.3 % (seeds 0-2) and held-out relative L1 0.053 (seed
+    0; gpsr: 0.117).
 
     **Model** (the beam generator):
 
@@ -133,9 +133,11 @@ class ReconstructionConfig:
             0.142; on a 360 x 320 pixel scan whose smallest spot is 2 pixels
             rms (21 settings, 11 trained, a 12 % halo) 2 x 48 left the y
             emittance 12-14 % low (seeds 0, 1), 3 x 96 5.6-7.2 % (seeds 0, 1)
-            and 3 x 128 2-5 % (seeds 0-2), all with ``moment_weight`` 1. The 4D step costs about twice the
-            time on 100 x 100 pixel images and little more on camera images.
-            6D keeps 2 x 48, where its benchmarks were validated.
+            and 3 x 128 2-5 % (seeds 0-2), all with ``moment_weight`` 1 (the
+            benchmark ``benchmarks/camera_4d.py`` is that scan). The 4D step
+            costs about twice the time of 2 x 48 on 100 x 100 pixel images and
+            little more on camera images. 6D keeps 2 x 48, where its
+            benchmarks were validated.
 
     **Schedule** (Adam with a cyclic cosine learning rate, one ensemble member
     per cycle; the learning rate falls to ``LR_END_RATIO lr_max`` at the end
