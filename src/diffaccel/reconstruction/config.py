@@ -258,10 +258,10 @@ class ReconstructionConfig:
             0.143, 0.145, 0.150 and 0.184); on the 360 x 320 pixel scan with
             a 2-pixel waist described under ``depth``, 1 left the emittances
             -5.9 / -7.2 % and -4.2 / -5.6 % (x / y, seeds 0, 1), 3 -2.6 /
-            +0.4 % and -2.7 /
-            -1.7 %. Without the term (2 x 48, 300 steps) the held-out rms
-            sizes were off by 2.45 % on average and a beam with a 15 % halo
-            three times as wide came out +4.6 / +6.9 % in emittance. 6D: on five
+            +0.4 % and -2.7 / -1.7 %. Without the term (2 x 48, 300 steps)
+            the held-out rms sizes were off by 2.45 % on average and a beam
+            with a 15 % halo three times as wide came out +4.6 / +6.9 % in
+            emittance. 6D: on five
             beams of ``benchmarks/reconstruction_6d_beams.py`` that missed a
             limit without it (seeds 1, 2): 0 left 7 of 10 runs outside a
             limit, 1 left 2 (a three-mode beam's 6D emittance), 3 left 1 (its
