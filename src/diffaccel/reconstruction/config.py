@@ -157,7 +157,7 @@ class ReconstructionConfig:
             held-out images fitting better with every doubling (relative L1
             0.157, 0.175, 0.210, 0.152); a three-mode beam with curvature is
             not converged at 600 (its held-out L1 0.13 against 0.095 at 1200).
-            At today's 4D defaults (3 x 96, ``moment_weight`` 3) 600, 1200
+            At the 4D defaults (3 x 96, ``moment_weight`` 3) 600, 1200
             and 2400 steps give 0.49, 0.19 and 0.29 % (L1 0.170, 0.150,
             0.140): 2400 fits the held-out images 7 % better at twice the
             time and a larger rms error.
@@ -256,7 +256,7 @@ class ReconstructionConfig:
             lowest L1): with the 3 x 96 generator 0.3, 1, 3 and 10 gave
             held-out rms errors of 0.93, 0.37, 0.19 and 0.17 % (relative L1
             0.143, 0.145, 0.150 and 0.184); on the 360 x 320 pixel scan with
-            a 2-pixel waist described under ``depth``, 1 left the emittances
+            a 2-pixel waist described under ``depth``, 1 leaves the emittances
             -5.9 / -7.2 % and -4.2 / -5.6 % (x / y, seeds 0, 1), 3 -2.6 /
             +0.4 % and -2.7 / -1.7 %. Without the term (2 x 48, 300 steps)
             the held-out rms sizes were off by 2.45 % on average and a beam
