@@ -525,20 +525,21 @@ def sparse_variance_share(
     ys = torch.arange(h, dtype=torch.float64)
     xs = torch.arange(w, dtype=torch.float64)
     worst, need = 0.0, 0.0
-    for pos in (xs.view(1, w), ys.view(h, 1)):
-        for img in m:
+    for img in m:
+        sparse = img * n_particles / kappa < 1.0
+        order = torch.argsort(img.flatten())  # pixels by expected signal
+        levels = img.flatten()[order]
+        for pos in (xs.view(1, w), ys.view(h, 1)):
             mean = (img * pos).sum()
             var = img * (pos - mean).square()
             total = float(var.sum())
             if total <= 0.0:
                 continue
-            sparse = img * n_particles / kappa < 1.0
             worst = max(worst, float(var[sparse].sum()) / total)
             # the level below which `target` of the variance lies: N there is 1
-            order = torch.argsort(img.flatten())
             cum = torch.cumsum(var.flatten()[order], 0) / total
             i = int(torch.searchsorted(cum, torch.tensor(target, dtype=cum.dtype)))
-            level = float(img.flatten()[order][min(i, order.numel() - 1)])
+            level = float(levels[min(i, order.numel() - 1)])
             if level > 0.0:
                 need = max(need, kappa / level)
     return worst, need
