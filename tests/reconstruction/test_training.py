@@ -415,7 +415,7 @@ def test_default_4d_step_stays_within_the_op_budget(small_scan) -> None:
     # gradients: at most 20 ops)
     per_step = {}
     small = {"width": 48, "depth": 2}
-    for weight in (0.0, None):  # None: the default (1)
+    for weight in (0.0, None):  # None: the 4D default (3)
         (ops_short, syncs_short), (ops_long, syncs_long) = (
             _aten_ops(small_scan, s, moment_weight=weight, **small) for s in (20, 40)
         )
