@@ -176,3 +176,79 @@ def test_load_errors(tmp_path: Path) -> None:
     (tmp_path / "ensemble.pt").write_bytes(b"junk")
     with pytest.raises(ValueError, match="cannot read"):
         load(tmp_path)
+
+
+def _own_noise(result, images: torch.Tensor, n_member: int) -> torch.Tensor:
+    from diffaccel.reconstruction.metrics import prediction_noise_l1
+
+    kappa = result.forward.pixel_kernel_sum_sq()
+    return prediction_noise_l1(images, kappa, n_member * result.n_snapshots)
+
+
+def test_predictions_add_particles_until_their_own_noise_meets_the_target(
+    result, small_scan
+) -> None:
+    s = small_scan.settings
+    plain = result.predict_images(s, n_particles=500)
+    # a target the pilot already meets: the same images, bit for bit
+    same, used = result.predict_images(
+        s, n_particles=500, noise_l1=1.0, return_particles=True
+    )
+    assert used == 500 and torch.equal(same, plain)
+    pilot_noise = float(_own_noise(result, plain, 500).mean())
+    target = pilot_noise / 3
+    a, used = result.predict_images(
+        s, n_particles=500, noise_l1=target, return_particles=True
+    )
+    b = result.predict_images(s, n_particles=500, noise_l1=target, seed=1)
+    # noise goes as 1 / sqrt(N): about 9x the particles for a third of the noise
+    assert 8 * 500 <= used <= 10 * 500
+    own = float(_own_noise(result, a, used).mean())
+    assert own == pytest.approx(target, rel=0.1)
+    # the formula is the scatter that two independent predictions show
+    scatter = float((a - b).abs().sum((-2, -1)).mean()) / 2**0.5
+    assert scatter == pytest.approx(own, rel=0.25)
+    assert a.sum((-2, -1)).sub(1).abs().max() < 1e-5
+    capped = result.predict_images(
+        s, n_particles=500, noise_l1=target, max_particles=1000, return_particles=True
+    )[1]
+    assert capped == 1000
+
+
+def test_predictions_against_measured_images_target_a_third_of_their_error(
+    result, small_scan
+) -> None:
+    s = small_scan.settings
+    sharp = result.predict_images(s, n_particles=200_000)
+    # images the beam reproduces: the error is the pilot's own noise, so the
+    # target falls to ~0 and the predictions take all the particles allowed
+    used = result.predict_images(
+        s,
+        n_particles=500,
+        noise_l1=1.0,
+        measured=sharp,
+        max_particles=4000,
+        return_particles=True,
+    )[1]
+    assert used == 4000
+    # images far from the beam's: an error far above the pilot's noise
+    wrong = torch.roll(sharp, shifts=(11, 11), dims=(-2, -1))
+    used = result.predict_images(
+        s, n_particles=2000, noise_l1=1e-3, measured=wrong, return_particles=True
+    )[1]
+    assert used == 2000
+    # empty measured images fall back to noise_l1
+    used = result.predict_images(
+        s,
+        n_particles=500,
+        noise_l1=1.0,
+        measured=torch.zeros_like(sharp),
+        return_particles=True,
+    )[1]
+    assert used == 500
+
+
+@pytest.mark.parametrize("bad", [0.0, -0.1, float("nan"), "0.02"])
+def test_a_bad_noise_target_is_refused(result, small_scan, bad) -> None:
+    with pytest.raises(ValueError, match="noise_l1"):
+        result.predict_images(small_scan.settings, n_particles=500, noise_l1=bad)

@@ -146,3 +146,25 @@ def test_6d_summary_without_a_prior_dependence_warns(monkeypatch) -> None:
     s = evaluate(result, data, n_sample=4000)
     assert s["prior_dependence"] == []
     assert any("prior_dependence not computed" in w for w in s["warnings"])
+
+
+def test_every_image_error_carries_the_predictions_own_noise(
+    small_scan, small_result
+) -> None:
+    s = evaluate(small_result, small_scan, n_sample=2000)
+    scan = s["scans"]["scan"]
+    for key in ("images_train", "images_held_out"):
+        errors = scan[key]
+        assert errors["prediction_particles"] >= 50_000
+        assert 0 < errors["prediction_noise_l1"] < errors["relative_l1"]
+        assert errors["data_noise_l1"] is None  # single shots
+        pooled = s["metrics"][key]
+        assert pooled["prediction_noise_l1"] == pytest.approx(
+            errors["prediction_noise_l1"]
+        )
+        assert "data_noise_l1" in pooled
+    # images given without their particle count: their own noise is unknown
+    pred = predict_dataset(small_result, small_scan)
+    given = evaluate(small_result, small_scan, predicted=pred, n_sample=2000)
+    assert given["scans"]["scan"]["images_train"]["prediction_noise_l1"] is None
+    assert given["metrics"]["images_train"]["prediction_noise_l1"] is None

@@ -146,6 +146,23 @@ def test_score_lines_give_held_out_then_training() -> None:
     ]
 
 
+def test_score_lines_give_the_noise_beside_each_image_error() -> None:
+    summary = _summary()
+    summary["metrics"]["images_train"] |= {
+        "prediction_noise_l1": 0.0031,
+        "data_noise_l1": 0.0102,
+    }
+    summary["metrics"]["images_held_out"] |= {
+        "prediction_noise_l1": None,
+        "data_noise_l1": None,
+    }
+    assert score_lines(summary) == [
+        "held-out image relative L1: 0.0500 (data floor unknown: single shots)",
+        "train image relative L1: 0.0123 (predictions' own noise 0.003; "
+        "data floor 0.010)",
+    ]
+
+
 def test_finding_lines_hold_only_what_the_summary_found() -> None:
     plain = finding_lines(_summary(unconstrained_coordinates=[]))
     assert plain == ["emittance (normalised): x 2 +- 0.1 mm mrad"]

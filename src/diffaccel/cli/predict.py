@@ -18,6 +18,10 @@ from diffaccel.cli.output import (
     seed_option,
 )
 from diffaccel.data import FormatError
+from diffaccel.reconstruction.evaluation import (
+    MAX_PREDICTION_PARTICLES,
+    PREDICTION_NOISE_L1,
+)
 from diffaccel.reconstruction.prediction import check_prediction_files, predict_files
 
 __all__ = ["predict"]
@@ -52,7 +56,9 @@ __all__ = ["predict"]
     "n_particles",
     type=click.IntRange(min=100),
     default=50_000,
-    help="Particles per ensemble member.",
+    help="Particles per ensemble member, at least: fine screens get more (up to "
+    f"{MAX_PREDICTION_PARTICLES:.0e}), until the images' own sampling noise adds "
+    f"at most {PREDICTION_NOISE_L1:g} relative L1.",
 )
 @seed_option
 @click.option(

@@ -136,6 +136,16 @@ def check_same_beam(
         )
 
 
+#: Noise target of predicted images without measured ones to compare (a
+#: prediction at new settings): the expected relative L1 that their own
+#: sampling noise adds, mean over the settings. With measured images the target
+#: is a third of the error they measure
+#: (:data:`~diffaccel.reconstruction.ensemble.MEASURED_ERROR_SHARE`).
+PREDICTION_NOISE_L1 = 0.02
+#: Most particles per ensemble member a prediction images to meet its target.
+MAX_PREDICTION_PARTICLES = 1_000_000
+
+
 def predict_dataset(
     result: Reconstruction,
     dataset: QuadScanDataset | MultiScanDataset,
@@ -146,6 +156,9 @@ def predict_dataset(
     n_draws: int = 4,
     return_on_screen: bool = False,
     maps: Mapping[str, Tensor] | None = None,
+    sharpen: bool = True,
+    max_particles: int = MAX_PREDICTION_PARTICLES,
+    return_particles: bool = False,
 ) -> dict[str, Tensor] | tuple[dict[str, Tensor], ...]:
     """Ensemble-mean images of every scan and setting of ``dataset``.
 
@@ -154,12 +167,17 @@ def predict_dataset(
     if one was given, else that scan's recorded resolution or the default by
     ``dims``: ``ReconstructionConfig.blur_for``), so a
     test file with other settings or another screen works; the same particles
-    (``seed``) go through every scan.
+    (``seed``) go through every scan. With ``sharpen`` each scan's images are
+    made of enough particles that their own sampling noise adds ~5 % to their
+    relative L1 against the scan's measured images, or at most
+    :data:`PREDICTION_NOISE_L1` where it has none
+    (``Reconstruction.predict_images(noise_l1=..., measured=...)``).
 
     Args:
         result: The reconstruction.
         dataset: Scans whose settings and screens to predict.
-        n_particles: Particles per ensemble member.
+        n_particles: Particles per ensemble member (the least; with
+            ``sharpen``, more where the images need them).
         seed: Sampling seed.
         return_std: Also return the per-pixel spread of every image
             (``Reconstruction.predict_images(return_std=True)``).
@@ -169,14 +187,18 @@ def predict_dataset(
             return_on_screen=True)``: from the same images, no extra tracking).
         maps: ``{scan: (K_s, 7, 7)}`` transfer maps of every setting when the
             caller has them (:func:`~diffaccel.reconstruction.alarms.dataset_maps`).
+        sharpen: Add particles up to the scan's noise target (see above).
+        max_particles: Most particles per member ``sharpen`` may use.
+        return_particles: Also return ``{scan name: particles per member}``.
 
     Returns:
         ``{scan name: (K_s, H_s, W_s)}`` float32 images, each summing to 1;
         with ``return_std`` a pair ``(images, spreads)`` of such dicts (the
         spread on the scale of the unit-sum images); with ``return_on_screen``
-        ``{scan name: (K_s,)}`` fractions on the screen come last
-        (``(images, fractions)`` or ``(images, spreads, fractions)``). The
-        images are the same with and without either.
+        ``{scan name: (K_s,)}`` fractions on the screen come next
+        (``(images, fractions)`` or ``(images, spreads, fractions)``), with
+        ``return_particles`` the particle counts last. The images are the same
+        with and without any of them.
 
     Raises:
         ValueError: if ``dataset`` is of another species, or its ``p0c``
@@ -186,7 +208,7 @@ def predict_dataset(
     """
     scans = as_scans(dataset)
     check_same_beam(result, scans)
-    out, spread, on_screen = {}, {}, {}
+    out, spread, on_screen, used = {}, {}, {}, {}
     for name, scan in scans:
         fwd = ScreenForwardModel.from_dataset(
             scan, blur_pixels=result.config.blur_for(scan)
@@ -200,8 +222,12 @@ def predict_dataset(
             n_draws=n_draws,
             return_on_screen=True,
             maps=None if maps is None else maps[name],
+            noise_l1=PREDICTION_NOISE_L1 if sharpen else None,
+            measured=scan.mean_images(),
+            max_particles=max(max_particles, n_particles),
+            return_particles=True,
         )
-        out[name], on_screen[name] = pred[0], pred[-1]
+        out[name], on_screen[name], used[name] = pred[0], pred[-2], pred[-1]
         if return_std:
             spread[name] = pred[1]
     parts = [out]
@@ -209,6 +235,8 @@ def predict_dataset(
         parts.append(spread)
     if return_on_screen:
         parts.append(on_screen)
+    if return_particles:
+        parts.append(used)
     return tuple(parts) if len(parts) > 1 else out
 
 
@@ -219,25 +247,36 @@ def _train_indices(result: Reconstruction, name: str, k: int) -> list[int]:
     return list(result.info.get("train_indices", range(k)))
 
 
-def _pooled(parts: Sequence[tuple[Tensor, Tensor]]) -> dict[str, Any] | None:
-    """Image errors over the images of several scans (each image weighs the same)."""
-    parts = [p for p in parts if p[0].shape[0]]
-    if not parts:
+def _pooled(
+    parts: Sequence[tuple[Tensor, Tensor]], noises: Sequence[Mapping[str, Any]] = ()
+) -> dict[str, Any] | None:
+    """Image errors over the images of several scans (each image weighs the same).
+
+    ``noises``: per part, its ``prediction_noise_l1`` and ``data_noise_l1``
+    (pooled the same way; None where any part's is None).
+    """
+    keep = [i for i, p in enumerate(parts) if p[0].shape[0]]
+    if not keep:
         return None
+    parts = [parts[i] for i in keep]
     per = [image_errors(p, m) for p, m in parts]
     counts = [p.shape[0] for p, _ in parts]
     total = sum(counts)
-    return {
-        "mae_over_peak": sum(
-            e["mae_over_peak"] * c for e, c in zip(per, counts, strict=True)
-        )
-        / total,
-        "relative_l1": sum(
-            e["relative_l1"] * c for e, c in zip(per, counts, strict=True)
-        )
-        / total,
+
+    def mean(values: Sequence[Any]) -> float | None:
+        if any(v is None for v in values):
+            return None
+        return sum(v * c for v, c in zip(values, counts, strict=True)) / total
+
+    out: dict[str, Any] = {
+        "mae_over_peak": mean([e["mae_over_peak"] for e in per]),
+        "relative_l1": mean([e["relative_l1"] for e in per]),
         "n_images": total,
     }
+    if noises:
+        for key in ("prediction_noise_l1", "data_noise_l1"):
+            out[key] = mean([noises[i][key] for i in keep])
+    return out
 
 
 def evaluate(
@@ -249,7 +288,7 @@ def evaluate(
     n_sample: int = 100_000,
     sample: Tensor | None = None,
     on_screen: Mapping[str, Tensor] | None = None,
-    prediction_particles: int = 50_000,
+    prediction_particles: int | Mapping[str, int] | None = None,
 ) -> dict[str, Any]:
     """Moments, image errors per scan and ground-truth errors of a reconstruction.
 
@@ -271,16 +310,18 @@ def evaluate(
             computed with the images when ``predicted`` is None, not checked
             when only ``predicted`` is given.
         prediction_particles: Particles per member behind ``predicted``
-            (:func:`predict_dataset`'s ``n_particles``), for the predictions'
-            own noise.
+            (one count, or one per scan: :func:`predict_dataset` with
+            ``return_particles``), for the predictions' own noise (None:
+            ``prediction_noise_l1`` is None for ``predicted`` images).
 
     Returns:
         JSON-ready dict: ``scans`` (per scan: ``train_indices``,
         ``held_out_indices``, ``images_train``, ``images_held_out`` from
         :func:`~diffaccel.reconstruction.image_errors` with, beside each
         error, ``prediction_noise_l1`` (what the predicted images' own sampling
-        noise adds, :func:`~diffaccel.reconstruction.metrics.prediction_noise_l1`)
-        and ``data_noise_l1`` (the measurement's floor from its shots,
+        noise adds, :func:`~diffaccel.reconstruction.metrics.prediction_noise_l1`),
+        ``prediction_particles`` (per member behind the predicted images) and
+        ``data_noise_l1`` (the measurement's floor from its shots,
         :func:`~diffaccel.reconstruction.metrics.shot_noise_l1`; None for
         single-shot data), and with the fractions
         ``fraction_on_screen`` per setting), ``metrics``
@@ -313,8 +354,8 @@ def evaluate(
     scans = as_scans(dataset)
     maps, specs = dataset_maps(scans)
     if predicted is None:
-        predicted, on_screen = predict_dataset(
-            result, scans, return_on_screen=True, maps=maps
+        predicted, on_screen, prediction_particles = predict_dataset(
+            result, scans, return_on_screen=True, maps=maps, return_particles=True
         )
     pred = dict(predicted)
     per_scan: dict[str, Any] = {}
@@ -335,7 +376,16 @@ def evaluate(
         kappa = ScreenForwardModel.from_dataset(
             scan, blur_pixels=result.config.blur_for(scan)
         ).pixel_kernel_sum_sq()
-        own = prediction_noise_l1(p, kappa, prediction_particles * result.n_snapshots)
+        n_member = (
+            prediction_particles.get(name)
+            if isinstance(prediction_particles, Mapping)
+            else prediction_particles
+        )
+        own = (
+            None
+            if n_member is None
+            else prediction_noise_l1(p, kappa, int(n_member) * result.n_snapshots)
+        )
         floor = shot_noise_l1(scan.images)
         for key, rows, parts in (
             ("images_train", train, train_parts),
@@ -344,11 +394,14 @@ def evaluate(
             if not rows:
                 continue
             entry[key] = image_errors(p[rows], meas[rows])
-            entry[key]["prediction_noise_l1"] = float(own[rows].mean())
+            entry[key]["prediction_noise_l1"] = (
+                None if own is None else float(own[rows].mean())
+            )
+            entry[key]["prediction_particles"] = n_member
             entry[key]["data_noise_l1"] = (
                 None if floor is None else float(floor[rows].mean())
             )
-            parts.append((p[rows], meas[rows]))
+            parts.append((p[rows], meas[rows], entry[key]))
         if on_screen is not None:
             fraction = on_screen[name]
             entry["fraction_on_screen"] = _rounded(fraction)
@@ -358,7 +411,7 @@ def evaluate(
         per_scan[name] = entry
     metrics: dict[str, Any] = {}
     for key, parts in (("images_train", train_parts), ("images_held_out", test_parts)):
-        pooled = _pooled(parts)
+        pooled = _pooled([q[:2] for q in parts], [q[2] for q in parts])
         if pooled is not None:
             metrics[key] = pooled
     moments = result.moments(n=n_sample)

@@ -27,6 +27,8 @@ from diffaccel.data.scans import MultiScanDataset, read_scans, write_scans
 from diffaccel.reconstruction.alarms import prediction_alarms
 from diffaccel.reconstruction.ensemble import Reconstruction, load
 from diffaccel.reconstruction.evaluation import (
+    MAX_PREDICTION_PARTICLES,
+    PREDICTION_NOISE_L1,
     check_on_screen,
     off_screen_warnings,
     predict_dataset,
@@ -74,8 +76,9 @@ def predict_scans(
 ) -> Prediction:
     """Images of every scan and setting of ``dataset``, on its screen grids.
 
-    See :func:`~diffaccel.reconstruction.predict_dataset` (``n_particles``
-    per ensemble member, sampling ``seed``, ``return_std``: also the spread).
+    See :func:`~diffaccel.reconstruction.predict_dataset` (at least
+    ``n_particles`` per ensemble member, more where the images' own noise
+    needs them; sampling ``seed``; ``return_std``: also the spread).
 
     Raises:
         ValueError: a dataset the result cannot image (e.g. other scanned
@@ -117,7 +120,11 @@ def predict_settings(
     Args:
         result: The reconstruction.
         settings: ``(K, P)`` values of its scanned parameters.
-        n_particles: Particles per ensemble member.
+        n_particles: Particles per ensemble member, at least; more (up to
+            :data:`~diffaccel.reconstruction.evaluation.MAX_PREDICTION_PARTICLES`)
+            where the images' own sampling noise would add more than
+            :data:`~diffaccel.reconstruction.evaluation.PREDICTION_NOISE_L1`
+            relative L1.
         seed: Sampling seed.
         return_std: Also the per-pixel spread.
 
@@ -139,6 +146,8 @@ def predict_settings(
         return_std=return_std,
         n_draws=N_DRAWS,
         return_on_screen=True,
+        noise_l1=PREDICTION_NOISE_L1,
+        max_particles=max(MAX_PREDICTION_PARTICLES, n_particles),
     )
     if return_std:
         images, std, fraction = out

@@ -283,13 +283,17 @@ def write_result(
         spread = None
         if figures is not None and uncertainty:
             t_std = time.perf_counter()
-            predicted, spread, on_screen = predict_dataset(
-                result, dataset, return_std=True, return_on_screen=True
+            predicted, spread, on_screen, used = predict_dataset(
+                result,
+                dataset,
+                return_std=True,
+                return_on_screen=True,
+                return_particles=True,
             )
             result.info["timings_s"]["image_spread"] = time.perf_counter() - t_std
         else:
-            predicted, on_screen = predict_dataset(
-                result, dataset, return_on_screen=True
+            predicted, on_screen, used = predict_dataset(
+                result, dataset, return_on_screen=True, return_particles=True
             )
         particles = result.sample(PARTICLES_SAMPLE)
         summary = evaluate(
@@ -300,6 +304,7 @@ def write_result(
             n_sample=PARTICLES_SAMPLE,
             sample=particles,
             on_screen=on_screen,
+            prediction_particles=used,
         )
         summary["dataset"] = str(dataset_path)
         try:
@@ -937,8 +942,30 @@ def headline_lines(summary: Mapping[str, Any]) -> list[str]:
     return [f"{group}: " + ", ".join(items) for group, items in lines.items()]
 
 
+def noise_note(errors: Mapping[str, Any]) -> str:
+    """What an image error holds besides the beam: the predictions' own noise
+    and the data's floor (from its shots), as a parenthesis; ``""`` when the
+    errors carry neither.
+
+    Example:
+        >>> noise_note({"prediction_noise_l1": 0.021, "data_noise_l1": None})
+        " (predictions' own noise 0.021; data floor unknown: single shots)"
+    """
+    own = errors.get("prediction_noise_l1")
+    if own is None and "data_noise_l1" not in errors:
+        return ""
+    floor = errors.get("data_noise_l1")
+    parts = [] if own is None else [f"predictions' own noise {own:.3f}"]
+    if floor is None:
+        parts.append("data floor unknown: single shots")
+    else:
+        parts.append(f"data floor {floor:.3f}")
+    return " (" + "; ".join(parts) + ")"
+
+
 def score_lines(summary: Mapping[str, Any]) -> list[str]:
-    """The image fit of a summary: held-out (where any) and training relative L1.
+    """The image fit of a summary: held-out (where any) and training relative L1,
+    each with its :func:`noise_note`.
 
     Example:
         >>> score_lines({"metrics": {"images_train": {"relative_l1": 0.0123}}})
@@ -947,9 +974,14 @@ def score_lines(summary: Mapping[str, Any]) -> list[str]:
     m = summary["metrics"]
     lines = []
     if "images_held_out" in m:
-        held = m["images_held_out"]["relative_l1"]
-        lines.append(f"held-out image relative L1: {held:.4f}")
-    lines.append(f"train image relative L1: {m['images_train']['relative_l1']:.4f}")
+        held = m["images_held_out"]
+        lines.append(
+            f"held-out image relative L1: {held['relative_l1']:.4f}" + noise_note(held)
+        )
+    train = m["images_train"]
+    lines.append(
+        f"train image relative L1: {train['relative_l1']:.4f}" + noise_note(train)
+    )
     return lines
 
 
@@ -1050,11 +1082,17 @@ def report_markdown(summary: Mapping[str, Any]) -> str:
         u = f" [{unit}]" if unit else ""
         lines.append(f"| {group} {label}{u} | {mean:.4g} +- {_std(std)} | {e} |")
     lines += [""]
-    held = m.get("images_held_out", {}).get("relative_l1")
-    train = m.get("images_train", {}).get("relative_l1")
-    fit = f"Training image relative L1: {train:.4f}" if train is not None else ""
+    held_errors = m.get("images_held_out", {})
+    train_errors = m.get("images_train", {})
+    held = held_errors.get("relative_l1")
+    train = train_errors.get("relative_l1")
+    fit = (
+        f"Training image relative L1: {train:.4f}" + noise_note(train_errors)
+        if train is not None
+        else ""
+    )
     if held is not None:
-        fit += f"; held out: {held:.4f}"
+        fit += f"; held out: {held:.4f}" + noise_note(held_errors)
     lines += [fit + ".", ""]
     warnings = summary.get("warnings", [])
     lines += ["Warnings: " + ("none" if not warnings else ""), ""]
