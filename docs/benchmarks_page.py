@@ -50,6 +50,7 @@ GROUPS = (
             "daq_6d",
             "resolution",
             "camera_4d",
+            "camera_6d",
             "validate_defaults",
             "alarms",
             "design",
