@@ -26,6 +26,7 @@ import platform
 import shlex
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -49,6 +50,29 @@ def git_commit() -> str:
         ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
+
+
+def reconstruct_cli(
+    data: Path, out: Path, threads: int, *options: str
+) -> tuple[dict, float]:
+    """Run ``diffaccel reconstruct DATA --out OUT OPTIONS`` as a user would, on
+    ``threads`` threads; return its ``summary.json`` and the command's wall time
+    [s] (Python's start-up included)."""
+    command = [sys.executable, "-m", "diffaccel", "reconstruct", str(data)]
+    command += ["--out", str(out), *options]
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
+    t0 = time.perf_counter()
+    subprocess.run(command, check=True, env=env, stdout=subprocess.DEVNULL)
+    seconds = time.perf_counter() - t0
+    return json.loads((out / "summary.json").read_text()), seconds
+
+
+def against_truth(mean: float, std: float, rel_err: float) -> tuple[float, bool]:
+    """A reported ``mean +- std`` whose relative error against the truth is
+    ``rel_err``: its std relative to the truth, and whether the truth lies within
+    2 reported std."""
+    true = mean / (1 + rel_err)
+    return std / abs(true), abs(mean - true) <= 2 * std
 
 
 def _cpu_model() -> str:

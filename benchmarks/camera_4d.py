@@ -30,16 +30,11 @@ Prints one JSON object on the last line:
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import subprocess
-import sys
 import tempfile
-import time
 from pathlib import Path
 
 import torch
-from _meta import add_store_flag, emit, span
+from _meta import add_store_flag, against_truth, emit, reconstruct_cli, span
 
 from diffaccel.data.quad_scan import write_quad_scan
 from diffaccel.data.synthetic import make_synthetic_quad_scan, sample_preset_beam
@@ -77,26 +72,18 @@ def write_case(case: str, path: Path) -> None:
 def run(case: str, data: Path, seed: int, threads: int) -> dict:
     """``diffaccel reconstruct`` of ``data`` at ``seed``; its scores."""
     out = data.parent / f"{case}_{seed}"
-    command = [
-        sys.executable, "-m", "diffaccel", "reconstruct", str(data),
-        "--out", str(out), "--seed", str(seed),
-        "--train-indices", CASES[case][2],
-    ]  # fmt: skip
-    env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
-    t0 = time.perf_counter()
-    subprocess.run(command, check=True, env=env, stdout=subprocess.DEVNULL)
-    seconds = time.perf_counter() - t0
-    summary = json.loads((out / "summary.json").read_text())
+    options = ("--seed", str(seed), "--train-indices", CASES[case][2])
+    summary, seconds = reconstruct_cli(data, out, threads, *options)
     truth = summary["metrics"]["ground_truth"]
     row: dict = {"case": case, "seed": seed}
     within = True
     for axis in "xy":
         m = summary["moments"][f"emit_{axis}"]
         err = truth[f"emit_{axis}"]
-        true = m["mean"] / (1 + err)
+        rel_std, inside = against_truth(m["mean"], m["std"], err)
         row[f"emit_{axis}_rel_err"] = round(err, 4)
-        row[f"emit_{axis}_rel_std"] = round(m["std"] / true, 4)
-        within &= abs(m["mean"] - true) <= 2 * m["std"]
+        row[f"emit_{axis}_rel_std"] = round(rel_std, 4)
+        within &= inside
     row["within_2_std"] = within
     held = summary["metrics"].get("images_held_out")
     if held is not None:

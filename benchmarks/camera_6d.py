@@ -33,16 +33,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import os
-import subprocess
-import sys
 import tempfile
-import time
 from pathlib import Path
 
 import torch
-from _meta import add_store_flag, emit, span
+from _meta import add_store_flag, against_truth, emit, reconstruct_cli, span
 
 from diffaccel.data import write_scans
 from diffaccel.data.scans import MultiScanDataset
@@ -85,15 +80,8 @@ def write_data(path: Path) -> dict[str, list[float]]:
 def run(data: Path, seed: int, threads: int, floor: dict[str, list[float]]) -> dict:
     """``diffaccel reconstruct --dims 6`` of ``data`` at ``seed``; its scores."""
     out = data.parent / f"run_{seed}"
-    command = [
-        sys.executable, "-m", "diffaccel", "reconstruct", str(data), "--dims", "6",
-        "--out", str(out), "--seed", str(seed), "--train-indices", TRAIN,
-    ]  # fmt: skip
-    env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
-    t0 = time.perf_counter()
-    subprocess.run(command, check=True, env=env, stdout=subprocess.DEVNULL)
-    seconds = time.perf_counter() - t0
-    summary = json.loads((out / "summary.json").read_text())
+    options = ("--dims", "6", "--seed", str(seed), "--train-indices", TRAIN)
+    summary, seconds = reconstruct_cli(data, out, threads, *options)
     truth = summary["metrics"]["ground_truth"]
     moments = summary["moments"]
     row: dict = {"seed": seed, "rel_err": {}, "rel_std": {}, "outside_2_std": []}
@@ -105,10 +93,10 @@ def run(data: Path, seed: int, threads: int, floor: dict[str, list[float]]) -> d
             mean, std = moments[group]["mean"][i], moments[group]["std"][i]
         else:
             mean, std = moments[key]["mean"], moments[key]["std"]
-        true = mean / (1 + err)
+        rel_std, inside = against_truth(mean, std, err)
         row["rel_err"][key] = round(err, 4)
-        row["rel_std"][key] = round(std / abs(true), 4)
-        if abs(mean - true) > 2 * std:
+        row["rel_std"][key] = round(rel_std, 4)
+        if not inside:
             row["outside_2_std"].append(key)
     row["held_out"] = {}
     for name, scan in summary["scans"].items():

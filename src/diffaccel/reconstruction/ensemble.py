@@ -258,6 +258,8 @@ class Reconstruction:
         _count("n_particles", n_particles, least=64 if return_std else 1)
         if noise_l1 is not None and not (is_real(noise_l1) and noise_l1 > 0):
             raise ValueError(f"noise_l1 must be a number > 0; got {noise_l1!r}.")
+        if noise_l1 is not None:
+            _count("max_particles", max_particles)
         if return_std:
             _count("n_draws", n_draws, least=0)  # 0: the members alone
             _count("draw_particles", draw_particles, least=64)
@@ -302,10 +304,10 @@ class Reconstruction:
             imgs = torch.stack([image(b) for b in beams])
             used = n_particles
             if noise_l1 is not None:
-                target = _noise_target(imgs, measured, fwd, n_particles, noise_l1)
-                imgs, used = self._sharpened(
-                    imgs, n_particles, image, target, max_particles, seed
+                need = _particles_needed(
+                    imgs, measured, fwd, n_particles, noise_l1, max_particles
                 )
+                imgs, used = self._sharpened(imgs, n_particles, need, image, seed)
             on_screen = imgs.sum((-2, -1))  # (E, K): before normalising
             if not per_snapshot:
                 on_screen = on_screen.mean(0)
@@ -340,24 +342,17 @@ class Reconstruction:
         self,
         images: Tensor,
         n: int,
+        need: int,
         image: Callable[[Tensor], Tensor],
-        target: tuple[float, float],
-        max_particles: int,
         seed: int,
     ) -> tuple[Tensor, int]:
-        """Members' images ``(E, K, H, W)`` of ``n`` particles each, with more
-        particles added until the own noise ``target[0]`` of the mean images
-        falls to ``target[1]`` (both relative L1; noise goes as ``1/sqrt(N)``).
+        """Members' images ``(E, K, H, W)`` of ``n`` particles each, remade of
+        ``need`` particles each (the ``n`` plus a fresh sample) where ``need >
+        n``.
 
         Returns the images (each still summing to its fraction on the screen)
         and the particles per member behind them.
         """
-        _count("max_particles", max_particles)
-        own, wanted = target
-        if own <= wanted:
-            return images, n
-        need = max_particles if wanted <= 0 else math.ceil(n * (own / wanted) ** 2)
-        need = min(max_particles, need)
         if need <= n:
             return images, n
         # a sample of its own (seed + 1 draws the posterior beams)
@@ -563,28 +558,34 @@ def _count(name: str, value: object, least: int = 1) -> None:
 MEASURED_ERROR_SHARE = 1.0 / 3.0
 
 
-def _noise_target(
+def _particles_needed(
     images: Tensor,
     measured: Tensor | None,
     fwd: ScreenForwardModel,
     n: int,
     noise_l1: float,
-) -> tuple[float, float]:
-    """``(own noise, target)`` of the members' images ``(E, K, H, W)`` of ``n``
-    particles each (relative L1, mean over the settings; see
-    :meth:`Reconstruction.predict_images`)."""
+    max_particles: int,
+) -> int:
+    """Particles per member that bring the own noise of the members' images
+    ``(E, K, H, W)`` of ``n`` particles each to its target (relative L1, mean
+    over the settings; noise goes as ``1/sqrt(N)``), at most ``max_particles``;
+    see :meth:`Reconstruction.predict_images`."""
     mean = _unit_sum(images).mean(0)
     own = prediction_noise_l1(mean, fwd.pixel_kernel_sum_sq(), n * images.shape[0])
     own_l1 = float(own.mean()) if own.numel() else 0.0
-    if measured is None:
-        return own_l1, noise_l1
-    m = measured.detach().to(torch.float64)
-    sums = m.sum((-2, -1), keepdim=True)
-    if m.shape != mean.shape or not bool((sums > 0).all()):
-        return own_l1, noise_l1
-    error = float((mean.to(torch.float64) - m / sums).abs().sum((-2, -1)).mean())
-    beam = math.sqrt(max(error**2 - own_l1**2, 0.0))
-    return own_l1, MEASURED_ERROR_SHARE * beam
+    target = noise_l1
+    if measured is not None:
+        m = measured.detach().to(torch.float64)
+        sums = m.sum((-2, -1), keepdim=True)
+        if m.shape == mean.shape and bool((sums > 0).all()):
+            error = (mean.to(torch.float64) - m / sums).abs().sum((-2, -1)).mean()
+            beam = math.sqrt(max(float(error) ** 2 - own_l1**2, 0.0))
+            target = MEASURED_ERROR_SHARE * beam
+    if own_l1 <= target:
+        return n
+    if target <= 0:
+        return max_particles
+    return min(max_particles, math.ceil(n * (own_l1 / target) ** 2))
 
 
 def _unit_sum(images: Tensor) -> Tensor:

@@ -248,19 +248,19 @@ def _train_indices(result: Reconstruction, name: str, k: int) -> list[int]:
 
 
 def _pooled(
-    parts: Sequence[tuple[Tensor, Tensor]], noises: Sequence[Mapping[str, Any]] = ()
+    parts: Sequence[tuple[Tensor, Tensor, Mapping[str, Any]]],
 ) -> dict[str, Any] | None:
     """Image errors over the images of several scans (each image weighs the same).
 
-    ``noises``: per part, its ``prediction_noise_l1`` and ``data_noise_l1``
-    (pooled the same way; None where any part's is None).
+    ``parts``: per scan, its predicted and measured images and its errors, whose
+    ``prediction_noise_l1`` and ``data_noise_l1`` are pooled the same way (None
+    where any scan's is None).
     """
-    keep = [i for i, p in enumerate(parts) if p[0].shape[0]]
-    if not keep:
+    parts = [q for q in parts if q[0].shape[0]]
+    if not parts:
         return None
-    parts = [parts[i] for i in keep]
-    per = [image_errors(p, m) for p, m in parts]
-    counts = [p.shape[0] for p, _ in parts]
+    per = [image_errors(p, m) for p, m, _ in parts]
+    counts = [p.shape[0] for p, _, _ in parts]
     total = sum(counts)
 
     def mean(values: Sequence[Any]) -> float | None:
@@ -273,9 +273,8 @@ def _pooled(
         "relative_l1": mean([e["relative_l1"] for e in per]),
         "n_images": total,
     }
-    if noises:
-        for key in ("prediction_noise_l1", "data_noise_l1"):
-            out[key] = mean([noises[i][key] for i in keep])
+    for key in ("prediction_noise_l1", "data_noise_l1"):
+        out[key] = mean([errors[key] for _, _, errors in parts])
     return out
 
 
@@ -411,7 +410,7 @@ def evaluate(
         per_scan[name] = entry
     metrics: dict[str, Any] = {}
     for key, parts in (("images_train", train_parts), ("images_held_out", test_parts)):
-        pooled = _pooled([q[:2] for q in parts], [q[2] for q in parts])
+        pooled = _pooled(parts)
         if pooled is not None:
             metrics[key] = pooled
     moments = result.moments(n=n_sample)
